@@ -1,0 +1,12 @@
+"""fbspost: compensate servo- and vibration-induced motion errors with filtered B-splines.
+
+Stages, one module each: ``profile`` (machine profiles), ``dynamics`` (exact discrete axis
+models), ``splines`` (B-spline bases), ``optimizer`` (the FBS solve), ``trajectory`` (sampled
+trajectories as CSV), ``cli`` (the ``fbspost`` command).
+"""
+from importlib.metadata import PackageNotFoundError, version
+
+try:
+    __version__ = version("fbspost")
+except PackageNotFoundError:  # running from a source tree that was never installed
+    __version__ = "0.0.0+source"

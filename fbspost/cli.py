@@ -1,0 +1,102 @@
+"""The ``fbspost`` command line.
+
+Takes arguments and files; gives exit status 0 on success, 1 on bad input (one line
+``error: FILE:LINE: message`` on stderr, no traceback, no output file), 130 on interrupt.
+"""
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import click
+import numpy as np
+
+from . import __version__
+from .dynamics import AxisDynamics
+from .optimizer import AxisLimits, FBSSettings, compensate_axis
+from .profile import ProfileError, bundled_profiles, load_profile
+from .trajectory import InputError, read_trajectory_csv, write_trajectory_csv
+
+
+class _FriendlyGroup(click.Group):
+    """Bad input ends in one line on stderr and exit status 1, never a traceback."""
+
+    def invoke(self, ctx):
+        try:
+            return super().invoke(ctx)
+        except (ProfileError, InputError, OSError) as exc:
+            click.echo(f"error: {exc}", err=True)
+            ctx.exit(1)
+        except KeyboardInterrupt:
+            click.echo("error: interrupted; no output written", err=True)
+            ctx.exit(130)
+
+
+@click.group(cls=_FriendlyGroup)
+@click.version_option(__version__, prog_name="fbspost")
+def main():
+    """Compensate servo- and vibration-induced motion errors before the program reaches the machine."""
+
+
+@main.command()
+def machines():
+    """List the bundled machine profiles, one per line."""
+    for name, path in bundled_profiles().items():
+        profile = load_profile(path)
+        axes = ", ".join(f"{a} ({len(p.modes)} modes)" for a, p in profile.axes.items())
+        click.echo(f"{name:24s} {profile.description}  [{axes}; {profile.sample_rate_hz:g} Hz]")
+
+
+@main.command()
+@click.argument("input_csv", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--machine", "-m", required=True, help="Bundled profile name or path to a profile .toml.")
+@click.option("--output", "-o", type=click.Path(dir_okay=False, path_type=Path),
+              help="Output CSV (default: INPUT-compensated.csv beside the input).")
+@click.option("--lookahead", type=click.Choice(["limited", "complete"]), default="limited", show_default=True,
+              help="Sliding windows, or one solve over the whole trajectory.")
+@click.option("--knot-spacing", type=click.IntRange(min=1), help="Samples between knots (default: from the dynamics).")
+@click.option("--commit-spans", type=click.IntRange(min=1), help="Knot spans kept from each window.")
+@click.option("--overlap-spans", type=click.IntRange(min=1), help="Look-ahead knot spans beyond the kept ones.")
+@click.option("--quiet", "-q", is_flag=True, help="No summary on stderr.")
+def trajectory(input_csv, machine, output, lookahead, knot_spacing, commit_spans, overlap_spans, quiet):
+    """Compensate a sampled trajectory (CSV: time_s,X,Y,... at the profile's sample rate).
+
+    Every axis with modes in the profile gets the command whose modelled motion tracks the input
+    within the axis' limits; other columns are copied. The output has the same samples.
+    """
+    started = time.perf_counter()
+    profile = load_profile(machine)
+    data = read_trajectory_csv(input_csv, profile.sample_rate_hz)
+    settings = FBSSettings(knot_spacing_samples=knot_spacing, commit_spans=commit_spans, overlap_spans=overlap_spans)
+    period_s = 1.0 / profile.sample_rate_hz
+    n = len(next(iter(data.axes.values())))
+    lines = [f"fbspost {__version__}: {input_csv} on {profile.name}, {n} samples at {profile.sample_rate_hz:g} Hz "
+             f"({(n - 1) * period_s:.3f} s), {lookahead} look-ahead"]
+    for name, desired in data.axes.items():
+        axis = profile.axes.get(name)
+        if axis is None or not axis.modes:
+            lines.append(f"axis {name}: no modes in the profile, copied")
+            continue
+        dynamics = AxisDynamics(axis.modes, period_s)
+        limits = AxisLimits.from_profile(axis)
+        result = compensate_axis(desired, dynamics, limits, settings, lookahead)
+        before = desired - dynamics.simulate(desired)
+        after = desired - dynamics.simulate(result.command_mm)
+        data.axes[name] = result.command_mm
+        v = np.abs(np.diff(result.command_mm)).max(initial=0.0) / period_s
+        a = np.abs(np.diff(result.command_mm, 2)).max(initial=0.0) / period_s**2
+        rms = [float(np.sqrt(np.mean(e**2))) * 1e3 for e in (before, after)]
+        lines.append(f"axis {name}: RMS error {rms[0]:.4g} -> {rms[1]:.4g} um, max {np.abs(before).max() * 1e3:.4g} -> "
+                     f"{np.abs(after).max() * 1e3:.4g} um; command |v| {v:.4g}/{limits.command[1]:g} mm/s, "
+                     f"|a| {a:.5g}/{limits.command[2]:g} mm/s^2; {result.windows} windows, {result.qp_windows} with QP")
+        lines.extend(f"warning: axis {name}: {w}" for w in result.warnings)
+    output = output or input_csv.with_name(f"{input_csv.stem}-compensated.csv")
+    write_trajectory_csv(output, data)
+    lines.append(f"wrote {output} in {time.perf_counter() - started:.2f} s")
+    if not quiet:
+        click.echo("\n".join(lines), err=True)
+
+
+if __name__ == "__main__":
+    main()
