@@ -245,8 +245,8 @@ class _Stretch:
         # solve again from there, until the limits hold to ``tolerance`` (relative).
         margin = 0.0
         for _ in range(_QP_ROUNDS):
-            result = self._qp.solve()
-            if result.info.status_val not in (osqp.constant("OSQP_SOLVED"), osqp.constant("OSQP_SOLVED_INACCURATE")):
+            result = self._qp.solve(raise_error=False)
+            if result.info.status_val not in (osqp.SolverStatus.OSQP_SOLVED, osqp.SolverStatus.OSQP_SOLVED_INACCURATE):
                 return None
             row = A @ result.x
             excess = max(0.0, np.max(row[:n_limit_rows] - upper[:n_limit_rows]),
@@ -302,7 +302,7 @@ def compensate_axis(desired_mm: np.ndarray, dynamics: AxisDynamics, limits: Axis
                 advance = np.linalg.matrix_power(dynamics.A, commit_rows)
             k0 = q0 * k
             desired = desired_mm[k0:k0 + window * k]
-            p_free = _solve_window(regular, desired, carry, None, result, slice(0, commit_rows))
+            p_free = _solve_window(regular, desired, carry, None, result, slice(0, commit_rows), k0)
             p_all = np.concatenate([carry.p_fixed, p_free[:commit]])
             result.command_mm[k0:k0 + commit_rows] = regular.N[:commit_rows, :m + commit] @ p_all
             output = regular.Phi[:commit_rows] @ carry.state + regular.Nt[:commit_rows, :m + commit] @ p_all
@@ -318,19 +318,21 @@ def compensate_axis(desired_mm: np.ndarray, dynamics: AxisDynamics, limits: Axis
     # The final window: from span q0 to the end, the end conditions, and the settling stretch.
     k0 = q0 * k
     n_rows = last - k0 + 1
-    final = _Stretch(dynamics, settings, limits, n_rows + settings.settle_samples, (n_rows - 1) // k + 1,
+    # The spans up to the last sample; a point whose support starts at the last sample does nothing.
+    final = _Stretch(dynamics, settings, limits, n_rows + settings.settle_samples, max(1, -(-(n_rows - 1) // k)),
                      hold_from=n_rows, end_conditions=True)
     desired = np.concatenate([desired_mm[k0:], np.full(settings.settle_samples, desired_mm[-1])])
     end_values = np.zeros(settings.end_rest_order + 1)
     end_values[0] = desired_mm[-1]
-    p_free = _solve_window(final, desired, carry, end_values, result, slice(0, n_rows))
+    p_free = _solve_window(final, desired, carry, end_values, result, slice(0, n_rows), k0)
     result.command_mm[k0:] = final.N[:n_rows] @ np.concatenate([carry.p_fixed, p_free])
     result.command_mm[-1] = desired_mm[-1]  # exact, not within rounding
     result.windows += 1
     return result
 
 
-def _solve_window(stretch: _Stretch, desired, carry: _Carry, end_values, result: AxisResult, check: slice) -> np.ndarray:
+def _solve_window(stretch: _Stretch, desired, carry: _Carry, end_values, result: AxisResult, check: slice,
+                  first_sample: int) -> np.ndarray:
     """Free control points of one window: the unconstrained optimum, or the QP where it breaks a limit."""
     target = stretch.target(desired, carry.state, carry.p_fixed)
     p = stretch.unconstrained(target, carry.p_fixed, end_values)
@@ -339,9 +341,10 @@ def _solve_window(stretch: _Stretch, desired, carry: _Carry, end_values, result:
         return p
     result.qp_windows += 1
     p_qp = stretch.constrained(target, carry.p_fixed, *args, end_values, warm=p)
-    if p_qp is not None:
-        excess = stretch.violation(np.concatenate([carry.p_fixed, p_qp]), *args)
-        if excess <= _LIMIT_TOLERANCE:
-            return p_qp
-    result.warnings.append(f"window at sample {len(result.command_mm) - len(desired)}: limits could not be met exactly")
-    return p if p_qp is None else p_qp
+    best = p if p_qp is None else p_qp
+    excess = stretch.violation(np.concatenate([carry.p_fixed, best]), *args)
+    if excess <= _LIMIT_TOLERANCE:
+        return best
+    result.warnings.append(f"window from sample {first_sample}: the limits could not be met; "
+                           f"the command there exceeds them by up to {excess:.3g} (relative)")
+    return best

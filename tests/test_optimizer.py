@@ -1,0 +1,273 @@
+"""The FBS optimizer against independent truths: scipy's simulation of the continuous model, a
+brute-force least-squares and QP solve of the same problem written out here, and the patent's
+butterfly on its own stage."""
+import numpy as np
+import pytest
+from scipy import optimize
+from scipy.interpolate import BSpline
+
+from fbspost.dynamics import AxisDynamics
+from fbspost.examples import butterfly
+from fbspost.optimizer import AxisLimits, FBSSettings, compensate_axis
+from fbspost.profile import load_profile
+from reference import finite_derivative_max, rms, simulate_lsim
+
+PATENT = load_profile("patent-xy-stage")
+T = 1.0 / PATENT.sample_rate_hz
+SKIP = int(0.05 / T)  # the must-show metric starts after the first 50 ms
+
+
+@pytest.fixture(scope="module")
+def butterfly_xy():
+    _, x, y = butterfly(sample_rate_hz=PATENT.sample_rate_hz, size_mm=0.8)
+    return {"X": x, "Y": y}
+
+
+@pytest.fixture(scope="module")
+def butterfly_results(butterfly_xy):
+    """Limited and complete look-ahead, with the profile's limits, on both axes."""
+    out = {}
+    for axis, desired in butterfly_xy.items():
+        dynamics = AxisDynamics(PATENT.axes[axis].modes, T)
+        limits = AxisLimits.from_profile(PATENT.axes[axis])
+        out[axis] = {mode: compensate_axis(desired, dynamics, limits, lookahead=mode)
+                     for mode in ("limited", "complete")}
+    return out
+
+
+def tracking_rms(axis, desired, command):
+    return rms((desired - simulate_lsim(PATENT.axes[axis].modes, T, command))[SKIP:])
+
+
+def smooth_move(distance_mm, duration_s, rest_s, period_s):
+    """Minimum-jerk point-to-point move followed by a rest (closed form, starts and ends at rest)."""
+    t = np.arange(int(round((duration_s + rest_s) / period_s)) + 1) * period_s
+    s = np.clip(t / duration_s, 0.0, 1.0)
+    return distance_mm * (10 * s**3 - 15 * s**4 + 6 * s**5)
+
+
+# ---- must show: the butterfly on the patent stage ---------------------------------------------
+
+@pytest.mark.parametrize("axis", ["X", "Y"])
+def test_butterfly_error_at_most_2_percent_within_limits(butterfly_xy, butterfly_results, axis):
+    desired = butterfly_xy[axis]
+    result = butterfly_results[axis]["limited"]
+    command = result.command_mm
+    before = tracking_rms(axis, desired, desired)
+    after = tracking_rms(axis, desired, command)
+    assert after <= 0.02 * before, f"{axis}: {after / before:.3%} of the uncompensated RMS"
+    assert result.windows > 10  # the look-ahead really was limited
+    assert finite_derivative_max(command, 1, T) <= 100.0 * (1 + 1e-6)
+    assert finite_derivative_max(command, 2, T) <= 8000.0 * (1 + 1e-6)
+    # Same duration, starts at rest at the first desired position, ends exactly at the last.
+    assert command.shape == desired.shape
+    assert command[0] == desired[0] and command[-1] == desired[-1]
+    assert not result.warnings
+
+
+@pytest.mark.parametrize("axis", ["X", "Y"])
+def test_limited_lookahead_matches_complete(butterfly_xy, butterfly_results, axis):
+    desired = butterfly_xy[axis]
+    limited = tracking_rms(axis, desired, butterfly_results[axis]["limited"].command_mm)
+    complete = tracking_rms(axis, desired, butterfly_results[axis]["complete"].command_mm)
+    assert butterfly_results[axis]["complete"].windows == 1
+    assert abs(limited - complete) <= 0.01 * complete
+
+
+def test_binding_limit_no_worse_than_best_clipped_solution(butterfly_xy, butterfly_results):
+    """Y's stop needs more than 8000 mm/s^2 unconstrained. The QP meets the limit to 1e-6 and
+    tracks at least as well as the best blend of the unconstrained command with the desired
+    trajectory that meets the limits (the blend factor found by bisection here)."""
+    axis, desired = "Y", butterfly_xy["Y"]
+    dynamics = AxisDynamics(PATENT.axes[axis].modes, T)
+    free = compensate_axis(desired, dynamics, AxisLimits()).command_mm
+    assert finite_derivative_max(free, 2, T) > 8000.0 * 1.5  # the limit really binds
+
+    def feasible(lam):
+        u = desired + lam * (free - desired)
+        return finite_derivative_max(u, 1, T) <= 100.0 and finite_derivative_max(u, 2, T) <= 8000.0
+
+    lo, hi = 0.0, 1.0
+    assert feasible(lo)
+    for _ in range(50):
+        mid = (lo + hi) / 2
+        lo, hi = (mid, hi) if feasible(mid) else (lo, mid)
+    clipped = desired + lo * (free - desired)
+    constrained = butterfly_results[axis]["limited"].command_mm
+    assert finite_derivative_max(constrained, 2, T) <= 8000.0 * (1 + 1e-6)
+    assert finite_derivative_max(constrained, 2, T) >= 8000.0 * (1 - 1e-6)  # active
+    assert tracking_rms(axis, desired, constrained) <= tracking_rms(axis, desired, clipped)
+
+
+def test_jerk_limit_binds_inside_windows(butterfly_xy):
+    """A jerk limit just above the desired trajectory's own jerk binds in regular windows too."""
+    axis, desired = "X", butterfly_xy["X"]
+    dynamics = AxisDynamics(PATENT.axes[axis].modes, T)
+    jerk_limit = 1.1 * finite_derivative_max(desired, 3, T)
+    free = compensate_axis(desired, dynamics, AxisLimits()).command_mm
+    assert finite_derivative_max(free, 3, T) > 2 * jerk_limit
+    result = compensate_axis(desired, dynamics, AxisLimits({1: 100.0, 2: 8000.0, 3: jerk_limit}))
+    assert result.qp_windows >= 2
+    assert finite_derivative_max(result.command_mm, 3, T) <= jerk_limit * (1 + 1e-6)
+    before = tracking_rms(axis, desired, desired)
+    assert tracking_rms(axis, desired, result.command_mm) <= 0.05 * before
+
+
+# ---- the formulation against a brute-force solve ----------------------------------------------
+
+def brute_force_problem(desired, modes, settings, period_s):
+    """The optimizer's problem written out densely: free control points p_0.. on uniform knots,
+    p_i = x0 before the start, command held after the end, the settle rows weighted, the
+    derivative-tracking rows, and the end conditions u(t_E) = x_E, u'(t_E) = u''(t_E) = 0."""
+    m, k, settle = settings.degree, settings.knot_spacing_samples, settings.settle_samples
+    last = desired.size - 1
+    h = k * period_s
+    n_free = last // k + 1
+    knots = h * (np.arange(n_free + 2 * m + 1) - m)  # control points i = -m .. n_free-1
+    rows = np.minimum(np.arange(last + 1 + settle), last) * period_s
+    basis = BSpline.design_matrix(rows, knots, m).toarray()
+    x0, x_end = desired[0], desired[-1]
+    target = np.concatenate([desired, np.full(settle, x_end)])
+    base = simulate_lsim(modes, period_s, basis[:, :m] @ np.full(m, x0))
+    filtered = np.column_stack([simulate_lsim(modes, period_s, basis[:, j]) for j in range(m, m + n_free)])
+    weights = np.ones(target.size)
+    weights[last + 1:] = settings.settle_weight
+    a_rows, b_rows = [weights[:, None] * filtered], [weights * (target - base)]
+    for r, alpha in enumerate(settings.derivative_weights, start=1):
+        a_rows.append(alpha * np.diff(filtered, r, axis=0) / period_s**r)
+        b_rows.append(alpha * np.diff(target - base, r) / period_s**r)
+    t_end = last * period_s
+    eq = np.array([[BSpline.basis_element(knots[j:j + m + 2], extrapolate=False).derivative(r)(t_end)
+                    if knots[j] <= t_end <= knots[j + m + 1] else 0.0 for j in range(m + n_free)]
+                   for r in range(settings.end_rest_order + 1)])
+    eq = np.nan_to_num(eq)
+    eq_rhs = np.zeros(settings.end_rest_order + 1)
+    eq_rhs[0] = x_end
+    eq_rhs -= eq[:, :m] @ np.full(m, x0)
+    return (np.vstack(a_rows), np.concatenate(b_rows), eq[:, m:], eq_rhs,
+            lambda p: basis[:last + 1] @ np.concatenate([np.full(m, x0), p]))
+
+
+def test_complete_lookahead_equals_brute_force_least_squares():
+    axis = PATENT.axes["X"]
+    desired = smooth_move(3.0, 0.12, 0.03, T)
+    settings = FBSSettings(knot_spacing_samples=25, settle_samples=400, settle_weight=0.5,
+                           derivative_weights=(2e-3,))
+    dynamics = AxisDynamics(axis.modes, T)
+    ours = compensate_axis(desired, dynamics, AxisLimits(), settings, lookahead="complete").command_mm
+    a, b, c, d, command = brute_force_problem(desired, axis.modes, settings.resolve(dynamics), T)
+    # Equality-constrained least squares through the null space of the end conditions.
+    particular = np.linalg.lstsq(c, d, rcond=None)[0]
+    _, _, vt = np.linalg.svd(c)
+    null = vt[c.shape[0]:].T
+    z = np.linalg.lstsq(a @ null, b - a @ particular, rcond=None)[0]
+    truth = command(particular + null @ z)
+    assert np.abs(ours - truth).max() <= 1e-7 * np.ptp(desired)
+
+
+def test_constrained_solve_no_worse_than_brute_force_qp():
+    """Acceleration limited to 70% of what the unconstrained command uses: our QP's objective is
+    at most SLSQP's on the same problem, and our command meets the limit."""
+    axis = PATENT.axes["Y"]
+    desired = smooth_move(2.0, 0.1, 0.03, T)
+    dynamics = AxisDynamics(axis.modes, T)
+    settings = FBSSettings(knot_spacing_samples=40, settle_samples=300)
+    free = compensate_axis(desired, dynamics, AxisLimits(), settings, lookahead="complete").command_mm
+    limit = 0.7 * finite_derivative_max(free, 2, T)
+    ours = compensate_axis(desired, dynamics, AxisLimits({2: limit}), settings, lookahead="complete")
+    assert ours.qp_windows == 1 and not ours.warnings
+    assert finite_derivative_max(ours.command_mm, 2, T) <= limit * (1 + 1e-6)
+
+    a, b, c, d, command = brute_force_problem(desired, axis.modes, settings.resolve(dynamics), T)
+    x0 = desired[0]
+
+    def accel(p):
+        u = command(p)
+        padded = np.concatenate([[x0, x0], u, [u[-1], u[-1]]])
+        return np.diff(padded, 2) / T**2
+
+    p0 = np.linalg.lstsq(c, d, rcond=None)[0]
+    jac_u = np.column_stack([command(e) - command(np.zeros_like(p0)) for e in np.eye(p0.size)])
+    padded_jac = np.vstack([np.zeros((2, p0.size)), jac_u, np.repeat(jac_u[-1:], 2, axis=0)])
+    accel_jac = np.diff(padded_jac, 2, axis=0) / T**2
+    cons = [{"type": "eq", "fun": lambda p: c @ p - d, "jac": lambda p: c},
+            {"type": "ineq", "fun": lambda p: (limit - accel(p)) / limit, "jac": lambda p: -accel_jac / limit},
+            {"type": "ineq", "fun": lambda p: (limit + accel(p)) / limit, "jac": lambda p: accel_jac / limit}]
+    scale = float(np.sum(b**2))
+    brute = optimize.minimize(lambda p: np.sum((a @ p - b) ** 2) / scale, p0, jac=lambda p: 2 * a.T @ (a @ p - b) / scale,
+                              constraints=cons, method="SLSQP", options={"maxiter": 500, "ftol": 1e-12})
+    assert brute.success, brute.message
+    assert np.abs(accel(brute.x)).max() <= limit * (1 + 1e-4)
+    # Our command expressed in the same control points: solve for them from the samples.
+    ours_p = np.linalg.lstsq(jac_u, ours.command_mm - command(np.zeros_like(p0)), rcond=None)[0]
+    assert np.abs(command(ours_p) - ours.command_mm).max() < 1e-9
+    ours_cost = np.sum((a @ ours_p - b) ** 2)
+    brute_cost = np.sum((a @ brute.x - b) ** 2)
+    assert ours_cost <= brute_cost * (1 + 1e-6)
+
+
+# ---- behaviour at the edges -------------------------------------------------------------------
+
+def test_constant_trajectory_is_returned_unchanged():
+    dynamics = AxisDynamics(PATENT.axes["X"].modes, T)
+    desired = np.full(5000, 12.5)
+    assert np.array_equal(compensate_axis(desired, dynamics, AxisLimits()).command_mm, desired)
+
+
+def test_trajectory_shorter_than_a_window():
+    """A 20 ms move: a single (final) window, still at rest at both ends, still much better."""
+    axis = PATENT.axes["X"]
+    desired = smooth_move(0.2, 0.02, 0.0, T)
+    result = compensate_axis(desired, AxisDynamics(axis.modes, T), AxisLimits.from_profile(axis))
+    assert result.windows == 1
+    assert result.command_mm[-1] == desired[-1] and result.command_mm[0] == desired[0]
+    assert finite_derivative_max(result.command_mm, 2, T) <= 8000.0 * (1 + 1e-6)
+
+
+def test_output_limit_binds_on_modelled_motion():
+    """A limit on the modelled output's velocity, below what the tracked motion would need, holds
+    on the output simulated by scipy (to the tolerance of the exact discretization)."""
+    axis = PATENT.axes["X"]
+    desired = smooth_move(2.0, 0.08, 0.05, T)
+    dynamics = AxisDynamics(axis.modes, T)
+    settings = FBSSettings(knot_spacing_samples=40)
+    free = compensate_axis(desired, dynamics, AxisLimits(), settings)
+    out_free = simulate_lsim(axis.modes, T, free.command_mm)
+    limit = 0.9 * finite_derivative_max(out_free, 1, T)
+    result = compensate_axis(desired, dynamics, AxisLimits(output={1: limit}), settings)
+    assert result.qp_windows >= 1
+    out = simulate_lsim(axis.modes, T, result.command_mm)
+    assert finite_derivative_max(out, 1, T) <= limit * (1 + 1e-6)
+
+
+def test_printer_profile_at_1khz_compensates_a_move():
+    """The bundled printer profile at its own 1 kHz grid: a 40 mm move at ~150 mm/s, 20x better."""
+    profile = load_profile("bedslinger-example")
+    period_s = 1.0 / profile.sample_rate_hz
+    desired = smooth_move(40.0, 0.45, 0.2, period_s)
+    for name, axis in profile.axes.items():
+        result = compensate_axis(desired, AxisDynamics(axis.modes, period_s), AxisLimits.from_profile(axis))
+        before = rms(desired - simulate_lsim(axis.modes, period_s, desired))
+        after = rms(desired - simulate_lsim(axis.modes, period_s, result.command_mm))
+        assert after <= before / 20, name
+        assert finite_derivative_max(result.command_mm, 2, period_s) <= axis.max_acceleration_mm_s2 * (1 + 1e-6)
+
+
+def test_settings_are_chosen_from_the_dynamics_and_overridable():
+    dynamics = AxisDynamics(PATENT.axes["X"].modes, T)
+    auto = FBSSettings().resolve(dynamics)
+    highest = max(m.frequency_hz for m in PATENT.axes["X"].modes)
+    assert auto.knot_spacing_samples == int(PATENT.sample_rate_hz / (12 * highest))
+    # Look-ahead: the RHP zero at +230.9 rad/s decays by 1e-6 in ln(1e6)/230.9 s, or one period
+    # of the lowest mode (20.52 Hz), whichever is longer.
+    lookahead_s = max(np.log(1e6) / 230.9, 1 / 20.52)
+    assert auto.overlap_spans == pytest.approx(lookahead_s / (auto.knot_spacing_samples * T), abs=1.01)
+    manual = FBSSettings(knot_spacing_samples=7, commit_spans=11, overlap_spans=13).resolve(dynamics)
+    assert (manual.knot_spacing_samples, manual.commit_spans, manual.overlap_spans) == (7, 11, 13)
+
+
+def test_bad_desired_trajectory_is_rejected():
+    dynamics = AxisDynamics(PATENT.axes["X"].modes, T)
+    for bad in (np.array([]), np.array([0.0, np.nan, 1.0]), np.zeros((3, 2))):
+        with pytest.raises(ValueError):
+            compensate_axis(bad, dynamics, AxisLimits())

@@ -1,0 +1,269 @@
+"""Tests of fbspost.profile against the TOML text itself (parsed here with tomllib).
+
+Truths used: the raw numbers in the TOML files, the DC gain sum(alpha_i / w_i^2) computed here
+from the raw values, and the key names of the offending entries in deliberately broken files.
+"""
+from __future__ import annotations
+
+import math
+import re
+import tomllib
+from pathlib import Path
+
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from fbspost.profile import ProfileError, load_profile
+
+MACHINES = Path(__file__).resolve().parents[1] / "machines"
+BUNDLED = ["patent-xy-stage", "bedslinger-example"]
+
+
+def raw_toml(name: str) -> dict:
+    return tomllib.loads((MACHINES / f"{name}.toml").read_text(encoding="utf-8"))
+
+
+def raw_dc_gain(raw_modes: list[dict]) -> float:
+    """sum(alpha_i / w_i^2), w_i = 2 pi f_i, straight from the file's numbers."""
+    return sum(m["alpha"] / (2.0 * math.pi * m["frequency"]) ** 2 for m in raw_modes)
+
+
+def assert_matches_raw(profile, raw: dict) -> None:
+    """Every value of the loaded profile equals the TOML text (modes: scaled by 1/raw DC gain)."""
+    assert profile.name == raw["name"]
+    assert profile.description == raw.get("description", "")
+    assert profile.sample_rate_hz == raw["motion"]["sample_rate"]
+    assert profile.planner_acceleration_mm_s2 == raw["planner"]["acceleration"]
+    assert profile.planner_square_corner_velocity_mm_s == raw["planner"]["square_corner_velocity"]
+    assert set(profile.axes) == set(raw["axes"])
+    for axis_name, raw_axis in raw["axes"].items():
+        axis = profile.axes[axis_name]
+        assert axis.name == axis_name
+        assert axis.max_velocity_mm_s == raw_axis["max_velocity"]
+        assert axis.max_acceleration_mm_s2 == raw_axis["max_acceleration"]
+        if "max_jerk" in raw_axis:
+            assert axis.max_jerk_mm_s3 == raw_axis["max_jerk"]
+        else:
+            assert axis.max_jerk_mm_s3 is None
+        raw_modes = raw_axis["modes"]
+        assert len(axis.modes) == len(raw_modes)
+        if not raw_modes:
+            continue
+        dc = raw_dc_gain(raw_modes)
+        for mode, rm in zip(axis.modes, raw_modes):
+            # frequency and damping unchanged; alpha and beta all scaled by the same 1/dc
+            assert mode.frequency_hz == rm["frequency"]
+            assert mode.damping == rm["damping"]
+            assert mode.alpha == pytest.approx(rm["alpha"] / dc, rel=1e-14, abs=0)
+            assert mode.beta == pytest.approx(rm["beta"] / dc, rel=1e-14, abs=1e-300)
+        # normalized DC gain, computed here from the loaded modes
+        assert sum(m.alpha / (2 * math.pi * m.frequency_hz) ** 2 for m in axis.modes) == pytest.approx(1.0, abs=1e-12)
+
+
+@pytest.mark.parametrize("name", BUNDLED)
+def test_bundled_by_name_matches_toml_text(name):
+    """load_profile(<bundled name>) reads exactly the numbers of machines/<name>.toml."""
+    profile = load_profile(name)
+    assert Path(profile.source).resolve() == (MACHINES / f"{name}.toml").resolve()
+    assert_matches_raw(profile, raw_toml(name))
+
+
+@pytest.mark.parametrize("name", BUNDLED)
+def test_load_by_path_str_and_pathlib(name, tmp_path):
+    """load_profile(path) (str or Path) of a copy gives the same numbers as the TOML text."""
+    text = (MACHINES / f"{name}.toml").read_text(encoding="utf-8")
+    path = tmp_path / "copy.toml"
+    path.write_text(text, encoding="utf-8")
+    for arg in (path, str(path)):
+        profile = load_profile(arg)
+        assert profile.source == str(path)
+        assert_matches_raw(profile, tomllib.loads(text))
+
+
+def test_patent_spot_values():
+    """A few numbers typed from the patent profile text (Table 1, 10 kHz, L1/L2) and max_jerk absent."""
+    p = load_profile("patent-xy-stage")
+    assert p.sample_rate_hz == 10000.0
+    assert p.planner_acceleration_mm_s2 == 5000.0
+    assert p.planner_square_corner_velocity_mm_s == 5.0
+    for ax in "XY":
+        assert p.axes[ax].max_velocity_mm_s == 100.0
+        assert p.axes[ax].max_acceleration_mm_s2 == 8000.0
+        assert p.axes[ax].max_jerk_mm_s3 is None
+        assert len(p.axes[ax].modes) == 4
+    assert [m.frequency_hz for m in p.axes["X"].modes] == [20.52, 34.94, 42.53, 42.60]
+    assert [m.damping for m in p.axes["Y"].modes] == [0.120, 0.021, 0.440, 0.036]
+
+
+def test_patent_raw_dc_gain_offsets():
+    """Table 1 as typed is not exactly DC gain 1: about +4.9e-5 (X) and +2.85e-4 (Y); loading fixes it."""
+    raw = raw_toml("patent-xy-stage")
+    assert raw_dc_gain(raw["axes"]["X"]["modes"]) - 1 == pytest.approx(4.9e-5, abs=1e-5)
+    assert raw_dc_gain(raw["axes"]["Y"]["modes"]) - 1 == pytest.approx(2.85e-4, abs=1e-5)
+    p = load_profile("patent-xy-stage")
+    for ax in "XY":
+        ratio = [m.alpha / rm["alpha"] for m, rm in zip(p.axes[ax].modes, raw["axes"][ax]["modes"])]
+        assert ratio == pytest.approx([1 / raw_dc_gain(raw["axes"][ax]["modes"])] * 4, rel=1e-14)
+        assert ratio[0] != 1.0  # the rescaling really happened
+
+
+# ---------------------------------------------------------------------------------------------
+# A valid baseline file and deliberately broken variants of it.
+
+BASE = """\
+name = "test-machine"
+description = "for tests"
+
+[motion]
+sample_rate = 1000.0
+
+[planner]
+acceleration = 3000.0
+square_corner_velocity = 5.0
+
+[axes.X]
+max_velocity = 300.0
+max_acceleration = 10000.0
+max_jerk = 1000000.0
+modes = [
+  { frequency = 48.0, damping = 0.08, alpha = 90000.0, beta = 0.0 },
+  { frequency = 70.0, damping = 0.05, alpha = 50000.0, beta = 1.0 },
+]
+
+[axes.Y]
+max_velocity = 200.0
+max_acceleration = 8000.0
+modes = [ { frequency = 36.0, damping = 0.06, alpha = 51164.0, beta = 2.0 } ]
+"""
+
+
+def write(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "machine.toml"
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def edited(old: str, new: str) -> str:
+    assert BASE.count(old) == 1, old  # the edit must hit exactly one place of the baseline
+    return BASE.replace(old, new)
+
+
+def test_baseline_is_valid(tmp_path):
+    """The baseline loads and matches its own text, so each broken variant fails because of its edit."""
+    profile = load_profile(write(tmp_path, BASE))
+    assert_matches_raw(profile, tomllib.loads(BASE))
+    assert profile.axes["X"].max_jerk_mm_s3 == 1e6
+    assert profile.axes["Y"].max_jerk_mm_s3 is None
+
+
+MODE1 = "frequency = 70.0, damping = 0.05, alpha = 50000.0, beta = 1.0"
+BROKEN = [
+    # (id, old, new, offending key)
+    ("unknown-top-key", 'name = "test-machine"', 'name = "test-machine"\ncolour = "red"', "colour"),
+    ("unknown-axis-key", "max_velocity = 300.0", "max_velocity = 300.0\nmax_speed = 3.0", "axes.X.max_speed"),
+    ("unknown-mode-key", MODE1, MODE1.replace("frequency", "freq"), "axes.X.modes[1].freq"),
+    ("missing-name", 'name = "test-machine"\n', "", "name"),
+    ("empty-name", 'name = "test-machine"', 'name = "  "', "name"),
+    ("missing-motion", "[motion]\nsample_rate = 1000.0\n", "", "motion"),
+    ("missing-sample-rate", "sample_rate = 1000.0\n", "", "motion.sample_rate"),
+    ("missing-planner-acc", "acceleration = 3000.0\n", "", "planner.acceleration"),
+    ("missing-modes", "modes = [ { frequency = 36.0, damping = 0.06, alpha = 51164.0, beta = 2.0 } ]", "",
+     "axes.Y.modes"),
+    ("missing-alpha", MODE1, MODE1.replace("alpha = 50000.0, ", ""), "axes.X.modes[1].alpha"),
+    ("frequency-zero", MODE1, MODE1.replace("frequency = 70.0", "frequency = 0"), "axes.X.modes[1].frequency"),
+    ("frequency-negative", MODE1, MODE1.replace("frequency = 70.0", "frequency = -70.0"),
+     "axes.X.modes[1].frequency"),
+    ("frequency-above-nyquist", MODE1, MODE1.replace("frequency = 70.0", "frequency = 500.0"),
+     "axes.X.modes[1].frequency"),
+    ("damping-zero", MODE1, MODE1.replace("damping = 0.05", "damping = 0"), "axes.X.modes[1].damping"),
+    ("damping-one", MODE1, MODE1.replace("damping = 0.05", "damping = 1"), "axes.X.modes[1].damping"),
+    ("damping-negative", MODE1, MODE1.replace("damping = 0.05", "damping = -0.05"), "axes.X.modes[1].damping"),
+    ("damping-1.5", MODE1, MODE1.replace("damping = 0.05", "damping = 1.5"), "axes.X.modes[1].damping"),
+    ("max-velocity-zero", "max_velocity = 300.0", "max_velocity = 0.0", "axes.X.max_velocity"),
+    ("max-velocity-negative", "max_velocity = 200.0", "max_velocity = -200.0", "axes.Y.max_velocity"),
+    ("max-acceleration-negative", "max_acceleration = 10000.0", "max_acceleration = -1.0",
+     "axes.X.max_acceleration"),
+    ("max-jerk-zero", "max_jerk = 1000000.0", "max_jerk = 0", "axes.X.max_jerk"),
+    ("string-alpha", MODE1, MODE1.replace("alpha = 50000.0", 'alpha = "50000"'), "axes.X.modes[1].alpha"),
+    ("string-sample-rate", "sample_rate = 1000.0", 'sample_rate = "fast"', "motion.sample_rate"),
+    ("bool-velocity", "max_velocity = 300.0", "max_velocity = true", "axes.X.max_velocity"),
+    ("nan-beta", MODE1, MODE1.replace("beta = 1.0", "beta = nan"), "axes.X.modes[1].beta"),
+    ("inf-velocity", "max_velocity = 300.0", "max_velocity = inf", "axes.X.max_velocity"),
+    ("-inf-alpha", MODE1, MODE1.replace("alpha = 50000.0", "alpha = -inf"), "axes.X.modes[1].alpha"),
+    ("nan-sample-rate", "sample_rate = 1000.0", "sample_rate = nan", "motion.sample_rate"),
+    ("unknown-axis-Q", "[axes.Y]", "[axes.Q]", "axes.Q"),
+    ("scv-negative", "square_corner_velocity = 5.0", "square_corner_velocity = -1.0",
+     "planner.square_corner_velocity"),
+]
+
+
+def assert_one_line_naming(message: str, path, key: str | None) -> None:
+    assert "\n" not in message.strip()
+    assert str(path) in message
+    if key is not None:
+        # the dotted key as a whole word (e.g. "axes.X.modes" must not just be a prefix of "axes.X.modes[0]")
+        assert re.search(re.escape(key) + r"(?![\w.\[])", message), (key, message)
+
+
+@pytest.mark.parametrize("old,new,key", [c[1:] for c in BROKEN], ids=[c[0] for c in BROKEN])
+def test_broken_profile_raises_profile_error(tmp_path, old, new, key):
+    """Each broken variant raises ProfileError, one line, naming the file and the offending key."""
+    path = write(tmp_path, edited(old, new))
+    with pytest.raises(ProfileError) as info:
+        load_profile(path)
+    assert_one_line_naming(str(info.value), path, key)
+
+
+def test_profile_error_is_value_error():
+    """ProfileError is a ValueError (callers may catch either)."""
+    assert issubclass(ProfileError, ValueError)
+
+
+def test_invalid_toml(tmp_path):
+    """A file that is not TOML raises ProfileError naming the file, on one line."""
+    path = write(tmp_path, BASE + "\nthis is = = not toml\n")
+    with pytest.raises(ProfileError) as info:
+        load_profile(path)
+    assert_one_line_naming(str(info.value), path, None)
+
+
+def test_missing_file(tmp_path):
+    """A path that does not exist raises ProfileError naming it."""
+    path = tmp_path / "nowhere" / "no-such-machine.toml"
+    with pytest.raises(ProfileError) as info:
+        load_profile(path)
+    assert_one_line_naming(str(info.value), path, None)
+    with pytest.raises(ProfileError) as info:
+        load_profile("no-such-bundled-profile")
+    assert "no-such-bundled-profile" in str(info.value)
+
+
+def test_empty_modes_is_valid(tmp_path):
+    """modes = [] declares an uncompensated axis: it loads, with no modes and the limits of the text."""
+    path = write(tmp_path, edited(
+        "modes = [ { frequency = 36.0, damping = 0.06, alpha = 51164.0, beta = 2.0 } ]", "modes = []"))
+    profile = load_profile(path)
+    assert profile.axes["Y"].modes == ()
+    assert profile.axes["Y"].max_velocity_mm_s == 200.0
+    assert len(profile.axes["X"].modes) == 2
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.lists(st.tuples(st.floats(1.0, 400.0), st.floats(0.001, 0.999), st.floats(1.0, 1e7),
+                          st.floats(-1e3, 1e3)), min_size=1, max_size=5))
+def test_normalization_property(tmp_path_factory, modes):
+    """For any modes with positive alphas written to a file: the loaded alphas/betas are the written ones
+    times the single factor 1/sum(alpha/w^2) computed here, and the loaded DC gain is 1 to 1e-12."""
+    rows = ",\n".join(f"  {{ frequency = {f!r}, damping = {z!r}, alpha = {a!r}, beta = {b!r} }}"
+                      for f, z, a, b in modes)
+    text = (BASE.split("[axes.X]")[0]
+            + f"[axes.Z]\nmax_velocity = 10.0\nmax_acceleration = 100.0\nmodes = [\n{rows}\n]\n")
+    path = tmp_path_factory.mktemp("prop") / "m.toml"
+    path.write_text(text, encoding="utf-8")
+    axis = load_profile(path).axes["Z"]
+    dc = sum(a / (2 * math.pi * f) ** 2 for f, z, a, b in modes)
+    for mode, (f, z, a, b) in zip(axis.modes, modes):
+        assert (mode.frequency_hz, mode.damping) == (f, z)
+        assert mode.alpha == pytest.approx(a / dc, rel=1e-13)
+        assert mode.beta == pytest.approx(b / dc, rel=1e-13, abs=1e-300)
+    assert math.fsum(m.alpha / (2 * math.pi * m.frequency_hz) ** 2 for m in axis.modes) == pytest.approx(1, abs=1e-12)
