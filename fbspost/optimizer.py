@@ -94,7 +94,12 @@ class FBSSettings:
         final_s = min(1.0, math.log(5.0) / slowest) if slowest > 0 else 1.0
         final = self.final_spans or math.ceil(final_s / span_s)
         settle = self.settle_samples if self.settle_samples is not None else math.ceil(2.0 / (f_min * period_s))
-        return replace(self, knot_spacing_samples=k, commit_spans=self.commit_spans or overlap,
+        commit = self.commit_spans or overlap
+        if not 1 <= self.end_rest_order < self.degree or commit + overlap < self.degree + 4 or settle < 0:
+            raise ValueError(f"FBS settings need 1 <= end_rest_order < degree and windows of at least degree + 4 "
+                             f"spans, got degree {self.degree}, end_rest_order {self.end_rest_order}, "
+                             f"{commit} + {overlap} spans")
+        return replace(self, knot_spacing_samples=k, commit_spans=commit,
                        overlap_spans=overlap, final_spans=final, settle_samples=settle)
 
 
@@ -308,8 +313,8 @@ def compensate_axis(desired_mm: np.ndarray, dynamics: AxisDynamics, limits: Axis
             output = regular.Phi[:commit_rows] @ carry.state + regular.Nt[:commit_rows, :m + commit] @ p_all
             carry.state = advance @ carry.state + to_state[:, :m + commit] @ p_all
             carry.p_fixed = p_all[-m:]
-            carry.prev_command = result.command_mm[k0 + commit_rows - r_max:k0 + commit_rows].copy()
-            carry.prev_output = output[-r_max:]
+            carry.prev_command = np.concatenate([carry.prev_command, result.command_mm[k0:k0 + commit_rows]])[-r_max:]
+            carry.prev_output = np.concatenate([carry.prev_output, output])[-r_max:]
             q0 += commit
             result.windows += 1
     elif lookahead != "complete":
@@ -324,9 +329,10 @@ def compensate_axis(desired_mm: np.ndarray, dynamics: AxisDynamics, limits: Axis
     desired = np.concatenate([desired_mm[k0:], np.full(settings.settle_samples, desired_mm[-1])])
     end_values = np.zeros(settings.end_rest_order + 1)
     end_values[0] = desired_mm[-1]
-    p_free = _solve_window(final, desired, carry, end_values, result, slice(0, n_rows), k0)
+    p_free = _solve_window(final, desired, carry, end_values, result, slice(None), k0)
     result.command_mm[k0:] = final.N[:n_rows] @ np.concatenate([carry.p_fixed, p_free])
-    result.command_mm[-1] = desired_mm[-1]  # exact, not within rounding
+    # Both ends are these positions in exact arithmetic; make them so in floating point too.
+    result.command_mm[0], result.command_mm[-1] = desired_mm[0], desired_mm[-1]
     result.windows += 1
     return result
 

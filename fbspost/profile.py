@@ -69,11 +69,11 @@ _MODE_KEYS = {"frequency", "damping", "alpha", "beta"}
 
 def bundled_profiles() -> dict[str, Path]:
     """Name -> path of every profile shipped with fbspost (the repository's ``machines/``)."""
-    try:
-        folder = Path(str(resources.files("fbspost.machines")))
+    try:  # a namespace package: iterate it, its str() is not a path
+        entries = [Path(str(entry)) for entry in resources.files("fbspost.machines").iterdir()]
     except ModuleNotFoundError:  # a source tree on sys.path, not installed
-        folder = Path(__file__).resolve().parent.parent / "machines"
-    return {p.stem: p for p in sorted(folder.glob("*.toml"))}
+        entries = list((Path(__file__).resolve().parent.parent / "machines").iterdir())
+    return {p.stem: p for p in sorted(entries) if p.suffix == ".toml"}
 
 
 def load_profile(name_or_path: str | Path) -> MachineProfile:
