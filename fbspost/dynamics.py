@@ -23,6 +23,8 @@ class AxisDynamics:
     def __init__(self, modes: tuple[Mode, ...] | list[Mode], sample_period_s: float):
         if not modes:
             raise ValueError("an axis without modes has no dynamics to model")
+        if not sample_period_s > 0:
+            raise ValueError(f"the sample period must be > 0 s, got {sample_period_s!r}")
         self.modes = tuple(modes)
         self.sample_period_s = float(sample_period_s)
         blocks_a, blocks_b, blocks_c = [], [], []
@@ -63,12 +65,14 @@ class AxisDynamics:
     def simulate(self, command_mm: np.ndarray) -> np.ndarray:
         """Actual position for ``command_mm``, starting at rest at the first commanded position."""
         command_mm = np.asarray(command_mm, dtype=float)
+        if command_mm.size == 0:
+            return command_mm.copy()
         return command_mm[0] + self.filter(command_mm - command_mm[0])
 
     def markov(self, n_samples: int) -> np.ndarray:
         """Impulse response h[k] = C A^(k-1) B (h[0] = 0): y = h * u."""
         impulse = np.zeros(n_samples)
-        impulse[0] = 1.0
+        impulse[:1] = 1.0
         return self.filter(impulse)
 
     def free_response_matrix(self, n_samples: int) -> np.ndarray:
@@ -102,11 +106,17 @@ class AxisDynamics:
     def zeros(self) -> np.ndarray:
         """Continuous zeros of G(s), rad/s (roots of the numerator of the summed modes)."""
         dens = [np.array([1.0, 2 * m.damping * m.omega_rad_s, m.omega_rad_s**2]) for m in self.modes]
-        numerator = np.zeros(1)
+        terms = []
         for i, m in enumerate(self.modes):
             term = np.array([m.beta, m.alpha])
             for j, den in enumerate(dens):
                 if j != i:
                     term = np.polymul(term, den)
-            numerator = np.polyadd(numerator, term)
-        return np.roots(np.trim_zeros(numerator, "f"))
+            terms.append(term)
+        terms = np.array(terms)
+        numerator = terms.sum(axis=0)
+        # A leading coefficient that is only the rounding left of cancelling terms (betas summing
+        # to zero) is zero: kept, it would put a spurious zero near infinity.
+        cancelled = np.abs(numerator) <= 1e-12 * np.abs(terms).sum(axis=0)
+        leading = np.argmin(cancelled) if not cancelled.all() else numerator.size
+        return np.roots(numerator[leading:])

@@ -76,7 +76,8 @@ class FBSSettings:
         Knots: 12 per period of the highest mode, so the spline can shape the command well above
         the band it must cancel. Overlap: the optimal command depends on what is coming only
         through the inverse's anticausal part, the right-half-plane zeros of G; look ahead until
-        the slowest of them has decayed by 1e-6 (at least one period of the lowest mode). Final
+        the slowest of them has decayed by 1e-6 (at least one period of the lowest mode, and
+        m + 2 spans). Final
         window: the end conditions reach back through the slowest zero of all (the complete
         solution starts preparing the stop that early); cover its decay by a factor of 5, at
         most 1 s. Settle: two periods of the lowest mode after the end.
@@ -89,7 +90,7 @@ class FBSSettings:
         zeros = dynamics.zeros()
         rhp = zeros.real[zeros.real > 0]
         lookahead_s = max(1.0 / f_min, math.log(1e6) / rhp.min() if rhp.size else 0.0)
-        overlap = self.overlap_spans or math.ceil(lookahead_s / span_s)
+        overlap = self.overlap_spans or max(math.ceil(lookahead_s / span_s), self.degree + 2)
         slowest = np.abs(zeros.real).min(initial=np.inf)
         final_s = min(1.0, math.log(5.0) / slowest) if slowest > 0 else 1.0
         final = self.final_spans or math.ceil(final_s / span_s)
@@ -137,7 +138,7 @@ class _Stretch:
         m, k, T = settings.degree, settings.knot_spacing_samples, dynamics.sample_period_s
         self.m, self.n_free, self.n_samples = m, n_free, n_samples
         hold_from = n_samples if hold_from is None else hold_from
-        knots = uniform_knots(m + n_free, m, k * T, -m * k * T)
+        knots = uniform_knots(m + n_free, m, k * T, first_knot=-m)
         rows = np.minimum(np.arange(n_samples), hold_from - 1)
         self.N = basis_matrix(knots, m, rows * T).toarray()  # n_samples x (m + n_free)
         self.Nt = dynamics.filter(self.N)  # filtered basis, from the zero state

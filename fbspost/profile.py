@@ -80,7 +80,7 @@ def load_profile(name_or_path: str | Path) -> MachineProfile:
     """Load a bundled profile by name, or a profile file by path."""
     path = Path(name_or_path)
     bundled = bundled_profiles()
-    if str(name_or_path) in bundled and not path.exists():
+    if str(name_or_path) in bundled and not path.is_file():
         path = bundled[str(name_or_path)]
     elif not path.is_file():
         known = ", ".join(sorted(bundled))

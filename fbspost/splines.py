@@ -23,9 +23,13 @@ def clamped_uniform_knots(n_control: int, degree: int, duration_s: float = 1.0) 
     return g * duration_s
 
 
-def uniform_knots(n_control: int, degree: int, spacing_s: float, first_knot_s: float = 0.0) -> np.ndarray:
-    """Unclamped uniform knots t_i = first_knot_s + i spacing_s; basis j lives on [t_j, t_(j+m+1)]."""
-    return first_knot_s + spacing_s * np.arange(n_control + degree + 1)
+def uniform_knots(n_control: int, degree: int, spacing_s: float, first_knot: int = 0) -> np.ndarray:
+    """Unclamped uniform knots t_i = (first_knot + i) spacing_s; basis j lives on [t_j, t_(j+m+1)].
+
+    The offset counts whole spans so that the knot at time 0, if any, is exactly 0: a sample at
+    t = 0 must not fall a rounding error outside the spline's base interval.
+    """
+    return spacing_s * (first_knot + np.arange(n_control + degree + 1))
 
 
 def derivative_coefficients(knots: np.ndarray, degree: int) -> sparse.csr_matrix:

@@ -252,3 +252,30 @@ def test_no_modes_rejected():
     """An axis without modes has no model: ValueError."""
     with pytest.raises(ValueError):
         AxisDynamics([], 1e-3)
+
+
+def test_zeros_ignore_cancelled_leading_coefficient():
+    """Betas that cancel (0.1 + 0.2 - 0.3 rounds to 5.6e-17) leave a numerator of lower degree:
+    no spurious zero near infinity. The remaining zeros make the summed G(s) vanish."""
+    modes = [Mode(20.0, 0.1, 15000.0, 0.1), Mode(35.0, 0.2, 30000.0, 0.2), Mode(50.0, 0.05, 60000.0, -0.3)]
+    dyn = AxisDynamics(modes, 1e-4)
+    zeros = dyn.zeros()
+    assert zeros.size == 2 * len(modes) - 2
+    assert np.abs(zeros).max() < 1e4
+
+    def g(s):
+        return sum((m.alpha + m.beta * s) / (s * s + 2 * m.damping * m.omega_rad_s * s + m.omega_rad_s**2) for m in modes)
+
+    for z in zeros:
+        assert abs(g(z)) < 1e-8 * abs(g(0.0))
+
+
+@pytest.mark.parametrize("period", [0.0, -1e-4])
+def test_sample_period_must_be_positive(period):
+    with pytest.raises(ValueError):
+        AxisDynamics([Mode(20.0, 0.1, 15791.4, 0.0)], period)
+
+
+def test_empty_inputs():
+    dyn = AxisDynamics([Mode(20.0, 0.1, 15791.4, 0.0)], 1e-4)
+    assert dyn.simulate([]).size == 0 and dyn.markov(0).size == 0

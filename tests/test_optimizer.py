@@ -271,3 +271,16 @@ def test_bad_desired_trajectory_is_rejected():
     for bad in (np.array([]), np.array([0.0, np.nan, 1.0]), np.zeros((3, 2))):
         with pytest.raises(ValueError):
             compensate_axis(bad, dynamics, AxisLimits())
+
+
+@pytest.mark.parametrize("machine, axis_name, spacing", [("bedslinger-example", "Y", 9), ("patent-xy-stage", "X", 21)])
+def test_knot_spacings_whose_products_round_badly(machine, axis_name, spacing):
+    """Spacings where -m*K*T + m*K*T != 0 in floating point (9 samples at 1 kHz, 21 at 10 kHz)."""
+    profile = load_profile(machine)
+    period_s = 1.0 / profile.sample_rate_hz
+    axis = profile.axes[axis_name]
+    desired = smooth_move(10.0, 0.3, 0.2, period_s)
+    result = compensate_axis(desired, AxisDynamics(axis.modes, period_s), AxisLimits.from_profile(axis),
+                             FBSSettings(knot_spacing_samples=spacing))
+    before = rms(desired - simulate_lsim(axis.modes, period_s, desired))
+    assert rms(desired - simulate_lsim(axis.modes, period_s, result.command_mm)) < before / 5

@@ -267,3 +267,10 @@ def test_normalization_property(tmp_path_factory, modes):
         assert mode.alpha == pytest.approx(a / dc, rel=1e-13)
         assert mode.beta == pytest.approx(b / dc, rel=1e-13, abs=1e-300)
     assert math.fsum(m.alpha / (2 * math.pi * m.frequency_hz) ** 2 for m in axis.modes) == pytest.approx(1, abs=1e-12)
+
+
+def test_bundled_name_wins_over_a_directory_of_that_name(tmp_path, monkeypatch):
+    """A folder called like a bundled profile in the working directory is not a profile file."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "patent-xy-stage").mkdir()
+    assert load_profile("patent-xy-stage").name == "patent-xy-stage"

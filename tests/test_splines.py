@@ -67,10 +67,10 @@ def test_basis_matrix_clamped_vs_scipy(m):
 
 @pytest.mark.parametrize("m", [1, 3, 5])
 def test_basis_matrix_uniform_vs_scipy(m):
-    """Unclamped uniform knots (spacing 10 ms, first knot 0.3 s): same check inside [t_m, t_{-m-1}]."""
+    """Unclamped uniform knots (spacing 10 ms, first knot 30 spans = 0.3 s): same check inside [t_m, t_{-m-1}]."""
     rng = np.random.default_rng(10 + m)
-    knots = uniform_knots(9, m, 0.01, 0.3)
-    np.testing.assert_allclose(knots, 0.3 + 0.01 * np.arange(9 + m + 1), rtol=1e-15)
+    knots = uniform_knots(9, m, 0.01, 30)
+    np.testing.assert_allclose(knots, 0.3 + 0.01 * np.arange(9 + m + 1), rtol=1e-14)
     x = np.linspace(knots[m], knots[-m - 1], 333)
     check_against_scipy(knots, m, x, rng)
 
@@ -141,7 +141,7 @@ def test_uniform_constant_and_linear(m):
     """Uniform knots: equal control points give that constant (all derivatives 0); p_j = j gives
     x(t) = (t - t0)/h - (m + 1)/2 (Greville abscissae), slope 1/h, higher derivatives 0."""
     h, t0, n_control = 0.002, 0.1, 12
-    knots = uniform_knots(n_control, m, h, t0)
+    knots = uniform_knots(n_control, m, h, 50)  # first knot at 50 spans = t0
     t = np.linspace(knots[m], knots[-m - 1], 211)
     const = np.full(n_control, 3.7)
     lin = np.arange(n_control, dtype=float)
@@ -167,3 +167,14 @@ def test_clamped_knots_too_few_points(n_control, m):
     with pytest.raises(ValueError):
         clamped_uniform_knots(n_control, m)
     clamped_uniform_knots(m + 1, m)  # the minimum is accepted
+
+
+@pytest.mark.parametrize("spacing_samples, period_s", [(21, 1e-4), (27, 1e-4), (9, 1e-3), (43, 1e-3)])
+def test_knot_at_time_zero_is_exact(spacing_samples, period_s):
+    """Spacings whose products round badly (e.g. 5 * 0.0021) still put a knot exactly at t = 0, so
+    a sample at t = 0 lies inside the base interval and the basis there sums to one."""
+    m = 5
+    knots = uniform_knots(m + 8, m, spacing_samples * period_s, first_knot=-m)
+    assert knots[m] == 0.0
+    row = basis_matrix(knots, m, [0.0]).toarray()
+    assert abs(row.sum() - 1.0) < 1e-14
