@@ -5,6 +5,7 @@ Takes arguments and files; gives exit status 0 on success, 1 on bad input (one l
 """
 from __future__ import annotations
 
+import json
 import sys
 import time
 from pathlib import Path
@@ -14,7 +15,9 @@ import numpy as np
 
 from . import __version__
 from .dynamics import AxisDynamics
+from .gcode import FLAVORS
 from .optimizer import AxisLimits, FBSSettings, compensate_axis
+from .pipeline import CompensateOptions, compensate_file
 from .profile import ProfileError, bundled_profiles, load_profile
 from .trajectory import InputError, read_trajectory_csv, write_trajectory_csv
 
@@ -46,6 +49,51 @@ def machines():
         profile = load_profile(path)
         axes = ", ".join(f"{a} ({len(p.modes)} modes)" for a, p in profile.axes.items())
         click.echo(f"{name:24s} {profile.description}  [{axes}; {profile.sample_rate_hz:g} Hz]")
+
+
+@main.command()
+@click.argument("input_gcode", type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--machine", "-m", required=True, help="Bundled profile name or path to a profile .toml.")
+@click.option("--output", "-o", type=click.Path(dir_okay=False, path_type=Path),
+              help="Output file (default: replace INPUT in place, atomically, as slicers expect).")
+@click.option("--format", "output_format", type=click.Choice(["dense"]), default="dense", show_default=True,
+              help="dense: G1 blocks on the compensated command.")
+@click.option("--tolerance", type=click.FloatRange(min=0, min_open=True), default=1e-3, show_default=True,
+              help="Largest distance (mm) between the written blocks and the compensated command.")
+@click.option("--min-segment-time", type=click.FloatRange(min=0, min_open=True), default=1e-3, show_default=True,
+              help="Shortest block (s).")
+@click.option("--flavor", type=click.Choice(FLAVORS), help="Firmware dialect (default: detected from the file).")
+@click.option("--lookahead", type=click.Choice(["limited", "complete"]), default="limited", show_default=True)
+@click.option("--report", "report_path", type=click.Path(dir_okay=False, path_type=Path),
+              help="Also write the summary as JSON to this file.")
+@click.option("--quiet", "-q", is_flag=True, help="No progress bar and no summary on stderr.")
+def compensate(input_gcode, machine, output, output_format, tolerance, min_segment_time, flavor, lookahead,
+               report_path, quiet):
+    """Compensate a G-code program for the machine's dynamics.
+
+    Plans the program as the controller would, compensates every axis that has modes in the
+    profile, and writes a program that makes the machine follow the original path with the
+    original timing. Every other line is copied byte-exact, in order.
+    """
+    profile = load_profile(machine)
+    options = CompensateOptions(flavor=flavor, tolerance_mm=tolerance, min_segment_time_s=min_segment_time,
+                                lookahead=lookahead)
+    output = output or input_gcode
+    show_progress = not quiet and sys.stderr.isatty()
+    with click.progressbar(length=1000, label="compensating", file=sys.stderr, hidden=not show_progress) as bar:
+        report = compensate_file(input_gcode, output, profile, options,
+                                 progress=lambda fraction: bar.update(int(fraction * 1000) - bar.pos))
+    if report_path:
+        report_path.write_text(json.dumps(report.as_dict(), indent=2) + "\n")
+    if not quiet:
+        lines = [f"fbspost {__version__}: {input_gcode} -> {output} on {profile.name} ({report.flavor}): "
+                 f"{report.lines_in} lines in, {report.lines_out} out; print time {report.print_time_s:.1f} s, "
+                 f"computed in {report.compute_time_s:.2f} s"]
+        for name, axis in report.axes.items():
+            lines.append(f"axis {name}: predicted RMS error {axis.rms_error_before_um:.4g} -> {axis.rms_error_after_um:.4g} um, "
+                         f"max {axis.max_error_before_um:.4g} -> {axis.max_error_after_um:.4g} um")
+        lines.extend(f"warning: {w}" for w in report.warnings)
+        click.echo("\n".join(lines), err=True)
 
 
 @main.command()

@@ -24,6 +24,8 @@ running at the sample rate executes: velocity (u[k] - u[k-1]) / T, acceleration 
 """
 from __future__ import annotations
 
+import contextlib
+import io
 import math
 from dataclasses import dataclass, field, replace
 
@@ -80,7 +82,8 @@ class FBSSettings:
         m + 2 spans). Final
         window: the end conditions reach back through the slowest zero of all (the complete
         solution starts preparing the stop that early); cover its decay by a factor of 5, at
-        most 1 s. Settle: two periods of the lowest mode after the end.
+        most 1 s. Settle: two periods of the lowest mode after the end. Kept per window: the
+        overlap, at least 0.1 s.
         """
         period_s = dynamics.sample_period_s
         f_max = max(m.frequency_hz for m in dynamics.modes)
@@ -95,7 +98,8 @@ class FBSSettings:
         final_s = min(1.0, math.log(5.0) / slowest) if slowest > 0 else 1.0
         final = self.final_spans or math.ceil(final_s / span_s)
         settle = self.settle_samples if self.settle_samples is not None else math.ceil(2.0 / (f_min * period_s))
-        commit = self.commit_spans or overlap
+        # Keep at least 0.1 s per window: the work per sample does not grow, the overhead per window shrinks.
+        commit = self.commit_spans or max(overlap, math.ceil(0.1 / span_s))
         if not 1 <= self.end_rest_order < self.degree or commit + overlap < self.degree + 4 or settle < 0:
             raise ValueError(f"FBS settings need 1 <= end_rest_order < degree and windows of at least degree + 4 "
                              f"spans, got degree {self.degree}, end_rest_order {self.end_rest_order}, "
@@ -154,6 +158,7 @@ class _Stretch:
         self.W = sparse.vstack(w_rows, format="csr")
         self.M = np.asarray(self.W @ self.Nt[:, m:])
         self.H = self.M.T @ self.M
+        self._objective_scale = 1.0 / np.abs(self.H).max()
         if end_conditions:
             t_end = (hold_from - 1) * T
             self.E = np.vstack([basis_matrix(knots, m, [t_end], r).toarray()
@@ -170,11 +175,28 @@ class _Stretch:
             self.H = self.H + 1e-9 * np.trace(self.H) / n_free * (tail.T @ tail).toarray()
             self._factor = linalg.cho_factor(self.H)
 
-        # Limits: rows D_r of the command (and output) over the stretch, the r samples before it given.
-        self.limit_rows = []  # (kind, order, limit, D_r)
+        # Limits, one row per sample and limit, divided by the limit: |A_free p + offset| <= 1 with
+        # offset = A_fixed p_fixed + A_prev [previous command; previous output] + A_state state.
+        r_max = max(limits.max_order, 1)
+        free, fixed, prev, state, row_sample = [], [], [], [], []
         for kind, table in (("command", limits.command), ("output", limits.output)):
+            basis = self.N if kind == "command" else self.Nt
             for r, value in sorted(table.items()):
-                self.limit_rows.append((kind, r, value, _difference_matrix(r, n_samples, T)))
+                D = _difference_matrix(r, n_samples, T) / value
+                rows = D[:, r:] @ basis
+                free.append(sparse.csr_matrix(rows[:, m:]))
+                fixed.append(rows[:, :m])
+                before = np.zeros((n_samples, 2 * r_max))
+                column = r_max if kind == "command" else 2 * r_max
+                before[:, column - r:column] = D[:, :r].toarray()
+                prev.append(before)
+                state.append(D[:, r:] @ self.Phi if kind == "output" else np.zeros((n_samples, self.Phi.shape[1])))
+                row_sample.append(np.arange(n_samples))
+        self.has_limits = bool(free)
+        if self.has_limits:
+            self.A_free = sparse.vstack(free, format="csc")
+            self.A_fixed, self.A_prev, self.A_state = np.vstack(fixed), np.vstack(prev), np.vstack(state)
+            self.row_sample = np.concatenate(row_sample)
         self._qp = None
 
     # ---- the pieces every solve needs -------------------------------------------------------
@@ -191,70 +213,57 @@ class _Stretch:
         rhs = np.concatenate([self.gradient(target), end_values - self.E[:, :self.m] @ p_fixed])
         return linalg.lu_solve(self._factor, rhs)[:self.n_free]
 
-    def command(self, p_all: np.ndarray) -> np.ndarray:
-        return self.N @ p_all
+    def limit_offset(self, p_fixed, state, prev_command, prev_output) -> np.ndarray:
+        return self.A_fixed @ p_fixed + self.A_prev @ np.concatenate([prev_command, prev_output]) + self.A_state @ state
 
-    def output(self, state: np.ndarray, p_all: np.ndarray) -> np.ndarray:
-        return self.Phi @ state + self.Nt @ p_all
+    def check_rows(self, n_samples: int):
+        """The limit rows of the first ``n_samples`` samples: (their rows of A_free, their indices)."""
+        rows = np.flatnonzero(self.row_sample < n_samples)
+        return self.A_free[rows].tocsr(), rows
 
-    def violation(self, p_all, state, prev_command, prev_output, rows: slice = slice(None)) -> float:
-        """Largest relative excess over a limit (0 when within), on the given sample rows."""
-        worst = 0.0
-        signals = {"command": None, "output": None}
-        for kind, r, value, D in self.limit_rows:
-            if signals[kind] is None:
-                signals[kind] = (np.concatenate([prev_command, self.command(p_all)]) if kind == "command"
-                                 else np.concatenate([prev_output, self.output(state, p_all)]))
-            s = signals[kind]
-            start = len(s) - self.n_samples - r
-            d = D[rows] @ s[start:]
-            worst = max(worst, np.abs(d).max(initial=0.0) / value - 1.0)
-        return worst
+    def violation(self, p: np.ndarray, offset: np.ndarray, check=None) -> float:
+        """Largest relative excess over a limit (0 when within), on all rows or ``check_rows``."""
+        values = self.A_free @ p + offset if check is None else check[0] @ p + offset[check[1]]
+        return max(0.0, float(np.abs(values).max(initial=0.0)) - 1.0)
 
-    def constrained(self, target, p_fixed, state, prev_command, prev_output, end_values, warm) -> np.ndarray | None:
+    def constrained(self, target, p_fixed, offset, end_values, warm) -> np.ndarray | None:
         """The QP: min ||W (target - Nt_free p)||^2 s.t. every limit row, end conditions. None if unsolved.
 
-        Rows are divided by their limit and the objective by its scale, so that OSQP's tolerances
-        mean the same for a 1e-4 s sample period as for a 1e-3 s one.
+        Limit rows are divided by their limit and the objective by its scale, so that OSQP's
+        tolerances mean the same at any sample rate. Its matrices are set up once per window
+        shape; each window only changes vectors.
         """
         m = self.m
-        a_rows, lower, upper = [], [], []
-        for kind, r, value, D in self.limit_rows:
-            prev = prev_command if kind == "command" else prev_output
-            basis = self.N if kind == "command" else self.Nt
-            lhs = D[:, r:] @ basis / value  # the r samples before the stretch are constants
-            fixed = basis[:, :m] @ p_fixed + (self.Phi @ state if kind == "output" else 0.0)
-            offset = D @ np.concatenate([prev[len(prev) - r:], fixed]) / value
-            a_rows.append(sparse.csr_matrix(lhs[:, m:]))
-            lower.append(-1.0 - offset)
-            upper.append(1.0 - offset)
+        lower, upper = -1.0 - offset, 1.0 - offset
+        n_limit_rows = len(lower)
         if self.E is not None:
             scale = np.abs(self.E[:, m:]).max(axis=1)
-            a_rows.append(sparse.csr_matrix(self.E[:, m:] / scale[:, None]))
             rhs = (end_values - self.E[:, :m] @ p_fixed) / scale
-            lower.append(rhs)
-            upper.append(rhs)
-        objective_scale = 1.0 / np.abs(self.H).max()
-        q = -self.gradient(target) * objective_scale
-        A = sparse.vstack(a_rows, format="csc")
-        lower, upper = np.concatenate(lower), np.concatenate(upper)
-        n_limit_rows = len(lower) - (0 if self.E is None else len(self.E))
+            lower, upper = np.concatenate([lower, rhs]), np.concatenate([upper, rhs])
+        q = -self.gradient(target) * self._objective_scale
         if self._qp is None:
+            A = self.A_free
+            if self.E is not None:
+                A = sparse.vstack([A, sparse.csr_matrix(self.E[:, m:] / scale[:, None])], format="csc")
+            self._A = A
             self._qp = osqp.OSQP()
-            self._qp.setup(sparse.triu(sparse.csc_matrix(self.H * objective_scale), format="csc"), q, A,
+            self._qp.setup(sparse.triu(sparse.csc_matrix(self.H * self._objective_scale), format="csc"), q, A,
                            lower, upper, verbose=False, polishing=True, eps_abs=1e-5, eps_rel=1e-5,
                            max_iter=100000, polish_refine_iter=20)
         else:
             self._qp.update(q=q, l=lower, u=upper)
         self._qp.warm_start(x=warm)
         # OSQP meets the limits to its tolerance; pull the bounds in by what it overshot and
-        # solve again from there, until the limits hold to ``tolerance`` (relative).
+        # solve again from there, until the limits hold to ``_LIMIT_TOLERANCE`` (relative).
         margin = 0.0
         for _ in range(_QP_ROUNDS):
-            result = self._qp.solve(raise_error=False)
+            # OSQP 1.x prints "Polishing not needed" (through sys.stdout) whatever ``verbose`` says
+            # (osqp/osqp#785); a post-processor's stdout may be a pipe that must stay clean.
+            with contextlib.redirect_stdout(io.StringIO()):
+                result = self._qp.solve(raise_error=False)
             if result.info.status_val not in (osqp.SolverStatus.OSQP_SOLVED, osqp.SolverStatus.OSQP_SOLVED_INACCURATE):
                 return None
-            row = A @ result.x
+            row = self._A @ result.x
             excess = max(0.0, np.max(row[:n_limit_rows] - upper[:n_limit_rows]),
                          np.max(lower[:n_limit_rows] - row[:n_limit_rows]))
             if excess <= _LIMIT_TOLERANCE:
@@ -290,6 +299,8 @@ def compensate_axis(desired_mm: np.ndarray, dynamics: AxisDynamics, limits: Axis
     result = AxisResult(desired_mm.copy(), settings)
     if np.ptp(desired_mm) == 0.0:
         return result  # nothing moves: the command is the desired position
+    if desired_mm.size <= (settings.end_rest_order + 3) * settings.knot_spacing_samples:
+        return result  # a few spans: too short to shape, the end conditions would fix every point
 
     m, k = settings.degree, settings.knot_spacing_samples
     r_max = max(limits.max_order, 1)
@@ -306,9 +317,12 @@ def compensate_axis(desired_mm: np.ndarray, dynamics: AxisDynamics, limits: Axis
                 commit_rows = commit * k
                 to_state = dynamics.input_to_state_matrix(commit_rows) @ regular.N[:commit_rows]
                 advance = np.linalg.matrix_power(dynamics.A, commit_rows)
+                # The kept samples and the next m + 1 spans: those depend mostly on kept control
+                # points, and the next window could not undo a limit broken there.
+                check_rows = regular.check_rows(commit_rows + (m + 1) * k) if regular.has_limits else None
             k0 = q0 * k
             desired = desired_mm[k0:k0 + window * k]
-            p_free = _solve_window(regular, desired, carry, None, result, slice(0, commit_rows), k0)
+            p_free = _solve_window(regular, desired, carry, None, result, check_rows, k0)
             p_all = np.concatenate([carry.p_fixed, p_free[:commit]])
             result.command_mm[k0:k0 + commit_rows] = regular.N[:commit_rows, :m + commit] @ p_all
             output = regular.Phi[:commit_rows] @ carry.state + regular.Nt[:commit_rows, :m + commit] @ p_all
@@ -330,7 +344,7 @@ def compensate_axis(desired_mm: np.ndarray, dynamics: AxisDynamics, limits: Axis
     desired = np.concatenate([desired_mm[k0:], np.full(settings.settle_samples, desired_mm[-1])])
     end_values = np.zeros(settings.end_rest_order + 1)
     end_values[0] = desired_mm[-1]
-    p_free = _solve_window(final, desired, carry, end_values, result, slice(None), k0)
+    p_free = _solve_window(final, desired, carry, end_values, result, None, k0)
     result.command_mm[k0:] = final.N[:n_rows] @ np.concatenate([carry.p_fixed, p_free])
     # Both ends are these positions in exact arithmetic; make them so in floating point too.
     result.command_mm[0], result.command_mm[-1] = desired_mm[0], desired_mm[-1]
@@ -338,18 +352,21 @@ def compensate_axis(desired_mm: np.ndarray, dynamics: AxisDynamics, limits: Axis
     return result
 
 
-def _solve_window(stretch: _Stretch, desired, carry: _Carry, end_values, result: AxisResult, check: slice,
+def _solve_window(stretch: _Stretch, desired, carry: _Carry, end_values, result: AxisResult, check,
                   first_sample: int) -> np.ndarray:
-    """Free control points of one window: the unconstrained optimum, or the QP where it breaks a limit."""
+    """Free control points of one window: the unconstrained optimum, or the QP where it breaks a
+    limit on the ``check`` rows (the samples whose command this window decides)."""
     target = stretch.target(desired, carry.state, carry.p_fixed)
     p = stretch.unconstrained(target, carry.p_fixed, end_values)
-    args = (carry.state, carry.prev_command, carry.prev_output)
-    if not stretch.limit_rows or stretch.violation(np.concatenate([carry.p_fixed, p]), *args, rows=check) <= 0.0:
+    if not stretch.has_limits:
+        return p
+    offset = stretch.limit_offset(carry.p_fixed, carry.state, carry.prev_command, carry.prev_output)
+    if stretch.violation(p, offset, check) <= 0.0:
         return p
     result.qp_windows += 1
-    p_qp = stretch.constrained(target, carry.p_fixed, *args, end_values, warm=p)
+    p_qp = stretch.constrained(target, carry.p_fixed, offset, end_values, warm=p)
     best = p if p_qp is None else p_qp
-    excess = stretch.violation(np.concatenate([carry.p_fixed, best]), *args)
+    excess = stretch.violation(best, offset)
     if excess <= _LIMIT_TOLERANCE:
         return best
     result.warnings.append(f"window from sample {first_sample}: the limits could not be met; "

@@ -33,3 +33,127 @@ def finite_derivative_max(u, order, period_s):
     the first sample and the hold after the last (the machine sees both)."""
     padded = np.concatenate([np.full(order, u[0]), u, np.full(order, u[-1])])
     return float(np.abs(np.diff(padded, order)).max() / period_s**order)
+
+
+# ---- an independent G-code executor ------------------------------------------------------------
+import re  # noqa: E402
+
+_WORD = re.compile(rb"([A-Za-z])\s*([-+]?(?:\d+\.?\d*|\.\d+))")
+_MOTION = {b"G0", b"G00", b"G1", b"G01"}
+
+
+def split_code(raw: bytes) -> list[tuple[bytes, float]]:
+    code = raw.split(b";", 1)[0]
+    code = re.sub(rb"\([^)]*\)", b"", code)
+    return [(letter.upper(), float(value)) for letter, value in _WORD.findall(code)]
+
+
+def is_motion_line(raw: bytes) -> bool:
+    """A G0/G1 line that names an axis (X Y Z E): what a post-processor may rewrite."""
+    words = split_code(raw)
+    g = {f"G{int(v)}".encode() for k, v in words if k == b"G"}
+    return bool(g & _MOTION) and any(k in (b"X", b"Y", b"Z", b"E") for k, _ in words)
+
+
+class Executed:
+    """Blocks run one after another at their feed, each at constant speed (no acceleration)."""
+
+    def __init__(self):
+        self.ends = []  # (time_s, x, y, z, e) at the end of every block, machine coordinates
+        self.e_at_lines = []  # E (program coordinate) at every line that is not a motion line
+        self.nonmotion = []  # those lines' bytes, in order
+        self.extruded = 0.0  # sum of positive and negative E moves
+
+
+def execute(path) -> Executed:
+    """G0/G1 with X Y Z E F, G90/G91, M82/M83, G92, G20/G21; other lines are recorded as non-motion.
+    The first position of an axis is where it is first set (a move from an unknown place is instant)."""
+    run = Executed()
+    pos = {a: None for a in "XYZE"}
+    pos["E"] = 0.0
+    offset = {a: 0.0 for a in "XYZE"}
+    abs_xyz, abs_e, scale, feed, t = True, True, 1.0, None, 0.0
+    for raw in open(path, "rb").read().splitlines(keepends=True):
+        words = split_code(raw)
+        codes = [(k, v) for k, v in words if k in (b"G", b"M")]
+        if is_motion_line(raw):
+            target = dict(pos)
+            for k, v in words:
+                a = k.decode()
+                if a in "XYZE":
+                    rel = not (abs_e if a == "E" else abs_xyz)
+                    value = v * scale
+                    target[a] = (pos[a] or 0.0) + value if rel else value + offset[a]
+                elif a == "F":
+                    feed = v * scale / 60.0
+            known = [a for a in "XYZ" if pos[a] is not None and target[a] is not None]
+            d_xyz = np.sqrt(sum((target[a] - pos[a]) ** 2 for a in known)) if known else 0.0
+            d_e = abs(target["E"] - pos["E"])
+            unknown = any(pos[a] is None and target[a] is not None for a in "XYZ")
+            length = d_xyz if d_xyz > 0 else d_e
+            if not unknown and length > 0:
+                t += length / feed
+            run.extruded += target["E"] - pos["E"]
+            pos = target
+            if all(pos[a] is not None for a in "XY"):
+                run.ends.append((t, pos["X"], pos["Y"], pos["Z"] or 0.0, pos["E"]))
+            continue
+        for k, v in codes:
+            code = (k + (b"%g" % v)).upper()
+            if code == b"G90":
+                abs_xyz = abs_e = True
+            elif code == b"G91":
+                abs_xyz = abs_e = False
+            elif code == b"M82":
+                abs_e = True
+            elif code == b"M83":
+                abs_e = False
+            elif code == b"G20":
+                scale = 25.4
+            elif code == b"G21":
+                scale = 1.0
+            elif code == b"G92":
+                for kk, vv in words:
+                    a = kk.decode()
+                    if a in "XYZE" and pos[a] is not None:
+                        offset[a] = pos[a] - vv * scale
+        for k, v in words:
+            if k == b"F" and not codes:
+                feed = v * scale / 60.0
+        run.nonmotion.append(raw)
+        run.e_at_lines.append(pos["E"] - offset["E"])
+    return run
+
+
+def sample_blocks(ends, sample_rate_hz):
+    """The piecewise-linear command of executed blocks on a uniform grid: (times, [x y z e])."""
+    ends = np.array(ends)
+    t = np.arange(0.0, ends[-1, 0] + 0.5 / sample_rate_hz, 1.0 / sample_rate_hz)
+    # Several ends at one time (instant moves): keep the last, so interpolation is well defined.
+    keep = np.append(np.diff(ends[:, 0]) > 0, True)
+    ends = ends[keep]
+    return t, np.column_stack([np.interp(t, ends[:, 0], ends[:, i]) for i in (1, 2, 3, 4)])
+
+
+def contour_error(path_xy, points_xy, piece_mm=0.5, candidates=16):
+    """Distance from every point to the polyline ``path_xy``: the exact distance to the nearest of
+    the ``candidates`` path pieces (pieces no longer than ``piece_mm``) whose middles are closest."""
+    from scipy.spatial import cKDTree
+
+    path_xy = np.asarray(path_xy, dtype=float)
+    starts, ends = [], []
+    for a, b in zip(path_xy[:-1], path_xy[1:]):
+        n = max(1, int(np.ceil(np.hypot(*(b - a)) / piece_mm)))
+        f = np.linspace(0.0, 1.0, n + 1)[:, None]
+        pts = a + f * (b - a)
+        starts.append(pts[:-1])
+        ends.append(pts[1:])
+    starts, ends = np.concatenate(starts), np.concatenate(ends)
+    tree = cKDTree((starts + ends) / 2)
+    _, idx = tree.query(points_xy, k=min(candidates, len(starts)))
+    idx = idx.reshape(len(points_xy), -1)
+    a, d = starts[idx], (ends - starts)[idx]
+    p = np.asarray(points_xy)[:, None, :]
+    length2 = np.sum(d * d, axis=2)
+    u = np.clip(np.divide(np.sum((p - a) * d, axis=2), length2, out=np.zeros_like(length2), where=length2 > 0), 0, 1)
+    return np.sqrt(np.sum((p - a - u[..., None] * d) ** 2, axis=2)).min(axis=1)

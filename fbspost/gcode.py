@@ -1,0 +1,951 @@
+"""G-code reader: a program's lines as blocks the planner and the writer understand.
+
+Takes a G-code file (bytes, any line endings, any encoding in comments) and a flavor; gives, in
+order, one ``Block`` per input line: its number and exact bytes, whether it moves the machine
+(MOVE: planned and rewritten by fbspost), passes through while the motion continues (PASS), or
+passes through with the machine at rest (STOP), the linear pieces of a move in machine
+coordinates (mm, axes X Y Z E; arcs and Beziers subdivided), planner-limit changes, and the
+modal state after the line. Bad input raises ``trajectory.InputError`` naming the file and line.
+
+``read_gcode(path, flavor)`` streams the blocks; ``detect_flavor(path)`` guesses the flavor from
+the first 2000 and last 300 lines. How lines are read:
+
+- Words are a letter and a number, any case, spaces optional (``g1x10y5`` is ``G1 X10 Y5``);
+  ``;`` and ``( )`` comments, a leading ``N123``, a trailing ``*checksum`` and a leading ``/``
+  are ignored; RRF ``"strings"`` may hold ``;``. Marlin, Klipper and RRF execute the first
+  command of a line (later G/M/T letters are its parameters: ``M104 S200 T0`` selects no tool);
+  LinuxCNC executes all of them, modal settings first, then G92/G28/..., then the motion.
+- Positions are machine coordinates: program = machine - ``Modal.offsets_mm`` (G92 moves the
+  offsets, not the machine). XYZ are unknown (NaN) at the start and after homing, probing,
+  macros and unknown commands; E starts known at 0 and is lost only where an unknown command
+  may have changed it while E is absolute. A G92 on an unknown axis makes it known; selecting
+  another work coordinate system (G54..G59.3, offsets not in the file) makes XYZ unknown. A move
+  is a MOVE when the start of every axis it moves (its axis words, and both axes of an arc's
+  plane) is known and a feed is set; axes it does not move may be unknown: their column of
+  ``points_mm`` is NaN (an XY program that never sets Z). Otherwise it is a STOP (points None):
+  the controller plans it, and afterwards the axes it sets absolutely are known.
+- G0 is a rapid (feed inf) in LinuxCNC only: Marlin, Klipper and RRF move G0 at the modal feed
+  like G1. G90/G91 set E too in Marlin; in Klipper E is relative under G91 or M83; in RRF only
+  M82/M83 decide. G92 alone zeroes all axes in Klipper, does nothing in Marlin and RRF and is an
+  error in LinuxCNC. G4 P is milliseconds (S seconds) except in LinuxCNC (P seconds).
+- Arcs (G2/G3 with I J K or R in G17/G18/G19, helical, full circles, P turns: LinuxCNC P turns
+  in all, Marlin P full circles before the arc, ignored elsewhere) and G5 cubic
+  Beziers (XY only) are cut into pieces within CHORD_TOLERANCE_MM; Z (helical) and E follow
+  the arc length. An arc's end may be off its circle by 0.002 mm or 0.1 % (the radius then
+  changes linearly along the arc, as LinuxCNC does); more is an error.
+- Limits: M204 S (print and travel) / P (print) / T (travel), Klipper M204 S or min(P, T);
+  M201 and M203 per axis (M203 in mm/min in RRF); M205 J; classic jerk M205 X/Y (and RRF M566,
+  mm/min) becomes square_corner_velocity = min(X, Y): at a 90 degree corner each axis changes
+  speed by the corner speed, so a jerk limit J allows a corner speed J, the meaning of Klipper's
+  square corner velocity; SET_VELOCITY_LIMIT VELOCITY ACCEL SQUARE_CORNER_VELOCITY.
+- Errors: cutter compensation, rotation, scaling, canned cycles, inverse-time or per-revolution
+  feed, A B C U V W moves, O-word subroutines and control flow, missing or non-numeric values,
+  arcs without a radius or with R shorter than half the chord, feeds <= 0.
+"""
+from __future__ import annotations
+
+import enum
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from .trajectory import InputError
+
+AXES = ("X", "Y", "Z", "E")  # column order of every position array
+FLAVORS = ("marlin", "klipper", "reprap", "linuxcnc")
+
+
+class Kind(enum.Enum):
+    MOVE = "move"  # motion fbspost plans and rewrites
+    PASS = "pass"  # no motion: passes through byte-exact at its time, the motion goes on through it
+    STOP = "stop"  # passes through byte-exact; the machine is at rest when it runs
+
+
+@dataclass(frozen=True)
+class PlannerLimits:
+    """Planner settings changed by one line; ``None`` (or a missing axis) means unchanged."""
+
+    acceleration_mm_s2: float | None = None  # M204 S/P, Klipper ACCEL: moves that extrude (all moves if no travel value)
+    travel_acceleration_mm_s2: float | None = None  # M204 T (Marlin, RRF): moves that do not extrude
+    max_velocity_mm_s: float | None = None  # Klipper VELOCITY
+    square_corner_velocity_mm_s: float | None = None  # Klipper SQUARE_CORNER_VELOCITY
+    junction_deviation_mm: float | None = None  # Marlin M205 J
+    axis_max_velocity_mm_s: dict[str, float] = field(default_factory=dict)  # M203
+    axis_max_acceleration_mm_s2: dict[str, float] = field(default_factory=dict)  # M201
+
+
+@dataclass(frozen=True)
+class Modal:
+    """The state that decides how coordinates are written, after a line."""
+
+    absolute_xyz: bool = True  # G90 / G91
+    absolute_e: bool = True  # M82 / M83 (G90 / G91 set it too, as Marlin and RRF do)
+    inches: bool = False  # G20 / G21
+    offsets_mm: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)  # program = machine - offset (G92)
+
+
+@dataclass
+class Block:
+    line_no: int  # 1-based
+    raw: bytes  # the line exactly as read, line ending included
+    kind: Kind
+    modal: Modal  # after this line
+    position_mm: np.ndarray  # (4,) machine position after this line; NaN where unknown
+    points_mm: np.ndarray | None = None  # MOVE: (k, 4) machine-coordinate end points of its k >= 1 linear pieces
+    feed_mm_s: float | None = None  # MOVE: requested feed along the path; math.inf for a rapid (G0)
+    dwell_s: float = 0.0  # STOP: time at rest (G4)
+    limits: PlannerLimits | None = None  # planner changes made by this line
+
+
+# ----------------------------------------------------------------------------------------------
+# Reading
+
+CHORD_TOLERANCE_MM = 0.0005  # largest distance between an arc or Bezier and its linear pieces
+_INCH = 25.4
+_NAN = math.nan
+_TWO_PI = 2.0 * math.pi
+_GAUSS_X, _GAUSS_W = np.polynomial.legendre.leggauss(5)
+
+# One word: a letter and its value (a number, an RRF "string", an RRF {expression}, or nothing),
+# or any other non-blank character (junk: an error wherever the line's values are needed).
+_WORD = re.compile(
+    r'([A-Za-z])\s*([-+]?\s*(?:\d+\.?\d*|\.\d+)|"(?:[^"]|"")*"?|\{[^}]*\}?|)|(\S)'
+)
+# The common line, fast, straight from its bytes: [N123] G0/G1 with X Y Z E in this order, F first
+# or last, one space between words, [*checksum], [; comment]. Anything else takes the general path.
+_NUM = rb"([-+]?[\d.]{1,40})"
+_FAST_G01 = re.compile(
+    rb"(?:N\d+ +)?G0?([01])(?: +F" + _NUM + rb")?(?: +X" + _NUM + rb")?(?: +Y" + _NUM + rb")?(?: +Z" + _NUM
+    + rb")?(?: +E" + _NUM + rb")?(?: +F" + _NUM + rb")?(?: *\*\d+)?(?:[ \t]*;.*|\s*)\Z",
+    re.DOTALL,
+)
+_COMMENT_OR_STRING = re.compile(r'"(?:[^"]|"")*"?|\([^)]*\)?|;')
+_HEAD = re.compile(r"\s*(?:/\s*)?(?:[Nn]\s*\d+)?\s*")  # block delete, line number
+_CHECKSUM = re.compile(r"\*\s*\d*\s*$")
+_EXT_PARAM = re.compile(r'([A-Za-z_][A-Za-z0-9_]*)\s*=\s*("[^"]*"|\S*)')
+_OWORD = re.compile(r"[Oo]\s*(?:\d+|<[^>]*>)\s*([A-Za-z_]*)")
+# Marlin-style commands whose arguments are free text (messages, file names, version strings).
+_TEXT_CMD = re.compile(r"[Mm]\s*0*(?:117|118|23|28|30|32|33|928|115|0|1)(?![\d.])")
+
+_MOTION = {0.0: 0, 1.0: 1, 2.0: 2, 3.0: 3, 5.0: 5}
+_PLANES = {17.0: (0, 1, 2, "I", "J"), 18.0: (2, 0, 1, "K", "I"), 19.0: (1, 2, 0, "J", "K")}
+_WCS = {54.0, 55.0, 56.0, 57.0, 58.0, 59.0, 59.1, 59.2, 59.3}
+_UNSUPPORTED_G = {
+    41.0: "cutter radius compensation (G41)",
+    42.0: "cutter radius compensation (G42)",
+    41.1: "dynamic cutter radius compensation (G41.1)",
+    42.1: "dynamic cutter radius compensation (G42.1)",
+    68.0: "coordinate rotation (G68)",
+    51.0: "scaling (G51)",
+    93.0: "inverse time feed (G93)",
+    95.0: "feed per revolution (G95)",
+    73.0: "canned cycles (G73)",
+    76.0: "canned cycles (G76)",
+    **{float(g): f"canned cycles (G{g})" for g in range(81, 90)},
+}
+_LINUXCNC_PASS_G = {40.0, 49.0, 61.0, 61.1, 64.0, 80.0, 94.0}
+# M codes that pass while the machine keeps moving (no motion, no waiting)
+_PASS_M = {3.0, 4.0, 5.0, 7.0, 8.0, 9.0, 18.0, 73.0, 84.0, 104.0, 105.0, 106.0, 107.0, 114.0,
+           115.0, 117.0, 118.0, 140.0, 141.0, 221.0, 486.0, 900.0}
+# M codes after which the machine is at rest where it was
+_STOP_M = {0.0, 1.0, 2.0, 6.0, 30.0, 60.0, 109.0, 116.0, 190.0, 191.0, 400.0, 600.0}
+_LIMIT_M = {201.0, 203.0, 204.0, 205.0, 566.0}
+_KLIPPER_PASS = {"SET_FAN_SPEED", "SET_PRESSURE_ADVANCE", "SET_HEATER_TEMPERATURE",
+                 "EXCLUDE_OBJECT_START", "EXCLUDE_OBJECT_END", "EXCLUDE_OBJECT_DEFINE"}
+_OTHER_AXES = "ABCUVW"
+
+
+def read_gcode(path: str | Path, flavor: str) -> Iterator[Block]:
+    """Blocks of the G-code file ``path`` read as ``flavor`` (one of FLAVORS), one per line, in order.
+
+    Streams: the file is read line by line as the iterator is consumed. Raises ``InputError``
+    (``FILE:LINE: message``) at the first line it cannot interpret safely, ``ValueError`` at once
+    for an unknown flavor.
+    """
+    if flavor not in FLAVORS:
+        raise ValueError(f"unknown G-code flavor {flavor!r}: expected one of {', '.join(FLAVORS)}")
+    return _blocks(path, flavor)
+
+
+def _blocks(path: str | Path, flavor: str) -> Iterator[Block]:
+    try:
+        handle = open(path, "rb")
+    except OSError as exc:
+        raise InputError(path, 0, f"cannot read: {exc}") from None
+    reader = _Reader(path, flavor)
+    line = reader.line
+    with handle:
+        for line_no, raw in enumerate(handle, 1):
+            yield line(line_no, raw)
+
+
+class _Reader:
+    """The interpreter's state between lines and the interpretation of one line."""
+
+    def __init__(self, path: str | Path, flavor: str):
+        self.path = path
+        self.flavor = flavor
+        self.cnc = flavor == "linuxcnc"
+        self.pos = [_NAN, _NAN, _NAN, 0.0]  # machine position: XYZ unknown, E at 0
+        self.off = [0.0, 0.0, 0.0, 0.0]  # program = machine - off (G92)
+        self.saved_off = None  # G92.2 keeps the offsets here for G92.3
+        self.abs_xyz = True
+        self.abs_e = True  # as given by M82/M83 (and G90/G91 in Marlin)
+        self.inches = False
+        self.modal = Modal()
+        self.eabs = True  # E words are absolute (the effect of G90/G91 and M82/M83 in this flavor)
+        self.motion = None  # last motion mode: 0 1 2 3 5
+        self.feed = None  # mm/s
+        self.plane = _PLANES[17.0]
+        self.abs_ijk = False  # G90.1
+        self.wcs = 54.0
+        self.tool_length = False  # G43 active (LinuxCNC)
+        self.last_bezier_pq = None  # (P, Q) of the previous G5, mm
+
+    def fast_move(self, n, raw, g, f1, x, y, z, e, f2) -> Block | None:
+        """G0/G1 matched by _FAST_G01: the same as move(), or None to take the general path."""
+        if f1 is not None:
+            if f2 is not None:
+                return None
+            f2 = f1
+        scale = _INCH if self.inches else 1.0
+        if f2 is not None:
+            feed = float(f2)
+            if feed <= 0.0:
+                raise self.error(n, f"feed F{f2.decode()} must be positive")
+            self.feed = feed * scale / 60.0
+        motion = 1 if g == b"1" else 0
+        self.motion = motion
+        start = self.pos
+        target = start[:]
+        off = self.off
+        if self.abs_xyz:
+            if x is not None:
+                target[0] = float(x) * scale + off[0]
+            if y is not None:
+                target[1] = float(y) * scale + off[1]
+            if z is not None:
+                target[2] = float(z) * scale + off[2]
+        else:
+            if x is not None:
+                target[0] += float(x) * scale
+            if y is not None:
+                target[1] += float(y) * scale
+            if z is not None:
+                target[2] += float(z) * scale
+        if e is not None:
+            if self.cnc:
+                return None
+            target[3] = float(e) * scale + off[3] if self.eabs else target[3] + float(e) * scale
+        elif x is None and y is None and z is None:
+            return Block(n, raw, Kind.PASS, self.modal, np.array(start))
+        self.pos = target
+        feed = math.inf if (motion == 0 and self.cnc) else self.feed
+        if feed is None or ((x is not None and start[0] != start[0]) or (y is not None and start[1] != start[1])
+                            or (z is not None and start[2] != start[2]) or (e is not None and start[3] != start[3])):
+            return Block(n, raw, Kind.STOP, self.modal, np.array(target))  # from an unknown start
+        if target == start:  # (unnamed axes hold the very same float objects, NaN included)
+            return Block(n, raw, Kind.PASS, self.modal, np.array(target))
+        both = np.array((target, target))  # one allocation: row 0 the position, row 1 the piece
+        return Block(n, raw, Kind.MOVE, self.modal, both[0], both[1:], feed)
+
+    # -- helpers -------------------------------------------------------------------------------
+
+    def error(self, line_no: int, message: str) -> InputError:
+        return InputError(self.path, line_no, message)
+
+    def e_absolute(self) -> bool:
+        if self.flavor == "klipper":  # Klipper: E is relative under G91 or M83
+            return self.abs_e and self.abs_xyz
+        return self.abs_e
+
+    def new_modal(self) -> None:
+        self.eabs = self.e_absolute()
+        self.modal = Modal(self.abs_xyz, self.eabs, self.inches, tuple(self.off))
+
+    def block(self, n, raw, kind, **kw) -> Block:
+        return Block(n, raw, kind, self.modal, np.array(self.pos), **kw)
+
+    def forget(self, axes, e_too: bool = False) -> None:
+        """The machine position of ``axes`` (indices) is unknown after this line."""
+        for i in axes:
+            self.pos[i] = _NAN
+        if e_too and self.eabs and not self.cnc:  # LinuxCNC has no E: it stays at 0
+            self.pos[3] = _NAN
+
+    def number(self, n: int, letter: str, text: str | None) -> float:
+        """A word's value as a finite number, or an InputError naming the word."""
+        if text is None or text == "":
+            raise self.error(n, f"{letter} needs a number")
+        try:
+            value = float(text.replace(" ", ""))
+        except ValueError:
+            raise self.error(n, f"{letter}{text} is not a number") from None
+        if not -1e300 < value < 1e300:
+            raise self.error(n, f"{letter}{text} is not a finite number")
+        return value
+
+    # -- one line ------------------------------------------------------------------------------
+
+    def line(self, n: int, raw: bytes) -> Block:
+        m = _FAST_G01.match(raw)
+        if m is not None:
+            try:
+                block = self.fast_move(n, raw, *m.groups())
+            except ValueError:  # "1.2.3": the general path names the word
+                block = None
+            if block is not None:
+                return block
+        text = raw.decode("utf-8", "replace")
+        if n == 1 and text.startswith("\ufeff"):
+            text = text[1:]
+        if '"' in text or "(" in text:
+            code = _strip_comments(text)
+        else:
+            i = text.find(";")
+            code = text[:i] if i >= 0 else text
+        code = code.strip()
+        if not code:
+            return Block(n, raw, Kind.PASS, self.modal, np.array(self.pos))
+        c0 = code[0]
+        if c0 in "Nn/":
+            code = code[_HEAD.match(code).end():]
+            if not code:
+                return self.block(n, raw, Kind.PASS)
+            c0 = code[0]
+        if "*" in code:
+            code = _CHECKSUM.sub("", code).rstrip()
+            if not code:
+                return self.block(n, raw, Kind.PASS)
+            c0 = code[0]
+        if c0 == "%":
+            return self.block(n, raw, Kind.PASS)
+        if c0 in "Oo":
+            return self.oword(n, raw, code)
+        if c0 == "_" or (len(code) > 1 and (code[1].isalpha() or code[1] == "_")):
+            return self.extended(n, raw, code)
+        if not self.cnc:
+            if c0 in "Mm" and _TEXT_CMD.match(code):
+                number = float(re.match(r"[Mm]\s*(\d+)", code).group(1))
+                if number in _PASS_M:
+                    return self.block(n, raw, Kind.PASS)
+                if number not in _STOP_M:  # M23/M28/M32/M33/M928: files, maybe printed from here
+                    self.forget((0, 1, 2), e_too=True)
+                return self.block(n, raw, Kind.STOP)
+            if "{" in code:  # an RRF/Klipper expression the firmware evaluates
+                self.forget((0, 1, 2), e_too=True)
+                return self.block(n, raw, Kind.STOP)
+
+        # words
+        gcodes = []
+        mcodes = []
+        tool = None
+        params = {}
+        dups = None
+        junk = None
+        multi = self.cnc
+        command_seen = False
+        for letter, value, bad in _WORD.findall(code):
+            if bad:
+                if junk is None:
+                    junk = bad
+                continue
+            letter = letter.upper()
+            if letter == "G" or letter == "M" or letter == "T":
+                if multi or not command_seen:
+                    command_seen = True
+                    if letter == "T":
+                        tool = value
+                    else:
+                        try:
+                            number = float(value)
+                        except ValueError:
+                            raise self.error(n, f"{letter}{value} is not a number") from None
+                        (gcodes if letter == "G" else mcodes).append(number)
+                    continue
+            elif letter == "N" and not params and not command_seen:
+                continue
+            if letter in params:
+                if dups is None:
+                    dups = set()
+                dups.add(letter)
+            else:
+                params[letter] = value
+        if junk is not None:
+            junk = f"cannot read {code!r}: unexpected {junk!r}"
+            if multi:
+                raise self.error(n, junk + " (expressions and parameters are not supported)")
+        return self.execute(n, raw, gcodes, mcodes, tool, params, dups, junk)
+
+    def oword(self, n, raw, code) -> Block:
+        m = _OWORD.match(code)
+        if m is None:
+            raise self.error(n, f"cannot read {code!r}")
+        if m.group(1):
+            raise self.error(n, f"O-word {m.group(1)!r}: subroutines and control flow are not supported")
+        return self.block(n, raw, Kind.PASS)
+
+    def extended(self, n, raw, code) -> Block:
+        """Klipper extended commands and macros, RRF meta commands: a name, then NAME=VALUE."""
+        name = re.match(r"[A-Za-z_][A-Za-z0-9_]*", code).group().upper()
+        if name == "SET_VELOCITY_LIMIT":
+            values = {}
+            for key, value in _EXT_PARAM.findall(code[len(name):]):
+                key = key.upper()
+                if key in ("VELOCITY", "ACCEL", "SQUARE_CORNER_VELOCITY"):
+                    values[key] = self.number(n, key + "=", value.strip('"'))
+            for key, value in values.items():
+                if value < 0 or (value == 0 and key != "SQUARE_CORNER_VELOCITY"):
+                    raise self.error(n, f"{key}={value:g} must be positive")
+            limits = None
+            if values:
+                limits = PlannerLimits(
+                    acceleration_mm_s2=values.get("ACCEL"),
+                    travel_acceleration_mm_s2=values.get("ACCEL"),
+                    max_velocity_mm_s=values.get("VELOCITY"),
+                    square_corner_velocity_mm_s=values.get("SQUARE_CORNER_VELOCITY"),
+                )
+            return self.block(n, raw, Kind.PASS, limits=limits)
+        if name in _KLIPPER_PASS:
+            return self.block(n, raw, Kind.PASS)
+        # a macro or an unknown command: it may move anything
+        self.forget((0, 1, 2), e_too=True)
+        return self.block(n, raw, Kind.STOP)
+
+    # -- a line of words -------------------------------------------------------------------------
+
+    def execute(self, n, raw, gcodes, mcodes, tool, params, dups, junk) -> Block:
+        kind = Kind.PASS
+        dwell = 0.0
+        limits = None
+        unknown = False  # an unknown command: XYZ (and absolute E) unknown afterwards
+        modal_changed = False
+        motion = None
+        axis_words_used = False  # a non-motion command took the axis words
+        flavor = self.flavor
+
+        # G codes, in LinuxCNC's order of execution: modal settings, then the others, then motion
+        others = []
+        for g in gcodes:
+            m = _MOTION.get(g)
+            if m is not None:
+                if motion is not None:
+                    raise self.error(n, "two motion commands on one line")
+                motion = m
+            elif g == 90.0 or g == 91.0:
+                self.abs_xyz = g == 90.0
+                if flavor == "marlin":
+                    self.abs_e = self.abs_xyz
+                modal_changed = True
+            elif g == 20.0 or g == 21.0:
+                self.inches = g == 20.0
+                modal_changed = True
+            elif g in _PLANES:
+                self.plane = _PLANES[g]
+            elif g == 90.1 or g == 91.1:
+                self.abs_ijk = g == 90.1
+            elif g in _UNSUPPORTED_G:
+                raise self.error(n, f"{_UNSUPPORTED_G[g]} is not supported")
+            elif g in _WCS:
+                if g != self.wcs:  # another work coordinate system: offsets we do not know
+                    self.wcs = g
+                    unknown = True
+            elif self.cnc and g in _LINUXCNC_PASS_G:
+                if g == 49.0 and self.tool_length:
+                    self.tool_length = False
+                    self.forget((2,))
+                    kind = Kind.STOP
+            else:
+                others.append(g)
+        scale = _INCH if self.inches else 1.0
+
+        for m in mcodes:
+            if m == 82.0 or m == 83.0:
+                self.abs_e = m == 82.0
+                modal_changed = True
+            elif m in _PASS_M or 862.0 <= m < 863.0:
+                pass
+            elif m in _LIMIT_M:
+                if junk is not None:
+                    raise self.error(n, junk)
+                limits = self.limits(n, m, params, scale)
+                if limits is False:
+                    unknown = True
+                    limits = None
+            elif m in _STOP_M:
+                kind = Kind.STOP
+            else:  # M98 (RRF macro call) and every unknown M code
+                unknown = True
+        if tool is not None:
+            kind = Kind.STOP
+
+        if motion is not None:  # name a bad axis word before anything else on the line
+            for a in AXES:
+                if a in params:
+                    self.number(n, a, params[a])
+
+        # feed
+        f = params.get("F")
+        if f is not None and (self.cnc or motion is not None or not (gcodes or mcodes or tool is not None)):
+            feed = self.number(n, "F", f)
+            if feed <= 0.0:
+                raise self.error(n, f"feed F{f} must be positive")
+            self.feed = feed * scale / 60.0
+
+        for g in others:
+            if g == 4.0:
+                kind = Kind.STOP
+                dwell = self.dwell(n, params, junk)
+            elif g == 92.0:
+                axis_words_used = True
+                modal_changed |= self.g92(n, params, dups, junk, scale)
+            elif g == 92.1 or (self.cnc and g == 92.2):
+                if g == 92.2:
+                    self.saved_off = self.off[:]
+                else:
+                    self.saved_off = None
+                self.off[0] = self.off[1] = self.off[2] = 0.0
+                modal_changed = True
+            elif g == 92.3 and self.cnc:
+                if self.saved_off is not None:
+                    self.off = self.saved_off
+                    self.saved_off = None
+                    modal_changed = True
+            elif g == 28.0:
+                axis_words_used = True
+                named = [i for i, a in enumerate("XYZ") if a in params]
+                self.forget(named or (0, 1, 2))
+                kind = Kind.STOP
+            elif g == 29.0 or g == 30.0 or 38.0 <= g < 39.0:
+                axis_words_used = True
+                self.forget((0, 1, 2))
+                kind = Kind.STOP
+            elif g == 10.0 or g == 11.0:
+                axis_words_used = True
+                kind = Kind.STOP
+                if self.cnc or "L" in params or any(a in params for a in "XYZ"):
+                    unknown = True  # coordinate system or tool offsets
+            elif self.cnc and 43.0 <= g < 44.0:
+                self.tool_length = True
+                axis_words_used = True
+                unknown = True
+            else:  # G53, G60/G61 (Marlin), G80 (Prusa mesh levelling), ... and unknown G codes
+                axis_words_used = True
+                unknown = True
+
+        if modal_changed:
+            self.new_modal()
+
+        # motion: an explicit G0-G5, or axis words continuing the last motion mode
+        if motion is None and not axis_words_used and (self.cnc or not (gcodes or mcodes or tool is not None)):
+            if "X" in params or "Y" in params or "Z" in params or "E" in params:
+                motion = self.motion
+                if motion is None:
+                    raise self.error(n, "axis words without a motion command (G0/G1/G2/G3/G5)")
+        if motion is not None and not unknown:
+            self.motion = motion
+            block = self.move(n, raw, motion, params, dups, junk, scale, kind is Kind.STOP)
+            if kind is Kind.STOP and block.kind is not Kind.STOP:
+                block.kind = Kind.STOP
+                block.points_mm = None
+                block.feed_mm_s = None
+            block.dwell_s = dwell
+            block.limits = limits
+            return block
+
+        if unknown:  # with a motion too ("G53 G0 Z0"): it moves in a frame fbspost does not know
+            if motion is not None:
+                self.motion = motion
+            self.forget((0, 1, 2), e_too=True)
+            kind = Kind.STOP
+        return self.block(n, raw, kind, dwell_s=dwell, limits=limits)
+
+    # -- commands -------------------------------------------------------------------------------
+
+    def dwell(self, n, params, junk) -> float:
+        if junk is not None:
+            raise self.error(n, junk)
+        s = params.get("S")
+        p = params.get("P")
+        if self.cnc:
+            seconds = self.number(n, "P", p) if p is not None else 0.0
+        elif s is not None:
+            seconds = self.number(n, "S", s)
+        elif p is not None:
+            seconds = self.number(n, "P", p) / 1000.0
+        else:
+            seconds = 0.0
+        if seconds < 0.0:
+            raise self.error(n, "dwell time must not be negative")
+        return seconds
+
+    def g92(self, n, params, dups, junk, scale) -> bool:
+        if junk is not None:
+            raise self.error(n, junk)
+        if dups and dups & set("XYZE"):
+            raise self.error(n, f"{''.join(sorted(dups))} given twice")
+        values = {}
+        for i, a in enumerate(AXES):
+            v = params.get(a)
+            if v is not None:
+                values[i] = self.number(n, a, v) * scale  # E follows G20/G21 too (Marlin)
+        if not values:
+            if self.flavor == "klipper":  # Klipper: G92 alone zeroes all axes
+                values = {0: 0.0, 1: 0.0, 2: 0.0, 3: 0.0}
+            elif self.cnc:
+                raise self.error(n, "G92 needs at least one axis word")
+            else:  # Marlin, RRF: nothing to set
+                return False
+        pos, off = self.pos, self.off
+        for i, v in values.items():
+            if pos[i] != pos[i]:  # unknown machine position: it is now known in this frame
+                pos[i] = v + off[i]
+            else:
+                off[i] = pos[i] - v
+        return True
+
+    def limits(self, n, m, params, scale):
+        """PlannerLimits of M201/M203/M204/M205/M566, None if nothing is set, False if unknown."""
+        def value(letter, factor=1.0, zero_ok=False):
+            v = params.get(letter)
+            if v is None:
+                return None
+            x = self.number(n, letter, v) * factor
+            if x < 0.0 or (x == 0.0 and not zero_ok):
+                raise self.error(n, f"M{m:g} {letter}{v} must be {'non-negative' if zero_ok else 'positive'}")
+            return x
+
+        flavor = self.flavor
+        if m == 204.0:
+            s, p, t = value("S", scale), value("P", scale), value("T", scale)
+            if flavor == "klipper":  # Klipper: one acceleration, S or min(P, T)
+                if s is None and p is not None and t is not None:
+                    s = min(p, t)
+                return PlannerLimits(s, s) if s is not None else None
+            accel = p if p is not None else s
+            travel = t if t is not None else s
+            if accel is None and travel is None:
+                return None
+            return PlannerLimits(acceleration_mm_s2=accel, travel_acceleration_mm_s2=travel)
+        if m == 201.0 or m == 203.0:
+            factor = scale / 60.0 if (m == 203.0 and flavor == "reprap") else scale
+            axes = {a: x for a in AXES if (x := value(a, factor)) is not None}
+            if not axes:
+                return None
+            if m == 201.0:
+                return PlannerLimits(axis_max_acceleration_mm_s2=axes)
+            return PlannerLimits(axis_max_velocity_mm_s=axes)
+        if m == 205.0:
+            j = value("J", scale)
+            jerks = [x for a in "XY" if (x := value(a, scale, zero_ok=True)) is not None]
+            if j is None and not jerks:
+                return None
+            return PlannerLimits(junction_deviation_mm=j, square_corner_velocity_mm_s=min(jerks) if jerks else None)
+        # M566: RRF jerk, mm/min
+        if flavor != "reprap":
+            return False
+        jerks = [x for a in "XY" if (x := value(a, scale / 60.0, zero_ok=True)) is not None]
+        return PlannerLimits(square_corner_velocity_mm_s=min(jerks)) if jerks else None
+
+    # -- motion ---------------------------------------------------------------------------------
+
+    def move(self, n, raw, motion, params, dups, junk, scale, stop) -> Block:
+        for a in AXES:
+            if a in params:
+                self.number(n, a, params[a])  # "X", "Xnan", "X1.2.3": name the word first
+        if junk is not None:
+            raise self.error(n, junk)
+        if dups:
+            raise self.error(n, f"{''.join(sorted(dups))} given twice")
+        for a in _OTHER_AXES:
+            if a in params:
+                raise self.error(n, f"axis {a}: only X Y Z E are supported")
+        start = self.pos
+        target = start[:]
+        off = self.off
+        named = False
+        for i in (0, 1, 2):
+            v = params.get(AXES[i])
+            if v is not None:
+                x = self.number(n, AXES[i], v) * scale
+                target[i] = x + off[i] if self.abs_xyz else target[i] + x
+                named = True
+        v = params.get("E")
+        if v is not None:
+            if self.cnc:
+                raise self.error(n, "E words are not supported in LinuxCNC programs")
+            x = self.number(n, "E", v) * scale
+            target[3] = x + off[3] if self.eabs else target[3] + x
+            named = True
+
+        if motion != 5:
+            self.last_bezier_pq = None  # LinuxCNC: only a G5 right after a G5 may omit I and J
+        if motion == 0 and self.cnc:
+            feed = math.inf
+        else:
+            feed = self.feed
+
+        if motion >= 2:
+            if not named and motion == 5:
+                raise self.error(n, "G5 needs an end point")
+        elif not named:
+            return self.block(n, raw, Kind.PASS)  # e.g. "G1 F1800": a feed change
+
+        # the axes this move moves: the named ones, and both axes of an arc's or a Bezier's plane
+        moving = [i for i, a in enumerate(AXES) if a in params]
+        if motion >= 2:
+            moving += self.plane[:2]
+        known = all(start[i] == start[i] for i in moving)
+        if motion == 2 or motion == 3:
+            points = self.arc(n, motion, params, start, target, scale, known)
+        elif motion == 5:
+            points = self.bezier(n, params, start, target, scale, known)
+        else:
+            points = None
+        self.pos = target
+        if not known or stop or feed is None:
+            return Block(n, raw, Kind.STOP, self.modal, np.array(target))
+        if motion <= 1:
+            if target == start:  # (unnamed axes hold the very same float objects, NaN included)
+                return Block(n, raw, Kind.PASS, self.modal, np.array(target))
+            points = np.array([target])
+        elif points is None:
+            return Block(n, raw, Kind.PASS, self.modal, np.array(target))
+        return Block(n, raw, Kind.MOVE, self.modal, np.array(target), points, feed)
+
+    def arc(self, n, motion, params, start, target, scale, known):
+        """The pieces of a G2/G3 arc (None when nothing moves); checks the words even if unknown."""
+        a, b, lin, ia, ib = self.plane
+        if "R" in params:
+            if ia in params or ib in params:
+                raise self.error(n, f"an arc with both R and {ia}/{ib}")
+            r = self.number(n, "R", params["R"]) * scale
+            if not known:
+                return None
+            u0, v0, u1, v1 = start[a], start[b], target[a], target[b]
+            du, dv = u1 - u0, v1 - v0
+            d = math.hypot(du, dv)
+            if d == 0.0:
+                raise self.error(n, "an R arc must end away from its start")
+            if abs(r) < 0.5 * d * (1.0 - 1e-6):
+                raise self.error(n, f"arc radius {abs(r):.6g} mm is shorter than half the chord ({0.5 * d:.6g} mm)")
+            h = math.sqrt(max(r * r - 0.25 * d * d, 0.0))
+            e = -1.0 if (motion == 2) != (r < 0.0) else 1.0
+            cu = 0.5 * (u0 + u1) - e * h * dv / d
+            cv = 0.5 * (v0 + v1) + e * h * du / d
+            full = False
+        else:
+            iv, jv = params.get(ia), params.get(ib)
+            if iv is None and jv is None:
+                raise self.error(n, f"an arc needs {ia}/{ib} (center) or R (radius)")
+            oi = self.number(n, ia, iv) * scale if iv is not None else 0.0
+            oj = self.number(n, ib, jv) * scale if jv is not None else 0.0
+            if not self.abs_ijk and oi == 0.0 and oj == 0.0:
+                raise self.error(n, f"arc center {ia}=0 {ib}=0: the radius is zero")
+            if not known:
+                return None
+            u0, v0, u1, v1 = start[a], start[b], target[a], target[b]
+            if self.abs_ijk:
+                cu, cv = oi + self.off[a], oj + self.off[b]
+            else:
+                cu, cv = u0 + oi, v0 + oj
+            full = math.hypot(u1 - u0, v1 - v0) <= 1e-9
+        r0 = math.hypot(u0 - cu, v0 - cv)
+        r1 = math.hypot(u1 - cu, v1 - cv)
+        if r0 <= 1e-9:
+            raise self.error(n, "the arc's center is its start: the radius is zero")
+        if abs(r1 - r0) > 0.002 and abs(r1 - r0) > 1e-3 * r0:
+            raise self.error(n, f"the arc's end is {abs(r1 - r0):.4g} mm off its circle (radius {r0:.6g} mm)")
+        t0 = math.atan2(v0 - cv, u0 - cu)
+        sweep = math.atan2(v1 - cv, u1 - cu) - t0
+        if motion == 3:
+            if full or sweep <= 0.0:
+                sweep += _TWO_PI
+            if full:
+                sweep = _TWO_PI
+        else:
+            if full or sweep >= 0.0:
+                sweep -= _TWO_PI
+            if full:
+                sweep = -_TWO_PI
+        turns = params.get("P")
+        if turns is not None and (self.cnc or self.flavor == "marlin"):
+            # LinuxCNC: P turns in all (P1 = the arc alone); Marlin: P full circles, then the arc
+            p = self.number(n, "P", turns)
+            first = 1 if self.cnc else 0
+            if p < first or p != int(p):
+                raise self.error(n, f"arc turns P{turns} must be a whole number >= {first}")
+            sweep += math.copysign(_TWO_PI * (p - first), sweep)
+        r_max = max(r0, r1)
+        if r_max > 0.5 * CHORD_TOLERANCE_MM:
+            step = 2.0 * math.acos(1.0 - CHORD_TOLERANCE_MM / r_max)
+        else:
+            step = math.pi
+        count = max(1, math.ceil(abs(sweep) / step), math.ceil(abs(sweep) / (0.5 * math.pi) - 1e-9))
+        frac = np.arange(1, count + 1) / count
+        theta = t0 + sweep * frac
+        radius = r0 + (r1 - r0) * frac
+        points = np.empty((count, 4))
+        points[:, a] = cu + radius * np.cos(theta)
+        points[:, b] = cv + radius * np.sin(theta)
+        points[:, lin] = start[lin] + (target[lin] - start[lin]) * frac
+        points[:, 3] = start[3] + (target[3] - start[3]) * frac
+        points[-1] = target
+        return points
+
+    def bezier(self, n, params, start, target, scale, known):
+        """The pieces of a G5 cubic Bezier in the XY plane (None when the start is unknown)."""
+        if self.plane[0] != 0 or self.plane[1] != 1:
+            raise self.error(n, "G5 is only supported in the XY plane (G17)")
+        vals = {}
+        for letter in "IJPQ":
+            v = params.get(letter)
+            vals[letter] = self.number(n, letter, v) * scale if v is not None else None
+        if vals["I"] is None and vals["J"] is None and self.cnc:
+            if self.last_bezier_pq is None:
+                raise self.error(n, "the first G5 needs I and J")
+            vals["I"], vals["J"] = -self.last_bezier_pq[0], -self.last_bezier_pq[1]
+        elif (vals["I"] is None) != (vals["J"] is None) and self.cnc:
+            raise self.error(n, "G5 needs both I and J or neither")
+        if self.cnc and (vals["P"] is None or vals["Q"] is None):
+            raise self.error(n, "G5 needs P and Q")
+        i, j, p, q = (0.0 if vals[k] is None else vals[k] for k in "IJPQ")
+        self.last_bezier_pq = (p, q)
+        if not known:
+            return None
+        p0 = np.array([start[0], start[1]])
+        p3 = np.array([target[0], target[1]])
+        p1 = p0 + (i, j)
+        p2 = p3 + (p, q)
+        curvature = 6.0 * max(np.hypot(*(p0 - 2 * p1 + p2)), np.hypot(*(p1 - 2 * p2 + p3)))
+        # chord error <= h^2/8 max|B''| for a step h in t, and B'' is linear: largest at an end
+        count = max(1, math.ceil(math.sqrt(curvature / (8.0 * CHORD_TOLERANCE_MM))))
+        t = (np.arange(1, count + 1) / count)[:, None]
+        s = 1.0 - t
+        xy = s**3 * p0 + 3 * s * s * t * p1 + 3 * s * t * t * p2 + t**3 * p3
+        # arc length of each piece: 5-point Gauss-Legendre quadrature of |B'(t)|
+        lo = np.arange(count)[:, None] / count
+        tq = lo + (_GAUSS_X[None, :] + 1.0) / (2.0 * count)  # (count, 5)
+        sq = 1.0 - tq
+        d1 = ((3 * sq * sq)[..., None] * (p1 - p0) + (6 * sq * tq)[..., None] * (p2 - p1)
+              + (3 * tq * tq)[..., None] * (p3 - p2))
+        lengths = (np.hypot(d1[..., 0], d1[..., 1]) * _GAUSS_W).sum(axis=1) / (2.0 * count)
+        total = lengths.sum()
+        frac = np.cumsum(lengths) / total if total > 0.0 else t[:, 0]
+        points = np.empty((count, 4))
+        points[:, :2] = xy
+        points[:, 2] = start[2] + (target[2] - start[2]) * frac
+        points[:, 3] = start[3] + (target[3] - start[3]) * frac
+        points[-1] = target
+        if target == start and count == 1:
+            return None
+        return points
+
+
+def _strip_comments(text: str) -> str:
+    """The line without ';' and '( )' comments, keeping RRF "strings" (which may hold ';')."""
+    pieces = []
+    pos = 0
+    for m in _COMMENT_OR_STRING.finditer(text):
+        s = m.group()
+        if s == ";":
+            pieces.append(text[pos:m.start()])
+            return " ".join(pieces)
+        if s[0] == "(":
+            pieces.append(text[pos:m.start()])
+            pos = m.end()
+    pieces.append(text[pos:])
+    return " ".join(pieces)
+
+
+# ----------------------------------------------------------------------------------------------
+# Flavor detection
+
+_HEAD_LINES = 2000
+_TAIL_LINES = 300
+_DECLARED = re.compile(r";\s*(?:gcode_flavor\s*=|FLAVOR\s*:)\s*([A-Za-z0-9_]+)", re.IGNORECASE)
+_KLIPPER_HINT = re.compile(
+    r"^\s*(?:PRINT_START|START_PRINT|PRINT_END|END_PRINT|SET_VELOCITY_LIMIT|SET_PRESSURE_ADVANCE|"
+    r"EXCLUDE_OBJECT_\w+|SET_FAN_SPEED|SET_HEATER_TEMPERATURE|BED_MESH_\w+|SET_GCODE_OFFSET|"
+    r"TURN_OFF_HEATERS|SET_RETRACTION|SET_PRINT_STATS_INFO)\b",
+    re.IGNORECASE,
+)
+_REPRAP_HINT = re.compile(r'^\s*(?:M98\s*P\s*"|M550\b|M291\b|M292\b|M929\b|M566\b|'
+                          r'(?:if|while|var|global|set|echo|abort)\s)|^\s*[GM]\d+[^;]*[A-Z]"', re.IGNORECASE)
+_CNC_HINT = re.compile(r"^\s*(?:%\s*$|[Oo]\s*\d+|.*\(.*\)|.*\b[Gg]0*(?:17|64|61|40|49|54|80|94)\b|"
+                       r".*\b[Mm]0*(?:2|30)\b)")
+_E_WORD = re.compile(r"\s*(?:[Nn]\d+\s*)?[Gg]0*[0-3](?![\d.])[^(]*?(?<![A-Za-z])[Ee]\s*[-+]?\.?\d")
+
+
+def detect_flavor(path: str | Path) -> str:
+    """The flavor (one of FLAVORS) the file at ``path`` is written for, from hints in its first
+    2000 and last 300 lines: a slicer's declaration (``; gcode_flavor = ...``, ``;FLAVOR:...``),
+    Klipper commands, RepRapFirmware commands and strings, CNC conventions (``%``, O-words,
+    parenthesis comments, M2/M30, G17/G64/... without any E word); Marlin otherwise.
+
+    Klipper commands win over a declared Marlin flavor (Klipper printers are often sliced as
+    Marlin); a declared Klipper or RepRapFirmware flavor wins over everything.
+    """
+    try:
+        lines = _head_and_tail(path)
+    except OSError as exc:
+        raise InputError(path, 0, f"cannot read: {exc}") from None
+    declared = None
+    klipper = reprap = cnc = e_words = False
+    for text in lines:
+        m = _DECLARED.search(text)
+        if m and declared is None:
+            declared = m.group(1).lower()
+        code = text.split(";", 1)[0]
+        if not code.strip():
+            continue
+        klipper = klipper or bool(_KLIPPER_HINT.match(code))
+        if not code.lstrip().upper().startswith(("M862", "M117", "M118")):
+            reprap = reprap or bool(_REPRAP_HINT.match(code))
+        cnc = cnc or bool(_CNC_HINT.match(code))
+        e_words = e_words or bool(_E_WORD.match(code))
+    if declared is not None:
+        if declared == "klipper":
+            return "klipper"
+        if declared.startswith("reprap"):
+            return "klipper" if klipper else "reprap"
+        if declared in ("mach3", "machinekit", "linuxcnc"):
+            return "linuxcnc"
+    if klipper:
+        return "klipper"
+    if reprap:
+        return "reprap"
+    if declared is None and cnc and not e_words:
+        return "linuxcnc"
+    return "marlin"
+
+
+def _head_and_tail(path: str | Path) -> list[str]:
+    """The first _HEAD_LINES lines and the last _TAIL_LINES lines (each line once), decoded."""
+    out = []
+    with open(path, "rb") as f:
+        for _ in range(_HEAD_LINES):
+            raw = f.readline()
+            if not raw:
+                break
+            out.append(raw)
+        head_end = f.tell()
+        f.seek(0, 2)
+        size = f.tell()
+        if size > head_end:
+            chunk = 1 << 16
+            start = size
+            data = b""
+            while start > head_end and data.count(b"\n") <= _TAIL_LINES:
+                start = max(head_end, start - chunk)
+                f.seek(start)
+                data = f.read(size - start)
+            tail = data.split(b"\n")
+            if start > head_end:
+                tail = tail[1:]  # a partial line
+            out.extend(tail[-_TAIL_LINES - 1:])
+    return [raw.decode("utf-8", "replace") for raw in out]

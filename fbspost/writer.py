@@ -1,0 +1,285 @@
+"""G-code writer: the compensated command as dense G1 blocks, every other line untouched.
+
+Takes the program's blocks, its plan, the command to send (machine coordinates, mm, on the
+plan's time grid: compensated axes replaced, the others as planned) and the writing options;
+gives the output program as bytes, line by line. Lines that do not move the machine are copied
+byte-exact, in order, at their planned time; the motion between them becomes G1 blocks whose
+end points lie on the command and whose F makes each last exactly its time. Block boundaries are
+chosen so that the piecewise-linear command stays within the tolerance, no block shorter than
+the minimum segment time. Coordinates are written in the program's own modes (G90/G91, M82/M83,
+G20/G21, G92 frames); relative values carry their rounding residues, so nothing accumulates.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.ndimage import maximum_filter1d
+
+from .gcode import AXES, Block, Kind, Modal
+from .planner import Plan
+
+_DECIMALS = {"X": 4, "Y": 4, "Z": 4, "E": 5}  # mm: 0.1 um, E: 10 nm of filament
+_E = AXES.index("E")
+
+
+@dataclass(frozen=True)
+class WriteOptions:
+    flavor: str  # marlin | klipper | reprap | linuxcnc
+    tolerance_mm: float = 1e-3
+    min_segment_time_s: float = 1e-3
+    header: tuple[str, ...] = ()  # comment text, one entry per line
+    raise_acceleration_mm_s2: float | None = None  # the controller's limit while the command runs
+    restore_acceleration_mm_s2: tuple[float, float] | None = None  # (print, travel) afterwards
+
+
+@dataclass
+class WriteStats:
+    lines_out: int = 0
+    motion_blocks: int = 0
+    passthrough_lines: int = 0
+
+
+def breakpoints(command: np.ndarray, tolerance_mm: float, min_samples: int, max_samples: int = 2000) -> np.ndarray:
+    """Sample indices where blocks end, first and last sample included.
+
+    A chord over n sample steps deviates from the samples it spans by at most n^2/8 times their
+    largest second difference (the discrete maximum principle), so a block may span
+    n = sqrt(8 tolerance / max |second difference| ahead) steps: never more than the tolerance
+    allows, never fewer than ``min_samples`` (where that is shorter, the minimum wins).
+    """
+    n = len(command)
+    if n <= 2:
+        return np.arange(n)
+    second = np.linalg.norm(np.diff(command, 2, axis=0), axis=1)  # second[k] bends at sample k + 1
+    # Largest second difference over the next max_samples steps, from every sample on.
+    ahead = maximum_filter1d(np.append(second, [0.0, 0.0]), size=max_samples, origin=-(max_samples // 2))
+    with np.errstate(divide="ignore"):
+        span = np.floor(np.sqrt(8.0 * tolerance_mm / ahead))
+    span = np.clip(np.nan_to_num(span, posinf=max_samples), min_samples, max_samples).astype(int)
+    points, i, steps = [0], 0, span.tolist()
+    while i < n - 1:
+        i = min(i + steps[i], n - 1)
+        points.append(i)
+    return np.array(points)
+
+
+def _fmt(value: float, decimals: int) -> str:
+    """Shortest decimal with at most ``decimals`` places: 3000.0, 0 -> "3000"; 2.50, 2 -> "2.5"."""
+    text = f"{value:.{decimals}f}"
+    if "." in text:
+        text = text.rstrip("0").rstrip(".")
+    return "0" if text in ("-0", "") else text
+
+
+class _Emitter:
+    """Formats blocks in the controller's current modes and frame.
+
+    ``written`` is where the controller believes it is, in its program coordinates: it changes
+    only by what is written (so relative values carry their rounding residues), by G92 and by
+    unit changes.
+    """
+
+    def __init__(self, options: WriteOptions, start_mm: np.ndarray):
+        self.options = options
+        self.modal = Modal()  # the controller starts in its defaults
+        self.shift_mm = np.zeros(4)  # controller frame minus program frame, per axis (G92 mid-motion)
+        self.written = self.to_program(start_mm)
+        self.feed = None
+        self.pending_s = 0.0  # time of blocks that rounded to no motion, not yet given to a block
+
+    @property
+    def unit_mm(self) -> float:
+        return 25.4 if self.modal.inches else 1.0
+
+    def to_program(self, machine_mm: np.ndarray) -> np.ndarray:
+        return (machine_mm - np.asarray(self.modal.offsets_mm) - self.shift_mm) / self.unit_mm
+
+    def passthrough(self, block: Block, command_mm: np.ndarray, planned_mm: np.ndarray) -> None:
+        """Follow what a copied line does to the controller. A G92 sets the frame where the command
+        is, not where the plan is: keep the difference. A copied move or homing puts the
+        controller where the plan says (the command is at rest there)."""
+        old_offsets, old_unit = np.asarray(self.modal.offsets_mm), self.unit_mm
+        self.modal = block.modal
+        if block.kind is Kind.STOP:
+            self.shift_mm[:] = 0.0
+            self.written = self.to_program(planned_mm)
+            return
+        self.written *= old_unit / self.unit_mm
+        changed = np.asarray(block.modal.offsets_mm) != old_offsets
+        if changed.any():
+            self.shift_mm[changed] = (command_mm - planned_mm)[changed]
+            self.written[changed] = self.to_program(command_mm)[changed]
+
+    def blocks(self, targets_mm: np.ndarray, durations_s: np.ndarray) -> list[str]:
+        """G1 lines reaching each target (machine mm) in its duration, in the controller's modes.
+
+        Values are rounded in integer units of the last written digit: a relative value is the
+        difference of two rounded positions, so rounding residues never accumulate.
+        """
+        digits = np.array([_DECIMALS[a] for a in AXES]) + (1 if self.modal.inches else 0)
+        scale = 10.0 ** digits
+        relative = np.array([not (self.modal.absolute_e if a == "E" else self.modal.absolute_xyz) for a in AXES])
+        start = np.rint(self.written * scale).astype(np.int64)
+        ints = np.rint(self.to_program(targets_mm) * scale).astype(np.int64)
+        steps = np.diff(np.vstack([start, ints]), axis=0)
+        shown = np.where(relative, steps, ints)
+        moved = steps != 0
+        delta_mm = steps / scale * self.unit_mm
+        # The controller times a block by its XYZ length, or its E length when XYZ do not move.
+        length = np.linalg.norm(delta_mm[:, :3], axis=1)
+        length = np.where(length > 0, length, np.abs(delta_mm[:, _E]))
+        # A block that rounds to no motion cannot carry time: the next moving block takes it.
+        ends_s = self.pending_s + np.cumsum(durations_s)
+        moving = moved.any(axis=1)
+        took = np.diff(np.concatenate([[0.0], ends_s[moving]]))
+        self.pending_s = float(ends_s[-1] - (ends_s[moving][-1] if moving.any() else 0.0)) if len(ends_s) else self.pending_s
+        feed = np.zeros(len(durations_s), dtype=np.int64)
+        feed[moving] = np.rint(length[moving] / took * 60.0 / self.unit_mm * 1000.0).astype(np.int64)
+        lines = []
+        last_feed = self.feed
+        shown_l, moved_l, feed_l, digits_l = shown.tolist(), moved.tolist(), feed.tolist(), digits.tolist()
+        for values, changed, f in zip(shown_l, moved_l, feed_l):
+            if not any(changed):
+                continue
+            words = [f"{axis}{_int_text(v, d)}" for axis, v, c, d in zip(AXES, values, changed, digits_l) if c]
+            if f != last_feed:
+                words.append(f"F{_int_text(f, 3)}")
+                last_feed = f
+            lines.append("G1 " + " ".join(words))
+        self.feed = last_feed
+        self.written = np.where(relative, self.written + (ints[-1] - start) / scale, ints[-1] / scale) if len(ints) else self.written
+        return lines
+
+
+def _int_text(value: int, digits: int) -> str:
+    """``value`` / 10**digits as a short decimal: 12340, 3 -> "12.34"; -5, 3 -> "-0.005".
+    The double nearest to it prints back exactly at ``digits`` decimals."""
+    text = f"{value / 10**digits:.{digits}f}".rstrip("0").rstrip(".")
+    return text if value else "0"
+
+
+def mode_lines(flavor: str, have: Modal, want: Modal) -> list[str]:
+    """Lines that bring the controller from modes ``have`` to ``want`` (distance modes, units)."""
+    lines = []
+    if have.inches != want.inches:
+        lines.append("G20" if want.inches else "G21")
+    if have.absolute_xyz != want.absolute_xyz:
+        lines.append("G90" if want.absolute_xyz else "G91")
+        if flavor != "linuxcnc":  # G90/G91 set E's mode too
+            have = Modal(want.absolute_xyz, want.absolute_xyz, want.inches, have.offsets_mm)
+    if flavor != "linuxcnc" and have.absolute_e != want.absolute_e:
+        lines.append("M82" if want.absolute_e else "M83")
+    return lines
+
+
+def acceleration_line(flavor: str, print_mm_s2: float, travel_mm_s2: float | None = None) -> str | None:
+    """The flavor's command setting the controller's acceleration limit (None for LinuxCNC,
+    where it is machine configuration)."""
+    travel = print_mm_s2 if travel_mm_s2 is None else travel_mm_s2
+    if flavor == "klipper":
+        return f"SET_VELOCITY_LIMIT ACCEL={_fmt(print_mm_s2, 0)}"
+    if flavor in ("marlin", "reprap"):
+        return f"M204 P{_fmt(print_mm_s2, 0)} T{_fmt(travel, 0)}"
+    return None
+
+
+def write_program(blocks: list[Block], plan: Plan, command_mm: np.ndarray, options: WriteOptions, out) -> WriteStats:
+    """Write the output program to the binary stream ``out``."""
+    stats = WriteStats()
+    fs = plan.sample_rate_hz
+    newline = _newline(blocks)
+    comment = ("(", ")") if options.flavor == "linuxcnc" else ("; ", "")
+    raise_line = (acceleration_line(options.flavor, options.raise_acceleration_mm_s2)
+                  if options.raise_acceleration_mm_s2 else None)
+    restore_line = (acceleration_line(options.flavor, *options.restore_acceleration_mm_s2)
+                    if raise_line and options.restore_acceleration_mm_s2 else None)
+    follows_plan = np.all(command_mm == plan.positions_mm, axis=0)  # E and axes without modes
+    min_samples = max(1, int(np.ceil(options.min_segment_time_s * fs - 1e-9)))
+    run_breaks = [breakpoints(command_mm[a:b + 1], options.tolerance_mm, min_samples) + a for a, b in plan.runs]
+    emitter = _Emitter(options, command_mm[0])
+    run_index, written_until_s = 0, 0.0
+
+    unterminated = False  # the last copied line had no line ending (the end of the file)
+
+    def emit(*lines: str) -> None:
+        nonlocal unterminated
+        if lines:
+            out.write((newline if unterminated else b"") + newline.join(x.encode() for x in lines) + newline)
+            stats.lines_out += len(lines)
+            unterminated = False
+
+    def at_many(columns: np.ndarray, t_s: np.ndarray) -> np.ndarray:
+        """Linear interpolation of sampled ``columns`` at the times ``t_s``."""
+        x = np.clip(t_s * fs, 0.0, len(columns) - 1.0)
+        k = np.minimum(x.astype(np.int64), max(len(columns) - 2, 0))
+        w = (x - k)[:, None]
+        return columns[k] * (1.0 - w) + columns[np.minimum(k + 1, len(columns) - 1)] * w
+
+    def motion_until(t_end_s: float, end_exact_mm: np.ndarray) -> None:
+        """G1 blocks from where the output is to ``t_end_s``; the axes that follow the plan end
+        exactly at ``end_exact_mm`` (the position the program reached there)."""
+        nonlocal run_index, written_until_s
+        half = 0.5 * options.min_segment_time_s
+        while run_index < len(plan.runs):
+            first, last = plan.runs[run_index]
+            start_s, run_end_s = max(written_until_s, first / fs), last / fs
+            stop_s = min(t_end_s, run_end_s)
+            if stop_s > start_s:
+                times = run_breaks[run_index] / fs
+                ends = np.append(times[(times > start_s + half) & (times < stop_s - half)], stop_s)
+                targets = at_many(command_mm, ends)
+                if stop_s == t_end_s:
+                    targets[-1, follows_plan] = end_exact_mm[follows_plan]
+                lines = emitter.blocks(targets, np.diff(np.append(start_s, ends)))
+                emit(*lines)
+                stats.motion_blocks += len(lines)
+                written_until_s = stop_s
+            if t_end_s < run_end_s:
+                return
+            run_index += 1
+            if run_index == len(plan.runs) and restore_line:
+                emit(restore_line)  # the last motion is done: the controller's limit as the program left it
+
+    header_done = False
+    for i, block in enumerate(blocks):
+        if not header_done and _is_code(block):
+            emit(*(f"{comment[0]}{text}{comment[1]}" for text in options.header))
+            if raise_line and plan.runs:
+                emit(raise_line)
+            header_done = True
+        if block.kind is Kind.MOVE:
+            continue
+        t = float(plan.line_time_s[i])
+        planned = at_many(plan.positions_mm, np.array([t]))[0]
+        reached = np.where(np.isnan(block.position_mm), planned, block.position_mm)
+        motion_until(t, reached)
+        emit(*mode_lines(options.flavor, emitter.modal, blocks[i - 1].modal if i else Modal()))
+        out.write(block.raw)
+        unterminated = not block.raw.endswith((b"\n", b"\r"))
+        stats.lines_out += 1
+        stats.passthrough_lines += 1
+        commanded = at_many(command_mm, np.array([t]))[0]
+        commanded[follows_plan] = reached[follows_plan]  # the last block ended exactly there
+        emitter.passthrough(block, commanded, reached)
+        if block.limits is not None and raise_line and run_index < len(plan.runs):
+            emit(raise_line)  # the program set the controller's limit: the command still needs ours
+    end_modal = blocks[-1].modal if blocks else Modal()
+    motion_until(np.inf, plan.positions_mm[-1])
+    emit(*mode_lines(options.flavor, emitter.modal, end_modal))
+    return stats
+
+
+def _is_code(block: Block) -> bool:
+    """Anything but a blank or comment-only line (or a LinuxCNC '%' marker)."""
+    text = block.raw.strip()
+    return bool(text) and not text.startswith((b";", b"(", b"%"))
+
+
+def _newline(blocks: list[Block]) -> bytes:
+    for block in blocks:
+        if block.raw.endswith(b"\r\n"):
+            return b"\r\n"
+        if block.raw.endswith(b"\n"):
+            return b"\n"
+    return b"\n"

@@ -1,0 +1,168 @@
+"""`fbspost compensate` end to end, judged by an executor written in the tests (reference.py):
+blocks run one by one at their feed, through scipy's simulation of the profile's model."""
+import json
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from fbspost.cli import main
+from fbspost.gcode import read_gcode
+from fbspost.pipeline import CompensateOptions, compensate_file
+from fbspost.planner import plan_blocks
+from fbspost.profile import load_profile
+from reference import contour_error, execute, is_motion_line, rms, sample_blocks, simulate_lsim
+
+ROOT = Path(__file__).resolve().parent.parent
+SAMPLES = ROOT / "samples"
+DATA = Path(__file__).resolve().parent / "data"
+PATENT = load_profile("patent-xy-stage")
+PRINTER = load_profile("bedslinger-example")
+
+
+def modelled_xy(profile, commands_xy, period_s):
+    return np.column_stack([simulate_lsim(profile.axes[a].modes, period_s, commands_xy[:, i]) for i, a in enumerate("XY")])
+
+
+@pytest.fixture(scope="module")
+def butterfly_runs(tmp_path_factory):
+    """Each butterfly program and its compensated output."""
+    out = {}
+    for name in ("butterfly-dense", "butterfly-polyline"):
+        source = SAMPLES / f"{name}.gcode"
+        target = tmp_path_factory.mktemp(name) / "out.gcode"
+        report = compensate_file(source, target, PATENT)
+        out[name] = (source, target, report)
+    return out
+
+
+@pytest.mark.parametrize("name, duration_tolerance", [("butterfly-dense", 0.005), ("butterfly-polyline", 0.03)])
+def test_butterfly_programs_on_patent_stage(butterfly_runs, name, duration_tolerance):
+    source, target, report = butterfly_runs[name]
+    period_s = 1.0 / PATENT.sample_rate_hz
+    original = execute(source)
+    path = np.array(original.ends)[:, 1:3]
+    # The original as the controller plans it (the profile's planner), through the model.
+    plan = plan_blocks(list(read_gcode(source, "linuxcnc")), PATENT)
+    planned = plan.positions_mm[:, :2]
+    before = contour_error(path, modelled_xy(PATENT, planned, period_s))
+    # The compensated program, run block by block at its feed, through the model.
+    compensated = execute(target)
+    _, command = sample_blocks(compensated.ends, PATENT.sample_rate_hz)
+    after = contour_error(path, modelled_xy(PATENT, command[:, :2], period_s))
+    assert rms(after) * 20 <= rms(before), f"{rms(before) * 1e3:.3f} -> {rms(after) * 1e3:.3f} um"
+    # As long as the original planned with the profile's planner (what the controller would run).
+    reference_s = plan.duration_s
+    assert abs(compensated.ends[-1][0] - reference_s) <= duration_tolerance * reference_s
+    # Block-to-block velocity and acceleration within the profile's limits.
+    ends = np.array(compensated.ends)
+    dt = np.diff(ends[:, 0])
+    moving = dt > 0
+    velocity = np.diff(ends[:, 1:3], axis=0)[moving] / dt[moving, None]
+    assert np.abs(velocity).max() <= 100.0 * (1 + 1e-3)
+    mid_dt = (dt[moving][1:] + dt[moving][:-1]) / 2
+    accel = np.diff(velocity, axis=0) / mid_dt[:, None]
+    assert np.abs(accel).max() <= 8000.0 * 1.05
+    # Non-motion lines byte-exact and in order, the path ends where the original ends.
+    assert compensated.nonmotion[-1] == original.nonmotion[-1]
+    assert [line for line in compensated.nonmotion if line in original.nonmotion] == original.nonmotion
+    assert np.allclose(ends[-1, 1:3], path[-1], atol=1e-9)
+
+
+# ---- real slicer output on the printer profile -------------------------------------------------
+
+CORPUS = ["gear-marlin2.gcode", "blob-reprap-relative-e.gcode"]
+
+
+@pytest.fixture(scope="module", params=CORPUS)
+def sliced(request, tmp_path_factory):
+    source = DATA / request.param
+    target = tmp_path_factory.mktemp("sliced") / request.param
+    return source, target, compensate_file(source, target, PRINTER)
+
+
+def test_sliced_nonmotion_lines_and_extrusion_exact(sliced):
+    source, target, report = sliced
+    original, compensated = execute(source), execute(target)
+    inserted = [line for line in compensated.nonmotion if line not in set(original.nonmotion)]
+    kept = [line for line in compensated.nonmotion if line in set(original.nonmotion)]
+    assert kept == original.nonmotion  # every non-motion line, byte-exact, in order
+    for line in inserted:  # what fbspost adds: its header, the acceleration limit, mode lines
+        assert line.startswith((b"; fbspost", b"M204", b"SET_VELOCITY_LIMIT", b"G90", b"G91", b"M82", b"M83")), line
+    # E at every non-motion line of the original, matched in order, within 1e-4 mm.
+    e_out = [e for line, e in zip(compensated.nonmotion, compensated.e_at_lines) if line in set(original.nonmotion)]
+    assert np.abs(np.array(e_out) - np.array(original.e_at_lines)).max() <= 1e-4
+    assert abs(compensated.extruded - original.extruded) <= 1e-4
+
+
+def test_sliced_contour_error_time_and_speed(sliced):
+    source, target, report = sliced
+    period_s = 1.0 / PRINTER.sample_rate_hz
+    original = execute(source)
+    plan = plan_blocks(list(read_gcode(source, report.flavor)), PRINTER)
+    compensated = execute(target)
+    _, command = sample_blocks(compensated.ends, PRINTER.sample_rate_hz)
+    # Print time within 3% of the planned original (compute speed is bench/'s business).
+    assert abs(compensated.ends[-1][0] - plan.duration_s) <= 0.03 * plan.duration_s
+    # Per layer, extruding motion: contour error of the modelled machine against the original path.
+    ends = np.array(original.ends)
+    extruding = np.diff(ends[:, 4]) > 0
+    before_xy = modelled_xy(PRINTER, plan.positions_mm[:, :2], period_s)
+    after_xy = modelled_xy(PRINTER, command[:, :2], period_s)
+    plan_extruding = np.append(np.diff(plan.positions_mm[:, 3]) > 0, False)
+    run_extruding = np.append(np.diff(command[:, 3]) > 0, False)
+    layers = np.unique(np.round(ends[1:][extruding, 3], 3))
+    checked = 0
+    for z in layers:
+        segments = extruding & (np.round(ends[1:, 3], 3) == z)
+        pieces = [np.array([ends[i, 1:3], ends[i + 1, 1:3]]) for i in np.flatnonzero(segments)]
+        path = np.concatenate(pieces)
+        in_plan = plan_extruding & (np.abs(plan.positions_mm[:, 2] - z) < 1e-6)
+        in_run = run_extruding & (np.abs(command[:, 2] - z) < 1e-6)
+        if in_plan.sum() < 200 or in_run.sum() < 200:
+            continue
+        before = rms(contour_error(path, before_xy[in_plan]))
+        after = rms(contour_error(path, after_xy[in_run]))
+        assert after * 5 <= before, f"layer z={z}: {before * 1e3:.2f} -> {after * 1e3:.2f} um"
+        checked += 1
+    assert checked >= 3
+
+
+# ---- the command line --------------------------------------------------------------------------
+
+def test_in_place_replacement_is_atomic_and_keeps_permissions(tmp_path):
+    program = tmp_path / "part.gcode"
+    shutil.copy(SAMPLES / "butterfly-polyline.gcode", program)
+    os.chmod(program, 0o640)
+    result = CliRunner().invoke(main, ["compensate", "--machine", "patent-xy-stage", "-q", str(program)])
+    assert result.exit_code == 0, result.output
+    assert program.read_bytes() != (SAMPLES / "butterfly-polyline.gcode").read_bytes()
+    assert program.stat().st_mode & 0o777 == 0o640
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["part.gcode"]  # no temporary file left
+
+
+def test_summary_and_json_report(tmp_path):
+    report_path = tmp_path / "report.json"
+    result = CliRunner().invoke(main, ["compensate", "-m", "patent-xy-stage", str(SAMPLES / "butterfly-dense.gcode"),
+                                       "-o", str(tmp_path / "out.gcode"), "--report", str(report_path)])
+    assert result.exit_code == 0, result.output
+    report = json.loads(report_path.read_text())
+    for key in ("lines_in", "lines_out", "print_time_s", "compute_time_s", "axes", "flavor"):
+        assert key in report
+    x = report["axes"]["X"]
+    assert x["rms_error_after_um"] < x["rms_error_before_um"] / 20
+    assert "axis X: predicted RMS error" in result.stderr and "lines in" in result.stderr
+
+
+def test_bad_program_is_one_line_error_and_leaves_no_output(tmp_path):
+    program = tmp_path / "bad.gcode"
+    program.write_text("G21 G90\nG0 X0 Y0\nG1 X10 Y0 F600\nG2 X20 Y0 I0 J0\nG1 X0\n")
+    original = program.read_bytes()
+    result = CliRunner().invoke(main, ["compensate", "-m", "patent-xy-stage", str(program)])
+    assert result.exit_code == 1
+    assert result.stderr.startswith(f"error: {program}:4: ") and result.stderr.count("\n") == 1
+    assert program.read_bytes() == original
+    assert [p.name for p in tmp_path.iterdir()] == ["bad.gcode"]

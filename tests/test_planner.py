@@ -1,0 +1,595 @@
+"""The motion planner against independent truths: trapezoids and junction speeds worked out by
+hand here, the closed-form position of a trapezoid, and a plain scalar re-statement of Klipper's
+look-ahead (Move.calc_junction, the flush loop, Move.set_junction) written as a loop over moves.
+Nothing here reads the planner's output back as its own truth."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+import time
+
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+from fbspost.gcode import Block, Kind, Modal, PlannerLimits
+from fbspost.planner import backward_pass, forward_pass, plan_blocks
+from fbspost.profile import load_profile
+
+BED = load_profile("bedslinger-example")  # X 300/10000, Y 300/8000, Z 12/500, E 120/5000; 3000, scv 5; 1 kHz
+PATENT = load_profile("patent-xy-stage")  # X, Y 100/8000; 5000, scv 5; 10 kHz
+SQRT2M1 = math.sqrt(2.0) - 1.0
+ORIGIN = (0.0, 0.0, 0.0, 0.0)
+
+
+# ---- program builders --------------------------------------------------------------------------
+
+class Program:
+    """Blocks built by hand, numbered from line 1, starting at rest at a known position."""
+
+    def __init__(self, start=ORIGIN):
+        self.blocks: list[Block] = []
+        self.pos = np.asarray(start, dtype=float)
+        self.stop(position=start)
+
+    def _add(self, kind, **kw) -> int:
+        position = kw.pop("position", self.pos)
+        self.blocks.append(Block(len(self.blocks) + 1, b"", kind, Modal(), np.asarray(position, float).copy(), **kw))
+        return len(self.blocks) - 1
+
+    def move(self, *points, feed=100.0) -> int:
+        pts = np.asarray(points, dtype=float).reshape(-1, 4)
+        self.pos = pts[-1].copy()
+        return self._add(Kind.MOVE, points_mm=pts, feed_mm_s=feed)
+
+    def stop(self, dwell=0.0, position=None) -> int:
+        if position is not None:
+            self.pos = np.asarray(position, dtype=float)
+        return self._add(Kind.STOP, dwell_s=dwell)
+
+    def passthrough(self, limits=None) -> int:
+        return self._add(Kind.PASS, limits=limits)
+
+
+# ---- closed forms --------------------------------------------------------------------------------
+
+def rest_to_rest(d, v, a):
+    """Duration of a move of d mm from rest to rest, cruise v, acceleration a (hand formulas)."""
+    if v * v / a < d:
+        return d / v + v / a  # trapezoid: d/v of cruise plus the v/a lost accelerating and braking
+    return 2.0 * math.sqrt(d / a)  # triangle
+
+
+def trapezoid_time(d, v0, vc, v1, a):
+    """Duration of d mm from v0 to v1 with cruise at most vc and acceleration a."""
+    peak = min(vc, math.sqrt((v0 * v0 + v1 * v1 + 2 * a * d) / 2))
+    t_up, t_down = (peak - v0) / a, (peak - v1) / a
+    d_up, d_down = (peak * peak - v0 * v0) / (2 * a), (peak * peak - v1 * v1) / (2 * a)
+    return t_up + t_down + (d - d_up - d_down) / peak
+
+
+def rest_to_rest_distance(t, d, v, a):
+    """Distance after t seconds of a rest-to-rest move (hand-written piecewise parabola)."""
+    v = min(v, math.sqrt(a * d))  # the peak of a triangle
+    t_ramp = v / a
+    total = d / v + t_ramp
+    t = min(max(t, 0.0), total)
+    if t <= t_ramp:
+        return 0.5 * a * t * t
+    if t >= total - t_ramp:
+        return d - 0.5 * a * (total - t) ** 2
+    return 0.5 * v * t_ramp + v * (t - t_ramp)
+
+
+def sample_times(plan):
+    return np.arange(plan.positions_mm.shape[0]) / plan.sample_rate_hz
+
+
+# ---- scalar reference: Klipper's look-ahead, one move at a time ---------------------------------
+
+class RefMove:
+    """klippy/toolhead.py's Move, re-stated: limits, junction, trapezoid."""
+
+    def __init__(self, start, end, speed, accel, jd, axis_v, axis_a, max_velocity=math.inf, rest_before=False):
+        self.d_axes = [e - s for s, e in zip(start, end)]
+        self.move_d = math.sqrt(sum(x * x for x in self.d_axes[:3]))
+        self.kinematic = self.move_d >= 1e-9
+        if not self.kinematic:
+            self.move_d = abs(self.d_axes[3])
+            self.axes_r = [0.0, 0.0, 0.0, math.copysign(1.0, self.d_axes[3])]
+        else:
+            self.axes_r = [x / self.move_d for x in self.d_axes]
+        velocity = min(speed, max_velocity)
+        for i, name in enumerate("XYZE"):
+            if self.axes_r[i] != 0.0 and name in axis_v:
+                velocity = min(velocity, axis_v[name] / abs(self.axes_r[i]))
+                accel = min(accel, axis_a[name] / abs(self.axes_r[i]))
+        self.accel, self.jd, self.rest_before = accel, jd, rest_before
+        self.max_cruise_v2 = velocity * velocity
+        self.delta_v2 = 2.0 * self.move_d * accel
+        self.max_start_v2 = 0.0
+
+    def calc_junction(self, prev):
+        if not self.kinematic or not prev.kinematic or self.rest_before:
+            return
+        max_start_v2 = min(self.max_cruise_v2, prev.max_cruise_v2, prev.max_start_v2 + prev.delta_v2)
+        cos_theta = -sum(self.axes_r[i] * prev.axes_r[i] for i in range(3))
+        sin_d2 = math.sqrt(max(0.5 * (1.0 - cos_theta), 0.0))
+        cos_d2 = math.sqrt(max(0.5 * (1.0 + cos_theta), 0.0))
+        if 1.0 - sin_d2 > 0.0 and cos_d2 > 0.0:
+            r_jd = sin_d2 / (1.0 - sin_d2)
+            tan_d2 = sin_d2 / cos_d2
+            max_start_v2 = min(max_start_v2, r_jd * self.jd * self.accel, r_jd * prev.jd * prev.accel,
+                               0.5 * self.move_d * tan_d2 * self.accel, 0.5 * prev.move_d * tan_d2 * prev.accel)
+        self.max_start_v2 = max_start_v2
+
+    def set_junction(self, start_v2, cruise_v2, end_v2):
+        accel_d = (cruise_v2 - start_v2) * 0.5 / self.accel
+        decel_d = (cruise_v2 - end_v2) * 0.5 / self.accel
+        cruise_d = self.move_d - accel_d - decel_d
+        self.start_v, self.cruise_v, self.end_v = math.sqrt(start_v2), math.sqrt(cruise_v2), math.sqrt(end_v2)
+        self.time = (accel_d / ((self.start_v + self.cruise_v) * 0.5) + cruise_d / self.cruise_v
+                     + decel_d / ((self.end_v + self.cruise_v) * 0.5))
+
+
+def reference_plan(moves):
+    """Junctions in order, then Klipper's backward flush (no accel_to_decel smoothing)."""
+    for prev, move in zip([None, *moves[:-1]], moves):
+        if prev is not None:
+            move.calc_junction(prev)
+    next_end_v2 = 0.0
+    for move in reversed(moves):
+        start_v2 = min(move.max_start_v2, next_end_v2 + move.delta_v2)
+        cruise_v2 = min(move.max_cruise_v2, (start_v2 + next_end_v2 + move.delta_v2) * 0.5)
+        move.set_junction(start_v2, cruise_v2, next_end_v2)
+        next_end_v2 = start_v2
+    return moves
+
+
+def profile_limits(profile):
+    return ({n: a.max_velocity_mm_s for n, a in profile.axes.items()},
+            {n: a.max_acceleration_mm_s2 for n, a in profile.axes.items()})
+
+
+def random_program(rng, n_moves, profile=BED):
+    """A random polyline with corners, straight continuations, extrude-only moves, rapids,
+    multi-piece blocks and planner-limit changes; returns the program and the reference moves."""
+    prog = Program()
+    axis_v, axis_a = profile_limits(profile)
+    accel, travel, scv = profile.planner_acceleration_mm_s2, None, profile.planner_square_corner_velocity_mm_s
+    refs, direction = [], np.array([1.0, 0.0, 0.0])
+    for _ in range(n_moves):
+        u = rng.random()
+        if u < 0.04:
+            accel = float(rng.uniform(500, 5000))
+            travel = float(rng.uniform(1000, 6000)) if rng.random() < 0.5 else travel
+            scv = float(rng.uniform(1, 10))
+            prog.passthrough(PlannerLimits(acceleration_mm_s2=accel, travel_acceleration_mm_s2=travel,
+                                           square_corner_velocity_mm_s=scv))
+            continue
+        feed = math.inf if rng.random() < 0.05 else float(rng.uniform(5, 250))
+        n_pieces = 3 if rng.random() < 0.1 else 1
+        points = []
+        pos = prog.pos.copy()
+        for _ in range(n_pieces):
+            v = rng.random()
+            if v < 0.08:  # extrude-only: retract or prime
+                step = np.array([0, 0, 0, rng.uniform(-3, 3)])
+            else:
+                if v > 0.3:  # a new direction; otherwise straight on
+                    direction = rng.normal(size=3) * [1, 1, 0.05]
+                    direction /= np.linalg.norm(direction)
+                length = math.exp(rng.uniform(math.log(0.005), math.log(30)))  # centripetal limits too
+                e = length * 0.033 if rng.random() < 0.6 else (rng.uniform(-1, 0) if rng.random() < 0.1 else 0.0)
+                step = np.append(direction * length, e)
+            pos = pos + step
+            points.append(pos)
+        start = prog.pos.copy()
+        prog.move(*points, feed=feed)
+        for end in points:
+            a = accel if end[3] - start[3] > 0 or travel is None else travel
+            refs.append(RefMove(start, end, feed, a, scv * scv * SQRT2M1 / accel, axis_v, axis_a))
+            start = end
+    prog.stop()
+    return prog, refs
+
+
+# ---- a single move -------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("profile, d, feed", [
+    (BED, 100.0, 100.0),  # trapezoid: v^2/a = 3.3 mm < 100 mm
+    (BED, 10.0, 300.0),  # triangle: v^2/a = 30 mm > 10 mm
+    (PATENT, 20.0, 60.0),  # trapezoid at 10 kHz, accel 5000
+    (PATENT, 0.5, 100.0),  # triangle at 10 kHz
+])
+def test_single_move_matches_closed_form(profile, d, feed):
+    a = profile.planner_acceleration_mm_s2
+    prog = Program()
+    i = prog.move((d, 0, 0, 0), feed=feed)
+    plan = plan_blocks(prog.blocks, profile)
+    expected = d / feed + feed / a if feed * feed / a < d else 2 * math.sqrt(d / a)
+    assert plan.duration_s == pytest.approx(expected, rel=1e-12)
+    assert plan.line_time_s[i] == pytest.approx(expected, rel=1e-12)
+    assert plan.move_start_s[i] == 0.0
+    fs = profile.sample_rate_hz
+    n = math.floor(expected * fs) + 1 + (0 if (expected * fs).is_integer() else 1)
+    assert plan.positions_mm.shape == (n, 4)
+    assert plan.runs == [(0, n - 1)]
+    x = [rest_to_rest_distance(t, d, feed, a) for t in sample_times(plan)]
+    np.testing.assert_allclose(plan.positions_mm[:, 0], x, rtol=0, atol=1e-9)
+    assert np.all(plan.positions_mm[:, 1:] == 0.0)
+    assert plan.positions_mm[-1, 0] == d and plan.positions_mm[0, 0] == 0.0
+
+
+def test_two_collinear_moves_do_not_slow_down():
+    a = 3000.0
+    prog = Program()
+    first = prog.move((40, 0, 0, 0), feed=100.0)
+    second = prog.move((100, 0, 0, 0), feed=100.0)
+    plan = plan_blocks(prog.blocks, BED)
+    assert plan.pieces.end_v_mm_s[0] == pytest.approx(100.0, rel=1e-12)
+    assert plan.duration_s == pytest.approx(100 / 100 + 100 / a, rel=1e-12)
+    # the first block ends 40 mm into one 100 mm trapezoid: a v/a = 1/30 s ramp over
+    # v^2/2a = 1.667 mm, then cruise
+    assert plan.line_time_s[first] == pytest.approx(100 / a + (40 - 100**2 / (2 * a)) / 100, rel=1e-12)
+    assert plan.move_start_s[second] == plan.line_time_s[first]
+    x = [rest_to_rest_distance(t, 100.0, 100.0, a) for t in sample_times(plan)]
+    np.testing.assert_allclose(plan.positions_mm[:, 0], x, rtol=0, atol=1e-9)
+
+
+# ---- junctions ----------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("limits, v_corner", [
+    (None, 5.0),  # the profile's scv: at 90 degrees R_jd = 1/(sqrt2 - 1), so v^2 = scv^2
+    (PlannerLimits(square_corner_velocity_mm_s=8.0), 8.0),
+    (PlannerLimits(acceleration_mm_s2=1200.0), 5.0),  # jd follows the new accel: still scv at 90 deg
+    (PlannerLimits(junction_deviation_mm=0.02), math.sqrt(0.02 * 3000 / SQRT2M1)),  # Marlin M205 J
+])
+def test_90_degree_corner_speed(limits, v_corner):
+    a = 1200.0 if limits is not None and limits.acceleration_mm_s2 else 3000.0
+    prog = Program()
+    prog.passthrough(limits)
+    first = prog.move((100, 0, 0, 0), feed=100.0)
+    second = prog.move((100, 100, 0, 0), feed=100.0)
+    plan = plan_blocks(prog.blocks, BED)
+    assert plan.pieces.end_v_mm_s[0] == pytest.approx(v_corner, rel=1e-12)
+    assert plan.pieces.start_v_mm_s[1] == pytest.approx(v_corner, rel=1e-12)
+    t1 = trapezoid_time(100, 0, 100, v_corner, a)
+    t2 = trapezoid_time(100, v_corner, 100, 0, a)
+    assert plan.line_time_s[first] == pytest.approx(t1, rel=1e-12)
+    assert plan.line_time_s[second] == pytest.approx(t1 + t2, rel=1e-12)
+    # the sampled corner: over the period holding it, X arrives and Y leaves at v_corner, each
+    # faster by at most a t away from it, so the mean speed lies in [v, v + a T / 2]
+    fs = BED.sample_rate_hz
+    k = int(plan.line_time_s[first] * fs)
+    step = np.sum(np.abs(plan.positions_mm[k + 1, :2] - plan.positions_mm[k, :2])) * fs
+    assert v_corner - 1e-9 <= step <= v_corner + a / fs / 2 + 1e-9
+
+
+def test_short_corner_limited_by_centripetal_term():
+    # 90 degrees between 0.01 mm pieces: .5 d tan(45 deg) a = 15 mm^2/s^2, below scv^2 = 25 and
+    # below 2 a d = 60 (what either piece can reach from rest)
+    prog = Program()
+    prog.move((0.01, 0, 0, 0), feed=50.0)
+    prog.move((0.01, 0.01, 0, 0), feed=50.0)
+    plan = plan_blocks(prog.blocks, BED)
+    assert plan.pieces.start_v_mm_s[1] ** 2 == pytest.approx(0.5 * 0.01 * 3000, rel=1e-12)
+    v = math.sqrt(15.0)
+    assert plan.duration_s == pytest.approx(2 * trapezoid_time(0.01, 0, 50, v, 3000), rel=1e-12)
+
+
+def test_reversal_stops():
+    prog = Program()
+    prog.move((10, 0, 0, 0), feed=50.0)
+    prog.move((0, 0, 0, 0), feed=50.0)
+    plan = plan_blocks(prog.blocks, BED)
+    assert plan.pieces.end_v_mm_s[0] == 0.0
+    assert plan.duration_s == pytest.approx(2 * rest_to_rest(10, 50, 3000), rel=1e-12)
+
+
+# ---- limits -------------------------------------------------------------------------------------
+
+def test_axis_velocity_limits_diagonal_rapid():
+    # patent stage, 45-degree G0: each axis at its 100 mm/s, so the path at 100 sqrt 2
+    prog = Program()
+    prog.move((30, 30, 0, 0), feed=math.inf)
+    plan = plan_blocks(prog.blocks, PATENT)
+    v = 100 * math.sqrt(2)
+    assert plan.pieces.peak_v_mm_s[0] == pytest.approx(v, rel=1e-12)
+    assert plan.duration_s == pytest.approx(rest_to_rest(30 * math.sqrt(2), v, 5000), rel=1e-12)
+    step = np.abs(np.diff(plan.positions_mm[:, :2], axis=0)) * PATENT.sample_rate_hz
+    assert step.max() <= 100 * (1 + 1e-9) and step.max() > 99.9
+
+
+def test_rapid_runs_at_axis_max_velocity():
+    prog = Program()
+    prog.move((200, 0, 0, 0), feed=math.inf)
+    plan = plan_blocks(prog.blocks, BED)
+    assert plan.duration_s == pytest.approx(200 / 300 + 300 / 3000, rel=1e-12)
+
+
+def test_axis_limits_on_z_diagonal():
+    # X 3, Z 4: u_Z = 0.8, so v <= 12 / 0.8 = 15 mm/s and a <= 500 / 0.8 = 625 mm/s^2
+    prog = Program()
+    prog.move((3, 0, 4, 0), feed=100.0)
+    plan = plan_blocks(prog.blocks, BED)
+    assert plan.pieces.accel_mm_s2[0] == pytest.approx(625.0, rel=1e-12)
+    assert plan.duration_s == pytest.approx(5 / 15 + 15 / 625, rel=1e-12)
+    dz = np.diff(plan.positions_mm[:, 2]) * BED.sample_rate_hz
+    assert np.abs(dz).max() <= 12 * (1 + 1e-9)
+
+
+def test_m203_m201_change_axis_limits_from_their_block_on():
+    prog = Program()
+    before = prog.move((100, 0, 0, 0), feed=100.0)
+    prog.passthrough(PlannerLimits(axis_max_velocity_mm_s={"X": 50.0}, axis_max_acceleration_mm_s2={"X": 1000.0}))
+    after = prog.move((0, 0, 0, 0), feed=100.0)  # a reversal: both moves from rest to rest
+    plan = plan_blocks(prog.blocks, BED)
+    t1 = 100 / 100 + 100 / 3000
+    assert plan.line_time_s[before] == pytest.approx(t1, rel=1e-12)
+    assert plan.line_time_s[after] - plan.move_start_s[after] == pytest.approx(100 / 50 + 50 / 1000, rel=1e-12)
+
+
+def test_planner_velocity_limit():
+    prog = Program()
+    prog.passthrough(PlannerLimits(max_velocity_mm_s=80.0))
+    prog.move((100, 0, 0, 0), feed=math.inf)
+    plan = plan_blocks(prog.blocks, BED)
+    assert plan.duration_s == pytest.approx(100 / 80 + 80 / 3000, rel=1e-12)
+
+
+def test_travel_and_print_acceleration():
+    # M204 P1000 T5000: the extruding move at 1000, the travel back at 5000 (a reversal: stops)
+    prog = Program()
+    prog.passthrough(PlannerLimits(acceleration_mm_s2=1000.0, travel_acceleration_mm_s2=5000.0))
+    printing = prog.move((100, 0, 0, 3.0), feed=100.0)
+    travel = prog.move((0, 0, 0, 3.0), feed=100.0)
+    retract = prog.move((0, 0, 0, 1.0), feed=40.0)  # not extruding: travel accel, E limit 5000
+    plan = plan_blocks(prog.blocks, BED)
+    assert plan.line_time_s[printing] == pytest.approx(100 / 100 + 100 / 1000, rel=1e-12)
+    assert plan.line_time_s[travel] - plan.move_start_s[travel] == pytest.approx(1 + 100 / 5000, rel=1e-12)
+    assert plan.line_time_s[retract] - plan.move_start_s[retract] == pytest.approx(2 / 40 + 40 / 5000, rel=1e-12)
+
+
+def test_limit_change_mid_program_applies_to_later_moves():
+    prog = Program()
+    first = prog.move((50, 0, 0, 0), feed=100.0)
+    prog.passthrough(PlannerLimits(acceleration_mm_s2=1000.0))
+    second = prog.move((50, 50, 0, 0), feed=100.0)
+    plan = plan_blocks(prog.blocks, BED)
+    jd1, jd2 = 25 * SQRT2M1 / 3000, 25 * SQRT2M1 / 1000
+    v2 = min(jd1 * 3000, jd2 * 1000) / SQRT2M1  # R_jd = 1/(sqrt2-1) at 90 degrees; both give 25
+    v = math.sqrt(v2)
+    assert plan.pieces.accel_mm_s2.tolist() == [3000.0, 1000.0]
+    assert plan.line_time_s[first] == pytest.approx(trapezoid_time(50, 0, 100, v, 3000), rel=1e-12)
+    assert plan.line_time_s[second] - plan.line_time_s[first] == pytest.approx(
+        trapezoid_time(50, v, 100, 0, 1000), rel=1e-12)
+
+
+# ---- extrude-only moves -----------------------------------------------------------------------
+
+def test_extrude_only_retract():
+    prog = Program((10, 10, 0.2, 5.0))
+    i = prog.move((10, 10, 0.2, 0.0), feed=40.0)
+    plan = plan_blocks(prog.blocks, BED)
+    assert plan.duration_s == pytest.approx(5 / 40 + 40 / 3000, rel=1e-12)
+    e = [5.0 - rest_to_rest_distance(t, 5, 40, 3000) for t in sample_times(plan)]
+    np.testing.assert_allclose(plan.positions_mm[:, 3], e, rtol=0, atol=1e-9)
+    assert np.all(plan.positions_mm[:, :3] == [10, 10, 0.2])
+    assert plan.line_time_s[i] == plan.duration_s
+
+
+def test_extrude_only_limited_by_e_axis_and_stops_at_its_junctions():
+    prog = Program()
+    prog.move((20, 0, 0, 0), feed=100.0)
+    prog.move((20, 0, 0, 10), feed=200.0)  # E limit 120 mm/s
+    prog.move((40, 0, 0, 10), feed=100.0)  # collinear with the first move, but after an E-only move
+    plan = plan_blocks(prog.blocks, BED)
+    assert plan.pieces.peak_v_mm_s[1] == pytest.approx(120.0, rel=1e-12)
+    np.testing.assert_array_equal(plan.pieces.start_v_mm_s, 0.0)
+    np.testing.assert_array_equal(plan.pieces.end_v_mm_s, 0.0)
+    assert plan.duration_s == pytest.approx(2 * rest_to_rest(20, 100, 3000) + rest_to_rest(10, 120, 3000), rel=1e-12)
+
+
+# ---- stops, dwells, passthrough lines -------------------------------------------------------------
+
+def test_dwell_rests_exactly_and_splits_runs():
+    prog = Program()
+    prog.move((10, 0, 0, 0), feed=50.0)
+    pause = prog.stop(dwell=0.5)
+    after = prog.passthrough()
+    second = prog.move((0, 0, 0, 0), feed=50.0)
+    plan = plan_blocks(prog.blocks, BED)
+    t1 = rest_to_rest(10, 50, 3000)
+    assert plan.line_time_s[pause] == pytest.approx(t1, rel=1e-12)
+    assert plan.move_start_s[second] == pytest.approx(t1 + 0.5, rel=1e-12)
+    assert plan.line_time_s[after] == plan.move_start_s[second]
+    assert plan.duration_s == pytest.approx(2 * t1 + 0.5, rel=1e-12)
+    fs = BED.sample_rate_hz
+    assert plan.runs == [(0, math.ceil(t1 * fs)), (math.floor((t1 + 0.5) * fs), plan.positions_mm.shape[0] - 1)]
+    rest = plan.positions_mm[math.ceil(t1 * fs):math.floor((t1 + 0.5) * fs) + 1]
+    assert np.all(rest == [10, 0, 0, 0])
+
+
+def test_stop_without_dwell_still_separates_runs():
+    prog = Program()
+    prog.move((10, 0, 0, 0), feed=50.0)
+    pause = prog.stop()
+    second = prog.move((20, 0, 0, 0), feed=50.0)
+    plan = plan_blocks(prog.blocks, BED)
+    (a0, b0), (a1, b1) = plan.runs
+    assert a0 == 0 and b0 < a1 and b1 == plan.positions_mm.shape[0] - 1
+    # both ends of every run at rest: the samples next to them hold the same position
+    assert np.all(plan.positions_mm[b0] == [10, 0, 0, 0]) and np.all(plan.positions_mm[a1] == [10, 0, 0, 0])
+    # the later run starts on its sample, less than two periods after the rest began
+    assert 0 <= plan.move_start_s[second] - plan.line_time_s[pause] < 2 / BED.sample_rate_hz
+    assert plan.line_time_s[second] - plan.move_start_s[second] == pytest.approx(rest_to_rest(10, 50, 3000), rel=1e-12)
+
+
+def test_passthrough_stop_jumps_in_no_time():
+    prog = Program()
+    prog.move((10, 0, 0, 0), feed=50.0)
+    home = prog.stop(position=(0, 0, 5, 0))  # G28-like: no pieces, the position changed
+    second = prog.move((0, 10, 5, 0), feed=50.0)
+    plan = plan_blocks(prog.blocks, BED)
+    t1 = rest_to_rest(10, 50, 3000)
+    assert plan.line_time_s[home] == pytest.approx(t1, rel=1e-12)
+    (_, b0), (a1, _) = plan.runs
+    assert np.all(plan.positions_mm[b0] == [10, 0, 0, 0])
+    assert np.all(plan.positions_mm[b0 + 1:a1 + 1] == [0, 0, 5, 0])
+    assert plan.duration_s - plan.move_start_s[second] == pytest.approx(rest_to_rest(10, 50, 3000), rel=1e-12)
+
+
+def test_stop_that_loses_an_axis_holds_its_last_known_value():
+    prog = Program()
+    first = prog.move((10, 0, 0, 0), feed=50.0)
+    lost = prog.stop(position=(np.nan, 0, 0, 0))  # e.g. a move the reader could not follow in X
+    second = prog.move((np.nan, 10, 0, 0), feed=50.0)
+    plan = plan_blocks(prog.blocks, BED)
+    after = sample_times(plan) >= plan.line_time_s[first]
+    assert np.all(plan.positions_mm[after, 0] == 10.0)  # X held at 10: the second move is pure Y
+    assert np.all(plan.positions_mm[-1] == [10, 10, 0, 0])
+    for i in (first, second):
+        assert plan.line_time_s[i] - plan.move_start_s[i] == pytest.approx(rest_to_rest(10, 50, 3000), rel=1e-12)
+    assert any(note.startswith(f"line {lost + 1}: X") for note in plan.notes)
+
+
+def test_pass_lines_happen_when_the_previous_move_ends():
+    prog = Program()
+    early = prog.passthrough()
+    first = prog.move((30, 0, 0, 0), feed=100.0)
+    middle = prog.passthrough()
+    second = prog.move((60, 0, 0, 0), feed=100.0)
+    last = prog.passthrough()
+    plan = plan_blocks(prog.blocks, BED)
+    assert plan.line_time_s[early] == 0.0 == plan.move_start_s[early]
+    assert plan.line_time_s[middle] == plan.line_time_s[first] == plan.move_start_s[second]
+    assert plan.move_start_s[middle] == plan.line_time_s[middle]
+    assert plan.line_time_s[last] == plan.line_time_s[second] == plan.duration_s
+    assert plan.pieces.end_v_mm_s[0] == pytest.approx(100.0, rel=1e-12)  # the PASS does not stop it
+
+
+def test_unknown_axes_are_never_nan():
+    prog = Program((np.nan, np.nan, np.nan, np.nan))
+    prog.move((10, 0, np.nan, np.nan), (10, 10, np.nan, 2.0), feed=50.0)
+    plan = plan_blocks(prog.blocks, BED)
+    assert np.isfinite(plan.positions_mm).all()
+    assert np.all(plan.positions_mm[:, 2] == 0.0)  # Z never known: 0
+    assert np.all(plan.positions_mm[:, 3] == 2.0)  # E: its first known value, so no E motion
+    assert np.all(plan.positions_mm[0] == [10, 0, 0, 2])  # X, Y: start at their first known values
+    assert any(note.startswith("Z") for note in plan.notes)
+    assert plan.duration_s == pytest.approx(rest_to_rest(10, 50, 3000), rel=1e-12)
+
+
+def test_empty_program():
+    plan = plan_blocks([], BED)
+    assert plan.duration_s == 0.0 and plan.runs == [] and plan.positions_mm.shape == (1, 4)
+
+
+# ---- whole programs against the scalar reference ------------------------------------------------
+
+def test_min_plus_scans_equal_their_loops():
+    rng = np.random.default_rng(7)
+    n = 1000
+    limit = rng.uniform(0, 1e4, n + 1)
+    limit[rng.random(n + 1) < 0.3] = np.inf
+    limit[[0, n]] = 0.0
+    delta = rng.uniform(0, 500, n)
+    fwd, bwd = limit.copy(), limit.copy()
+    for i in range(1, n + 1):
+        fwd[i] = min(limit[i], fwd[i - 1] + delta[i - 1])
+    for i in range(n - 1, -1, -1):
+        bwd[i] = min(limit[i], bwd[i + 1] + delta[i])
+    for chunk in (7, 64, 4096):  # small chunks exercise the carry between chunks
+        np.testing.assert_allclose(forward_pass(limit, delta, chunk), fwd, rtol=1e-10)
+        np.testing.assert_allclose(backward_pass(limit, delta, chunk), bwd, rtol=1e-10)
+
+
+def check_against_reference(prog, refs, profile):
+    plan = plan_blocks(prog.blocks, profile)
+    reference_plan(refs)
+    pieces = plan.pieces
+    assert len(pieces.length_mm) == len(refs)
+    np.testing.assert_allclose(pieces.start_v_mm_s, [m.start_v for m in refs], rtol=1e-9, atol=0)
+    np.testing.assert_allclose(pieces.end_v_mm_s, [m.end_v for m in refs], rtol=1e-9, atol=0)
+    np.testing.assert_allclose(pieces.peak_v_mm_s, [m.cruise_v for m in refs], rtol=1e-9, atol=0)
+    np.testing.assert_allclose(pieces.duration_s, [m.time for m in refs], rtol=1e-9, atol=1e-12)
+    ends = np.cumsum([m.time for m in refs])
+    assert plan.duration_s == pytest.approx(ends[-1], rel=1e-9)
+    np.testing.assert_allclose(pieces.start_s + pieces.duration_s, ends, rtol=1e-9, atol=1e-9)
+    return plan
+
+
+def test_random_polyline_matches_scalar_klipper():
+    rng = np.random.default_rng(2024)
+    prog, refs = random_program(rng, 400)
+    plan = check_against_reference(prog, refs, BED)
+    assert len(plan.runs) == 1
+    # some corners really were at speed and some at rest, so the comparison means something
+    assert (plan.pieces.start_v_mm_s > 1).sum() > 50 and (plan.pieces.start_v_mm_s == 0).sum() > 10
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(min_value=0, max_value=2**32 - 1), st.integers(min_value=1, max_value=30))
+def test_small_random_polylines_match_scalar_klipper(seed, n_moves):
+    prog, refs = random_program(np.random.default_rng(seed), n_moves, PATENT if seed % 2 else BED)
+    if refs:
+        check_against_reference(prog, refs, PATENT if seed % 2 else BED)
+
+
+def test_samples_continuous_and_within_limits():
+    rng = np.random.default_rng(5)
+    prog = Program((50, 50, 0.2, 0))
+    for _ in range(120):
+        target = prog.pos + np.append(rng.normal(size=2) * rng.uniform(0.2, 15), [0, rng.uniform(0, 0.5)])
+        prog.move(target, feed=math.inf if rng.random() < 0.1 else float(rng.uniform(20, 250)))
+    plan = plan_blocks(prog.blocks, BED)
+    fs, p = BED.sample_rate_hz, plan.positions_mm
+    velocity = np.diff(p, axis=0) * fs
+    for i, axis in enumerate("XYZE"):
+        assert np.abs(velocity[:, i]).max() <= BED.axes[axis].max_velocity_mm_s * (1 + 1e-9)
+    # acceleration: only where three samples lie inside one piece (junctions may jump speed)
+    t = sample_times(plan)
+    piece = np.searchsorted(plan.pieces.start_s, t, side="right") - 1
+    inside = (piece[:-2] == piece[2:]) & (t[2:] <= (plan.pieces.start_s + plan.pieces.duration_s)[piece[2:]])
+    accel = np.diff(p, 2, axis=0)[inside] * fs * fs
+    assert np.linalg.norm(accel[:, :3], axis=1).max() <= 3000 * (1 + 1e-6)
+    for i, axis in enumerate("XYZE"):
+        assert np.abs(accel[:, i]).max() <= BED.axes[axis].max_acceleration_mm_s2 * (1 + 1e-6)
+    # continuity: no sample moves further than the fastest axis can in one period
+    assert np.abs(np.diff(p, axis=0)).max() <= 300 / fs * (1 + 1e-9)
+    assert np.all(p[0] == [50, 50, 0.2, 0]) and np.allclose(p[-1], prog.pos, rtol=0, atol=1e-12)
+
+
+def test_100k_piece_polyline_smoke(capsys):
+    rng = np.random.default_rng(11)
+    n = 100_000
+    steps = rng.normal(size=(n, 4)) * [2, 2, 0.01, 0.05]
+    points = np.cumsum(steps, axis=0)
+    blocks = [Block(1, b"", Kind.STOP, Modal(), np.zeros(4))]
+    blocks += [Block(i + 2, b"", Kind.MOVE, Modal(), points[i], points[i:i + 1], 120.0) for i in range(n)]
+    t0 = time.perf_counter()
+    plan = plan_blocks(blocks, BED)
+    elapsed = time.perf_counter() - t0
+    with capsys.disabled():
+        print(f"\n100k pieces: {elapsed:.2f} s, {plan.positions_mm.shape[0]} samples")
+    assert np.isfinite(plan.positions_mm).all()
+    assert plan.runs == [(0, plan.positions_mm.shape[0] - 1)]
+    assert np.all(plan.positions_mm[-1] == points[-1])
+    assert np.all(np.diff(plan.line_time_s[1:]) > 0)
+
+
+def test_real_print_samples_stay_within_axis_velocity():
+    """A whole sliced print (PrusaSlicer, 37k lines): inside every run, no sample steps faster than
+    the axes allow. Phase start times that round an ulp past the next piece's start once made
+    the sampler jump back along the previous piece."""
+    from fbspost.gcode import read_gcode
+
+    profile = load_profile("bedslinger-example")
+    path = Path(__file__).resolve().parent / "data" / "gear-marlin2.gcode"
+    plan = plan_blocks(list(read_gcode(path, "marlin")), profile)
+    fs = profile.sample_rate_hz
+    for first, last in plan.runs:
+        steps = np.abs(np.diff(plan.positions_mm[first:last + 1], axis=0)) * fs
+        for i, axis in enumerate("XYZE"):
+            assert steps[:, i].max(initial=0.0) <= profile.axes[axis].max_velocity_mm_s * (1 + 1e-6), axis
