@@ -36,6 +36,10 @@ class _FriendlyGroup(click.Group):
             ctx.exit(130)
 
 
+_machine_option = click.option("--machine", "-m", required=True,
+                               help="Bundled profile name (see `fbspost machines`) or path to a profile .toml.")
+
+
 @click.group(cls=_FriendlyGroup)
 @click.version_option(__version__, prog_name="fbspost")
 def main():
@@ -53,7 +57,7 @@ def machines():
 
 @main.command()
 @click.argument("input_gcode", type=click.Path(dir_okay=False, path_type=Path))
-@click.option("--machine", "-m", required=True, help="Bundled profile name or path to a profile .toml.")
+@_machine_option
 @click.option("--output", "-o", type=click.Path(dir_okay=False, path_type=Path),
               help="Output file (default: replace INPUT in place, atomically, as slicers expect).")
 @click.option("--format", "output_format", type=click.Choice(["dense"]), default="dense", show_default=True,
@@ -98,7 +102,7 @@ def compensate(input_gcode, machine, output, output_format, tolerance, min_segme
 
 @main.command()
 @click.argument("input_csv", type=click.Path(dir_okay=False, path_type=Path))
-@click.option("--machine", "-m", required=True, help="Bundled profile name or path to a profile .toml.")
+@_machine_option
 @click.option("--output", "-o", type=click.Path(dir_okay=False, path_type=Path),
               help="Output CSV (default: INPUT-compensated.csv beside the input).")
 @click.option("--lookahead", type=click.Choice(["limited", "complete"]), default="limited", show_default=True,

@@ -75,10 +75,8 @@ def compensate_file(input_path: str | Path, output_path: str | Path, profile: Ma
     modelled = [a for a in AXES if a in profile.axes and profile.axes[a].modes]
     total = max(1, sum(last - first + 1 for first, last in plan.runs) * len(modelled))
     done = 0
-    for column, name in enumerate(AXES):
-        axis = profile.axes.get(name)
-        if axis is None or not axis.modes:
-            continue
+    for name in modelled:
+        column, axis = AXES.index(name), profile.axes[name]
         dynamics = AxisDynamics(axis.modes, period_s)
         limits = AxisLimits.from_profile(axis)
         before, after = [], []
