@@ -175,17 +175,6 @@ class _Stretch:
             self.H = self.H + 1e-9 * np.trace(self.H) / n_free * (tail.T @ tail).toarray()
             self._factor = linalg.cho_factor(self.H)
 
-        # The planned motion itself as a command (N_free p = x - N_fixed p_fixed): where the
-        # limits cannot be met, the window falls back towards it.
-        G = self.N[:hold_from, m:]
-        R = G.T @ G + 1e-9 * np.trace(G.T @ G) / n_free * np.eye(n_free)
-        if self.E is not None:
-            n_eq = len(self.E)
-            self._ref_factor = linalg.lu_factor(np.block([[R, self.E[:, m:].T], [self.E[:, m:], np.zeros((n_eq, n_eq))]]))
-        else:
-            self._ref_factor = linalg.cho_factor(R)
-        self._ref_rows = hold_from
-
         # Limits, one row per sample and limit, divided by the limit: |A_free p + offset| <= 1 with
         # offset = A_fixed p_fixed + A_prev [previous command; previous output] + A_state state.
         r_max = max(limits.max_order, 1)
@@ -223,26 +212,6 @@ class _Stretch:
             return linalg.cho_solve(self._factor, self.gradient(target))
         rhs = np.concatenate([self.gradient(target), end_values - self.E[:, :self.m] @ p_fixed])
         return linalg.lu_solve(self._factor, rhs)[:self.n_free]
-
-    def planned(self, desired: np.ndarray, p_fixed: np.ndarray, end_values: np.ndarray | None) -> np.ndarray:
-        """Free control points whose command follows the desired trajectory itself."""
-        rows = self._ref_rows
-        rhs = self.N[:rows, self.m:].T @ (desired[:rows] - self.N[:rows, :self.m] @ p_fixed)
-        if self.E is None:
-            return linalg.cho_solve(self._ref_factor, rhs)
-        rhs = np.concatenate([rhs, end_values - self.E[:, :self.m] @ p_fixed])
-        return linalg.lu_solve(self._ref_factor, rhs)[:self.n_free]
-
-    def blend(self, p_from: np.ndarray, p_to: np.ndarray, offset: np.ndarray) -> float:
-        """The largest f in [0, 1] with p_from + f (p_to - p_from) within every limit (0 if
-        p_from itself is not)."""
-        a = self.A_free @ p_from + offset
-        b = self.A_free @ (p_to - p_from)
-        if np.abs(a).max(initial=0.0) > 1.0 + _LIMIT_TOLERANCE:
-            return 0.0
-        with np.errstate(divide="ignore", invalid="ignore"):
-            reach = np.where(b > 0, (1.0 - a) / b, np.where(b < 0, (-1.0 - a) / b, np.inf))
-        return float(np.clip(reach.min(initial=1.0), 0.0, 1.0))
 
     def limit_offset(self, p_fixed, state, prev_command, prev_output) -> np.ndarray:
         return self.A_fixed @ p_fixed + self.A_prev @ np.concatenate([prev_command, prev_output]) + self.A_state @ state
@@ -400,9 +369,6 @@ def _solve_window(stretch: _Stretch, desired, carry: _Carry, end_values, result:
     excess = stretch.violation(best, offset)
     if excess <= _LIMIT_TOLERANCE:
         return best
-    # Fall back towards the planned motion as far as the limits demand.
-    planned = stretch.planned(desired, carry.p_fixed, end_values)
-    share = stretch.blend(planned, best, offset)
-    result.warnings.append(f"window from sample {first_sample}: the limits could not be met with full "
-                           f"compensation; {100 * (1 - share):.0f}% of it given up for the planned motion there")
-    return planned + share * (best - planned)
+    result.warnings.append(f"window from sample {first_sample}: the limits could not be met; "
+                           f"the command there exceeds them by up to {excess:.3g} (relative)")
+    return best
