@@ -1,8 +1,10 @@
 """fbspost: compensate servo- and vibration-induced motion errors with filtered B-splines.
 
-Stages, one module each: ``profile`` (machine profiles), ``dynamics`` (exact discrete axis
-models), ``splines`` (B-spline bases), ``optimizer`` (the FBS solve), ``trajectory`` (sampled
-trajectories as CSV), ``cli`` (the ``fbspost`` command).
+Stages, one module each: ``gcode`` (reading programs), ``planner`` (the controller's plan),
+``profile`` (machine profiles), ``dynamics`` (exact discrete axis models), ``splines``
+(B-spline bases), ``optimizer`` (the FBS solve), ``writer`` (the output program), ``pipeline``
+(the whole job on one file), ``trajectory`` (sampled trajectories as CSV), ``cli`` (the
+``fbspost`` command).
 """
 from importlib.metadata import PackageNotFoundError, version
 
