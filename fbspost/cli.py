@@ -17,7 +17,7 @@ from . import __version__
 from .dynamics import AxisDynamics
 from .gcode import FLAVORS
 from .optimizer import AxisLimits, FBSSettings, compensate_axis
-from .pipeline import CompensateOptions, compensate_file
+from .pipeline import AxisReport, CompensateOptions, compensate_file
 from .profile import ProfileError, bundled_profiles, load_profile
 from .trajectory import InputError, read_trajectory_csv, write_trajectory_csv
 
@@ -133,14 +133,14 @@ def trajectory(input_csv, machine, output, lookahead, knot_spacing, commit_spans
         dynamics = AxisDynamics(axis.modes, period_s)
         limits = AxisLimits.from_profile(axis)
         result = compensate_axis(desired, dynamics, limits, settings, lookahead)
-        before = desired - dynamics.simulate(desired)
-        after = desired - dynamics.simulate(result.command_mm)
+        error = AxisReport.from_errors(desired - dynamics.simulate(desired),
+                                       desired - dynamics.simulate(result.command_mm))
         data.axes[name] = result.command_mm
         v = np.abs(np.diff(result.command_mm)).max(initial=0.0) / period_s
         a = np.abs(np.diff(result.command_mm, 2)).max(initial=0.0) / period_s**2
-        rms = [float(np.sqrt(np.mean(e**2))) * 1e3 for e in (before, after)]
-        lines.append(f"axis {name}: RMS error {rms[0]:.4g} -> {rms[1]:.4g} um, max {np.abs(before).max() * 1e3:.4g} -> "
-                     f"{np.abs(after).max() * 1e3:.4g} um; command |v| {v:.4g}/{limits.command[1]:g} mm/s, "
+        lines.append(f"axis {name}: RMS error {error.rms_error_before_um:.4g} -> {error.rms_error_after_um:.4g} um, "
+                     f"max {error.max_error_before_um:.4g} -> {error.max_error_after_um:.4g} um; "
+                     f"command |v| {v:.4g}/{limits.command[1]:g} mm/s, "
                      f"|a| {a:.5g}/{limits.command[2]:g} mm/s^2; {result.windows} windows, {result.qp_windows} with QP")
         lines.extend(f"warning: axis {name}: {w}" for w in result.warnings)
     output = output or input_csv.with_name(f"{input_csv.stem}-compensated.csv")

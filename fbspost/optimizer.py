@@ -54,8 +54,9 @@ class AxisLimits:
         return cls(command)
 
     @property
-    def max_order(self) -> int:
-        return max([*self.command, *self.output], default=0)
+    def history(self) -> int:
+        """Samples before a window that its limit rows need (the highest order, at least 1)."""
+        return max([*self.command, *self.output, 1])
 
 
 @dataclass(frozen=True)
@@ -177,7 +178,7 @@ class _Stretch:
 
         # Limits, one row per sample and limit, divided by the limit: |A_free p + offset| <= 1 with
         # offset = A_fixed p_fixed + A_prev [previous command; previous output] + A_state state.
-        r_max = max(limits.max_order, 1)
+        r_max = limits.history
         free, fixed, prev, state, row_sample = [], [], [], [], []
         for kind, table in (("command", limits.command), ("output", limits.output)):
             basis = self.N if kind == "command" else self.Nt
@@ -303,7 +304,7 @@ def compensate_axis(desired_mm: np.ndarray, dynamics: AxisDynamics, limits: Axis
         return result  # a few spans: too short to shape, the end conditions would fix every point
 
     m, k = settings.degree, settings.knot_spacing_samples
-    r_max = max(limits.max_order, 1)
+    r_max = limits.history
     carry = _Carry(dynamics, m, r_max, desired_mm[0])
     last = desired_mm.size - 1
     commit, window = settings.commit_spans, settings.commit_spans + settings.overlap_spans
@@ -325,7 +326,8 @@ def compensate_axis(desired_mm: np.ndarray, dynamics: AxisDynamics, limits: Axis
             p_free = _solve_window(regular, desired, carry, None, result, check_rows, k0)
             p_all = np.concatenate([carry.p_fixed, p_free[:commit]])
             result.command_mm[k0:k0 + commit_rows] = regular.N[:commit_rows, :m + commit] @ p_all
-            output = regular.Phi[:commit_rows] @ carry.state + regular.Nt[:commit_rows, :m + commit] @ p_all
+            tail = slice(max(commit_rows - r_max, 0), commit_rows)  # only the carried samples of the output
+            output = regular.Phi[tail] @ carry.state + regular.Nt[tail, :m + commit] @ p_all
             carry.state = advance @ carry.state + to_state[:, :m + commit] @ p_all
             carry.p_fixed = p_all[-m:]
             carry.prev_command = np.concatenate([carry.prev_command, result.command_mm[k0:k0 + commit_rows]])[-r_max:]

@@ -38,6 +38,12 @@ class AxisReport:
     rms_error_after_um: float
     max_error_after_um: float
 
+    @classmethod
+    def from_errors(cls, before_mm: np.ndarray, after_mm: np.ndarray) -> AxisReport:
+        """From the modelled tracking error of the original and of the compensated command."""
+        return cls(_rms_um(before_mm), float(np.abs(before_mm).max()) * 1e3,
+                   _rms_um(after_mm), float(np.abs(after_mm).max()) * 1e3)
+
 
 @dataclass
 class Report:
@@ -91,8 +97,7 @@ def compensate_file(input_path: str | Path, output_path: str | Path, profile: Ma
             if progress:
                 progress(done / total)
         if before:
-            b, a = np.concatenate(before), np.concatenate(after)
-            report.axes[name] = AxisReport(_rms_um(b), float(np.abs(b).max()) * 1e3, _rms_um(a), float(np.abs(a).max()) * 1e3)
+            report.axes[name] = AxisReport.from_errors(np.concatenate(before), np.concatenate(after))
 
     stages["optimize"] = time.perf_counter() - clock
     clock = time.perf_counter()

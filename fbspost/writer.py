@@ -80,8 +80,7 @@ class _Emitter:
     unit changes.
     """
 
-    def __init__(self, options: WriteOptions, start_mm: np.ndarray):
-        self.options = options
+    def __init__(self, start_mm: np.ndarray):
         self.modal = Modal()  # the controller starts in its defaults
         self.shift_mm = np.zeros(4)  # controller frame minus program frame, per axis (G92 mid-motion)
         self.written = self.to_program(start_mm)
@@ -197,7 +196,7 @@ def write_program(blocks: list[Block], plan: Plan, command_mm: np.ndarray, optio
     follows_plan = np.all(command_mm == plan.positions_mm, axis=0)  # E and axes without modes
     min_samples = max(1, int(np.ceil(options.min_segment_time_s * fs - 1e-9)))
     run_breaks = [breakpoints(command_mm[a:b + 1], options.tolerance_mm, min_samples) + a for a, b in plan.runs]
-    emitter = _Emitter(options, command_mm[0])
+    emitter = _Emitter(command_mm[0])
     run_index, written_until_s = 0, 0.0
 
     unterminated = False  # the last copied line had no line ending (the end of the file)
