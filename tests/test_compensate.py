@@ -74,7 +74,9 @@ def test_butterfly_programs_on_patent_stage(butterfly_runs, name, duration_toler
 
 # ---- real slicer output on the printer profile -------------------------------------------------
 
-CORPUS = ["gear-marlin2.gcode", "blob-reprap-relative-e.gcode"]
+CORPUS = ["gear-marlin2.gcode", "blob-reprap-relative-e.gcode",
+          # Short prints sliced here by tests/data/make_sliced.py (PrusaSlicer 2.5).
+          "tube-marlin2.gcode", "pocket-klipper.gcode", "bracket-reprapfirmware-relative-e.gcode"]
 
 
 @pytest.fixture(scope="module", params=CORPUS)
