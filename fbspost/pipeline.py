@@ -16,7 +16,7 @@ from . import __version__
 from .atomicfile import atomic_write
 from .dynamics import AxisDynamics
 from .gcode import AXES, detect_flavor, read_gcode
-from .optimizer import AxisLimits, FBSSettings, compensate_axis
+from .optimizer import AxisCompensator, AxisLimits, FBSSettings
 from .planner import plan_blocks
 from .profile import MachineProfile
 from .writer import WriteOptions, write_program
@@ -84,11 +84,11 @@ def compensate_file(input_path: str | Path, output_path: str | Path, profile: Ma
     for name in modelled:
         column, axis = AXES.index(name), profile.axes[name]
         dynamics = AxisDynamics(axis.modes, period_s)
-        limits = AxisLimits.from_profile(axis)
+        compensate = AxisCompensator(dynamics, AxisLimits.from_profile(axis), options.settings, options.lookahead)
         before, after = [], []
         for first, last in plan.runs:
             desired = plan.positions_mm[first:last + 1, column]
-            result = compensate_axis(desired, dynamics, limits, options.settings, options.lookahead)
+            result = compensate(desired)
             command[first:last + 1, column] = result.command_mm
             before.append(desired - dynamics.simulate(desired))
             after.append(desired - dynamics.simulate(result.command_mm))

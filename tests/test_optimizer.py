@@ -95,18 +95,20 @@ def test_binding_limit_no_worse_than_best_clipped_solution(butterfly_xy, butterf
     clipped = desired + lo * (free - desired)
     constrained = butterfly_results[axis]["limited"].command_mm
     assert finite_derivative_max(constrained, 2, T) <= 8000.0 * (1 + 1e-6)
-    assert finite_derivative_max(constrained, 2, T) >= 8000.0 * (1 - 1e-6)  # active
+    assert finite_derivative_max(constrained, 2, T) >= 8000.0 * (1 - 1e-5)  # active, to OSQP's tolerance
     assert tracking_rms(axis, desired, constrained) <= tracking_rms(axis, desired, clipped)
 
 
 def test_jerk_limit_binds_inside_windows(butterfly_xy):
-    """A jerk limit just above the desired trajectory's own jerk binds in regular windows too."""
+    """A jerk limit just above the desired trajectory's own jerk binds in regular windows too
+    (with knots twice as dense as the default, whose command has more jerk to limit)."""
     axis, desired = "X", butterfly_xy["X"]
     dynamics = AxisDynamics(PATENT.axes[axis].modes, T)
+    dense = FBSSettings(knot_spacing_samples=FBSSettings().resolve(dynamics).knot_spacing_samples // 2)
     jerk_limit = 1.1 * finite_derivative_max(desired, 3, T)
-    free = compensate_axis(desired, dynamics, AxisLimits()).command_mm
-    assert finite_derivative_max(free, 3, T) > 2 * jerk_limit
-    result = compensate_axis(desired, dynamics, AxisLimits({1: 100.0, 2: 8000.0, 3: jerk_limit}))
+    free = compensate_axis(desired, dynamics, AxisLimits(), dense).command_mm
+    assert finite_derivative_max(free[:-10000], 3, T) > 2 * jerk_limit
+    result = compensate_axis(desired, dynamics, AxisLimits({1: 100.0, 2: 8000.0, 3: jerk_limit}), dense)
     assert result.qp_windows >= 2
     assert finite_derivative_max(result.command_mm, 3, T) <= jerk_limit * (1 + 1e-6)
     before = tracking_rms(axis, desired, desired)
@@ -255,7 +257,7 @@ def test_settings_are_chosen_from_the_dynamics_and_overridable():
     dynamics = AxisDynamics(PATENT.axes["X"].modes, T)
     auto = FBSSettings().resolve(dynamics)
     highest = max(m.frequency_hz for m in PATENT.axes["X"].modes)
-    assert auto.knot_spacing_samples == int(PATENT.sample_rate_hz / (12 * highest))
+    assert auto.knot_spacing_samples == int(PATENT.sample_rate_hz / (6 * highest))
     # Look-ahead: the RHP zero at +230.9 rad/s decays by 1e-6 in ln(1e6)/230.9 s, or one period
     # of the lowest mode (20.52 Hz), whichever is longer.
     lookahead_s = max(np.log(1e6) / 230.9, 1 / 20.52)
@@ -292,11 +294,12 @@ def test_motion_too_short_to_shape_is_returned_as_planned():
 
 
 def test_limits_that_cannot_be_met_are_reported():
-    """A plan moving at 120 mm/s against a 100 mm/s limit: no command can meet it, and the
-    result says where."""
+    """60 mm to cover in the 0.5 s between the start and the last sample against a 100 mm/s
+    limit: no command can meet it (it starts at rest and must end there), and the result says
+    where."""
     axis = PATENT.axes["X"]
-    desired = smooth_move(60.0, 0.9, 0.1, T)
-    assert finite_derivative_max(desired, 1, T) > 120.0
+    desired = smooth_move(60.0, 0.4, 0.1, T)
+    assert 60.0 / (desired.size * T) > 100.0
     result = compensate_axis(desired, AxisDynamics(axis.modes, T), AxisLimits({1: 100.0}))
     assert result.warnings and result.warnings[0].startswith("window from sample")
     assert "could not be met" in result.warnings[0]
