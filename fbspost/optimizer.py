@@ -320,15 +320,17 @@ class _Stretch:
                 steps += 1
                 # Raising lambda_q by side * t keeps the held rows at their bounds if lambda_W
                 # moves by d t; row q then approaches its bound at rate ``rate``.
+                column = S[rows, q]  # = S[q, rows]
                 try:
-                    d = -side * np.linalg.solve(S[rows][:, rows], S[rows, q]) if rows else lam
+                    d = -side * np.linalg.solve(S[rows][:, rows], column) if rows else lam
                 except np.linalg.LinAlgError:
                     return None
-                rate = S[q, q] + side * (S[q, rows] @ d)
-                gap = side * (start[q] - S[q, rows] @ lam - S[q, q] * lam_q) - 1.0
+                rate = S[q, q] + side * (column @ d)
+                gap = side * (start[q] - column @ lam - S[q, q] * lam_q) - 1.0
                 full = gap / rate if rate > 1e-12 * S[q, q] else np.inf
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    to_zero = np.where(lam * d < 0.0, -lam / d, np.inf)
+                to_zero = np.full(len(rows), np.inf)
+                falling = lam * d < 0.0
+                to_zero[falling] = -lam[falling] / d[falling]
                 block = int(np.argmin(to_zero)) if rows else -1
                 partial = to_zero[block] if rows else np.inf
                 if not np.isfinite(min(full, partial)):

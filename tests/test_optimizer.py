@@ -1,14 +1,16 @@
 """The FBS optimizer against independent truths: scipy's simulation of the continuous model, a
 brute-force least-squares and QP solve of the same problem written out here, and the patent's
 butterfly on its own stage."""
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
-from scipy import optimize
+from scipy import linalg, optimize, sparse
 from scipy.interpolate import BSpline
 
 from fbspost.dynamics import AxisDynamics
 from fbspost.examples import butterfly
-from fbspost.optimizer import AxisLimits, FBSSettings, compensate_axis
+from fbspost.optimizer import AxisLimits, FBSSettings, _Stretch, compensate_axis
 from fbspost.profile import load_profile
 from reference import finite_derivative_max, rms, simulate_lsim
 
@@ -303,3 +305,36 @@ def test_limits_that_cannot_be_met_are_reported():
     result = compensate_axis(desired, AxisDynamics(axis.modes, T), AxisLimits({1: 100.0}))
     assert result.warnings and result.warnings[0].startswith("window from sample")
     assert "could not be met" in result.warnings[0]
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_dual_active_set_step_is_the_qp_optimum(seed):
+    """The regular windows' QP step (Goldfarb-Idnani on the factored window) on random problems
+    min 1/2 p'Hp - g'p s.t. |A p + offset| <= 1: its point meets every row and satisfies the KKT
+    conditions (the gradient cancelled by nonnegative multipliers on the rows at their bounds,
+    found by NNLS here), so it is the optimum; and no feasible point SLSQP finds is better."""
+    rng = np.random.default_rng(seed)
+    n, rows = 8, 30
+    root = rng.standard_normal((n, n))
+    H = root @ root.T + 0.1 * np.eye(n)
+    A = rng.standard_normal((rows, n)) * (rng.random((rows, n)) < 0.4)
+    offset = rng.uniform(-0.5, 0.5, rows)
+    g = rng.standard_normal(n) * 5
+    window = SimpleNamespace(_hinv_at=None, A_free=sparse.csr_matrix(A), _factor=linalg.cho_factor(H))
+    p_free = np.linalg.solve(H, g)
+    assert np.abs(A @ p_free + offset).max() > 1  # the limits bind
+    ours = _Stretch._active_set(window, p_free, offset)
+    value = A @ ours + offset
+    assert np.abs(value).max() <= 1 + 1e-7
+    active = np.abs(value) >= 1 - 1e-9
+    assert active.any()
+    gradient = H @ ours - g
+    directions = (np.sign(value[active])[:, None] * A[active]).T
+    multipliers, residual = optimize.nnls(directions, -gradient)
+    assert residual <= 1e-8 * max(1.0, np.linalg.norm(g))
+    objective = lambda p: 0.5 * p @ H @ p - g @ p
+    rows_of = lambda p: np.concatenate([1 - (A @ p + offset), 1 + (A @ p + offset)])
+    reference = optimize.minimize(objective, np.zeros(n), jac=lambda p: H @ p - g, method="SLSQP",
+                                  constraints={"type": "ineq", "fun": rows_of, "jac": lambda p: np.vstack([-A, A])})
+    if rows_of(reference.x).min() >= -1e-9:
+        assert objective(ours) <= objective(reference.x) + 1e-9 * abs(objective(reference.x))
