@@ -119,7 +119,6 @@ class AxisResult:
 _LIMIT_TOLERANCE = 1e-7  # relative excess over a limit accepted as meeting it
 _QP_ROUNDS = 4
 _ACTIVE_SET_STEPS = 40
-_BATCH = 4096  # regular windows whose desired part is computed in one product
 
 
 def _difference_matrix(order: int, n: int, sample_period_s: float) -> sparse.csr_matrix:
@@ -376,9 +375,6 @@ class _Carry:
         self.n_states, self.m, self.r_max = n_states, m, r_max
         self.size = n_states + m + 2 * r_max
 
-    def at_rest(self, dynamics: AxisDynamics, position_mm: float) -> np.ndarray:
-        return np.concatenate([dynamics.rest_state(position_mm), np.full(self.m + 2 * self.r_max, position_mm)])
-
     def state(self, z):
         return z[:self.n_states]
 
@@ -395,7 +391,7 @@ class _Sweep:
     unconstrained optimum meets the limits (most of them): the first control points
     p = Gd desired - Gz z, the limit rows of the samples the window decides (divided by the
     limit) Ad desired + Az z, and the next carry z' = L [z; kept points]. Everything here is built
-    once per axis; the parts in ``desired`` are computed for many windows in one product."""
+    once per axis."""
 
     def __init__(self, stretch: _Stretch, dynamics: AxisDynamics, carry: _Carry, commit: int, k: int):
         m, ns, r = stretch.m, carry.n_states, carry.r_max
@@ -427,15 +423,15 @@ class _Sweep:
                             p_all[-m:],
                             stretch.N[tail, :m + commit] @ p_all,
                             stretch.Phi[tail] @ state + stretch.Nt[tail, :m + commit] @ p_all])
-        self.p_all = p_all
         self.N_kept = stretch.N[:rows, :m + commit]
 
 
 class AxisCompensator:
-    """The compensation of one axis: ``compensator(desired_mm)`` gives an ``AxisResult``.
+    """The compensation of one axis: ``compensator(desired_mm)`` gives an ``AxisResult``, and
+    ``compensator.stream()`` an ``AxisStream`` for a run that arrives in pieces.
 
     Everything that does not depend on the trajectory (the regular window's matrices, their
-    factorization, the folded maps and the OSQP set-up) is built on first use and reused for
+    factorization, the folded maps and the QP set-up) is built on first use and reused for
     every motion run of a program.
     """
 
@@ -446,75 +442,126 @@ class AxisCompensator:
         self.dynamics, self.limits, self.lookahead = dynamics, limits, lookahead
         self.settings = settings.resolve(dynamics)
         self.carry = _Carry(dynamics.n_states, self.settings.degree, limits.history)
+        self.rest_unit = np.concatenate([dynamics.rest_state(1.0), np.ones(self.carry.size - dynamics.n_states)])
         self._regular: _Stretch | None = None
         self._sweep: _Sweep | None = None
 
     def __call__(self, desired_mm: np.ndarray) -> AxisResult:
-        desired_mm = np.asarray(desired_mm, dtype=float)
-        if desired_mm.ndim != 1 or desired_mm.size == 0 or not np.all(np.isfinite(desired_mm)):
-            raise ValueError("the desired trajectory must be a non-empty 1-D array of finite positions")
-        settings = self.settings
-        result = AxisResult(desired_mm.copy(), settings)
-        if np.ptp(desired_mm) == 0.0:
-            return result  # nothing moves: the command is the desired position
-        if desired_mm.size <= (settings.end_rest_order + 3) * settings.knot_spacing_samples:
-            return result  # a few spans: too short to shape, the end conditions would fix every point
-
-        k, last = settings.knot_spacing_samples, desired_mm.size - 1
-        commit, window = settings.commit_spans, settings.commit_spans + settings.overlap_spans
-        # Regular windows while what follows the kept spans is longer than the final window.
-        n_regular = 0
-        if self.lookahead == "limited":
-            n_regular = max(0, (last // k - commit - max(window, settings.final_spans)) // commit + 1)
-        z = self.carry.at_rest(self.dynamics, desired_mm[0])
-        if n_regular:
-            z = self._sweep_regular(desired_mm, n_regular, z, result)
-        self._final(desired_mm, n_regular * commit, z, result)
-        # Both ends are these positions in exact arithmetic; make them so in floating point too.
-        result.command_mm[0], result.command_mm[-1] = desired_mm[0], desired_mm[-1]
+        stream = self.stream()
+        head = stream.push(desired_mm)
+        result = stream.finish()
+        result.command_mm = np.concatenate([head, result.command_mm])
         return result
 
-    def _sweep_regular(self, desired_mm, n_windows: int, z: np.ndarray, result: AxisResult) -> np.ndarray:
-        settings, carry = self.settings, self.carry
-        k, window = settings.knot_spacing_samples, settings.commit_spans + settings.overlap_spans
+    def stream(self) -> AxisStream:
+        return AxisStream(self)
+
+    def regular(self) -> tuple[_Stretch, _Sweep]:
         if self._sweep is None:
-            self._regular = _Stretch(self.dynamics, settings, self.limits, window * k, window)
-            self._sweep = _Sweep(self._regular, self.dynamics, carry, settings.commit_spans, k)
-        stretch, sweep = self._regular, self._sweep
-        rows, commit = sweep.commit_rows, sweep.commit
-        windows = np.lib.stride_tricks.sliding_window_view(desired_mm, window * k)[::rows]
-        kept = np.empty((n_windows, carry.m + commit))  # p_all of every window
-        for first in range(0, n_windows, _BATCH):
-            batch = np.ascontiguousarray(windows[first:min(first + _BATCH, n_windows)])  # for BLAS
-            free = batch @ sweep.Gd.T  # what the desired trajectory asks of each window's first points
-            limit_rows = batch @ sweep.Ad.T if stretch.has_limits else None
-            for j, p in enumerate(free, start=first):
-                if stretch.has_limits and np.abs(limit_rows[j - first] + sweep.Az @ z).max() > 1.0:
-                    p = _solve_window(stretch, windows[j], carry, z, None, result, sweep.check, j * rows)
+            k = self.settings.knot_spacing_samples
+            window = self.settings.commit_spans + self.settings.overlap_spans
+            self._regular = _Stretch(self.dynamics, self.settings, self.limits, window * k, window)
+            self._sweep = _Sweep(self._regular, self.dynamics, self.carry, self.settings.commit_spans, k)
+        return self._regular, self._sweep
+
+
+class AxisStream:
+    """One run of one axis, fed in pieces: ``push(desired_mm)`` gives the command samples that
+    nothing later can change, ``finish()`` an ``AxisResult`` with the rest. The samples are the
+    same, bit for bit, however the run is cut into pieces: every window is computed alike.
+
+    A window runs as a regular one once the samples after its kept spans are known to outlast
+    the final window; the buffer holds the samples from the current window's start.
+    """
+
+    def __init__(self, compensator: AxisCompensator):
+        self.owner = compensator
+        self.result = AxisResult(np.empty(0), compensator.settings)
+        self.buffer = np.empty(0)
+        self.first_sample = 0  # run sample at buffer[0]
+        self.z = None  # the carry, once the first sample is known
+
+    def push(self, desired_mm: np.ndarray) -> np.ndarray:
+        desired_mm = np.asarray(desired_mm, dtype=float)
+        if desired_mm.ndim != 1 or not np.all(np.isfinite(desired_mm)):
+            raise ValueError("the desired trajectory must be a 1-D array of finite positions")
+        self.buffer = np.concatenate([self.buffer, desired_mm])
+        if self.z is None and self.buffer.size:
+            self.z = self.owner.rest_unit * self.buffer[0]
+        if self.owner.lookahead == "complete":
+            return np.empty(0)
+        return self._regular_windows()
+
+    def finish(self) -> AxisResult:
+        """The rest of the run: regular windows while they are still regular, then the final one."""
+        owner, result = self.owner, self.result
+        settings = owner.settings
+        if self.first_sample + self.buffer.size == 0:
+            raise ValueError("the desired trajectory must be a non-empty 1-D array of finite positions")
+        head = self._regular_windows() if owner.lookahead == "limited" else np.empty(0)
+        if self.first_sample == 0 and self.buffer.size <= (settings.end_rest_order + 3) * settings.knot_spacing_samples:
+            result.command_mm = self.buffer.copy()  # a few spans: too short to shape, the end conditions would fix every point
+            return result
+        tail = self._final()
+        tail[-1] = self.buffer[-1]  # the last position in exact arithmetic; make it so in floating point too
+        result.command_mm = np.concatenate([head, tail])
+        return result
+
+    def _regular_windows(self) -> np.ndarray:
+        """Run every window known to be regular: followed by more than the final window needs
+        in the samples known so far (so whatever comes later)."""
+        owner = self.owner
+        settings, carry = owner.settings, owner.carry
+        k, commit = settings.knot_spacing_samples, settings.commit_spans
+        window = commit + settings.overlap_spans
+        ahead = (commit + max(window, settings.final_spans)) * k  # samples a regular window needs after its start
+        rows = commit * k
+        out, start = [], 0
+        while start + ahead < self.buffer.size:
+            stretch, sweep = owner.regular()
+            desired = self.buffer[start:start + window * k]
+            z = self.z
+            if desired[0] == desired[-1] and np.ptp(desired) == 0.0 and np.array_equal(z, owner.rest_unit * desired[0]):
+                command = desired[:rows].copy()  # at rest and staying there: exactly the optimum
+            else:
+                p = sweep.Gd @ desired
+                if stretch.has_limits and np.abs(sweep.Ad @ desired + sweep.Az @ z).max() > 1.0:
+                    p = _solve_window(stretch, desired, carry, z, None, self.result, sweep.check,
+                                      self.first_sample + start)
                 else:
                     p -= sweep.Gz @ z
-                x = np.concatenate([z, p[:commit]])
-                kept[j] = sweep.p_all @ x
-                z = sweep.L @ x
-        result.windows += n_windows
-        result.command_mm[:n_windows * rows] = (kept @ sweep.N_kept.T).ravel()
-        return z
+                kept = np.concatenate([carry.p_fixed(z), p[:commit]])
+                command = sweep.N_kept @ kept
+                self.z = sweep.L @ np.concatenate([z, p[:commit]])
+            if self.first_sample + start == 0:
+                command[0] = desired[0]  # the first position in exact arithmetic; so in floating point
+            out.append(command)
+            start += rows
+            self.result.windows += 1
+        self.buffer = self.buffer[start:]
+        self.first_sample += start
+        return np.concatenate(out) if out else np.empty(0)
 
-    def _final(self, desired_mm, q0: int, z: np.ndarray, result: AxisResult) -> None:
-        """The final window: from span q0 to the end, the end conditions, and the settling stretch."""
-        settings, m = self.settings, self.settings.degree
-        k0 = q0 * settings.knot_spacing_samples
-        n_rows = desired_mm.size - k0
+    def _final(self) -> np.ndarray:
+        """The final window: from the buffer's start to the end, the end conditions, the settling stretch."""
+        owner, desired_mm, z = self.owner, self.buffer, self.z
+        settings, carry = owner.settings, owner.carry
+        self.result.windows += 1
+        if np.ptp(desired_mm) == 0.0 and np.array_equal(z, owner.rest_unit * desired_mm[0]):
+            return desired_mm.copy()  # at rest and staying there
+        n_rows = desired_mm.size
         # The spans up to the last sample; a point whose support starts at the last sample does nothing.
-        final = _Stretch(self.dynamics, settings, self.limits, n_rows + settings.settle_samples,
+        final = _Stretch(owner.dynamics, settings, owner.limits, n_rows + settings.settle_samples,
                          max(1, -(-(n_rows - 1) // settings.knot_spacing_samples)), hold_from=n_rows,
                          end_conditions=True)
-        desired = np.concatenate([desired_mm[k0:], np.full(settings.settle_samples, desired_mm[-1])])
+        desired = np.concatenate([desired_mm, np.full(settings.settle_samples, desired_mm[-1])])
         end_values = np.zeros(settings.end_rest_order + 1)
         end_values[0] = desired_mm[-1]
-        p_free = _solve_window(final, desired, self.carry, z, end_values, result, None, k0)
-        result.command_mm[k0:] = final.N[:n_rows] @ np.concatenate([self.carry.p_fixed(z), p_free])
-        result.windows += 1
+        p_free = _solve_window(final, desired, carry, z, end_values, self.result, None, self.first_sample)
+        command = final.N[:n_rows] @ np.concatenate([carry.p_fixed(z), p_free])
+        if self.first_sample == 0:
+            command[0] = desired_mm[0]
+        return command
 
 
 def compensate_axis(desired_mm: np.ndarray, dynamics: AxisDynamics, limits: AxisLimits,

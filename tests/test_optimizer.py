@@ -10,7 +10,7 @@ from scipy.interpolate import BSpline
 
 from fbspost.dynamics import AxisDynamics
 from fbspost.examples import butterfly
-from fbspost.optimizer import AxisLimits, FBSSettings, _Stretch, compensate_axis
+from fbspost.optimizer import AxisCompensator, AxisLimits, FBSSettings, _Stretch, compensate_axis
 from fbspost.profile import load_profile
 from reference import finite_derivative_max, rms, simulate_lsim
 
@@ -338,3 +338,29 @@ def test_dual_active_set_step_is_the_qp_optimum(seed):
                                   constraints={"type": "ineq", "fun": rows_of, "jac": lambda p: np.vstack([-A, A])})
     if rows_of(reference.x).min() >= -1e-9:
         assert objective(ours) <= objective(reference.x) + 1e-9 * abs(objective(reference.x))
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_stream_in_pieces_equals_the_whole_run_bit_for_bit(seed):
+    """A run pushed in random pieces (some empty, some a single sample) gives exactly the samples
+    of the run in one piece, with the limits binding in places; each push gives only samples
+    that are final, in order."""
+    axis = PATENT.axes["X"]
+    dynamics = AxisDynamics(axis.modes, T)
+    there_and_back = np.concatenate([smooth_move(2.0, 0.06, 0.3, T), 2.0 - smooth_move(2.0, 0.06, 0.3, T)[1:]])
+    desired = np.tile(there_and_back, 4)
+    compensator = AxisCompensator(dynamics, AxisLimits({1: 100.0, 2: 8000.0}))
+    whole = compensator(desired)
+    assert whole.qp_windows >= 1 and whole.windows >= 3
+    rng = np.random.default_rng(seed)
+    cuts = np.sort(rng.choice(np.arange(desired.size), 12, replace=False))
+    cuts = np.concatenate([[0], cuts, cuts[:2], [cuts[3] + 1], [desired.size]])
+    cuts.sort()
+    stream, pieces = compensator.stream(), []
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        pieces.append(stream.push(desired[a:b]))
+        assert sum(p.size for p in pieces) <= b
+    result = stream.finish()
+    streamed = np.concatenate(pieces + [result.command_mm])
+    assert np.array_equal(streamed, whole.command_mm)
+    assert (result.windows, result.qp_windows) == (whole.windows, whole.qp_windows)
