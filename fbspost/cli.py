@@ -1,13 +1,20 @@
 """The ``fbspost`` command line.
 
 Takes arguments and files; gives exit status 0 on success, 1 on bad input (one line
-``error: FILE:LINE: message`` on stderr, no traceback, no output file), 130 on interrupt.
+``error: FILE:LINE: message`` on stderr, no traceback, no output file; with several programs,
+one such line per failed file and the others still written), 2 on bad usage, 130 on interrupt.
 """
 from __future__ import annotations
 
 import json
+import multiprocessing
+import os
+import signal
 import sys
 import time
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
 import click
@@ -17,8 +24,8 @@ from . import __version__
 from .dynamics import AxisDynamics
 from .gcode import FLAVORS
 from .optimizer import AxisLimits, FBSSettings, compensate_axis
-from .pipeline import AxisReport, CompensateOptions, compensate_file
-from .profile import ProfileError, bundled_profiles, load_profile
+from .pipeline import AxisReport, CompensateOptions, Report, compensate_file
+from .profile import MachineProfile, ProfileError, bundled_profiles, load_profile
 from .trajectory import InputError, read_trajectory_csv, write_trajectory_csv
 
 
@@ -56,10 +63,15 @@ def machines():
 
 
 @main.command()
-@click.argument("input_gcode", type=click.Path(dir_okay=False, path_type=Path))
+@click.argument("inputs", nargs=-1, required=True, metavar="INPUT...",
+                type=click.Path(dir_okay=False, path_type=Path))
 @_machine_option
 @click.option("--output", "-o", type=click.Path(dir_okay=False, path_type=Path),
-              help="Output file (default: replace INPUT in place, atomically, as slicers expect).")
+              help="Output file, one INPUT only (default: replace INPUT in place, atomically, as slicers expect).")
+@click.option("--output-dir", type=click.Path(file_okay=False, path_type=Path), metavar="DIR",
+              help="Write each output to DIR/<input name> instead (DIR is created if needed).")
+@click.option("--jobs", "-j", type=click.IntRange(min=0), default=1, show_default=True, metavar="N",
+              help="Files compensated at once, each in its own process (0: one per CPU).")
 @click.option("--format", "output_format", type=click.Choice(["dense"]), default="dense", show_default=True,
               help="dense: G1 blocks on the compensated command.")
 @click.option("--tolerance", type=click.FloatRange(min=0, min_open=True), default=1e-3, show_default=True,
@@ -69,35 +81,180 @@ def machines():
 @click.option("--flavor", type=click.Choice(FLAVORS), help="Firmware dialect (default: detected from the file).")
 @click.option("--lookahead", type=click.Choice(["limited", "complete"]), default="limited", show_default=True)
 @click.option("--report", "report_path", type=click.Path(dir_okay=False, path_type=Path),
-              help="Also write the summary as JSON to this file.")
+              help="Also write the summary as JSON to this file (one INPUT only).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar and no summary on stderr.")
-def compensate(input_gcode, machine, output, output_format, tolerance, min_segment_time, flavor, lookahead,
-               report_path, quiet):
-    """Compensate a G-code program for the machine's dynamics.
+def compensate(inputs, machine, output, output_dir, jobs, output_format, tolerance, min_segment_time, flavor,
+               lookahead, report_path, quiet):
+    """Compensate G-code programs for the machine's dynamics.
 
-    Plans the program as the controller would, compensates every axis that has modes in the
+    Plans each program as the controller would, compensates every axis that has modes in the
     profile, and writes a program that makes the machine follow the original path with the
     original timing. Every other line is copied byte-exact, in order.
+
+    Several INPUT files (for print farms) are each replaced in place, or written to
+    --output-dir; --jobs N compensates N of them at once in separate processes (each holds its
+    whole program in memory). A file that fails gets one line `error: FILE:LINE: message` and
+    is left unchanged; the others are still compensated. Exit status 0 if every file
+    succeeded, otherwise 1 with a last line naming the failed files.
     """
+    targets = _targets(inputs, output, output_dir, report_path)
     profile = load_profile(machine)
     options = CompensateOptions(flavor=flavor, tolerance_mm=tolerance, min_segment_time_s=min_segment_time,
                                 lookahead=lookahead)
-    output = output or input_gcode
+    if len(inputs) == 1:
+        _compensate_single(inputs[0], targets[0], profile, options, report_path, quiet)
+        return
+    failed = _compensate_many(list(zip(inputs, targets)), profile, options, jobs or os.cpu_count() or 1, quiet)
+    if failed:
+        click.echo(f"error: {len(failed)} of {len(inputs)} files failed: {', '.join(map(str, failed))}", err=True)
+        click.get_current_context().exit(1)
+
+
+def _targets(inputs: tuple[Path, ...], output: Path | None, output_dir: Path | None,
+             report_path: Path | None) -> list[Path]:
+    """Each input's output path; refuses the combinations that would write one file twice."""
+    if output and (output_dir or len(inputs) > 1):
+        raise click.UsageError("-o/--output takes one INPUT and no --output-dir; use --output-dir DIR for several")
+    if report_path and len(inputs) > 1:
+        raise click.UsageError("--report takes one INPUT")
+    targets = [output_dir / source.name if output_dir else output or source for source in inputs]
+    resolved = [target.resolve() for target in targets]
+    for i, target in enumerate(resolved):
+        if target in resolved[:i]:
+            # Two jobs writing one file would race, and an input compensated twice is wrong.
+            raise click.UsageError(f"{inputs[resolved.index(target)]} and {inputs[i]} would both be written to {target}")
+    if output_dir:
+        output_dir.mkdir(parents=True, exist_ok=True)
+    return targets
+
+
+def _compensate_single(source: Path, target: Path, profile: MachineProfile, options: CompensateOptions,
+                       report_path: Path | None, quiet: bool) -> None:
+    """One file: errors propagate to the group's one-line handler; a progress bar on a terminal."""
     show_progress = not quiet and sys.stderr.isatty()
     with click.progressbar(length=1000, label="compensating", file=sys.stderr, hidden=not show_progress) as bar:
-        report = compensate_file(input_gcode, output, profile, options,
+        report = compensate_file(source, target, profile, options,
                                  progress=lambda fraction: bar.update(int(fraction * 1000) - bar.pos))
     if report_path:
         report_path.write_text(json.dumps(report.as_dict(), indent=2) + "\n")
     if not quiet:
-        lines = [f"fbspost {__version__}: {input_gcode} -> {output} on {profile.name} ({report.flavor}): "
-                 f"{report.lines_in} lines in, {report.lines_out} out; print time {report.print_time_s:.1f} s, "
-                 f"computed in {report.compute_time_s:.2f} s"]
-        for name, axis in report.axes.items():
-            lines.append(f"axis {name}: predicted RMS error {axis.rms_error_before_um:.4g} -> {axis.rms_error_after_um:.4g} um, "
-                         f"max {axis.max_error_before_um:.4g} -> {axis.max_error_after_um:.4g} um")
-        lines.extend(f"warning: {w}" for w in report.warnings)
-        click.echo("\n".join(lines), err=True)
+        click.echo(_summary(source, target, profile, report), err=True)
+
+
+_Finish = Callable[[Path, Path, Report | str], None]  # reports one file's outcome: (input, output, outcome)
+
+
+def _compensate_many(pairs: list[tuple[Path, Path]], profile: MachineProfile, options: CompensateOptions,
+                     jobs: int, quiet: bool) -> list[Path]:
+    """Compensates every (input, output) pair, in a process pool when jobs > 1, printing each
+    file's summary or error as it finishes; gives the failed inputs in input order."""
+    outcomes = {}
+
+    def finish(source: Path, target: Path, outcome: Report | str) -> None:
+        outcomes[source] = outcome
+        if isinstance(outcome, str):
+            click.echo(f"error: {outcome}", err=True)
+        elif not quiet:
+            click.echo(_summary(source, target, profile, outcome), err=True)
+
+    workers = min(jobs, len(pairs))
+    try:
+        if workers == 1:
+            for source, target in pairs:
+                finish(source, target, _compensate_one(source, target, profile, options))
+        else:
+            _compensate_in_pool(pairs, profile, options, workers, finish)
+    except KeyboardInterrupt:
+        done = sum(not isinstance(o, str) for o in outcomes.values())
+        click.echo(f"error: interrupted; {done} of {len(pairs)} files compensated, the others unchanged", err=True)
+        click.get_current_context().exit(130)
+    return [source for source, _ in pairs if isinstance(outcomes[source], str)]
+
+
+def _compensate_in_pool(pairs: list[tuple[Path, Path]], profile: MachineProfile, options: CompensateOptions,
+                        workers: int, finish: _Finish) -> None:
+    """A worker process that dies (killed, out of memory) breaks the whole pool: the files it took
+    with it are retried one at a time, each in its own process, so only the culprit fails."""
+    for source, target in _run_pool(pairs, profile, options, workers, finish):
+        if _run_pool([(source, target)], profile, options, 1, finish):
+            finish(source, target, f"{source}: its worker process died (killed, or out of memory?)")
+
+
+def _run_pool(pairs: list[tuple[Path, Path]], profile: MachineProfile, options: CompensateOptions,
+              workers: int, finish: _Finish) -> list[tuple[Path, Path]]:
+    """Calls ``finish(input, output, outcome)`` as each file's worker finishes; gives the pairs lost
+    to a broken pool. On an interrupt no other file is started, the workers are ended (without
+    temporary files) and the files finished meanwhile are still reported before it propagates."""
+    lost = []
+    with ProcessPoolExecutor(workers, initializer=_start_worker) as pool:
+        futures = {pool.submit(_compensate_in_worker, source, target, profile, options): (source, target)
+                   for source, target in pairs}
+        unreported = set(futures)
+        try:
+            for future in as_completed(futures):
+                unreported.discard(future)
+                try:
+                    outcome = future.result()
+                except BrokenProcessPool:
+                    lost.append(futures[future])
+                else:
+                    finish(*futures[future], outcome)
+        except KeyboardInterrupt:
+            pool.shutdown(wait=False, cancel_futures=True)
+            for worker in multiprocessing.active_children():
+                worker.terminate()
+            pool.shutdown(wait=True)
+            for future in unreported:
+                if not future.cancelled() and future.exception() is None:
+                    finish(*futures[future], future.result())
+            raise
+    return lost
+
+
+def _start_worker() -> None:
+    """Pool initializer. Ctrl-C is the parent's to handle: it ends the workers with SIGTERM, which
+    here unwinds the running file (atomic_write removes its temporary file) and exits."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(128 + signum))
+
+
+def _compensate_in_worker(source: Path, target: Path, profile: MachineProfile,
+                          options: CompensateOptions) -> Report | str:
+    """``_compensate_one`` in a worker, which ends when told to rather than take the next file."""
+    try:
+        return _compensate_one(source, target, profile, options)
+    except SystemExit as exc:
+        os._exit(exc.code)
+
+
+def _compensate_one(source: Path, target: Path, profile: MachineProfile, options: CompensateOptions) -> Report | str:
+    """One file of several, here or in a worker: its report, or its one-line error. Never raises
+    but on an interrupt, so one bad file cannot stop the others."""
+    try:
+        return compensate_file(source, target, profile, options)
+    except InputError as exc:
+        return _one_line(str(exc))  # already FILE:LINE: message
+    except (ProfileError, OSError) as exc:
+        return _one_line(f"{source}: {exc}")
+    except Exception as exc:  # a bug, or out of memory: still only this file fails
+        return _one_line(f"{source}: internal error: {type(exc).__name__}: {exc}")
+
+
+def _one_line(message: str) -> str:
+    """Messages of unexpected exceptions may span lines; stderr gets one line per failed file."""
+    return " ".join(message.split())
+
+
+def _summary(source: Path, target: Path, profile: MachineProfile, report: Report) -> str:
+    """The per-file summary on stderr: sizes, times and the predicted error of every axis."""
+    lines = [f"fbspost {__version__}: {source} -> {target} on {profile.name} ({report.flavor}): "
+             f"{report.lines_in} lines in, {report.lines_out} out; print time {report.print_time_s:.1f} s, "
+             f"computed in {report.compute_time_s:.2f} s"]
+    for name, axis in report.axes.items():
+        lines.append(f"axis {name}: predicted RMS error {axis.rms_error_before_um:.4g} -> {axis.rms_error_after_um:.4g} um, "
+                     f"max {axis.max_error_before_um:.4g} -> {axis.max_error_after_um:.4g} um")
+    lines.extend(f"warning: {w}" for w in report.warnings)
+    return "\n".join(lines)
 
 
 @main.command()

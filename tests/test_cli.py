@@ -1,12 +1,17 @@
-"""The fbspost command: version, profile listing, the trajectory job, and one-line errors."""
+"""The fbspost command: version, profile listing, the trajectory job, several programs at once
+(--jobs), and one-line errors."""
+import multiprocessing
+import os
 import subprocess
 import sys
 from importlib.metadata import version
+from pathlib import Path
 
 import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from fbspost import cli
 from fbspost.cli import main
 from fbspost.profile import bundled_profiles, load_profile
 from reference import rms, simulate_lsim
@@ -122,3 +127,126 @@ def test_main_module_error_has_no_traceback(tmp_path):
                            "-m", "patent-xy-stage"], capture_output=True, text=True)
     assert proc.returncode == 1
     assert proc.stderr.startswith("error: ") and proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr
+
+
+# ---- several programs: compensate INPUT... --jobs N ----------------------------------------------
+
+BUTTERFLY = Path(__file__).resolve().parent.parent / "samples" / "butterfly-dense.gcode"
+
+
+@pytest.fixture(scope="module")
+def programs(tmp_path_factory):
+    """Three short programs (the butterfly's first lines, to the planner's stop at their end, so
+    that they take a second each), name -> (program, its output from a single-file run)."""
+    lines = BUTTERFLY.read_bytes().splitlines(keepends=True)
+    folder = tmp_path_factory.mktemp("single")
+    out = {}
+    for n in (40, 60, 120):
+        source, target = folder / f"part{n}.gcode", folder / f"part{n}.out"
+        source.write_bytes(b"".join(lines[:n]))
+        result = run("compensate", source, "-m", "patent-xy-stage", "-q", "-o", target)
+        assert result.exit_code == 0, result.output
+        out[source.name] = (source.read_bytes(), target.read_bytes())
+    return out
+
+
+def copy_programs(folder, programs):
+    for name, (program, _) in programs.items():
+        (folder / name).write_bytes(program)
+    return [folder / name for name in programs]
+
+
+def assert_one_line_errors(stderr):
+    assert "Traceback" not in stderr
+    assert all(line.startswith(("error: ", "fbspost ", "axis ", "warning: ")) for line in stderr.splitlines())
+
+
+def test_jobs_write_the_single_file_outputs_in_place(tmp_path, programs):
+    paths = copy_programs(tmp_path, programs)
+    result = run("compensate", *paths, "-m", "patent-xy-stage", "--jobs", "2")
+    assert result.exit_code == 0, result.output
+    for path in paths:
+        assert path.read_bytes() == programs[path.name][1]
+        assert f"fbspost {version('fbspost')}: {path} -> {path} on patent-xy-stage" in result.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(programs)  # no temporary file left
+    assert_one_line_errors(result.stderr)
+
+
+def test_output_dir_keeps_the_inputs(tmp_path, programs):
+    paths = copy_programs(tmp_path, programs)
+    result = run("compensate", *paths, "-m", "patent-xy-stage", "-j", "2", "-q", "--output-dir", tmp_path / "out")
+    assert result.exit_code == 0 and result.stderr == "", result.output
+    for path in paths:
+        assert path.read_bytes() == programs[path.name][0]
+        assert (tmp_path / "out" / path.name).read_bytes() == programs[path.name][1]
+
+
+def test_one_bad_file_fails_alone_and_is_left_unchanged(tmp_path, programs):
+    paths = copy_programs(tmp_path, programs)
+    bad = tmp_path / "bad.gcode"
+    bad.write_bytes(programs["part40.gcode"][0] + b"G1 X1 F-5\n")
+    original = bad.read_bytes()
+    result = run("compensate", paths[0], bad, *paths[1:], "-m", "patent-xy-stage", "--jobs", "2")
+    assert result.exit_code == 1
+    assert bad.read_bytes() == original
+    for path in paths:
+        assert path.read_bytes() == programs[path.name][1]
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([*programs, "bad.gcode"])
+    errors = [line for line in result.stderr.splitlines() if line.startswith("error: ")]
+    assert errors == [f"error: {bad}:41: feed F-5 must be positive", f"error: 1 of 4 files failed: {bad}"]
+    assert result.stderr.splitlines()[-1] == errors[-1]
+    assert_one_line_errors(result.stderr)
+
+
+def test_unexpected_exception_is_one_line_naming_the_file(tmp_path, programs, monkeypatch):
+    """Sequential (--jobs 1), so that the patched pipeline is the one that runs on any platform."""
+    first, second = copy_programs(tmp_path, programs)[:2]
+    compensate_file = cli.compensate_file
+
+    def broken(source, *args, **kwargs):
+        if source == second:
+            raise RuntimeError("solver exploded\non two lines")
+        return compensate_file(source, *args, **kwargs)
+
+    monkeypatch.setattr(cli, "compensate_file", broken)
+    result = run("compensate", first, second, "-m", "patent-xy-stage", "-q")
+    assert result.exit_code == 1
+    assert result.stderr.splitlines() == [f"error: {second}: internal error: RuntimeError: solver exploded on two lines",
+                                          f"error: 1 of 2 files failed: {second}"]
+    assert first.read_bytes() == programs[first.name][1] and second.read_bytes() == programs[second.name][0]
+
+
+@pytest.mark.skipif(multiprocessing.get_start_method() != "fork", reason="the workers must inherit the patch")
+def test_a_worker_that_dies_fails_only_its_file(tmp_path, programs, monkeypatch):
+    paths = copy_programs(tmp_path, programs)
+    compensate_file = cli.compensate_file
+
+    def killed(source, *args, **kwargs):
+        if source == paths[1]:
+            os._exit(9)  # as the kernel's out-of-memory killer would end it
+        return compensate_file(source, *args, **kwargs)
+
+    monkeypatch.setattr(cli, "compensate_file", killed)
+    result = run("compensate", *paths, "-m", "patent-xy-stage", "-q", "--jobs", "2")
+    assert result.exit_code == 1
+    assert result.stderr.splitlines() == [f"error: {paths[1]}: its worker process died (killed, or out of memory?)",
+                                          f"error: 1 of 3 files failed: {paths[1]}"]
+    for path in paths:
+        assert path.read_bytes() == programs[path.name][path != paths[1]]
+
+
+@pytest.mark.parametrize("args, words", [
+    (["b.gcode", "-o", "out.gcode"], "-o/--output takes one INPUT"),
+    (["-o", "out.gcode", "--output-dir", "out"], "-o/--output takes one INPUT"),
+    (["b.gcode", "--report", "r.json"], "--report takes one INPUT"),
+    (["./a.gcode"], "would both be written to"),
+    (["sub/a.gcode", "--output-dir", "out"], "would both be written to"),
+])
+def test_several_inputs_that_would_clash_are_usage_errors(tmp_path, monkeypatch, args, words):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "sub").mkdir()
+    for name in ("a.gcode", "b.gcode", "sub/a.gcode"):
+        (tmp_path / name).write_text("G1 X1 F600\n")
+    result = run("compensate", "a.gcode", *args, "-m", "patent-xy-stage")
+    assert result.exit_code == 2 and words in result.stderr
+    assert sorted(p.name for p in tmp_path.rglob("*")) == ["a.gcode", "a.gcode", "b.gcode", "sub"]

@@ -1,0 +1,104 @@
+"""Benchmark the whole pipeline on sliced prints of about 1 min, 10 min, 1 h and 6 h, then complete
+vs limited look-ahead on the patent's butterfly.
+
+Run from the repository root:  python bench/pipeline.py [--sizes 1m,10m] [--cache bench/.programs]
+
+The prints are the tube of tests/data/make_sliced.py, scaled and sliced with PrusaSlicer 2.5
+(`prusa-slicer` on PATH) the first time and kept in the cache folder. Each is compensated for
+bedslinger-example in a fresh process, so that its peak memory is its own.
+"""
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import tempfile
+import time
+from concurrent.futures import ProcessPoolExecutor
+from multiprocessing import get_context
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT / "tests" / "data"))
+
+import make_sliced  # noqa: E402  (the corpus' models and slicer settings)
+from engine import butterfly_table  # noqa: E402
+from fbspost.pipeline import compensate_file  # noqa: E402
+from fbspost.profile import load_profile  # noqa: E402
+
+PROFILE = "bedslinger-example"
+# Size -> scale of the 20 x 4 mm tube; chosen so that PrusaSlicer's estimate is near the size.
+SCALES = {"1m": 0.45, "10m": 1.45, "1h": 3.25, "6h": 7.0}
+STAGES = ("read", "plan", "optimize", "write")
+
+
+def sliced_program(size: str, cache: Path) -> Path:
+    """The tube at this size's scale, sliced once: slicing is not what is measured, and a 6 h
+    print is best sliced only once. Written under a temporary name, so the cache never holds
+    half a program."""
+    path = cache / f"tube-{size}.gcode"
+    if not path.exists():
+        cache.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(dir=cache) as tmp:
+            stl, out = Path(tmp) / "tube.stl", Path(tmp) / path.name
+            make_sliced.write_stl(stl, make_sliced.tube())
+            subprocess.run(["prusa-slicer", "--export-gcode", *make_sliced.COMMON, "--gcode-flavor", "marlin2",
+                            "--scale", f"{SCALES[size]:g}", "-o", str(out), str(stl)], check=True,
+                           stdout=subprocess.DEVNULL)
+            out.replace(path)
+    return path
+
+
+def measure(program: Path) -> tuple[dict, float, float]:
+    """Runs in a fresh process: (report, wall time s, peak resident memory MB of the process)."""
+    profile = load_profile(PROFILE)
+    with tempfile.TemporaryDirectory() as tmp:
+        started = time.perf_counter()
+        report = compensate_file(program, Path(tmp) / program.name, profile)
+        wall_s = time.perf_counter() - started
+    peak_kb = next(int(line.split()[1]) for line in Path("/proc/self/status").read_text().splitlines()
+                   if line.startswith("VmHWM:"))
+    return report.as_dict(), wall_s, peak_kb / 1024
+
+
+def pipeline_table(sizes: list[str], cache: Path) -> None:
+    sample_rate_hz = load_profile(PROFILE).sample_rate_hz
+    print(f"Whole pipeline on {PROFILE} ({sample_rate_hz:g} Hz): wall time without interpreter start, peak memory of\n"
+          f"the process; samples/s (S/s) per stage, samples = print time x sample rate, once per compensated axis\n"
+          f"for optimize")
+    print(f"{'program':16} {'lines':>8} {'print s':>8} {'wall s':>8} {'x real':>7} {'peak MB':>8} "
+          + " ".join(f"{stage + ' S/s':>12}" for stage in STAGES))
+    for size in sizes:
+        program = sliced_program(size, cache)
+        with ProcessPoolExecutor(1, mp_context=get_context("spawn")) as pool:
+            report, wall_s, peak_mb = pool.submit(measure, program).result()
+        samples = report["print_time_s"] * sample_rate_hz
+        rates_s = {stage: samples / report["stage_time_s"][stage] for stage in STAGES}
+        rates_s["optimize"] *= len(report["axes"])
+        rates = " ".join(f"{rates_s[stage]:12.3g}" for stage in STAGES)
+        print(f"{program.name:16} {report['lines_in']:8d} {report['print_time_s']:8.1f} {wall_s:8.2f} "
+              f"{report['print_time_s'] / wall_s:7.1f} {peak_mb:8.0f} {rates}", flush=True)
+
+
+def size_list(text: str) -> list[str]:
+    sizes = text.split(",")
+    unknown = set(sizes) - set(SCALES)
+    if unknown:
+        raise argparse.ArgumentTypeError(f"unknown size {', '.join(sorted(unknown))}; sizes: {', '.join(SCALES)}")
+    return sizes
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sizes", type=size_list, default=list(SCALES),
+                        help=f"comma-separated subset of {','.join(SCALES)} (default: all)")
+    parser.add_argument("--cache", type=Path, default=ROOT / "bench" / ".programs",
+                        help="folder of the sliced programs (made when missing)")
+    args = parser.parse_args()
+    pipeline_table(args.sizes, args.cache)
+    print()
+    butterfly_table(load_profile("patent-xy-stage"))
+
+
+if __name__ == "__main__":
+    main()
