@@ -118,7 +118,7 @@ class AxisResult:
 
 _LIMIT_TOLERANCE = 1e-7  # relative excess over a limit accepted as meeting it
 _QP_ROUNDS = 4
-_ACTIVE_SET_STEPS = 40
+_ACTIVE_SET_STEPS = 400
 
 
 def _difference_matrix(order: int, n: int, sample_period_s: float) -> sparse.csr_matrix:
@@ -236,17 +236,18 @@ class _Stretch:
         return max(0.0, float(np.abs(values).max(initial=0.0)) - 1.0)
 
     def constrained(self, target, p_fixed, offset, end_values, warm) -> np.ndarray | None:
-        """The QP: min ||W (target - Nt_free p)||^2 s.t. every limit row, end conditions. None if unsolved.
+        """The QP: min ||W (target - Nt_free p)||^2 s.t. every limit row, end conditions, from
+        ``warm``, the optimum without the limits. None if unsolved.
 
-        Limit rows are divided by their limit and the objective by its scale, so that OSQP's
-        tolerances mean the same at any sample rate. Its matrices are set up once per window
-        shape; each window only changes vectors.
+        The dual active-set method first; OSQP where that does not finish. For OSQP, limit rows
+        are divided by their limit and the objective by its scale, so that its tolerances mean
+        the same at any sample rate; its matrices are set up once per window shape and each
+        window only changes vectors.
         """
         m = self.m
-        if self.E is None:
-            p = self._active_set(warm, offset)
-            if p is not None:
-                return p
+        p = self._active_set(warm, offset)
+        if p is not None:
+            return p
         lower, upper = -1.0 - offset, 1.0 - offset
         n_limit_rows = len(lower)
         if self.E is not None:
@@ -291,42 +292,42 @@ class _Stretch:
         return self._exact(x, result.y, q, lower, upper)
 
     def _active_set(self, p_free: np.ndarray, offset: np.ndarray) -> np.ndarray | None:
-        """The QP of a regular window by the dual active-set method of Goldfarb and Idnani on the
-        factored H: from the unconstrained optimum, take the most violated limit row and raise
-        its multiplier until the row reaches its bound, releasing held rows whose multiplier
-        reaches zero on the way; until every row holds. The dual objective rises at every step,
-        so it cannot cycle, and the end point is the exact optimum (a KKT point of this convex
-        QP). None if the limits cannot be met or it takes over ``_ACTIVE_SET_STEPS`` steps (OSQP
-        then decides).
+        """The QP by the dual active-set method of Goldfarb and Idnani: from the optimum without
+        the limits, take the most violated limit row and raise its multiplier until the row
+        reaches its bound, releasing held rows whose multiplier reaches zero on the way; until
+        every row holds. The dual objective rises at every step, so it cannot cycle, and the end
+        point is the exact optimum (a KKT point of this convex QP). None if the limits cannot be
+        met or it takes over ``_ACTIVE_SET_STEPS`` steps (OSQP then decides).
 
-        ``p_free``: the unconstrained optimum; rows A p + offset, divided by their limit. With
-        held rows W and multipliers lambda, p = p_free - H^-1 A_W^T lambda, so every row's value
-        follows from the Gram matrix A H^-1 A^T, built once."""
-        if self._hinv_at is None:
-            dense = self.A_free.toarray()
-            self._hinv_at = np.asfortranarray(linalg.cho_solve(self._factor, dense.T))  # H^-1 A^T
-            self._gram = np.asfortranarray(dense @ self._hinv_at)
-        S, start = self._gram, self.A_free @ p_free + offset
+        ``p_free``: the optimum without the limits; rows A p + offset, divided by their limit.
+        With held rows W and multipliers lambda, p = p_free - K A_W^T lambda, K the inverse of H
+        on the points the end conditions leave free; so every row's value follows from the
+        columns of the Gram matrix A K A^T of the rows held.
+        """
+        column, direction = self._gram_columns()
+        start = self.A_free @ p_free + offset
         rows, lam = [], np.zeros(0)  # held rows; sign(lambda) says which bound
         value = start
         steps = 0
         while steps < _ACTIVE_SET_STEPS:
             q = int(np.argmax(np.abs(value)))
             if abs(value[q]) <= 1.0 + _LIMIT_TOLERANCE:
-                return p_free - self._hinv_at[:, rows] @ lam
+                return p_free - (np.column_stack([direction(r) for r in rows]) @ lam if rows else 0.0)
             side, lam_q = (1.0 if value[q] > 0 else -1.0), 0.0
+            col_q = column(q)
             while steps < _ACTIVE_SET_STEPS:
                 steps += 1
                 # Raising lambda_q by side * t keeps the held rows at their bounds if lambda_W
                 # moves by d t; row q then approaches its bound at rate ``rate``.
-                column = S[rows, q]  # = S[q, rows]
+                cross = col_q[rows]  # = S[q, rows]
                 try:
-                    d = -side * np.linalg.solve(S[rows][:, rows], column) if rows else lam
+                    held = np.array([column(r)[rows] for r in rows]).reshape(len(rows), len(rows))
+                    d = -side * np.linalg.solve(held, cross) if rows else lam
                 except np.linalg.LinAlgError:
                     return None
-                rate = S[q, q] + side * (column @ d)
-                gap = side * (start[q] - column @ lam - S[q, q] * lam_q) - 1.0
-                full = gap / rate if rate > 1e-12 * S[q, q] else np.inf
+                rate = col_q[q] + side * (cross @ d)
+                gap = side * (start[q] - cross @ lam - col_q[q] * lam_q) - 1.0
+                full = gap / rate if rate > 1e-12 * col_q[q] else np.inf
                 to_zero = np.full(len(rows), np.inf)
                 falling = lam * d < 0.0
                 to_zero[falling] = -lam[falling] / d[falling]
@@ -342,8 +343,28 @@ class _Stretch:
                     break
                 del rows[block]
                 lam = np.delete(lam, block)
-            value = start - S[:, rows] @ lam
+            value = start - np.column_stack([column(r) for r in rows]) @ lam if rows else start
         return None
+
+    def _gram_columns(self):
+        """(column(q), direction(q)): the Gram matrix's column A K A_q^T and K A_q^T. A regular
+        window has them all computed once; a final window (one solve per run, rows at every
+        sample) computes those it needs through its KKT factorization."""
+        if self.E is None:
+            if self._hinv_at is None:
+                dense = self.A_free.toarray()
+                self._hinv_at = np.asfortranarray(linalg.cho_solve(self._factor, dense.T))  # H^-1 A^T
+                self._gram = np.asfortranarray(dense @ self._hinv_at)
+            return (lambda q: self._gram[:, q]), (lambda q: self._hinv_at[:, q])
+        rows_of_a, n_eq, found = self.A_free.tocsr(), len(self.E), {}
+
+        def solve(q):
+            if q not in found:
+                rhs = np.concatenate([rows_of_a[q].toarray().ravel(), np.zeros(n_eq)])
+                k_col = linalg.lu_solve(self._factor, rhs)[:self.n_free]
+                found[q] = (self.A_free @ k_col, k_col)
+            return found[q]
+        return (lambda q: solve(q)[0]), (lambda q: solve(q)[1])
 
     def _exact(self, x, y, q, lower, upper) -> np.ndarray:
         """OSQP's point made exact: the rows its multipliers ``y`` mark active held at their

@@ -308,11 +308,13 @@ def test_limits_that_cannot_be_met_are_reported():
 
 
 @pytest.mark.parametrize("seed", range(20))
-def test_dual_active_set_step_is_the_qp_optimum(seed):
-    """The regular windows' QP step (Goldfarb-Idnani on the factored window) on random problems
-    min 1/2 p'Hp - g'p s.t. |A p + offset| <= 1: its point meets every row and satisfies the KKT
-    conditions (the gradient cancelled by nonnegative multipliers on the rows at their bounds,
-    found by NNLS here), so it is the optimum; and no feasible point SLSQP finds is better."""
+@pytest.mark.parametrize("equalities", [0, 2])
+def test_dual_active_set_step_is_the_qp_optimum(seed, equalities):
+    """The QP step (Goldfarb-Idnani on the factored window) on random problems
+    min 1/2 p'Hp - g'p s.t. |A p + offset| <= 1 and, as in a final window, E p = e: its point
+    meets every row and satisfies the KKT conditions (the gradient cancelled by nonnegative
+    multipliers on the rows at their bounds and free ones on E, found by NNLS here), so it is
+    the optimum; and no feasible point SLSQP finds is better."""
     rng = np.random.default_rng(seed)
     n, rows = 8, 30
     root = rng.standard_normal((n, n))
@@ -320,23 +322,30 @@ def test_dual_active_set_step_is_the_qp_optimum(seed):
     A = rng.standard_normal((rows, n)) * (rng.random((rows, n)) < 0.4)
     offset = rng.uniform(-0.5, 0.5, rows)
     g = rng.standard_normal(n) * 5
-    window = SimpleNamespace(_hinv_at=None, A_free=sparse.csr_matrix(A), _factor=linalg.cho_factor(H))
-    p_free = np.linalg.solve(H, g)
+    E, e = rng.standard_normal((equalities, n)), rng.uniform(-0.2, 0.2, equalities)
+    kkt = np.block([[H, E.T], [E, np.zeros((equalities, equalities))]])
+    window = SimpleNamespace(_hinv_at=None, A_free=sparse.csc_matrix(A), n_free=n, E=E if equalities else None,
+                             _factor=linalg.lu_factor(kkt) if equalities else linalg.cho_factor(H))
+    window._gram_columns = lambda: _Stretch._gram_columns(window)
+    p_free = np.linalg.solve(kkt, np.concatenate([g, e]))[:n]
     assert np.abs(A @ p_free + offset).max() > 1  # the limits bind
     ours = _Stretch._active_set(window, p_free, offset)
     value = A @ ours + offset
     assert np.abs(value).max() <= 1 + 1e-7
+    assert np.allclose(E @ ours, e, atol=1e-12)
     active = np.abs(value) >= 1 - 1e-9
     assert active.any()
     gradient = H @ ours - g
-    directions = (np.sign(value[active])[:, None] * A[active]).T
+    directions = np.hstack([(np.sign(value[active])[:, None] * A[active]).T, E.T, -E.T])
     multipliers, residual = optimize.nnls(directions, -gradient)
     assert residual <= 1e-8 * max(1.0, np.linalg.norm(g))
     objective = lambda p: 0.5 * p @ H @ p - g @ p
     rows_of = lambda p: np.concatenate([1 - (A @ p + offset), 1 + (A @ p + offset)])
-    reference = optimize.minimize(objective, np.zeros(n), jac=lambda p: H @ p - g, method="SLSQP",
-                                  constraints={"type": "ineq", "fun": rows_of, "jac": lambda p: np.vstack([-A, A])})
-    if rows_of(reference.x).min() >= -1e-9:
+    constraints = [{"type": "ineq", "fun": rows_of, "jac": lambda p: np.vstack([-A, A])}]
+    if equalities:
+        constraints.append({"type": "eq", "fun": lambda p: E @ p - e, "jac": lambda p: E})
+    reference = optimize.minimize(objective, p_free, jac=lambda p: H @ p - g, method="SLSQP", constraints=constraints)
+    if rows_of(reference.x).min() >= -1e-9 and np.allclose(E @ reference.x, e, atol=1e-9):
         assert objective(ours) <= objective(reference.x) + 1e-9 * abs(objective(reference.x))
 
 
