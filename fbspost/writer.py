@@ -11,7 +11,8 @@ G20/G21, G92 frames); relative values carry their rounding residues, so nothing 
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import bisect
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.ndimage import maximum_filter1d
@@ -20,6 +21,8 @@ from .gcode import AXES, Block, Kind, Modal
 from .planner import Plan
 
 _DECIMALS = {"X": 4, "Y": 4, "Z": 4, "E": 5}  # mm: 0.1 um, E: 10 nm of filament
+_FEED_DECIMALS = 3  # mm/min (in/min in G20)
+_LINES = 1024  # G1 lines formatted at once
 _E = AXES.index("E")
 
 
@@ -40,6 +43,9 @@ class WriteStats:
     passthrough_lines: int = 0
 
 
+_PIECE = 1 << 16  # samples
+
+
 def breakpoints(command: np.ndarray, tolerance_mm: float, min_samples: int, max_samples: int = 2000) -> np.ndarray:
     """Sample indices where blocks end, first and last sample included.
 
@@ -51,17 +57,23 @@ def breakpoints(command: np.ndarray, tolerance_mm: float, min_samples: int, max_
     n = len(command)
     if n <= 2:
         return np.arange(n)
-    second = np.linalg.norm(np.diff(command, 2, axis=0), axis=1)  # second[k] bends at sample k + 1
+    second = np.empty(n - 2)  # second[k] bends at sample k + 1
+    for a in range(0, n - 2, _PIECE):  # in pieces: temporaries the size of the command cost more than the arithmetic
+        second[a:a + _PIECE] = np.linalg.norm(np.diff(command[a:a + _PIECE + 2], 2, axis=0), axis=1)
     # Largest second difference over the next max_samples steps, from every sample on.
     ahead = maximum_filter1d(np.append(second, [0.0, 0.0]), size=max_samples, origin=-(max_samples // 2))
     with np.errstate(divide="ignore"):
         span = np.floor(np.sqrt(8.0 * tolerance_mm / ahead))
     span = np.clip(np.nan_to_num(span, posinf=max_samples), min_samples, max_samples).astype(int)
-    points, i, steps = [0], 0, span.tolist()
+    # The blocks run i -> i + span[i] from sample 0. The span is a maximum over the next
+    # max_samples steps, so it changes rarely: step through each stretch of one span at once.
+    stretch_ends = (np.flatnonzero(np.diff(span[:n - 1])) + 1).tolist() + [n - 1]
+    pieces, i = [], 0
     while i < n - 1:
-        i = min(i + steps[i], n - 1)
-        points.append(i)
-    return np.array(points)
+        step = int(span[i])
+        pieces.append(np.arange(i, stretch_ends[bisect.bisect_right(stretch_ends, i)], step))
+        i = int(pieces[-1][-1]) + step
+    return np.concatenate(pieces + [[n - 1]])
 
 
 def _fmt(value: float, decimals: int) -> str:
@@ -80,11 +92,12 @@ class _Emitter:
     unit changes.
     """
 
-    def __init__(self, start_mm: np.ndarray):
+    def __init__(self, start_mm: np.ndarray, newline: bytes):
         self.modal = Modal()  # the controller starts in its defaults
         self.shift_mm = np.zeros(4)  # controller frame minus program frame, per axis (G92 mid-motion)
         self.written = self.to_program(start_mm)
-        self.feed = None
+        self.feed = -1  # the last F written, in units of its last digit (none yet: feeds are >= 0)
+        self.newline = newline
         self.pending_s = 0.0  # time of blocks that rounded to no motion, not yet given to a block
 
     @property
@@ -110,8 +123,9 @@ class _Emitter:
             self.shift_mm[changed] = (command_mm - planned_mm)[changed]
             self.written[changed] = self.to_program(command_mm)[changed]
 
-    def blocks(self, targets_mm: np.ndarray, durations_s: np.ndarray) -> list[str]:
-        """G1 lines reaching each target (machine mm) in its duration, in the controller's modes.
+    def blocks(self, targets_mm: np.ndarray, durations_s: np.ndarray) -> tuple[bytes, int]:
+        """G1 lines reaching each target (machine mm) in its duration, in the controller's modes:
+        their text (each line ended by the newline) and how many there are.
 
         Values are rounded in integer units of the last written digit: a relative value is the
         difference of two rounded positions, so rounding residues never accumulate.
@@ -122,40 +136,100 @@ class _Emitter:
         start = np.rint(self.written * scale).astype(np.int64)
         ints = np.rint(self.to_program(targets_mm) * scale).astype(np.int64)
         steps = np.diff(np.vstack([start, ints]), axis=0)
-        shown = np.where(relative, steps, ints)
         moved = steps != 0
         delta_mm = steps / scale * self.unit_mm
         # The controller times a block by its XYZ length, or its E length when XYZ do not move.
         length = np.linalg.norm(delta_mm[:, :3], axis=1)
         length = np.where(length > 0, length, np.abs(delta_mm[:, _E]))
-        # A block that rounds to no motion cannot carry time: the next moving block takes it.
+        # A block that rounds to no motion cannot carry time (and is not written): the next
+        # moving block takes it.
         ends_s = self.pending_s + np.cumsum(durations_s)
         moving = moved.any(axis=1)
         took = np.diff(np.concatenate([[0.0], ends_s[moving]]))
         self.pending_s = float(ends_s[-1] - (ends_s[moving][-1] if moving.any() else 0.0)) if len(ends_s) else self.pending_s
-        feed = np.zeros(len(durations_s), dtype=np.int64)
-        feed[moving] = np.rint(length[moving] / took * 60.0 / self.unit_mm * 1000.0).astype(np.int64)
-        lines = []
-        last_feed = self.feed
-        shown_l, moved_l, feed_l, digits_l = shown.tolist(), moved.tolist(), feed.tolist(), digits.tolist()
-        for values, changed, f in zip(shown_l, moved_l, feed_l):
-            if not any(changed):
-                continue
-            words = [f"{axis}{_int_text(v, d)}" for axis, v, c, d in zip(AXES, values, changed, digits_l) if c]
-            if f != last_feed:
-                words.append(f"F{_int_text(f, 3)}")
-                last_feed = f
-            lines.append("G1 " + " ".join(words))
-        self.feed = last_feed
+        rows = slice(None) if moving.all() else moving  # nearly always all of them: no copies
+        feed = np.rint(length[rows] / took * 60.0 / self.unit_mm * 1000.0).astype(np.int64)
+        new_feed = feed != np.concatenate([[self.feed], feed[:-1]])  # F only where it changes
+        if len(feed):
+            self.feed = int(feed[-1])
         self.written = np.where(relative, self.written + (ints[-1] - start) / scale, ints[-1] / scale) if len(ints) else self.written
-        return lines
+        values = np.column_stack([np.where(relative, steps, ints)[rows], feed])
+        shown = np.column_stack([moved[rows], new_feed])
+        digits = np.append(digits, _FEED_DECIMALS)
+        # By _LINES: more lines at once format two to three times slower (measured: the
+        # temporaries outgrow the CPU cache).
+        return b"".join(_g1_lines(values[a:a + _LINES], shown[a:a + _LINES], digits, self.newline)
+                        for a in range(0, len(feed), _LINES)), len(feed)
 
 
-def _int_text(value: int, digits: int) -> str:
-    """``value`` / 10**digits as a short decimal: 12340, 3 -> "12.34"; -5, 3 -> "-0.005".
-    The double nearest to it prints back exactly at ``digits`` decimals."""
-    text = f"{value / 10**digits:.{digits}f}".rstrip("0").rstrip(".")
-    return text if value else "0"
+def _digits(width: int, form: str) -> np.ndarray:
+    """(10**width, width) characters of 0 .. 10**width - 1: zero-padded ("full"), leading zeros
+    dropped ("lead": 0 is no text; "lead0": 0 is "0"), trailing zeros dropped ("trail": 0 is no
+    text). Dropped characters are NUL."""
+    numbers = np.arange(10 ** width)[:, None]
+    place = 10 ** np.arange(width - 1, -1, -1)
+    keep = {"full": True, "lead": numbers >= place, "lead0": (numbers >= place) | (place == 1),
+            "trail": numbers % (10 * place) != 0}[form]
+    return (numbers // place % 10 + ord("0")).astype(np.uint8) * keep
+
+
+def _pointed(chars: np.ndarray) -> np.ndarray:
+    """A decimal point before the rows of characters that have any."""
+    return np.hstack([np.where(chars.any(axis=1, keepdims=True), ord("."), 0).astype(np.uint8), chars])
+
+
+def _packed(*tables: np.ndarray) -> np.ndarray:
+    """Rows of four characters, the tables one after the other, as one uint32 per row."""
+    return np.concatenate(tables).view(np.uint32).ravel()
+
+
+# _g1_lines writes numbers from four-character pieces looked up by value (plus the offset of
+# their form), NUL where the shortest text has no character. The integer part, by four digits:
+_INT_PART = _packed(_digits(4, "lead"), _digits(4, "lead0"), _digits(4, "full"))
+_LEAD, _LEAD0, _FULL = 0, 10000, 20000
+# The fractional part, always at 7 decimals (every _DECIMALS and _FEED_DECIMALS fit): the point
+# and three digits (+ 1000: digits follow), then four digits.
+_FRACTION_DECIMALS = 7
+_FRACTION_HIGH = _packed(_pointed(_digits(3, "trail")), _pointed(_digits(3, "full")))
+_FRACTION_LOW = _packed(_digits(4, "trail"))
+_WORD_HEADS = _packed(np.array([[ord(" "), ord(letter), 0, 0] for letter in AXES + ("F",)], np.uint8))
+_MINUS, _G1 = np.frombuffer(b"\0\0-\0G1\0\0", np.uint32)  # " X" + _MINUS is " X-"
+
+
+def _g1_lines(values: np.ndarray, shown: np.ndarray, digits: np.ndarray, newline: bytes) -> bytes:
+    """The text of one G1 line per row of ``values`` (n, 5: X Y Z E F as integers in units of
+    10**-``digits``, at most 7 digits) with the words that are ``shown``, each line ended by
+    ``newline``. Numbers are the shortest decimal: "12.34", "-0.005", "0".
+
+    Formatting value by value takes tens of seconds for a million lines, so the rows are built
+    together: every word is the same row of four-character pieces (" X-", the integer digits in
+    groups of four, ".ddd", "dddd") looked up by value, the characters the short text does not
+    have are NUL, and one pass removes the NULs.
+    """
+    n, k = values.shape
+    scaled = values * 10 ** (_FRACTION_DECIMALS - digits)  # the added zeros trail: dropped like any
+    magnitude = np.where(shown, np.abs(scaled), 0)
+    whole = magnitude // 10 ** _FRACTION_DECIMALS
+    fraction = magnitude - whole * 10 ** _FRACTION_DECIMALS
+    int_groups = -(-len(str(int(whole.max(initial=0)))) // 4)
+    slots = 3 + int_groups
+    words = np.empty((n, k, slots), np.uint32)
+    words[:, :, 0] = np.where(shown, _WORD_HEADS + (scaled < 0) * _MINUS, 0)
+    rest = whole
+    for slot in range(int_groups, 0, -1):  # least significant group first: are there digits above?
+        above = rest // 10000
+        form = np.where(above > 0, _FULL, shown * _LEAD0 if slot == int_groups else _LEAD)
+        words[:, :, slot] = np.take(_INT_PART, rest - above * 10000 + form)
+        rest = above
+    high = fraction // 10000
+    low = fraction - high * 10000
+    words[:, :, -2] = np.take(_FRACTION_HIGH, high + (low > 0) * 1000)
+    words[:, :, -1] = np.take(_FRACTION_LOW, low)
+    line = np.empty((n, 2 + k * slots), np.uint32)
+    line[:, 0] = _G1
+    line[:, 1:-1] = words.reshape(n, k * slots)
+    line[:, -1] = np.frombuffer(newline.ljust(4, b"\0"), np.uint32)[0]
+    return line.tobytes().translate(None, b"\0")
 
 
 def mode_lines(flavor: str, have: Modal, want: Modal) -> list[str]:
@@ -195,25 +269,30 @@ def write_program(blocks: list[Block], plan: Plan, command_mm: np.ndarray, optio
                     if raise_line and options.restore_acceleration_mm_s2 else None)
     follows_plan = np.all(command_mm == plan.positions_mm, axis=0)  # E and axes without modes
     min_samples = max(1, int(np.ceil(options.min_segment_time_s * fs - 1e-9)))
-    run_breaks = [breakpoints(command_mm[a:b + 1], options.tolerance_mm, min_samples) + a for a, b in plan.runs]
-    emitter = _Emitter(command_mm[0])
+    break_times = [(breakpoints(command_mm[a:b + 1], options.tolerance_mm, min_samples) + a) / fs for a, b in plan.runs]
+    emitter = _Emitter(command_mm[0], newline)
     run_index, written_until_s = 0, 0.0
 
     unterminated = False  # the last copied line had no line ending (the end of the file)
 
-    def emit(*lines: str) -> None:
+    def emit_text(text: bytes, count: int) -> None:
+        """Write ``count`` lines, each ended by the newline."""
         nonlocal unterminated
-        if lines:
-            out.write((newline if unterminated else b"") + newline.join(x.encode() for x in lines) + newline)
-            stats.lines_out += len(lines)
+        if count:
+            out.write((newline if unterminated else b"") + text)
+            stats.lines_out += count
             unterminated = False
+
+    def emit(*lines: str) -> None:
+        emit_text(b"".join(x.encode() + newline for x in lines), len(lines))
 
     def at_many(columns: np.ndarray, t_s: np.ndarray) -> np.ndarray:
         """Linear interpolation of sampled ``columns`` at the times ``t_s``."""
         x = np.clip(t_s * fs, 0.0, len(columns) - 1.0)
         k = np.minimum(x.astype(np.int64), max(len(columns) - 2, 0))
         w = (x - k)[:, None]
-        return columns[k] * (1.0 - w) + columns[np.minimum(k + 1, len(columns) - 1)] * w
+        below, above = np.take(columns, k, axis=0), np.take(columns, np.minimum(k + 1, len(columns) - 1), axis=0)
+        return below * (1.0 - w) + above * w  # (np.take gathers rows a few times faster than indexing)
 
     def motion_until(t_end_s: float, end_exact_mm: np.ndarray) -> None:
         """G1 blocks from where the output is to ``t_end_s``; the axes that follow the plan end
@@ -225,14 +304,15 @@ def write_program(blocks: list[Block], plan: Plan, command_mm: np.ndarray, optio
             start_s, run_end_s = max(written_until_s, first / fs), last / fs
             stop_s = min(t_end_s, run_end_s)
             if stop_s > start_s:
-                times = run_breaks[run_index] / fs
-                ends = np.append(times[(times > start_s + half) & (times < stop_s - half)], stop_s)
+                times = break_times[run_index]  # ascending: the ones strictly between start + half and stop - half
+                inner = times[np.searchsorted(times, start_s + half, "right"):np.searchsorted(times, stop_s - half, "left")]
+                ends = np.append(inner, stop_s)
                 targets = at_many(command_mm, ends)
                 if stop_s == t_end_s:
                     targets[-1, follows_plan] = end_exact_mm[follows_plan]
-                lines = emitter.blocks(targets, np.diff(np.append(start_s, ends)))
-                emit(*lines)
-                stats.motion_blocks += len(lines)
+                text, count = emitter.blocks(targets, np.diff(np.append(start_s, ends)))
+                emit_text(text, count)
+                stats.motion_blocks += count
                 written_until_s = stop_s
             if t_end_s < run_end_s:
                 return
@@ -240,6 +320,10 @@ def write_program(blocks: list[Block], plan: Plan, command_mm: np.ndarray, optio
             if run_index == len(plan.runs) and restore_line:
                 emit(restore_line)  # the last motion is done: the controller's limit as the program left it
 
+    # Where the plan and the command are as each copied line runs: all at once, as per line the
+    # calls cost more than the arithmetic.
+    copied_times = plan.line_time_s[[i for i, block in enumerate(blocks) if block.kind is not Kind.MOVE]]
+    at_copied = zip(at_many(plan.positions_mm, copied_times), at_many(command_mm, copied_times))
     header_done = False
     for i, block in enumerate(blocks):
         if not header_done and _is_code(block):
@@ -250,7 +334,7 @@ def write_program(blocks: list[Block], plan: Plan, command_mm: np.ndarray, optio
         if block.kind is Kind.MOVE:
             continue
         t = float(plan.line_time_s[i])
-        planned = at_many(plan.positions_mm, np.array([t]))[0]
+        planned, commanded = next(at_copied)
         reached = np.where(np.isnan(block.position_mm), planned, block.position_mm)
         motion_until(t, reached)
         emit(*mode_lines(options.flavor, emitter.modal, blocks[i - 1].modal if i else Modal()))
@@ -258,7 +342,6 @@ def write_program(blocks: list[Block], plan: Plan, command_mm: np.ndarray, optio
         unterminated = not block.raw.endswith((b"\n", b"\r"))
         stats.lines_out += 1
         stats.passthrough_lines += 1
-        commanded = at_many(command_mm, np.array([t]))[0]
         commanded[follows_plan] = reached[follows_plan]  # the last block ended exactly there
         emitter.passthrough(block, commanded, reached)
         if block.limits is not None and raise_line and run_index < len(plan.runs):

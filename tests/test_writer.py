@@ -1,11 +1,14 @@
 """The writer through the whole pipeline on small programs, judged by the executor in
-reference.py: lines kept byte-exact, extrusion and end positions exact in every mode."""
+reference.py: lines kept byte-exact, extrusion and end positions exact in every mode; its bulk
+number formatting against Decimal's text."""
+from decimal import Decimal
+
 import numpy as np
 import pytest
 
 from fbspost.pipeline import CompensateOptions, compensate_file
 from fbspost.profile import load_profile
-from fbspost.writer import breakpoints
+from fbspost.writer import _Emitter, _g1_lines, breakpoints
 from reference import execute
 
 PRINTER = load_profile("bedslinger-example")
@@ -102,3 +105,35 @@ def test_acceleration_lines_keep_whole_numbers():
     assert acceleration_line("marlin", 3000.0, 1500.0) == "M204 P3000 T1500"
     assert acceleration_line("klipper", 10000.0) == "SET_VELOCITY_LIMIT ACCEL=10000"
     assert acceleration_line("linuxcnc", 3000.0) is None
+
+
+@pytest.mark.parametrize("digits", [(4, 4, 4, 5, 3), (5, 5, 5, 6, 3), (3,) * 5, (6,) * 5, (7,) * 5])
+@pytest.mark.parametrize("newline", [b"\n", b"\r\n"])
+def test_bulk_formatting_matches_decimal_text(digits, newline):
+    """Every number is its shortest decimal (as Decimal normalizes it), the words in order, only
+    the shown ones: zero, values below 1, negatives, trailing zeros, up to 1e14 units."""
+    rng = np.random.default_rng(sum(digits) + len(newline))
+    n = 5000
+    size = 10 ** rng.integers(0, 15, (n, 5))
+    cut = 10 ** rng.integers(0, 8, (n, 5))
+    values = rng.integers(-size, size + 1) // cut * cut  # some with trailing zeros, some all zero
+    special = [0, 1, -1, 5, -5, 9, 10, -10, 999, 1000, 1001, -10**6, 10**14 - 1, -10**14 + 1, 10**14]
+    values[:len(special)] = np.array(special)[:, None]
+    shown = rng.random((n, 5)) < 0.7
+    shown[:len(special)] = True
+    expected = b"".join(
+        ("G1" + "".join(f" {letter}{format(Decimal(int(v)).scaleb(-d).normalize(), 'f')}"
+                        for letter, v, d, s in zip("XYZEF", row, digits, show) if s)).encode() + newline
+        for row, show in zip(values, shown))
+    assert _g1_lines(values, shown, np.array(digits), newline) == expected
+
+
+def test_feed_is_written_only_when_it_changes_also_across_calls():
+    emitter = _Emitter(np.zeros(4), b"\n")
+    targets = np.zeros((5, 4))
+    targets[:, 0] = np.arange(1, 6)  # 1 mm in 0.1 s: F600
+    first, count = emitter.blocks(targets, np.full(5, 0.1))
+    assert count == 5 and first.split(b"\n")[:2] == [b"G1 X1 F600", b"G1 X2"]
+    targets[:, 0] = [6, 7, 9, 11, 13]  # 2 mm in 0.1 s from the third block on: F1200
+    second, count = emitter.blocks(targets, np.full(5, 0.1))
+    assert second == b"G1 X6\nG1 X7\nG1 X9 F1200\nG1 X11\nG1 X13\n"
