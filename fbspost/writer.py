@@ -320,10 +320,13 @@ def write_program(blocks: list[Block], plan: Plan, command_mm: np.ndarray, optio
             if run_index == len(plan.runs) and restore_line:
                 emit(restore_line)  # the last motion is done: the controller's limit as the program left it
 
+    # A copied line runs at the sample nearest its planned time (at most half a sample off), so
+    # that blocks end on samples of the command: a block ending between two samples would bend
+    # the command there, and ask more acceleration of the controller than the command does.
+    copied_times = np.rint(plan.line_time_s[[i for i, b in enumerate(blocks) if b.kind is not Kind.MOVE]] * fs) / fs
     # Where the plan and the command are as each copied line runs: all at once, as per line the
     # calls cost more than the arithmetic.
-    copied_times = plan.line_time_s[[i for i, block in enumerate(blocks) if block.kind is not Kind.MOVE]]
-    at_copied = zip(at_many(plan.positions_mm, copied_times), at_many(command_mm, copied_times))
+    at_copied = zip(copied_times.tolist(), at_many(plan.positions_mm, copied_times), at_many(command_mm, copied_times))
     header_done = False
     for i, block in enumerate(blocks):
         if not header_done and _is_code(block):
@@ -333,8 +336,7 @@ def write_program(blocks: list[Block], plan: Plan, command_mm: np.ndarray, optio
             header_done = True
         if block.kind is Kind.MOVE:
             continue
-        t = float(plan.line_time_s[i])
-        planned, commanded = next(at_copied)
+        t, planned, commanded = next(at_copied)
         reached = np.where(np.isnan(block.position_mm), planned, block.position_mm)
         motion_until(t, reached)
         emit(*mode_lines(options.flavor, emitter.modal, blocks[i - 1].modal if i else Modal()))

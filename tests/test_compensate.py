@@ -100,6 +100,23 @@ def test_sliced_nonmotion_lines_and_extrusion_exact(sliced):
     assert abs(compensated.extruded - original.extruded) <= 1e-4
 
 
+def test_sliced_output_within_axis_limits(sliced):
+    """Run block by block, the output never asks an axis for more than the profile allows:
+    velocity per block, and acceleration from block to block (5% for the chords' approximation
+    of the sampled command, as for the butterfly)."""
+    _, target, report = sliced
+    assert not report.warnings
+    ends = np.array(execute(target).ends)
+    dt = np.diff(ends[:, 0])
+    moving = dt > 0
+    for column, name in ((1, "X"), (2, "Y")):
+        axis = PRINTER.axes[name]
+        velocity = np.diff(ends[:, column])[moving] / dt[moving]
+        assert np.abs(velocity).max() <= axis.max_velocity_mm_s * (1 + 1e-3), name
+        mid_dt = (dt[moving][1:] + dt[moving][:-1]) / 2
+        assert np.abs(np.diff(velocity) / mid_dt).max() <= axis.max_acceleration_mm_s2 * 1.05, name
+
+
 def test_sliced_contour_error_time_and_speed(sliced):
     source, target, report = sliced
     period_s = 1.0 / PRINTER.sample_rate_hz
