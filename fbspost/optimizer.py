@@ -307,6 +307,7 @@ class _Stretch:
         column, direction = self._gram_columns()
         start = self.A_free @ p_free + offset
         rows, lam = [], np.zeros(0)  # held rows; sign(lambda) says which bound
+        held_columns = np.zeros((start.size, 0))  # their Gram columns
         value = start
         steps = 0
         while steps < _ACTIVE_SET_STEPS:
@@ -321,16 +322,13 @@ class _Stretch:
                 # moves by d t; row q then approaches its bound at rate ``rate``.
                 cross = col_q[rows]  # = S[q, rows]
                 try:
-                    held = np.array([column(r)[rows] for r in rows]).reshape(len(rows), len(rows))
-                    d = -side * np.linalg.solve(held, cross) if rows else lam
+                    d = -side * np.linalg.solve(held_columns[rows], cross) if rows else lam
                 except np.linalg.LinAlgError:
                     return None
                 rate = col_q[q] + side * (cross @ d)
                 gap = side * (start[q] - cross @ lam - col_q[q] * lam_q) - 1.0
                 full = gap / rate if rate > 1e-12 * col_q[q] else np.inf
-                to_zero = np.full(len(rows), np.inf)
-                falling = lam * d < 0.0
-                to_zero[falling] = -lam[falling] / d[falling]
+                to_zero = np.divide(-lam, d, out=np.full(len(rows), np.inf), where=lam * d < 0.0)
                 block = int(np.argmin(to_zero)) if rows else -1
                 partial = to_zero[block] if rows else np.inf
                 if not np.isfinite(min(full, partial)):
@@ -340,10 +338,12 @@ class _Stretch:
                 if full <= partial:
                     rows.append(q)
                     lam = np.append(lam, lam_q)
+                    held_columns = np.column_stack([held_columns, col_q])
                     break
                 del rows[block]
                 lam = np.delete(lam, block)
-            value = start - np.column_stack([column(r) for r in rows]) @ lam if rows else start
+                held_columns = np.delete(held_columns, block, axis=1)
+            value = start - held_columns @ lam
         return None
 
     def _gram_columns(self):
