@@ -411,7 +411,7 @@ class _Sweep:
     """The regular window folded into linear maps of the carry z, for the windows whose
     unconstrained optimum meets the limits (most of them): the first control points
     p = Gd desired - Gz z, the limit rows of the samples the window decides (divided by the
-    limit) Ad desired + Az z, and the next carry z' = L [z; kept points]. Everything here is built
+    limit) A p + Az z, and the next carry z' = L [z; kept points]. Everything here is built
     once per axis."""
 
     def __init__(self, stretch: _Stretch, dynamics: AxisDynamics, carry: _Carry, commit: int, k: int):
@@ -428,9 +428,8 @@ class _Sweep:
         self.Gd = stretch.G[:used]
         self.Gz = np.hstack([self.Gd @ stretch.Phi, self.Gd @ stretch.Nt[:, :m], np.zeros((used, 2 * r))])
         if stretch.has_limits:
-            A = check[:, :used].toarray()
-            self.Ad = A @ self.Gd
-            self.Az = np.hstack([stretch.A_state, stretch.A_fixed, stretch.A_prev])[self.check_index] - A @ self.Gz
+            self.A = check[:, :used].toarray()
+            self.Az = np.hstack([stretch.A_state, stretch.A_fixed, stretch.A_prev])[self.check_index]
         # z' from x = [z; kept points]: the kept command is N p_all with p_all = [p_fixed; kept points].
         n_x = carry.size + commit
         p_all = np.zeros((m + commit, n_x))
@@ -545,12 +544,10 @@ class AxisStream:
             if desired[0] == desired[-1] and np.ptp(desired) == 0.0 and np.array_equal(z, owner.rest_unit * desired[0]):
                 command = desired[:rows].copy()  # at rest and staying there: exactly the optimum
             else:
-                p = sweep.Gd @ desired
-                if stretch.has_limits and np.abs(sweep.Ad @ desired + sweep.Az @ z).max() > 1.0:
+                p = sweep.Gd @ desired - sweep.Gz @ z
+                if stretch.has_limits and np.abs(sweep.A @ p + sweep.Az @ z).max() > 1.0:
                     p = _solve_window(stretch, desired, carry, z, None, self.result, sweep.check,
                                       self.first_sample + start)
-                else:
-                    p -= sweep.Gz @ z
                 kept = np.concatenate([carry.p_fixed(z), p[:commit]])
                 command = sweep.N_kept @ kept
                 self.z = sweep.L @ np.concatenate([z, p[:commit]])
