@@ -422,14 +422,13 @@ class _Sweep:
         if stretch.has_limits:
             # The kept samples and the next m + 1 spans: those depend mostly on kept control
             # points, and the next window could not undo a limit broken there.
-            check, self.check_index = stretch.check_rows(rows + (m + 1) * k)
+            self.check = stretch.check_rows(rows + (m + 1) * k)
+            check, index = self.check
             used = max(commit, int(check.indices.max(initial=-1)) + 1)  # points the checked rows see
-            self.check = (check, self.check_index)
+            self.A = check[:, :used].toarray()
+            self.Az = np.hstack([stretch.A_state, stretch.A_fixed, stretch.A_prev])[index]
         self.Gd = stretch.G[:used]
         self.Gz = np.hstack([self.Gd @ stretch.Phi, self.Gd @ stretch.Nt[:, :m], np.zeros((used, 2 * r))])
-        if stretch.has_limits:
-            self.A = check[:, :used].toarray()
-            self.Az = np.hstack([stretch.A_state, stretch.A_fixed, stretch.A_prev])[self.check_index]
         # z' from x = [z; kept points]: the kept command is N p_all with p_all = [p_fixed; kept points].
         n_x = carry.size + commit
         p_all = np.zeros((m + commit, n_x))
