@@ -72,8 +72,9 @@ def machines():
               help="Write each output to DIR/<input name> instead (DIR is created if needed).")
 @click.option("--jobs", "-j", type=click.IntRange(min=0), default=1, show_default=True, metavar="N",
               help="Files compensated at once, each in its own process (0: one per CPU).")
-@click.option("--format", "output_format", type=click.Choice(["dense"]), default="dense", show_default=True,
-              help="dense: G1 blocks on the compensated command.")
+@click.option("--format", "output_format", type=click.Choice(["dense", "g5"]), default="dense", show_default=True,
+              help="dense: G1 blocks on the compensated command; g5: cubic Bezier G5 blocks fitted to it within "
+                   "the tolerance (Marlin with BEZIER_CURVE_SUPPORT, LinuxCNC XY; G1 where none fits).")
 @click.option("--tolerance", type=click.FloatRange(min=0, min_open=True), default=1e-3, show_default=True,
               help="Largest distance (mm) between the written blocks and the compensated command.")
 @click.option("--min-segment-time", type=click.FloatRange(min=0, min_open=True), default=1e-3, show_default=True,
@@ -99,8 +100,8 @@ def compensate(inputs, machine, output, output_dir, jobs, output_format, toleran
     """
     targets = _targets(inputs, output, output_dir, report_path)
     profile = load_profile(machine)
-    options = CompensateOptions(flavor=flavor, tolerance_mm=tolerance, min_segment_time_s=min_segment_time,
-                                lookahead=lookahead)
+    options = CompensateOptions(flavor=flavor, output_format=output_format, tolerance_mm=tolerance,
+                                min_segment_time_s=min_segment_time, lookahead=lookahead)
     if len(inputs) == 1:
         _compensate_single(inputs[0], targets[0], profile, options, report_path, quiet)
         return

@@ -86,6 +86,7 @@ class Modal:
     absolute_e: bool = True  # M82 / M83 (G90 / G91 set it too, as Marlin and RRF do)
     inches: bool = False  # G20 / G21
     offsets_mm: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)  # program = machine - offset (G92)
+    plane: int = 17  # G17 / G18 / G19: the G5 writer needs G17
 
 
 @dataclass
@@ -200,7 +201,7 @@ class _Reader:
         self.eabs = True  # E words are absolute (the effect of G90/G91 and M82/M83 in this flavor)
         self.motion = None  # last motion mode: 0 1 2 3 5
         self.feed = None  # mm/s
-        self.plane = _PLANES[17.0]
+        self.plane = 17  # G17 / G18 / G19 (see _PLANES)
         self.abs_ijk = False  # G90.1
         self.wcs = 54.0
         self.tool_length = False  # G43 active (LinuxCNC)
@@ -265,7 +266,7 @@ class _Reader:
 
     def new_modal(self) -> None:
         self.eabs = self.e_absolute()
-        self.modal = Modal(self.abs_xyz, self.eabs, self.inches, tuple(self.off))
+        self.modal = Modal(self.abs_xyz, self.eabs, self.inches, tuple(self.off), self.plane)
 
     def block(self, n, raw, kind, **kw) -> Block:
         return Block(n, raw, kind, self.modal, np.array(self.pos), **kw)
@@ -445,7 +446,8 @@ class _Reader:
                 self.inches = g == 20.0
                 modal_changed = True
             elif g in _PLANES:
-                self.plane = _PLANES[g]
+                self.plane = int(g)
+                modal_changed = True
             elif g == 90.1 or g == 91.1:
                 self.abs_ijk = g == 90.1
             elif g in _UNSUPPORTED_G:
@@ -698,7 +700,7 @@ class _Reader:
         # the axes this move moves: the named ones, and both axes of an arc's or a Bezier's plane
         moving = [i for i, a in enumerate(AXES) if a in params]
         if motion >= 2:
-            moving += self.plane[:2]
+            moving += _PLANES[self.plane][:2]
         known = all(start[i] == start[i] for i in moving)
         if motion == 2 or motion == 3:
             points = self.arc(n, motion, params, start, target, scale, known)
@@ -719,7 +721,7 @@ class _Reader:
 
     def arc(self, n, motion, params, start, target, scale, known):
         """The pieces of a G2/G3 arc (None when nothing moves); checks the words even if unknown."""
-        a, b, lin, ia, ib = self.plane
+        a, b, lin, ia, ib = _PLANES[self.plane]
         if "R" in params:
             if ia in params or ib in params:
                 raise self.error(n, f"an arc with both R and {ia}/{ib}")
@@ -799,7 +801,7 @@ class _Reader:
 
     def bezier(self, n, params, start, target, scale, known):
         """The pieces of a G5 cubic Bezier in the XY plane (None when the start is unknown)."""
-        if self.plane[0] != 0 or self.plane[1] != 1:
+        if self.plane != 17:
             raise self.error(n, "G5 is only supported in the XY plane (G17)")
         vals = {}
         for letter in "IJPQ":

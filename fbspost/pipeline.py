@@ -19,12 +19,14 @@ from .gcode import AXES, detect_flavor, read_gcode
 from .optimizer import AxisCompensator, AxisLimits, FBSSettings
 from .planner import plan_blocks
 from .profile import MachineProfile
-from .writer import WriteOptions, write_program
+from .trajectory import InputError
+from .writer import WriteOptions, format_refusal, write_program
 
 
 @dataclass(frozen=True)
 class CompensateOptions:
     flavor: str | None = None  # detected from the file when None
+    output_format: str = "dense"  # dense | g5 (see writer)
     tolerance_mm: float = 1e-3
     min_segment_time_s: float = 1e-3
     lookahead: str = "limited"
@@ -71,6 +73,9 @@ def compensate_file(input_path: str | Path, output_path: str | Path, profile: Ma
     """``progress(fraction)`` is called as the axes are compensated (0 to 1), if given."""
     started = time.perf_counter()
     flavor = options.flavor or detect_flavor(input_path)
+    refusal = format_refusal(flavor, options.output_format)
+    if refusal:  # before the work
+        raise InputError(input_path, None, refusal)
     clock = time.perf_counter()
     blocks = list(read_gcode(input_path, flavor))
     stages = {"read": time.perf_counter() - clock}
@@ -109,10 +114,11 @@ def compensate_file(input_path: str | Path, output_path: str | Path, profile: Ma
     stages["optimize"] = time.perf_counter() - clock
     clock = time.perf_counter()
     write_options = WriteOptions(
-        flavor=flavor, tolerance_mm=options.tolerance_mm, min_segment_time_s=options.min_segment_time_s,
+        flavor=flavor, output_format=options.output_format, tolerance_mm=options.tolerance_mm,
+        min_segment_time_s=options.min_segment_time_s,
         header=(f"fbspost {__version__}: filtered B-spline compensation for machine profile {profile.name}",
-                f"fbspost settings: format dense, tolerance {options.tolerance_mm:g} mm, minimum segment "
-                f"{options.min_segment_time_s * 1e3:g} ms, flavor {flavor}, {options.lookahead} look-ahead"),
+                f"fbspost settings: format {options.output_format}, tolerance {options.tolerance_mm:g} mm, "
+                f"minimum segment {options.min_segment_time_s * 1e3:g} ms, flavor {flavor}, {options.lookahead} look-ahead"),
         raise_acceleration_mm_s2=_needed_acceleration(command, plan.positions_mm, profile, blocks),
         restore_acceleration_mm_s2=_final_acceleration(profile, blocks))
     stats = []

@@ -20,10 +20,10 @@ from .profile import AXIS_NAMES
 
 
 class InputError(ValueError):
-    """Bad input: ``str()`` is ``FILE:LINE: message``."""
+    """Bad input: ``str()`` is ``FILE:LINE: message`` (``FILE: message`` for the whole file)."""
 
-    def __init__(self, path: str | Path, line: int, message: str):
-        super().__init__(f"{path}:{line}: {message}")
+    def __init__(self, path: str | Path, line: int | None, message: str):
+        super().__init__(f"{path}:{line}: {message}" if line is not None else f"{path}: {message}")
 
 
 @dataclass

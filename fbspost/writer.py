@@ -1,13 +1,17 @@
-"""G-code writer: the compensated command as dense G1 blocks, every other line untouched.
+"""G-code writer: the compensated command as dense G1 or as G5 blocks, every other line untouched.
 
 Takes the program's blocks, its plan, the command to send (machine coordinates, mm, on the
 plan's time grid: compensated axes replaced, the others as planned) and the writing options;
 gives the output program as bytes, line by line. Lines that do not move the machine are copied
-byte-exact, in order, at their planned time; the motion between them becomes G1 blocks whose
-end points lie on the command and whose F makes each last exactly its time. Block boundaries are
-chosen so that the piecewise-linear command stays within the tolerance, no block shorter than
-the minimum segment time. Coordinates are written in the program's own modes (G90/G91, M82/M83,
-G20/G21, G92 frames); relative values carry their rounding residues, so nothing accumulates.
+byte-exact, in order, at their planned time; the motion between them becomes blocks whose end
+points lie on the command and whose F makes each last exactly its time. Dense format: G1 blocks,
+boundaries chosen so that the piecewise-linear command stays within the tolerance, no block
+shorter than the minimum segment time. G5 format: cubic Bezier blocks fitted by
+``bezier.fit_g5`` within the same tolerance (F = curve length / duration), G1 where no curve
+fits, where Z moves (G5 moves Z in the curve parameter and the controller times the block by
+its XYZ length, not by the curve's) and while the controller is not in the G17 plane. Coordinates
+are written in the program's own modes (G90/G91, M82/M83, G20/G21, G92 frames); relative values
+carry their rounding residues, so nothing accumulates.
 """
 from __future__ import annotations
 
@@ -17,18 +21,24 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import maximum_filter1d
 
+from .bezier import curve_lengths, fit_g5
 from .gcode import AXES, Block, Kind, Modal
 from .planner import Plan
 
 _DECIMALS = {"X": 4, "Y": 4, "Z": 4, "E": 5}  # mm: 0.1 um, E: 10 nm of filament
 _FEED_DECIMALS = 3  # mm/min (in/min in G20)
-_LINES = 1024  # G1 lines formatted at once
-_E = AXES.index("E")
+_LINES = 1024  # lines formatted at once
+_MAX_SAMPLES = 2000  # longest block, samples
+_Z, _E = AXES.index("Z"), AXES.index("E")
+# Controllers that run G5: Marlin built with BEZIER_CURVE_SUPPORT, LinuxCNC (XY only). Klipper has
+# no G5; RepRapFirmware's is not documented as a timed cubic Bezier.
+G5_FLAVORS = ("marlin", "linuxcnc")
 
 
 @dataclass(frozen=True)
 class WriteOptions:
     flavor: str  # marlin | klipper | reprap | linuxcnc
+    output_format: str = "dense"  # dense | g5
     tolerance_mm: float = 1e-3
     min_segment_time_s: float = 1e-3
     header: tuple[str, ...] = ()  # comment text, one entry per line
@@ -43,10 +53,19 @@ class WriteStats:
     passthrough_lines: int = 0
 
 
+def format_refusal(flavor: str, output_format: str) -> str | None:
+    """Why the flavor's controller cannot run the output format (None: it can)."""
+    if output_format == "g5" and flavor not in G5_FLAVORS:
+        return (f"{flavor} has no G5 (cubic Bezier) move: use --format dense "
+                f"(g5 is for {' and '.join(G5_FLAVORS)})")
+    return None
+
+
 _PIECE = 1 << 16  # samples
 
 
-def breakpoints(command: np.ndarray, tolerance_mm: float, min_samples: int, max_samples: int = 2000) -> np.ndarray:
+def breakpoints(command: np.ndarray, tolerance_mm: float, min_samples: int,
+                max_samples: int = _MAX_SAMPLES) -> np.ndarray:
     """Sample indices where blocks end, first and last sample included.
 
     A chord over n sample steps deviates from the samples it spans by at most n^2/8 times their
@@ -74,6 +93,57 @@ def breakpoints(command: np.ndarray, tolerance_mm: float, min_samples: int, max_
         pieces.append(np.arange(i, stretch_ends[bisect.bisect_right(stretch_ends, i)], step))
         i = int(pieces[-1][-1]) + step
     return np.concatenate(pieces + [[n - 1]])
+
+
+@dataclass(frozen=True)
+class Curves:
+    """Which of a sequence of blocks are G5 curves, with their control points (absolute machine
+    XY); the other blocks' points mean nothing."""
+
+    curve: np.ndarray  # (m,) bool
+    p1_mm: np.ndarray  # (m, 2)
+    p2_mm: np.ndarray  # (m, 2)
+
+    def __getitem__(self, rows) -> Curves:
+        return Curves(self.curve[rows], self.p1_mm[rows], self.p2_mm[rows])
+
+
+def g5_blocks(command: np.ndarray, splits: np.ndarray, tolerance_mm: float,
+              min_samples: int) -> tuple[np.ndarray, Curves]:
+    """Where a run's blocks end (sample indices into ``command``, the run's samples; 0 is its
+    start) and which are curves, for the G5 format: every sample in ``splits`` (where copied
+    lines run) ends a block.
+
+    The run is fitted whole (fit_g5 searches its blocks in lock step: a call per stretch between
+    copied lines is many times slower). Fitted blocks that a split falls inside, in which Z
+    moves, or that miss the tolerance (fit_g5 lets the minimum length win, and a short block
+    before one of its chunk edges may miss where chords do not) become G1 blocks, between the
+    splits and the other fitted blocks' ends: ``breakpoints`` of each such stretch, its last two
+    blocks sharing their length where the last is shorter than the minimum (each then at least
+    half the minimum long, and shorter than the first of them was). A curve whose control points
+    lie on its chord's thirds is a straight line at constant speed: G1.
+    """
+    fit = fit_g5(command[:, [0, 1, _E]], tolerance_mm, min_samples, _MAX_SAMPLES)  # (LinuxCNC: E stays 0)
+    starts, ends = fit.starts, fit.ends
+    z_steps = np.concatenate([[0], np.cumsum(np.diff(command[:, _Z]) != 0)])
+    as_g1 = ((np.searchsorted(splits, starts, "right") < np.searchsorted(splits, ends, "left"))
+             | (z_steps[ends] > z_steps[starts]) | (fit.error_mm > tolerance_mm))
+    kept = ~as_g1
+    hard = np.union1d(np.concatenate([[0, ends[-1]], starts[kept], ends[kept]]), splits)  # neighbouring G1 blocks merge
+    g1 = ~np.isin(hard[1:], ends[kept])  # stretches that are no kept block
+    inner = [np.zeros(0, np.int64)]
+    for a, b in zip(hard[:-1][g1], hard[1:][g1]):
+        g1_ends = breakpoints(command[a:b + 1], tolerance_mm, min_samples) + a
+        if len(g1_ends) > 2 and b - g1_ends[-2] < min_samples:  # a short last block: the last two share
+            g1_ends[-2] = (g1_ends[-3] + b) // 2
+        inner.append(g1_ends[1:-1])
+    all_ends = np.union1d(hard[1:], np.concatenate(inner))
+    p0, p3 = command[starts, :2], command[ends, :2]
+    straight = np.maximum(np.abs(fit.p1_mm - (p0 + (p3 - p0) / 3.0)).max(axis=1),
+                          np.abs(fit.p2_mm - (p3 - (p3 - p0) / 3.0)).max(axis=1)) <= 1e-3 * tolerance_mm
+    curve = fit.curve & ~straight & ~as_g1
+    block = np.searchsorted(ends, all_ends)  # the fitted block each block ends in (its own, for a curve)
+    return all_ends, Curves(np.isin(all_ends, ends[curve]), fit.p1_mm[block], fit.p2_mm[block])
 
 
 def _fmt(value: float, decimals: int) -> str:
@@ -104,8 +174,9 @@ class _Emitter:
     def unit_mm(self) -> float:
         return 25.4 if self.modal.inches else 1.0
 
-    def to_program(self, machine_mm: np.ndarray) -> np.ndarray:
-        return (machine_mm - np.asarray(self.modal.offsets_mm) - self.shift_mm) / self.unit_mm
+    def to_program(self, machine_mm: np.ndarray, axes=slice(None)) -> np.ndarray:
+        """Program coordinates of machine positions, of the ``axes`` (columns) given."""
+        return (machine_mm - (np.asarray(self.modal.offsets_mm) + self.shift_mm)[axes]) / self.unit_mm
 
     def passthrough(self, block: Block, command_mm: np.ndarray, planned_mm: np.ndarray) -> None:
         """Follow what a copied line does to the controller. A G92 sets the frame where the command
@@ -123,9 +194,11 @@ class _Emitter:
             self.shift_mm[changed] = (command_mm - planned_mm)[changed]
             self.written[changed] = self.to_program(command_mm)[changed]
 
-    def blocks(self, targets_mm: np.ndarray, durations_s: np.ndarray) -> tuple[bytes, int]:
-        """G1 lines reaching each target (machine mm) in its duration, in the controller's modes:
-        their text (each line ended by the newline) and how many there are.
+    def blocks(self, targets_mm: np.ndarray, durations_s: np.ndarray,
+               curves: Curves | None = None) -> tuple[bytes, int]:
+        """G1 lines (G5 where ``curves`` says so) reaching each target (machine mm) in its
+        duration, in the controller's modes: their text (each line ended by the newline) and how
+        many there are.
 
         Values are rounded in integer units of the last written digit: a relative value is the
         difference of two rounded positions, so rounding residues never accumulate.
@@ -138,9 +211,24 @@ class _Emitter:
         steps = np.diff(np.vstack([start, ints]), axis=0)
         moved = steps != 0
         delta_mm = steps / scale * self.unit_mm
-        # The controller times a block by its XYZ length, or its E length when XYZ do not move.
+        # The controller times a block by its XYZ length, or its E length when XYZ do not move; a
+        # G5 block by its curve's length.
         length = np.linalg.norm(delta_mm[:, :3], axis=1)
         length = np.where(length > 0, length, np.abs(delta_mm[:, _E]))
+        if curves is not None:
+            # Control points rounded as written: I J (P Q) are the rounded point minus the rounded
+            # start (end), as the controller adds them to the positions it has. The rounded curve
+            # is what it times: its length differs from the fitted one's by up to 1e-2 on short curves.
+            xy_scale = scale[:2]
+            origins = np.vstack([start, ints[:-1]])[:, :2]  # where each block starts
+            offsets = np.column_stack([
+                np.rint(self.to_program(curves.p1_mm, slice(0, 2)) * xy_scale).astype(np.int64) - origins,
+                np.rint(self.to_program(curves.p2_mm, slice(0, 2)) * xy_scale).astype(np.int64) - ints[:, :2]])
+            g5_rows = np.flatnonzero(curves.curve)
+            p0, p3 = origins[g5_rows], ints[g5_rows, :2]
+            length[g5_rows] = curve_lengths(p0 / xy_scale, (p0 + offsets[g5_rows, :2]) / xy_scale,
+                                            (p3 + offsets[g5_rows, 2:]) / xy_scale, p3 / xy_scale) * self.unit_mm
+            moved[:, :2] |= curves.curve[:, None]  # G5 needs its end point, also where it closes a loop
         # A block that rounds to no motion cannot carry time (and is not written): the next
         # moving block takes it.
         ends_s = self.pending_s + np.cumsum(durations_s)
@@ -156,10 +244,17 @@ class _Emitter:
         values = np.column_stack([np.where(relative, steps, ints)[rows], feed])
         shown = np.column_stack([moved[rows], new_feed])
         digits = np.append(digits, _FEED_DECIMALS)
+        letters, g5 = "XYZEF", np.zeros(len(feed), bool)
+        if curves is not None:
+            g5 = curves.curve[rows]
+            values = np.column_stack([offsets[rows], values])
+            shown = np.column_stack([np.repeat(g5[:, None], 4, axis=1), shown])
+            digits = np.concatenate([digits[[0, 1, 0, 1]], digits])
+            letters = "IJPQ" + letters
         # By _LINES: more lines at once format two to three times slower (measured: the
         # temporaries outgrow the CPU cache).
-        return b"".join(_g1_lines(values[a:a + _LINES], shown[a:a + _LINES], digits, self.newline)
-                        for a in range(0, len(feed), _LINES)), len(feed)
+        return b"".join(_lines(values[a:a + _LINES], shown[a:a + _LINES], digits, letters, self.newline,
+                               g5[a:a + _LINES]) for a in range(0, len(feed), _LINES)), len(feed)
 
 
 def _digits(width: int, form: str) -> np.ndarray:
@@ -183,7 +278,7 @@ def _packed(*tables: np.ndarray) -> np.ndarray:
     return np.concatenate(tables).view(np.uint32).ravel()
 
 
-# _g1_lines writes numbers from four-character pieces looked up by value (plus the offset of
+# _lines writes numbers from four-character pieces looked up by value (plus the offset of
 # their form), NUL where the shortest text has no character. The integer part, by four digits:
 _INT_PART = _packed(_digits(4, "lead"), _digits(4, "lead0"), _digits(4, "full"))
 _LEAD, _LEAD0, _FULL = 0, 10000, 20000
@@ -192,14 +287,17 @@ _LEAD, _LEAD0, _FULL = 0, 10000, 20000
 _FRACTION_DECIMALS = 7
 _FRACTION_HIGH = _packed(_pointed(_digits(3, "trail")), _pointed(_digits(3, "full")))
 _FRACTION_LOW = _packed(_digits(4, "trail"))
-_WORD_HEADS = _packed(np.array([[ord(" "), ord(letter), 0, 0] for letter in AXES + ("F",)], np.uint8))
-_MINUS, _G1 = np.frombuffer(b"\0\0-\0G1\0\0", np.uint32)  # " X" + _MINUS is " X-"
+_LETTERS = "IJPQ" + "".join(AXES) + "F"
+_WORD_HEADS = _packed(np.array([[ord(" "), ord(letter), 0, 0] for letter in _LETTERS], np.uint8))
+_MINUS, _G1, _G5 = np.frombuffer(b"\0\0-\0G1\0\0G5\0\0", np.uint32)  # " X" + _MINUS is " X-"
 
 
-def _g1_lines(values: np.ndarray, shown: np.ndarray, digits: np.ndarray, newline: bytes) -> bytes:
-    """The text of one G1 line per row of ``values`` (n, 5: X Y Z E F as integers in units of
-    10**-``digits``, at most 7 digits) with the words that are ``shown``, each line ended by
-    ``newline``. Numbers are the shortest decimal: "12.34", "-0.005", "0".
+def _lines(values: np.ndarray, shown: np.ndarray, digits: np.ndarray, letters: str, newline: bytes,
+           g5: np.ndarray) -> bytes:
+    """The text of one line per row of ``values`` (n, k: the words ``letters`` as integers in
+    units of 10**-``digits``, at most 7 digits), G5 where ``g5`` else G1, with the words that
+    are ``shown``, each line ended by ``newline``. Numbers are the shortest decimal: "12.34",
+    "-0.005", "0".
 
     Formatting value by value takes tens of seconds for a million lines, so the rows are built
     together: every word is the same row of four-character pieces (" X-", the integer digits in
@@ -214,7 +312,8 @@ def _g1_lines(values: np.ndarray, shown: np.ndarray, digits: np.ndarray, newline
     int_groups = -(-len(str(int(whole.max(initial=0)))) // 4)
     slots = 3 + int_groups
     words = np.empty((n, k, slots), np.uint32)
-    words[:, :, 0] = np.where(shown, _WORD_HEADS + (scaled < 0) * _MINUS, 0)
+    heads = np.take(_WORD_HEADS, [_LETTERS.index(letter) for letter in letters])
+    words[:, :, 0] = np.where(shown, heads + (scaled < 0) * _MINUS, 0)
     rest = whole
     for slot in range(int_groups, 0, -1):  # least significant group first: are there digits above?
         above = rest // 10000
@@ -226,15 +325,16 @@ def _g1_lines(values: np.ndarray, shown: np.ndarray, digits: np.ndarray, newline
     words[:, :, -2] = np.take(_FRACTION_HIGH, high + (low > 0) * 1000)
     words[:, :, -1] = np.take(_FRACTION_LOW, low)
     line = np.empty((n, 2 + k * slots), np.uint32)
-    line[:, 0] = _G1
+    line[:, 0] = np.where(g5, _G5, _G1)
     line[:, 1:-1] = words.reshape(n, k * slots)
     line[:, -1] = np.frombuffer(newline.ljust(4, b"\0"), np.uint32)[0]
     return line.tobytes().translate(None, b"\0")
 
 
 def mode_lines(flavor: str, have: Modal, want: Modal) -> list[str]:
-    """Lines that bring the controller from modes ``have`` to ``want`` (distance modes, units)."""
-    lines = []
+    """Lines that bring the controller from modes ``have`` to ``want`` (plane, distance modes,
+    units)."""
+    lines = [f"G{want.plane}"] if have.plane != want.plane else []
     if have.inches != want.inches:
         lines.append("G20" if want.inches else "G21")
     if have.absolute_xyz != want.absolute_xyz:
@@ -259,6 +359,9 @@ def acceleration_line(flavor: str, print_mm_s2: float, travel_mm_s2: float | Non
 
 def write_program(blocks: list[Block], plan: Plan, command_mm: np.ndarray, options: WriteOptions, out) -> WriteStats:
     """Write the output program to the binary stream ``out``."""
+    refusal = format_refusal(options.flavor, options.output_format)
+    if refusal:
+        raise ValueError(refusal)
     stats = WriteStats()
     fs = plan.sample_rate_hz
     newline = _newline(blocks)
@@ -270,6 +373,17 @@ def write_program(blocks: list[Block], plan: Plan, command_mm: np.ndarray, optio
     follows_plan = np.all(command_mm == plan.positions_mm, axis=0)  # E and axes without modes
     min_samples = max(1, int(np.ceil(options.min_segment_time_s * fs - 1e-9)))
     break_times = [(breakpoints(command_mm[a:b + 1], options.tolerance_mm, min_samples) + a) / fs for a, b in plan.runs]
+    # A copied line runs at the sample nearest its planned time (at most half a sample off), so
+    # that blocks end on samples of the command: a block ending between two samples would bend
+    # the command there, and ask more acceleration of the controller than the command does.
+    copied_times = np.rint(plan.line_time_s[[i for i, b in enumerate(blocks) if b.kind is not Kind.MOVE]] * fs) / fs
+    g5_runs = []  # per run: its blocks' ends (sample indices) and curves
+    if options.output_format == "g5":
+        copied = np.unique(np.rint(copied_times * fs).astype(np.int64))
+        for a, b in plan.runs:
+            splits = copied[np.searchsorted(copied, a, "right"):np.searchsorted(copied, b, "left")] - a
+            run_ends, curves = g5_blocks(command_mm[a:b + 1], splits, options.tolerance_mm, min_samples)
+            g5_runs.append((run_ends + a, curves))
     emitter = _Emitter(command_mm[0], newline)
     run_index, written_until_s = 0, 0.0
 
@@ -304,13 +418,19 @@ def write_program(blocks: list[Block], plan: Plan, command_mm: np.ndarray, optio
             start_s, run_end_s = max(written_until_s, first / fs), last / fs
             stop_s = min(t_end_s, run_end_s)
             if stop_s > start_s:
-                times = break_times[run_index]  # ascending: the ones strictly between start + half and stop - half
-                inner = times[np.searchsorted(times, start_s + half, "right"):np.searchsorted(times, stop_s - half, "left")]
-                ends = np.append(inner, stop_s)
+                curves = None
+                if g5_runs and emitter.modal.plane == 17:  # G5 is an XY-plane command
+                    run_ends, run_curves = g5_runs[run_index]  # every copied line's sample among them
+                    rows = slice(*np.searchsorted(run_ends, np.rint(np.array([start_s, stop_s]) * fs), "right"))
+                    ends, curves = run_ends[rows] / fs, run_curves[rows]
+                else:
+                    times = break_times[run_index]  # ascending: the ones strictly between start + half and stop - half
+                    inner = times[np.searchsorted(times, start_s + half, "right"):np.searchsorted(times, stop_s - half, "left")]
+                    ends = np.append(inner, stop_s)
                 targets = at_many(command_mm, ends)
                 if stop_s == t_end_s:
                     targets[-1, follows_plan] = end_exact_mm[follows_plan]
-                text, count = emitter.blocks(targets, np.diff(np.append(start_s, ends)))
+                text, count = emitter.blocks(targets, np.diff(np.append(start_s, ends)), curves)
                 emit_text(text, count)
                 stats.motion_blocks += count
                 written_until_s = stop_s
@@ -320,10 +440,6 @@ def write_program(blocks: list[Block], plan: Plan, command_mm: np.ndarray, optio
             if run_index == len(plan.runs) and restore_line:
                 emit(restore_line)  # the last motion is done: the controller's limit as the program left it
 
-    # A copied line runs at the sample nearest its planned time (at most half a sample off), so
-    # that blocks end on samples of the command: a block ending between two samples would bend
-    # the command there, and ask more acceleration of the controller than the command does.
-    copied_times = np.rint(plan.line_time_s[[i for i, b in enumerate(blocks) if b.kind is not Kind.MOVE]] * fs) / fs
     # Where the plan and the command are as each copied line runs: all at once, as per line the
     # calls cost more than the arithmetic.
     at_copied = zip(copied_times.tolist(), at_many(plan.positions_mm, copied_times), at_many(command_mm, copied_times))

@@ -39,7 +39,8 @@ def finite_derivative_max(u, order, period_s):
 import re  # noqa: E402
 
 _WORD = re.compile(rb"([A-Za-z])\s*([-+]?(?:\d+\.?\d*|\.\d+))")
-_MOTION = {b"G0", b"G00", b"G1", b"G01"}
+_MOTION = {b"G0", b"G00", b"G1", b"G01", b"G5", b"G05"}
+_ARC_STEPS = 4096  # chords per G5 curve for its arc length (their sum is within ~1e-8 of it)
 
 
 def split_code(raw: bytes) -> list[tuple[bytes, float]]:
@@ -49,7 +50,7 @@ def split_code(raw: bytes) -> list[tuple[bytes, float]]:
 
 
 def is_motion_line(raw: bytes) -> bool:
-    """A G0/G1 line that names an axis (X Y Z E): what a post-processor may rewrite."""
+    """A G0/G1/G5 line that names an axis (X Y Z E): what a post-processor may rewrite."""
     words = split_code(raw)
     g = {f"G{int(v)}".encode() for k, v in words if k == b"G"}
     return bool(g & _MOTION) and any(k in (b"X", b"Y", b"Z", b"E") for k, _ in words)
@@ -60,43 +61,83 @@ class Executed:
 
     def __init__(self):
         self.ends = []  # (time_s, x, y, z, e) at the end of every block, machine coordinates
+        self.path = []  # the same, and inside G5 blocks at every multiple of the sample period
+        self.g5_blocks = 0  # how many of the blocks were G5
         self.e_at_lines = []  # E (program coordinate) at every line that is not a motion line
         self.nonmotion = []  # those lines' bytes, in order
         self.extruded = 0.0  # sum of positive and negative E moves
 
 
-def execute(path) -> Executed:
-    """G0/G1 with X Y Z E F, G90/G91, M82/M83, G92, G20/G21; other lines are recorded as non-motion.
-    The first position of an axis is where it is first set (a move from an unknown place is instant)."""
+def bezier_points(p0, p1, p2, p3, u):
+    """Points of the cubic Bezier at parameters ``u`` (Bernstein form), rows of XY."""
+    u = np.asarray(u, dtype=float)[:, None]
+    w = 1.0 - u
+    return w**3 * p0 + 3 * w * w * u * p1 + 3 * w * u * u * p2 + u**3 * p3
+
+
+def arc_lengths(p0, p1, p2, p3):
+    """The curve's parameters on _ARC_STEPS equal steps and its XY length up to each, as sums of
+    chords: inverted by interpolation, the parameter at an arc length (how Marlin and LinuxCNC move
+    along a G5 at constant feed)."""
+    grid = np.linspace(0.0, 1.0, _ARC_STEPS + 1)
+    chords = np.hypot(*np.diff(bezier_points(p0, p1, p2, p3, grid), axis=0).T)
+    return grid, np.concatenate([[0.0], np.cumsum(chords)])
+
+
+def execute(path, sample_rate_hz: float = 10000.0) -> Executed:
+    """G0/G1 with X Y Z E F, G5 with I J P Q X Y Z E F (timed by the curve's XY length; Z and E
+    linear in its parameter, as Marlin moves them; only in G17), G90/G91, M82/M83, G92, G20/G21,
+    G17/G18/G19; other lines are recorded as non-motion. ``path`` gets the points inside G5
+    blocks at every multiple of 1 / ``sample_rate_hz``. The first position of an axis is where it
+    is first set (a move from an unknown place is instant)."""
     run = Executed()
     pos = {a: None for a in "XYZE"}
     pos["E"] = 0.0
     offset = {a: 0.0 for a in "XYZE"}
-    abs_xyz, abs_e, scale, feed, t = True, True, 1.0, None, 0.0
+    abs_xyz, abs_e, scale, feed, t, plane = True, True, 1.0, None, 0.0, 17
     for raw in open(path, "rb").read().splitlines(keepends=True):
         words = split_code(raw)
         codes = [(k, v) for k, v in words if k in (b"G", b"M")]
         if is_motion_line(raw):
             target = dict(pos)
+            curve = {}
             for k, v in words:
                 a = k.decode()
                 if a in "XYZE":
                     rel = not (abs_e if a == "E" else abs_xyz)
                     value = v * scale
                     target[a] = (pos[a] or 0.0) + value if rel else value + offset[a]
+                elif a in "IJPQ":
+                    curve[a] = v * scale
                 elif a == "F":
                     feed = v * scale / 60.0
             known = [a for a in "XYZ" if pos[a] is not None and target[a] is not None]
-            d_xyz = np.sqrt(sum((target[a] - pos[a]) ** 2 for a in known)) if known else 0.0
-            d_e = abs(target["E"] - pos["E"])
             unknown = any(pos[a] is None and target[a] is not None for a in "XYZ")
-            length = d_xyz if d_xyz > 0 else d_e
-            if not unknown and length > 0:
-                t += length / feed
+            if (b"G", 5.0) in codes:
+                assert plane == 17, f"G5 outside the XY plane: {raw!r}"
+                assert not unknown and sorted(curve) == list("IJPQ"), f"G5 needs a known start and I J P Q: {raw!r}"
+                p0, p3 = np.array([pos["X"], pos["Y"]]), np.array([target["X"], target["Y"]])
+                p1, p2 = p0 + [curve["I"], curve["J"]], p3 + [curve["P"], curve["Q"]]
+                grid, arc = arc_lengths(p0, p1, p2, p3)
+                t0, t = t, t + arc[-1] / feed
+                inside = np.arange(np.floor(t0 * sample_rate_hz) + 1, np.ceil(t * sample_rate_hz)) / sample_rate_hz
+                u = np.interp((inside - t0) / (t - t0) * arc[-1], arc, grid)
+                xy = bezier_points(p0, p1, p2, p3, u)
+                z0, z3 = pos["Z"] or 0.0, target["Z"] or 0.0
+                run.path += [(ti, x, y, z0 + (z3 - z0) * ui, pos["E"] + (target["E"] - pos["E"]) * ui)
+                             for ti, (x, y), ui in zip(inside, xy, u)]
+                run.g5_blocks += 1
+            else:
+                d_xyz = np.sqrt(sum((target[a] - pos[a]) ** 2 for a in known)) if known else 0.0
+                d_e = abs(target["E"] - pos["E"])
+                length = d_xyz if d_xyz > 0 else d_e
+                if not unknown and length > 0:
+                    t += length / feed
             run.extruded += target["E"] - pos["E"]
             pos = target
             if all(pos[a] is not None for a in "XY"):
                 run.ends.append((t, pos["X"], pos["Y"], pos["Z"] or 0.0, pos["E"]))
+                run.path.append(run.ends[-1])
             continue
         for k, v in codes:
             code = (k + (b"%g" % v)).upper()
@@ -112,6 +153,8 @@ def execute(path) -> Executed:
                 scale = 25.4
             elif code == b"G21":
                 scale = 1.0
+            elif code in (b"G17", b"G18", b"G19"):
+                plane = int(code[1:])
             elif code == b"G92":
                 for kk, vv in words:
                     a = kk.decode()
@@ -125,14 +168,18 @@ def execute(path) -> Executed:
     return run
 
 
+def positions_at(points, t):
+    """X Y Z E of executed points (rows time_s, x, y, z, e), linear between them, at the times t."""
+    points = np.array(points)
+    # Several points at one time (instant moves): keep the last, so interpolation is well defined.
+    points = points[np.append(np.diff(points[:, 0]) > 0, True)]
+    return np.column_stack([np.interp(t, points[:, 0], points[:, i]) for i in (1, 2, 3, 4)])
+
+
 def sample_blocks(ends, sample_rate_hz):
     """The piecewise-linear command of executed blocks on a uniform grid: (times, [x y z e])."""
-    ends = np.array(ends)
-    t = np.arange(0.0, ends[-1, 0] + 0.5 / sample_rate_hz, 1.0 / sample_rate_hz)
-    # Several ends at one time (instant moves): keep the last, so interpolation is well defined.
-    keep = np.append(np.diff(ends[:, 0]) > 0, True)
-    ends = ends[keep]
-    return t, np.column_stack([np.interp(t, ends[:, 0], ends[:, i]) for i in (1, 2, 3, 4)])
+    t = np.arange(0.0, ends[-1][0] + 0.5 / sample_rate_hz, 1.0 / sample_rate_hz)
+    return t, positions_at(ends, t)
 
 
 def contour_error(path_xy, points_xy, piece_mm=0.5, candidates=16):

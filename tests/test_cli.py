@@ -250,3 +250,15 @@ def test_several_inputs_that_would_clash_are_usage_errors(tmp_path, monkeypatch,
     result = run("compensate", "a.gcode", *args, "-m", "patent-xy-stage")
     assert result.exit_code == 2 and words in result.stderr
     assert sorted(p.name for p in tmp_path.rglob("*")) == ["a.gcode", "a.gcode", "b.gcode", "sub"]
+
+
+@pytest.mark.parametrize("flavor", ["klipper", "reprap"])
+def test_g5_is_refused_for_a_flavor_without_g5(tmp_path, flavor):
+    program = tmp_path / "part.gcode"
+    program.write_text("G21\nG90\nG1 X0 Y0 F3000\nG1 X10 Y5\nG1 X20 Y0\n")
+    original = program.read_bytes()
+    result = run("compensate", "-m", "bedslinger-example", "--format", "g5", "--flavor", flavor, program)
+    assert result.exit_code == 1
+    assert result.stderr == f"error: {program}: {flavor} has no G5 (cubic Bezier) move: use --format dense " \
+                            f"(g5 is for marlin and linuxcnc)\n"
+    assert program.read_bytes() == original and [p.name for p in tmp_path.iterdir()] == ["part.gcode"]

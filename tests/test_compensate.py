@@ -14,7 +14,7 @@ from fbspost.gcode import read_gcode
 from fbspost.pipeline import CompensateOptions, compensate_file
 from fbspost.planner import plan_blocks
 from fbspost.profile import load_profile
-from reference import contour_error, execute, is_motion_line, rms, sample_blocks, simulate_lsim
+from reference import contour_error, execute, is_motion_line, positions_at, rms, sample_blocks, simulate_lsim
 
 ROOT = Path(__file__).resolve().parent.parent
 SAMPLES = ROOT / "samples"
@@ -70,6 +70,44 @@ def test_butterfly_programs_on_patent_stage(butterfly_runs, name, duration_toler
     assert compensated.nonmotion[-1] == original.nonmotion[-1]
     assert [line for line in compensated.nonmotion if line in original.nonmotion] == original.nonmotion
     assert np.allclose(ends[-1, 1:3], path[-1], atol=1e-9)
+
+
+@pytest.fixture(scope="module")
+def butterfly_g5_runs(tmp_path_factory):
+    """Each butterfly program compensated to dense and to G5 output (LinuxCNC, detected)."""
+    out = {}
+    for name in ("butterfly-dense", "butterfly-polyline"):
+        folder = tmp_path_factory.mktemp(name)
+        for output_format in ("dense", "g5"):
+            compensate_file(SAMPLES / f"{name}.gcode", folder / f"{output_format}.gcode", PATENT,
+                            CompensateOptions(output_format=output_format))
+        out[name] = folder / "dense.gcode", folder / "g5.gcode"
+    return out
+
+
+@pytest.mark.parametrize("name, duration_tolerance", [("butterfly-dense", 0.005), ("butterfly-polyline", 0.03)])
+def test_butterfly_g5_follows_the_command_in_fewer_blocks(butterfly_g5_runs, name, duration_tolerance):
+    """Run through the executor (each G5 at constant speed along its exact curve), the G5 output is
+    where the dense output is, which is on the compensated command at its block ends: within the
+    tolerance (1 um) and 0.2 um of rounding there, within both outputs' tolerances at every
+    sample; as long as the plan; every non-motion line; the same end; fewer blocks."""
+    source = SAMPLES / f"{name}.gcode"
+    dense, g5 = (execute(path, PATENT.sample_rate_hz) for path in butterfly_g5_runs[name])
+    original = execute(source)
+    ends = np.array(dense.ends)
+    assert np.hypot(*(positions_at(g5.path, ends[:, 0])[:, :2] - ends[:, 1:3]).T).max() <= 1.2e-3
+    _, dense_samples = sample_blocks(dense.path, PATENT.sample_rate_hz)
+    _, g5_samples = sample_blocks(g5.path, PATENT.sample_rate_hz)
+    assert len(g5_samples) == len(dense_samples)
+    assert np.hypot(*(g5_samples[:, :2] - dense_samples[:, :2]).T).max() <= 2.2e-3
+    plan = plan_blocks(list(read_gcode(source, "linuxcnc")), PATENT)
+    assert abs(g5.ends[-1][0] - plan.duration_s) <= duration_tolerance * plan.duration_s
+    assert abs(g5.ends[-1][0] - dense.ends[-1][0]) <= 1e-5
+    assert [line for line in g5.nonmotion if line in original.nonmotion] == original.nonmotion
+    assert g5.nonmotion[-1] == original.nonmotion[-1]
+    assert np.allclose(g5.ends[-1][1:3], original.ends[-1][1:3], atol=1e-9)
+    assert g5.g5_blocks > len(g5.ends) / 3
+    assert len(g5.ends) < 0.7 * len(dense.ends)
 
 
 # ---- real slicer output on the printer profile -------------------------------------------------

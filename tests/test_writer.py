@@ -1,6 +1,7 @@
 """The writer through the whole pipeline on small programs, judged by the executor in
 reference.py: lines kept byte-exact, extrusion and end positions exact in every mode; its bulk
 number formatting against Decimal's text."""
+import re
 from decimal import Decimal
 
 import numpy as np
@@ -8,8 +9,8 @@ import pytest
 
 from fbspost.pipeline import CompensateOptions, compensate_file
 from fbspost.profile import load_profile
-from fbspost.writer import _Emitter, _g1_lines, breakpoints
-from reference import execute
+from fbspost.writer import _Emitter, _lines, breakpoints
+from reference import execute, positions_at
 
 PRINTER = load_profile("bedslinger-example")
 
@@ -72,6 +73,75 @@ def test_lines_and_extrusion_exact(tmp_path, e_relative, xyz_relative, inches, n
         assert out.count(b"\n") == out.count(b"\r\n")
 
 
+def outputs(tmp_path, text: str, profile, flavor: str):
+    """The program compensated to dense and to G5 output, each run through the executor. Blocks
+    may be one sample short: no minimum length wins over the tolerance (at sharp corners)."""
+    source = tmp_path / "in.gcode"
+    source.write_text(text)
+    runs = []
+    for output_format in ("dense", "g5"):
+        target = tmp_path / f"{output_format}.gcode"
+        options = CompensateOptions(flavor=flavor, output_format=output_format,
+                                    min_segment_time_s=1 / profile.sample_rate_hz)
+        compensate_file(source, target, profile, options)
+        runs.append(execute(target, profile.sample_rate_hz))
+    return execute(source), *runs, (tmp_path / "g5.gcode").read_text().splitlines()
+
+
+def assert_g5_where_dense_is(dense, g5, period_s, tolerance_mm=1e-3):
+    """At the dense output's block ends (on the command), the G5 output's XY, Z and E are within the
+    tolerance and rounding; both end at the same time, but for the last samples at rest (a block
+    that rounds to no motion is not written)."""
+    ends = np.array(dense.ends)
+    at_ends = positions_at(g5.path, ends[:, 0])
+    assert np.hypot(*(at_ends[:, :2] - ends[:, 1:3]).T).max() <= tolerance_mm + 2e-4
+    assert np.abs(at_ends[:, 2:] - ends[:, 3:]).max() <= tolerance_mm + 2e-4
+    assert abs(g5.ends[-1][0] - dense.ends[-1][0]) <= 2 * period_s
+
+
+def test_g5_in_inches_relative_xyz_and_e(tmp_path):
+    """G20, G91, M83 and a G92 mid-program: G5 words in inches (one more decimal), relative X Y E
+    whose rounding residues do not accumulate (the end is exact), E exact at every copied line,
+    every copied line in order, and the motion where the dense output's is."""
+    lines = ["; relative inches", "G20", "G90", "G1 X0.4 Y0.4 Z0.01 F200", "G91", "M83"]
+    for turn in range(3):  # a rounded square, a corner cut by a short move, a copied line mid-motion
+        lines += [f"G1 X0.75 Y0 E0.031 F{80 + 20 * turn}", "G1 X0.05 Y0.05 E0.0021", "M106 S128",
+                  "G1 X0 Y0.75 E0.031", "G1 X-0.8 Y0 E0.033", "G1 X0 Y-0.8 E0.033", "G1 E-0.03 F1500", "G92 E0"]
+    original, dense, g5, text = outputs(tmp_path, "\n".join(lines + ["M107", ""]), PRINTER, "marlin")
+    curves = [line for line in text if line.startswith("G5")]
+    assert len(curves) >= 10
+    xy, e, f = (rf"-?\d+(\.\d{{1,{decimals}}})?" for decimals in (5, 6, 3))  # 0.1 um, 10 nm, 0.001 in/min
+    form = rf"G5 I{xy} J{xy} P{xy} Q{xy} X{xy} Y{xy}( E{e})?( F{f})?"
+    assert all(re.fullmatch(form, line) for line in curves), curves[:5]
+    assert [line for line in g5.nonmotion if line in set(original.nonmotion)] == original.nonmotion
+    e_out = [e for line, e in zip(g5.nonmotion, g5.e_at_lines) if line in set(original.nonmotion)]
+    assert np.abs(np.array(e_out) - np.array(original.e_at_lines)).max() <= 1e-9
+    assert abs(g5.extruded - original.extruded) <= 1e-9
+    assert np.allclose(g5.ends[-1][1:], original.ends[-1][1:], atol=1e-9)
+    assert_g5_where_dense_is(dense, g5, 1 / PRINTER.sample_rate_hz)
+    assert len(g5.ends) < len(dense.ends)
+
+
+def test_g5_on_linuxcnc_only_in_the_xy_plane_and_without_z(tmp_path):
+    """LinuxCNC runs G5 in G17 only and without Z (the executor refuses G5 outside G17): the
+    output is G1 where Z moves, after a copied G18, and after a move line that went back to G17
+    until the output does too (before the next copied line)."""
+    program = "\n".join([
+        "G21 G90 G17", "G0 X0 Y0 Z1", "G1 X20 Y0 F3000", "G1 X20 Y20", "G1 X25 Y25 Z0", "G1 X0 Y20 Z1",
+        "G18", "G1 X0 Y0 Z0", "G1 X10 Z2", "G1 X20 Z0", "M8", "G17 G1 X30 Y10", "G1 X0 Y0", "M9",
+        "G1 X10 Y20", "G1 X0 Y0", "M2", ""])
+    stage = load_profile("patent-xy-stage")
+    original, dense, g5, text = outputs(tmp_path, program, stage, "linuxcnc")
+    assert not any(line.startswith("G5") and ("Z" in line or "E" in line) for line in text)
+    assert text.index("G18") < text.index("M8") < text.index("G17") < text.index("M9")
+    assert not any(line.startswith("G5") for line in text[text.index("G18"):text.index("G17")])
+    assert any(line.startswith("G5") for line in text[:text.index("G18")])
+    assert any(line.startswith("G5") for line in text[text.index("M9"):])
+    assert [line for line in g5.nonmotion if line in set(original.nonmotion)] == original.nonmotion
+    assert np.allclose(g5.ends[-1][1:4], original.ends[-1][1:4], atol=1e-9)
+    assert_g5_where_dense_is(dense, g5, 1 / stage.sample_rate_hz)
+
+
 def test_mode_words_on_move_lines_reach_the_controller(tmp_path):
     """LinuxCNC runs every command on a line: `G91 G1 ...` is rewritten, but the program is in G91
     afterwards, so the output is too before the next copied line."""
@@ -109,23 +179,29 @@ def test_acceleration_lines_keep_whole_numbers():
 
 @pytest.mark.parametrize("digits", [(4, 4, 4, 5, 3), (5, 5, 5, 6, 3), (3,) * 5, (6,) * 5, (7,) * 5])
 @pytest.mark.parametrize("newline", [b"\n", b"\r\n"])
-def test_bulk_formatting_matches_decimal_text(digits, newline):
+@pytest.mark.parametrize("letters", ["XYZEF", "IJPQXYZEF"])
+def test_bulk_formatting_matches_decimal_text(digits, newline, letters):
     """Every number is its shortest decimal (as Decimal normalizes it), the words in order, only
-    the shown ones: zero, values below 1, negatives, trailing zeros, up to 1e14 units."""
+    the shown ones: zero, values below 1, negatives, trailing zeros, up to 1e14 units; G5 or G1
+    as asked, row by row."""
+    digits = (digits[0],) * (len(letters) - len(digits)) + digits
+    k = len(letters)
     rng = np.random.default_rng(sum(digits) + len(newline))
     n = 5000
-    size = 10 ** rng.integers(0, 15, (n, 5))
-    cut = 10 ** rng.integers(0, 8, (n, 5))
+    size = 10 ** rng.integers(0, 15, (n, k))
+    cut = 10 ** rng.integers(0, 8, (n, k))
     values = rng.integers(-size, size + 1) // cut * cut  # some with trailing zeros, some all zero
     special = [0, 1, -1, 5, -5, 9, 10, -10, 999, 1000, 1001, -10**6, 10**14 - 1, -10**14 + 1, 10**14]
     values[:len(special)] = np.array(special)[:, None]
-    shown = rng.random((n, 5)) < 0.7
+    shown = rng.random((n, k)) < 0.7
     shown[:len(special)] = True
+    g5 = rng.random(n) < (0.5 if "I" in letters else 0.0)
     expected = b"".join(
-        ("G1" + "".join(f" {letter}{format(Decimal(int(v)).scaleb(-d).normalize(), 'f')}"
-                        for letter, v, d, s in zip("XYZEF", row, digits, show) if s)).encode() + newline
-        for row, show in zip(values, shown))
-    assert _g1_lines(values, shown, np.array(digits), newline) == expected
+        (("G5" if curve else "G1") + "".join(
+            f" {letter}{format(Decimal(int(v)).scaleb(-d).normalize(), 'f')}"
+            for letter, v, d, s in zip(letters, row, digits, show) if s)).encode() + newline
+        for row, show, curve in zip(values, shown, g5))
+    assert _lines(values, shown, np.array(digits), letters, newline, g5) == expected
 
 
 def test_feed_is_written_only_when_it_changes_also_across_calls():
