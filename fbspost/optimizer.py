@@ -230,10 +230,9 @@ class _Stretch:
         rows = np.flatnonzero(self.row_sample < n_samples)
         return self.A_free[rows].tocsr(), rows
 
-    def violation(self, p: np.ndarray, offset: np.ndarray, check=None) -> float:
-        """Largest relative excess over a limit (0 when within), on all rows or ``check_rows``."""
-        values = self.A_free @ p + offset if check is None else check[0] @ p + offset[check[1]]
-        return max(0.0, float(np.abs(values).max(initial=0.0)) - 1.0)
+    def violation(self, p: np.ndarray, offset: np.ndarray) -> float:
+        """Largest relative excess over a limit (0 when within)."""
+        return max(0.0, float(np.abs(self.A_free @ p + offset).max(initial=0.0)) - 1.0)
 
     def constrained(self, target, p_fixed, offset, end_values, warm) -> np.ndarray | None:
         """The QP: min ||W (target - Nt_free p)||^2 s.t. every limit row, end conditions, from
@@ -289,7 +288,7 @@ class _Stretch:
             tightened_l[:n_limit_rows] += margin
             tightened_u[:n_limit_rows] -= margin
             self._qp.update(l=tightened_l, u=tightened_u)
-        return self._exact(x, result.y, q, lower, upper)
+        return x
 
     def _active_set(self, p_free: np.ndarray, offset: np.ndarray) -> np.ndarray | None:
         """The QP by the dual active-set method of Goldfarb and Idnani: from the optimum without
@@ -366,27 +365,6 @@ class _Stretch:
             return found[q]
         return (lambda q: solve(q)[0]), (lambda q: solve(q)[1])
 
-    def _exact(self, x, y, q, lower, upper) -> np.ndarray:
-        """OSQP's point made exact: the rows its multipliers ``y`` mark active held at their
-        bounds as equalities and the KKT system solved directly (what OSQP's polishing does, but
-        it rarely finds the active rows under this scaling). Kept if it meets every limit and its
-        objective is no worse, so it never costs accuracy."""
-        at_upper, at_lower = y > 1e-6 * np.abs(y).max(initial=0.0), y < -1e-6 * np.abs(y).max(initial=0.0)
-        at_upper |= lower == upper  # the end conditions
-        active = np.flatnonzero(at_upper | at_lower)
-        if active.size == 0:
-            return x
-        A = self._A[active].toarray()
-        H = self.H * self._objective_scale
-        kkt = np.block([[H, A.T], [A, np.zeros((active.size, active.size))]])
-        bound = np.where(at_upper[active], upper[active], lower[active])
-        p = linalg.lstsq(kkt, np.concatenate([-q, bound]), lapack_driver="gelsy")[0][:len(x)]
-        row = self._A @ p
-        excess = max(0.0, np.max(row - upper), np.max(lower - row))
-        if excess > _LIMIT_TOLERANCE or p @ H @ p / 2 + q @ p > x @ H @ x / 2 + q @ x + 1e-12 * abs(q @ x):
-            return x
-        return p
-
 
 class _Carry:
     """What the next window needs from everything solved before it, as one vector
@@ -422,8 +400,7 @@ class _Sweep:
         if stretch.has_limits:
             # The kept samples and the next m + 1 spans: those depend mostly on kept control
             # points, and the next window could not undo a limit broken there.
-            self.check = stretch.check_rows(rows + (m + 1) * k)
-            check, index = self.check
+            check, index = stretch.check_rows(rows + (m + 1) * k)
             used = max(commit, int(check.indices.max(initial=-1)) + 1)  # points the checked rows see
             self.A = check[:, :used].toarray()
             self.Az = np.hstack([stretch.A_state, stretch.A_fixed, stretch.A_prev])[index]
@@ -545,8 +522,8 @@ class AxisStream:
             else:
                 p = sweep.Gd @ desired - sweep.Gz @ z
                 if stretch.has_limits and np.abs(sweep.A @ p + sweep.Az @ z).max() > 1.0:
-                    p = _solve_window(stretch, desired, carry, z, None, self.result, sweep.check,
-                                      self.first_sample + start)
+                    p = _solve_window(stretch, desired, carry, z, None, self.result, self.first_sample + start,
+                                      breaks_limit=True)
                 kept = np.concatenate([carry.p_fixed(z), p[:commit]])
                 command = sweep.N_kept @ kept
                 self.z = sweep.L @ np.concatenate([z, p[:commit]])
@@ -574,7 +551,7 @@ class AxisStream:
         desired = np.concatenate([desired_mm, np.full(settings.settle_samples, desired_mm[-1])])
         end_values = np.zeros(settings.end_rest_order + 1)
         end_values[0] = desired_mm[-1]
-        p_free = _solve_window(final, desired, carry, z, end_values, self.result, None, self.first_sample)
+        p_free = _solve_window(final, desired, carry, z, end_values, self.result, self.first_sample)
         command = final.N[:n_rows] @ np.concatenate([carry.p_fixed(z), p_free])
         if self.first_sample == 0:
             command[0] = desired_mm[0]
@@ -592,16 +569,17 @@ def compensate_axis(desired_mm: np.ndarray, dynamics: AxisDynamics, limits: Axis
 
 
 def _solve_window(stretch: _Stretch, desired, carry: _Carry, z: np.ndarray, end_values, result: AxisResult,
-                  check, first_sample: int) -> np.ndarray:
+                  first_sample: int, breaks_limit: bool = False) -> np.ndarray:
     """Free control points of one window after carry ``z``: the unconstrained optimum, or the QP
-    where it breaks a limit on the ``check`` rows (the samples whose command this window decides)."""
+    where that breaks a limit (``breaks_limit``: the caller found it does, on the samples whose
+    command the window decides)."""
     p_fixed, state = carry.p_fixed(z), carry.state(z)
     target = stretch.target(desired, state, p_fixed)
     p = stretch.unconstrained(target, p_fixed, end_values)
     if not stretch.has_limits:
         return p
     offset = stretch.limit_offset(p_fixed, state, carry.previous(z))
-    if stretch.violation(p, offset, check) <= 0.0:
+    if not breaks_limit and stretch.violation(p, offset) <= 0.0:
         return p
     result.qp_windows += 1
     p_qp = stretch.constrained(target, p_fixed, offset, end_values, warm=p)
