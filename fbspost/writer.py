@@ -376,10 +376,11 @@ def write_program(blocks: list[Block], plan: Plan, command_mm: np.ndarray, optio
     # A copied line runs at the sample nearest its planned time (at most half a sample off), so
     # that blocks end on samples of the command: a block ending between two samples would bend
     # the command there, and ask more acceleration of the controller than the command does.
-    copied_times = np.rint(plan.line_time_s[[i for i, b in enumerate(blocks) if b.kind is not Kind.MOVE]] * fs) / fs
+    copied_samples = np.rint(plan.line_time_s[[i for i, b in enumerate(blocks) if b.kind is not Kind.MOVE]] * fs)
+    copied_times = copied_samples / fs
     g5_runs = []  # per run: its blocks' ends (sample indices) and curves
     if options.output_format == "g5":
-        copied = np.unique(np.rint(copied_times * fs).astype(np.int64))
+        copied = np.unique(copied_samples.astype(np.int64))
         for a, b in plan.runs:
             splits = copied[np.searchsorted(copied, a, "right"):np.searchsorted(copied, b, "left")] - a
             run_ends, curves = g5_blocks(command_mm[a:b + 1], splits, options.tolerance_mm, min_samples)
