@@ -67,7 +67,24 @@ class AxisDynamics:
         command_mm = np.asarray(command_mm, dtype=float)
         if command_mm.size == 0:
             return command_mm.copy()
-        return command_mm[0] + self.filter(command_mm - command_mm[0])
+        return self.response(command_mm[0])(command_mm)
+
+    def response(self, start_mm: float):
+        """``simulate`` for a command given in pieces, from rest at ``start_mm``: a function
+        taking each next piece of the command (mm) and giving that piece of the actual position."""
+        states = [np.zeros(len(a) - 1) for _, a in self._mode_filters]
+
+        def step(command_mm: np.ndarray) -> np.ndarray:
+            u = np.asarray(command_mm, dtype=float) - start_mm
+            if not u.size:
+                return u  # (lfilter gives a garbage final state for an empty input)
+            total = 0.0
+            for i, (b, a) in enumerate(self._mode_filters):
+                y, states[i] = signal.lfilter(b, a, u, zi=states[i])
+                total = total + y
+            return start_mm + total
+
+        return step
 
     def markov(self, n_samples: int) -> np.ndarray:
         """Impulse response h[k] = C A^(k-1) B (h[0] = 0): y = h * u."""

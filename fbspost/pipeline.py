@@ -7,6 +7,7 @@ with the predicted tracking error of every compensated axis before and after, pe
 from __future__ import annotations
 
 import time
+from collections.abc import Iterable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -15,12 +16,12 @@ import numpy as np
 from . import __version__
 from .atomicfile import atomic_write
 from .dynamics import AxisDynamics
-from .gcode import AXES, detect_flavor, read_gcode
+from .gcode import AXES, Block, detect_flavor, read_gcode
 from .optimizer import AxisCompensator, AxisLimits, FBSSettings
-from .planner import plan_blocks
+from .planner import Plan, plan_blocks
 from .profile import MachineProfile
 from .trajectory import InputError
-from .writer import WriteOptions, format_refusal, write_program
+from .writer import SampleWindow, WriteOptions, format_refusal, write_program
 
 
 @dataclass(frozen=True)
@@ -46,8 +47,14 @@ class AxisReport:
     @classmethod
     def from_errors(cls, before_mm: np.ndarray, after_mm: np.ndarray) -> AxisReport:
         """From the modelled tracking error of the original and of the compensated command."""
-        return cls(_rms_um(before_mm), float(np.abs(before_mm).max()) * 1e3,
-                   _rms_um(after_mm), float(np.abs(after_mm).max()) * 1e3)
+        before, after = _ErrorStats(), _ErrorStats()
+        before.add(before_mm)
+        after.add(after_mm)
+        return cls.from_stats(before, after)
+
+    @classmethod
+    def from_stats(cls, before: _ErrorStats, after: _ErrorStats) -> AxisReport:
+        return cls(before.rms_um, before.peak_um, after.rms_um, after.peak_um)
 
 
 @dataclass
@@ -68,93 +75,175 @@ class Report:
         return asdict(self)
 
 
+_CHUNK = 1 << 14  # samples planned, compensated and written at once
+
+
 def compensate_file(input_path: str | Path, output_path: str | Path, profile: MachineProfile,
                     options: CompensateOptions = CompensateOptions(), progress=None) -> Report:
-    """``progress(fraction)`` is called as the axes are compensated (0 to 1), if given."""
+    """``progress(fraction)`` is called as the motion is compensated (0 to 1), if given.
+
+    Streams: the program is read twice (to plan it, then to write it: the blocks are not
+    held) and its samples are planned, compensated and written a stretch at a time, so memory
+    holds the piece-level plan, the optimizers' look-ahead and the writer's, not the samples.
+    """
     started = time.perf_counter()
     flavor = options.flavor or detect_flavor(input_path)
     refusal = format_refusal(flavor, options.output_format)
     if refusal:  # before the work
         raise InputError(input_path, None, refusal)
+    stages = dict.fromkeys(("read", "plan", "optimize", "write"), 0.0)
     clock = time.perf_counter()
-    blocks = list(read_gcode(input_path, flavor))
-    stages = {"read": time.perf_counter() - clock}
-    clock = time.perf_counter()
-    plan = plan_blocks(blocks, profile)
-    stages["plan"] = time.perf_counter() - clock
-    clock = time.perf_counter()
+    limits = _LimitsSeen(profile)
+    plan = plan_blocks(limits.watch(_timed(read_gcode(input_path, flavor), stages, "read")), profile)
+    stages["plan"] = time.perf_counter() - clock - stages["read"]
+    report = Report(str(input_path), str(output_path), profile.name, flavor, len(plan.line_time_s), 0,
+                    plan.duration_s, 0.0)
     period_s = 1.0 / profile.sample_rate_hz
-    command = plan.positions_mm.copy()
-    report = Report(str(input_path), str(output_path), profile.name, flavor, len(blocks), 0, plan.duration_s, 0.0)
-    modelled = [a for a in AXES if a in profile.axes and profile.axes[a].modes]
-    total = max(1, sum(last - first + 1 for first, last in plan.runs) * len(modelled))
-    done = 0
-    for name in modelled:
-        column, axis = AXES.index(name), profile.axes[name]
-        dynamics = AxisDynamics(axis.modes, period_s)
-        compensate = AxisCompensator(dynamics, AxisLimits.from_profile(axis), options.settings, options.lookahead)
-        before, after = [], []
-        for first, last in plan.runs:
-            desired = plan.positions_mm[first:last + 1, column]
-            result = compensate(desired)
-            command[first:last + 1, column] = result.command_mm
-            # The error counts the settling after the run too: the residual vibration the
-            # compensation also reduces (and may trade a little in-motion error for).
-            hold = np.full(compensate.settings.settle_samples, desired[-1])
-            desired = np.concatenate([desired, hold])
-            before.append(desired - dynamics.simulate(desired))
-            after.append(desired - dynamics.simulate(np.concatenate([result.command_mm, hold])))
-            report.warnings += [f"axis {name}, motion starting at {first * period_s:.3f} s: {w}" for w in result.warnings]
-            done += last - first + 1
-            if progress:
-                progress(done / total)
-        if before:
-            report.axes[name] = AxisReport.from_errors(np.concatenate(before), np.concatenate(after))
-
-    stages["optimize"] = time.perf_counter() - clock
-    clock = time.perf_counter()
+    axes = {AXES.index(a): profile.axes[a] for a in AXES if a in profile.axes and profile.axes[a].modes}
+    compensators = {c: AxisCompensator(AxisDynamics(axis.modes, period_s), AxisLimits.from_profile(axis),
+                                       options.settings, options.lookahead) for c, axis in axes.items()}
+    errors = {c: (_ErrorStats(), _ErrorStats()) for c in axes}
+    follows_plan = np.array([c not in axes for c in range(len(AXES))])
+    chunks = _timed(_compensated(plan, compensators, errors, report, progress), stages, "optimize")
+    ceilings = [axis.max_acceleration_mm_s2 for c, axis in axes.items() if c < 3]  # XYZ
     write_options = WriteOptions(
         flavor=flavor, output_format=options.output_format, tolerance_mm=options.tolerance_mm,
         min_segment_time_s=options.min_segment_time_s,
         header=(f"fbspost {__version__}: filtered B-spline compensation for machine profile {profile.name}",
                 f"fbspost settings: format {options.output_format}, tolerance {options.tolerance_mm:g} mm, "
                 f"minimum segment {options.min_segment_time_s * 1e3:g} ms, flavor {flavor}, {options.lookahead} look-ahead"),
-        raise_acceleration_mm_s2=_needed_acceleration(command, plan.positions_mm, profile, blocks),
-        restore_acceleration_mm_s2=_final_acceleration(profile, blocks))
+        raise_acceleration_mm_s2=(limits.highest, max(ceilings)) if ceilings else None,
+        restore_acceleration_mm_s2=limits.final)
     stats = []
-    atomic_write(output_path, lambda f: stats.append(write_program(blocks, plan, command, write_options, f)))
-    stages["write"] = time.perf_counter() - clock
+    clock = time.perf_counter()
+    read_before = stages["read"]
+    atomic_write(output_path, lambda f: stats.append(write_program(
+        _timed(read_gcode(input_path, flavor), stages, "read"), plan,
+        SampleWindow(chunks, plan.n_samples, follows_plan), write_options, f)))
+    stages["write"] = time.perf_counter() - clock - stages["optimize"] - (stages["read"] - read_before)
+    for c, (before, after) in errors.items():
+        if before.count:
+            report.axes[AXES[c]] = AxisReport.from_stats(before, after)
     report.lines_out = stats[0].lines_out
     report.stage_time_s = stages
     report.compute_time_s = time.perf_counter() - started
     return report
 
 
-def _rms_um(error_mm: np.ndarray) -> float:
-    return float(np.sqrt(np.mean(np.square(error_mm)))) * 1e3
+def _compensated(plan: Plan, compensators: dict[int, AxisCompensator], errors: dict, report: Report, progress):
+    """(planned, command) chunks of samples, every sample in order: the command is the plan
+    but on the compensated axes (columns) during the runs. Adds up every compensated axis'
+    modelled tracking error, over each run and the settling after it (the residual vibration
+    the compensation also reduces, and may trade a little in-motion error for), before and
+    after, and the optimizers' warnings."""
+    period_s = 1.0 / plan.sample_rate_hz
+    total = max(1, sum(last - first + 1 for first, last in plan.runs))
+    done = next_sample = 0
+    for first, last in plan.runs:
+        if next_sample < first:  # at rest
+            rest = plan.samples(next_sample, first)
+            yield rest, rest
+        streams = {c: compensator.stream() for c, compensator in compensators.items()}
+        start = plan.samples(first, first + 1)[0]
+        responses = {c: (compensator.dynamics.response(start[c]), compensator.dynamics.response(start[c]))
+                     for c, compensator in compensators.items()}
+        planned_rows, commands = np.zeros((0, len(AXES))), {c: np.zeros(0) for c in compensators}
+
+        def ready(planned_rows, commands):
+            """The rows that every axis has its command for, and what remains."""
+            n = min([len(v) for v in commands.values()] + [len(planned_rows)])
+            command = planned_rows[:n].copy()
+            for c, (before, after) in errors.items():
+                command[:, c] = commands[c][:n]
+                desired = planned_rows[:n, c]
+                before.add(desired - responses[c][0](desired))
+                after.add(desired - responses[c][1](command[:, c]))
+            return (planned_rows[:n], command), planned_rows[n:], {c: v[n:] for c, v in commands.items()}
+
+        for a in range(first, last + 1, _CHUNK):
+            planned = plan.samples(a, min(a + _CHUNK, last + 1))
+            planned_rows = np.concatenate([planned_rows, planned])
+            for c, stream in streams.items():
+                commands[c] = np.concatenate([commands[c], stream.push(planned[:, c])])
+            chunk, planned_rows, commands = ready(planned_rows, commands)
+            if len(chunk[0]):
+                done += len(chunk[0])
+                yield chunk
+            if progress:
+                progress(done / total)
+        for c, stream in streams.items():
+            result = stream.finish()
+            commands[c] = np.concatenate([commands[c], result.command_mm])
+            report.warnings += [f"axis {AXES[c]}, motion starting at {first * period_s:.3f} s: {w}" for w in result.warnings]
+        chunk, _, _ = ready(planned_rows, commands)
+        done += len(chunk[0])
+        for c, (before, after) in errors.items():
+            hold = np.full(compensators[c].settings.settle_samples, chunk[0][-1, c])
+            before.add(hold - responses[c][0](hold))
+            after.add(hold - responses[c][1](hold))
+        yield chunk
+        next_sample = last + 1
+    if next_sample < plan.n_samples:
+        rest = plan.samples(next_sample, plan.n_samples)
+        yield rest, rest
 
 
-def _needed_acceleration(command: np.ndarray, planned: np.ndarray, profile: MachineProfile, blocks) -> float | None:
-    """The path acceleration the command reaches (XYZ), at least the planner's, at most the
-    largest limit among the compensated axes. None when nothing is compensated."""
-    compensated = [i for i, a in enumerate(AXES[:3]) if a in profile.axes and profile.axes[a].modes]
-    if not compensated or np.array_equal(command, planned):
-        return None
-    period_s = 1.0 / profile.sample_rate_hz
-    accel = np.linalg.norm(np.diff(command[:, :3], 2, axis=0), axis=1).max(initial=0.0) / period_s**2
-    ceiling = max(profile.axes[AXES[i]].max_acceleration_mm_s2 for i in compensated)
-    floor = max([profile.planner_acceleration_mm_s2] + [b.limits.acceleration_mm_s2 for b in blocks
-                                                        if b.limits is not None and b.limits.acceleration_mm_s2])
-    return float(np.ceil(min(max(accel, floor), ceiling)))
+@dataclass
+class _ErrorStats:
+    """Running RMS and largest magnitude of an error given in pieces (mm)."""
+
+    sum_squares_mm2: float = 0.0
+    count: int = 0
+    peak_mm: float = 0.0
+
+    def add(self, error_mm: np.ndarray) -> None:
+        if error_mm.size:
+            self.sum_squares_mm2 += float(np.einsum("i,i->", error_mm, error_mm))  # (np.dot: BLAS threads, far slower here)
+            self.count += error_mm.size
+            self.peak_mm = max(self.peak_mm, float(np.abs(error_mm).max()))
+
+    @property
+    def rms_um(self) -> float:
+        return float(np.sqrt(self.sum_squares_mm2 / max(self.count, 1))) * 1e3
+
+    @property
+    def peak_um(self) -> float:
+        return self.peak_mm * 1e3
 
 
-def _final_acceleration(profile: MachineProfile, blocks) -> tuple[float, float]:
-    """(print, travel) acceleration the program leaves the controller with."""
-    accel, travel = profile.planner_acceleration_mm_s2, None
-    for block in blocks:
-        if block.limits is not None:
-            if block.limits.acceleration_mm_s2 is not None:
-                accel = block.limits.acceleration_mm_s2
-            if block.limits.travel_acceleration_mm_s2 is not None:
-                travel = block.limits.travel_acceleration_mm_s2
-    return accel, (accel if travel is None else travel)
+class _LimitsSeen:
+    """The acceleration limits a program sets, noted as its blocks pass: the highest (with the
+    profile's planner value: the least the raised limit may be) and the (print, travel) pair the
+    program leaves the controller with."""
+
+    def __init__(self, profile: MachineProfile):
+        self.highest = profile.planner_acceleration_mm_s2
+        self.accel, self.travel = profile.planner_acceleration_mm_s2, None
+
+    def watch(self, blocks: Iterable[Block]) -> Iterator[Block]:
+        for block in blocks:
+            if block.limits is not None:
+                if block.limits.acceleration_mm_s2:
+                    self.accel = block.limits.acceleration_mm_s2
+                    self.highest = max(self.highest, self.accel)
+                if block.limits.travel_acceleration_mm_s2 is not None:
+                    self.travel = block.limits.travel_acceleration_mm_s2
+            yield block
+
+    @property
+    def final(self) -> tuple[float, float]:
+        return self.accel, (self.accel if self.travel is None else self.travel)
+
+
+def _timed(items: Iterable, stages: dict[str, float], stage: str) -> Iterator:
+    """``items`` as they come, the time taken to make them added to ``stages[stage]``."""
+    iterator = iter(items)
+    while True:
+        clock = time.perf_counter()
+        try:
+            item = next(iterator)
+        except StopIteration:
+            stages[stage] += time.perf_counter() - clock
+            return
+        stages[stage] += time.perf_counter() - clock
+        yield item

@@ -39,7 +39,9 @@ Units: mm, s, mm/s, mm/s^2.
 """
 from __future__ import annotations
 
+import functools
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -76,17 +78,59 @@ class Pieces:
 
 
 @dataclass
+class _Segments:
+    """The plan's piecewise-quadratic timeline: position = a0 + a1 tau + a2 tau^2, tau = t - ref,
+    from t0 on (sorted by t0; of equal starts the later one rules)."""
+
+    t0: np.ndarray  # (s,) s
+    ref: np.ndarray  # (s,) s
+    a0: np.ndarray  # (s, 4) mm
+    a1: np.ndarray  # (s, 4) mm/s
+    a2: np.ndarray  # (s, 4) mm/s^2
+
+
+@dataclass
 class Plan:
-    """What the machine does: samples, block times, runs (see the module docstring)."""
+    """What the machine does: samples, block times, runs (see the module docstring). The samples
+    are evaluated on demand, a stretch at a time (``samples``): a long program's samples need not
+    be held."""
 
     sample_rate_hz: float
-    positions_mm: np.ndarray  # (n_samples, 4): X Y Z E at t_k = k / sample_rate_hz, k = 0..n-1
+    n_samples: int  # samples at t_k = k / sample_rate_hz, k = 0..n-1
     line_time_s: np.ndarray  # (n_blocks,): MOVE: end of its motion; PASS: when the motion reaches it; STOP: at rest at it (before its dwell)
     move_start_s: np.ndarray  # (n_blocks,): MOVE: start of its motion; other blocks: = line_time_s
+    is_move: np.ndarray  # (n_blocks,) bool: the block is a MOVE (rewritten), not a copied line
     runs: list[tuple[int, int]]  # [first, last] sample indices (inclusive) of each run of motion, at rest at both
     duration_s: float  # end of the last motion or dwell
+    segments: _Segments
     pieces: Pieces | None = None  # the piece-level plan the samples come from
     notes: list[str] = field(default_factory=list)  # assumptions made (unknown positions)
+
+    def samples(self, first: int, stop: int) -> np.ndarray:
+        """(stop - first, 4) X Y Z E at samples first .. stop - 1 (mm). Each sample depends on its
+        time alone, so any cut into stretches gives the same values."""
+        seg = self.segments
+        t = np.arange(first, stop) / self.sample_rate_hz
+        if not t.size:
+            return np.zeros((0, _NA))
+        # the segment of each sample (searchsorted right, minus 1) by merging the sorted sample
+        # times with the segment starts in the stretch: cheaper than a search per sample
+        lo, hi = np.searchsorted(seg.t0, t[[0, -1]], side="right")
+        entered = np.searchsorted(t, seg.t0[lo:hi], side="left")  # sample where each later segment starts
+        index = (lo - 1) + np.cumsum(np.bincount(entered, minlength=t.size))
+        tau = (t - np.take(seg.ref, index))[:, None]
+        out = np.take(seg.a2, index, axis=0)
+        out *= tau
+        out += np.take(seg.a1, index, axis=0)
+        out *= tau
+        out += np.take(seg.a0, index, axis=0)
+        return out
+
+    @functools.cached_property
+    def positions_mm(self) -> np.ndarray:
+        """(n_samples, 4) every sample at once (for programs that fit in memory)."""
+        return np.concatenate([self.samples(k, min(k + SAMPLE_CHUNK, self.n_samples))
+                               for k in range(0, self.n_samples, SAMPLE_CHUNK)] or [np.zeros((0, _NA))])
 
 
 # ---- limits in force, block by block ---------------------------------------------------------
@@ -210,18 +254,20 @@ def _fill_unknown(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return filled, never
 
 
-def plan_blocks(blocks: list[Block], profile: MachineProfile) -> Plan:
-    """The plan of ``blocks`` on ``profile`` (see the module docstring)."""
+def plan_blocks(blocks: Iterable[Block], profile: MachineProfile) -> Plan:
+    """The plan of ``blocks`` on ``profile`` (see the module docstring). The blocks are taken
+    one at a time and not kept."""
     fs = float(profile.sample_rate_hz)
-    nb = len(blocks)
     state = _LimitState(profile)
     states = [state.row()]
     waypoints = [np.full((1, _NA), np.nan)]  # the position before the program: first known values
     row_block, row_count, row_motion = [], [], []  # who added each group of waypoint rows
     move_feed, move_state = [], []  # per motion group
-    dwell = np.zeros(nb)
+    dwell, is_move, row_line = [], [], []
     stop_blocks = []
     for j, block in enumerate(blocks):
+        dwell.append(0.0)
+        is_move.append(block.kind is Kind.MOVE)
         if block.limits is not None:
             state.apply(block.limits, block.line_no)
             states.append(state.row())
@@ -234,6 +280,7 @@ def plan_blocks(blocks: list[Block], profile: MachineProfile) -> Plan:
                 raise ValueError(f"line {block.line_no}: feed must be > 0, got {block.feed_mm_s!r}")
             waypoints.append(points)
             row_block.append(j)
+            row_line.append(block.line_no)
             row_count.append(points.shape[0])
             row_motion.append(True)
             move_feed.append(feed)
@@ -245,21 +292,25 @@ def plan_blocks(blocks: list[Block], profile: MachineProfile) -> Plan:
             stop_blocks.append(j)
             waypoints.append(np.asarray(block.position_mm, dtype=float).reshape(1, _NA))
             row_block.append(j)
+            row_line.append(block.line_no)
             row_count.append(1)
             row_motion.append(False)
+    nb = len(dwell)
+    dwell, is_move = np.asarray(dwell), np.asarray(is_move, dtype=bool)
 
     raw = np.concatenate(waypoints)
     filled, never = _fill_unknown(raw)
     notes = [f"{AXES[i]}: position never known, planned at 0 mm" for i in np.flatnonzero(never)]
     row_count_a = np.asarray(row_count, dtype=np.int64)
     seg_block = np.repeat(np.asarray(row_block, dtype=np.int64), row_count_a)  # segment i: row i -> i+1
+    seg_line = np.repeat(np.asarray(row_line, dtype=np.int64), row_count_a)
     seg_motion = np.repeat(np.asarray(row_motion, dtype=bool), row_count_a)
     ever_known = np.maximum.accumulate(~np.isnan(raw), axis=0)
     lost = (~seg_motion)[:, None] & np.isnan(raw[1:]) & ever_known[:-1]
     lost_rows = np.flatnonzero(lost.any(axis=1))
     for i in lost_rows[:MAX_NOTES]:
         axes = "".join(AXES[a] for a in np.flatnonzero(lost[i]))
-        notes.append(f"line {blocks[seg_block[i]].line_no}: {axes} unknown after this line, "
+        notes.append(f"line {seg_line[i]}: {axes} unknown after this line, "
                      f"held at the last known position")
     if lost_rows.size > MAX_NOTES:
         notes.append(f"... and {lost_rows.size - MAX_NOTES} more lines with unknown positions")
@@ -398,21 +449,6 @@ def plan_blocks(blocks: list[Block], profile: MachineProfile) -> Plan:
     order = np.argsort(seg_t0, kind="stable")  # of equal starts, the later (non-empty) one is found
     seg_t0, seg_ref = seg_t0[order], seg_ref[order]
     seg_a0, seg_a1, seg_a2 = seg_a0[order], seg_a1[order], seg_a2[order]
-    positions = np.empty((n_samples, _NA))
-    for k0 in range(0, n_samples, SAMPLE_CHUNK):
-        t = np.arange(k0, min(k0 + SAMPLE_CHUNK, n_samples)) / fs
-        # the segment of each sample (searchsorted right, minus 1) by merging the sorted sample
-        # times with the segment starts of this chunk: cheaper than a search per sample
-        lo, hi = np.searchsorted(seg_t0, t[[0, -1]], side="right")
-        entered = np.searchsorted(t, seg_t0[lo:hi], side="left")  # sample where each later segment starts
-        seg = (lo - 1) + np.cumsum(np.bincount(entered, minlength=t.size))
-        tau = (t - np.take(seg_ref, seg))[:, None]
-        out = np.take(seg_a2, seg, axis=0)
-        out *= tau
-        out += np.take(seg_a1, seg, axis=0)
-        out *= tau
-        out += np.take(seg_a0, seg, axis=0)
-        positions[k0:k0 + t.size] = out
-
     runs = [(int(a), int(b)) for a, b in zip(run_first_sample, run_last_sample)]
-    return Plan(fs, positions, line_time, move_start, runs, duration_s, pieces, notes)
+    return Plan(fs, n_samples, line_time, move_start, is_move, runs, duration_s,
+                _Segments(seg_t0, seg_ref, seg_a0, seg_a1, seg_a2), pieces, notes)

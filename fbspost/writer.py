@@ -16,6 +16,8 @@ carry their rounding residues, so nothing accumulates.
 from __future__ import annotations
 
 import bisect
+import math
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -42,7 +44,7 @@ class WriteOptions:
     tolerance_mm: float = 1e-3
     min_segment_time_s: float = 1e-3
     header: tuple[str, ...] = ()  # comment text, one entry per line
-    raise_acceleration_mm_s2: float | None = None  # the controller's limit while the command runs
+    raise_acceleration_mm_s2: tuple[float, float] | None = None  # (floor, ceiling) of the controller's limit while the command runs
     restore_acceleration_mm_s2: tuple[float, float] | None = None  # (print, travel) afterwards
 
 
@@ -64,35 +66,77 @@ def format_refusal(flavor: str, output_format: str) -> str | None:
 _PIECE = 1 << 16  # samples
 
 
-def breakpoints(command: np.ndarray, tolerance_mm: float, min_samples: int,
-                max_samples: int = _MAX_SAMPLES) -> np.ndarray:
-    """Sample indices where blocks end, first and last sample included.
+class _Breaks:
+    """Where the blocks of one run end (see ``breakpoints``), found as its command arrives.
 
     A chord over n sample steps deviates from the samples it spans by at most n^2/8 times their
     largest second difference (the discrete maximum principle), so a block may span
     n = sqrt(8 tolerance / max |second difference| ahead) steps: never more than the tolerance
-    allows, never fewer than ``min_samples`` (where that is shorter, the minimum wins).
+    allows, never fewer than ``min_samples`` (where that is shorter, the minimum wins). "Ahead"
+    is the next ``max_samples`` steps (past the run's end: the last ones mirrored), so a block
+    end is known once that much of the command after it is: the ends are the same however the
+    command arrives.
     """
-    n = len(command)
-    if n <= 2:
-        return np.arange(n)
-    second = np.empty(n - 2)  # second[k] bends at sample k + 1
-    for a in range(0, n - 2, _PIECE):  # in pieces: temporaries the size of the command cost more than the arithmetic
-        second[a:a + _PIECE] = np.linalg.norm(np.diff(command[a:a + _PIECE + 2], 2, axis=0), axis=1)
-    # Largest second difference over the next max_samples steps, from every sample on.
-    ahead = maximum_filter1d(np.append(second, [0.0, 0.0]), size=max_samples, origin=-(max_samples // 2))
-    with np.errstate(divide="ignore"):
-        span = np.floor(np.sqrt(8.0 * tolerance_mm / ahead))
-    span = np.clip(np.nan_to_num(span, posinf=max_samples), min_samples, max_samples).astype(int)
-    # The blocks run i -> i + span[i] from sample 0. The span is a maximum over the next
-    # max_samples steps, so it changes rarely: step through each stretch of one span at once.
-    stretch_ends = (np.flatnonzero(np.diff(span[:n - 1])) + 1).tolist() + [n - 1]
-    pieces, i = [], 0
-    while i < n - 1:
-        step = int(span[i])
-        pieces.append(np.arange(i, stretch_ends[bisect.bisect_right(stretch_ends, i)], step))
-        i = int(pieces[-1][-1]) + step
-    return np.concatenate(pieces + [[n - 1]])
+
+    def __init__(self, n_samples: int, tolerance_mm: float, min_samples: int, max_samples: int = _MAX_SAMPLES):
+        self.n, self.tolerance_mm, self.min_samples, self.size = n_samples, tolerance_mm, min_samples, max_samples
+        self.ends = [0]  # found so far (run sample indices)
+        self.bend = np.zeros(0)  # |second difference| at samples bend_base + j (bending at the sample after)
+        self.bend_base = 0
+        self.tail = None  # the last two samples fed, for the next second differences
+        self.fed = 0  # samples fed
+
+    def feed(self, command: np.ndarray) -> None:
+        """The run's next samples (rows of X Y Z E, mm)."""
+        rows = command if self.tail is None else np.concatenate([self.tail, command])
+        self.fed += len(command)
+        self.tail = rows[-2:]
+        new = [np.linalg.norm(np.diff(rows[a:a + _PIECE + 2], 2, axis=0), axis=1)  # (by pieces: big temporaries cost more than the arithmetic)
+               for a in range(0, max(len(rows) - 2, 0), _PIECE)]
+        if self.fed == self.n:
+            new.append(np.zeros(min(2, self.n)))  # no bend at the last two samples
+        self.bend = np.concatenate([self.bend] + new)
+        self.find()
+
+    def find(self) -> None:
+        """Every block end that the samples fed so far decide."""
+        if self.n <= 2:
+            self.ends = list(range(self.n))
+            return
+        done = self.fed == self.n
+        i0 = i = self.ends[-1]  # a block starts here (or it is the last sample)
+        # ahead[j] needs bend[j .. j + size - 1]; past the end of the run they are mirrored
+        stop = self.n - 1 if done else self.bend_base + len(self.bend) - self.size + 1
+        if i0 < stop:
+            low = min(i0, max(self.n - self.size, 0)) if done else i0  # the mirror reaches back size - 1
+            ahead = maximum_filter1d(self.bend[low - self.bend_base:], size=self.size,
+                                     origin=-(self.size // 2))[i0 - low:stop - low]
+            with np.errstate(divide="ignore"):
+                span = np.floor(np.sqrt(8.0 * self.tolerance_mm / ahead))
+            span = np.clip(np.nan_to_num(span, posinf=self.size), self.min_samples, self.size).astype(int)
+            # The blocks run i -> i + span[i]. The span is a maximum over the next size steps, so
+            # it changes rarely: step through each stretch of one span at once.
+            stretch_ends = (np.flatnonzero(np.diff(span)) + 1 + i0).tolist() + [stop]
+            pieces = []
+            while i < stop:
+                step = int(span[i - i0])
+                pieces.append(np.arange(i, stretch_ends[bisect.bisect_right(stretch_ends, i)], step))
+                i = int(pieces[-1][-1]) + step
+            self.ends.extend(np.concatenate(pieces)[1:].tolist())
+            self.ends.append(min(i, self.n - 1))
+        # Keep what later spans need: from the last start, and the stretch the mirror reaches.
+        keep = max(min(self.ends[-1], self.n - self.size), self.bend_base)
+        self.bend = self.bend[keep - self.bend_base:]
+        self.bend_base = keep
+
+
+def breakpoints(command: np.ndarray, tolerance_mm: float, min_samples: int,
+                max_samples: int = _MAX_SAMPLES) -> np.ndarray:
+    """Sample indices where the blocks of a run end (``command``: its samples), first and last
+    sample included (see ``_Breaks``)."""
+    breaks = _Breaks(len(command), tolerance_mm, min_samples, max_samples)
+    breaks.feed(np.asarray(command, dtype=float))
+    return np.asarray(breaks.ends)
 
 
 @dataclass(frozen=True)
@@ -231,10 +275,16 @@ class _Emitter:
             moved[:, :2] |= curves.curve[:, None]  # G5 needs its end point, also where it closes a loop
         # A block that rounds to no motion cannot carry time (and is not written): the next
         # moving block takes it.
-        ends_s = self.pending_s + np.cumsum(durations_s)
         moving = moved.any(axis=1)
-        took = np.diff(np.concatenate([[0.0], ends_s[moving]]))
-        self.pending_s = float(ends_s[-1] - (ends_s[moving][-1] if moving.any() else 0.0)) if len(ends_s) else self.pending_s
+        took = durations_s  # each block's own time, whatever blocks a call gets: the text does not depend on them
+        if self.pending_s or not moving.all():
+            took, pending = [], self.pending_s
+            for duration, moves in zip(durations_s.tolist(), moving.tolist()):
+                pending += duration
+                if moves:
+                    took.append(pending)
+                    pending = 0.0
+            took, self.pending_s = np.array(took), pending
         rows = slice(None) if moving.all() else moving  # nearly always all of them: no copies
         feed = np.rint(length[rows] / took * 60.0 / self.unit_mm * 1000.0).astype(np.int64)
         new_feed = feed != np.concatenate([[self.feed], feed[:-1]])  # F only where it changes
@@ -346,47 +396,107 @@ def mode_lines(flavor: str, have: Modal, want: Modal) -> list[str]:
     return lines
 
 
-def acceleration_line(flavor: str, print_mm_s2: float, travel_mm_s2: float | None = None) -> str | None:
+def acceleration_line(flavor: str, print_mm_s2: float, travel_mm_s2: float | None = None, width: int = 0) -> str | None:
     """The flavor's command setting the controller's acceleration limit (None for LinuxCNC,
-    where it is machine configuration)."""
+    where it is machine configuration); values followed by spaces up to ``width`` characters (a
+    line to be overwritten in place once its value is known)."""
     travel = print_mm_s2 if travel_mm_s2 is None else travel_mm_s2
+    accel, travel = _fmt(print_mm_s2, 0).ljust(width), _fmt(travel, 0).ljust(width)
     if flavor == "klipper":
-        return f"SET_VELOCITY_LIMIT ACCEL={_fmt(print_mm_s2, 0)}"
+        return f"SET_VELOCITY_LIMIT ACCEL={accel}"
     if flavor in ("marlin", "reprap"):
-        return f"M204 P{_fmt(print_mm_s2, 0)} T{_fmt(travel, 0)}"
+        return f"M204 P{accel} T{travel}"
     return None
 
 
-def write_program(blocks: list[Block], plan: Plan, command_mm: np.ndarray, options: WriteOptions, out) -> WriteStats:
-    """Write the output program to the binary stream ``out``."""
+class SampleWindow:
+    """The planned and the commanded samples (rows X Y Z E, machine mm) as an iterator of
+    (planned, command) chunks produces them, in order; rows before ``release``'s index are
+    dropped, so a long program's samples are never all held. ``follows_plan`` (4,) marks the
+    columns the command leaves as planned (E, axes without modes): blocks end exactly where the
+    program puts them. Keeps the largest XYZ second difference of the command (mm per sample^2)."""
+
+    def __init__(self, chunks: Iterable[tuple[np.ndarray, np.ndarray]], n_samples: int, follows_plan: np.ndarray):
+        self._chunks = iter(chunks)
+        self.n_samples = n_samples
+        self.follows_plan = np.asarray(follows_plan, dtype=bool)
+        self.base = 0  # sample index of the first row held
+        self.planned = self.command = np.zeros((0, 4))
+        self.peak_bend_mm = 0.0
+
+    @property
+    def end(self) -> int:
+        return self.base + len(self.command)
+
+    def ensure(self, stop: int) -> None:
+        """Hold the samples up to ``stop`` - 1 (at most the last)."""
+        stop = min(stop, self.n_samples)
+        planned, command, end = [self.planned], [self.command], self.end
+        while end < stop:
+            p, c = next(self._chunks)
+            planned.append(p)
+            command.append(c)
+            end += len(c)
+        if len(command) > 1:
+            added = end - self.end
+            self.planned, self.command = np.concatenate(planned), np.concatenate(command)
+            new = self.command[max(len(self.command) - added - 2, 0):, :3]
+            if len(new) > 2:
+                self.peak_bend_mm = max(self.peak_bend_mm, float(np.linalg.norm(np.diff(new, 2, axis=0), axis=1).max()))
+
+    def release(self, first: int) -> None:
+        """Rows before sample ``first`` are no longer needed."""
+        drop = min(max(first - self.base, 0), len(self.command))
+        if drop > len(self.command) // 2:  # copy seldom: the rows kept are a fraction of those dropped
+            self.planned, self.command = self.planned[drop:].copy(), self.command[drop:].copy()
+            self.base += drop
+
+    def rows(self, first: int, stop: int) -> np.ndarray:
+        """Commanded samples first .. stop - 1."""
+        assert first >= self.base, "samples asked for after their release"
+        self.ensure(stop)
+        return self.command[first - self.base:stop - self.base]
+
+    def at(self, t_s: np.ndarray, fs: float, planned: bool = False) -> np.ndarray:
+        """Linear interpolation of the commanded (or planned) samples at the times ``t_s``."""
+        x = np.clip(t_s * fs, 0.0, self.n_samples - 1.0)
+        k = np.minimum(x.astype(np.int64), max(self.n_samples - 2, 0))
+        assert k.min(initial=self.base) >= self.base, "samples asked for after their release"
+        self.ensure(int(k.max(initial=0)) + 2)
+        columns = self.planned if planned else self.command
+        w = (x - k)[:, None]
+        k = k - self.base
+        below, above = np.take(columns, k, axis=0), np.take(columns, np.minimum(k + 1, len(columns) - 1), axis=0)
+        return below * (1.0 - w) + above * w  # (np.take gathers rows a few times faster than indexing)
+
+
+def write_program(blocks: Iterable[Block], plan: Plan, samples: SampleWindow, options: WriteOptions, out) -> WriteStats:
+    """Write the output program to the binary stream ``out`` (seekable: the acceleration raise
+    is written before the command it depends on is known, and filled in at the end).
+
+    ``blocks``: the program's blocks again, in order (from a second read: they are not held).
+    """
     refusal = format_refusal(options.flavor, options.output_format)
     if refusal:
         raise ValueError(refusal)
     stats = WriteStats()
     fs = plan.sample_rate_hz
-    newline = _newline(blocks)
     comment = ("(", ")") if options.flavor == "linuxcnc" else ("; ", "")
-    raise_line = (acceleration_line(options.flavor, options.raise_acceleration_mm_s2)
-                  if options.raise_acceleration_mm_s2 else None)
-    restore_line = (acceleration_line(options.flavor, *options.restore_acceleration_mm_s2)
-                    if raise_line and options.restore_acceleration_mm_s2 else None)
-    follows_plan = np.all(command_mm == plan.positions_mm, axis=0)  # E and axes without modes
+    raise_at, raise_width = [], 0  # offsets of the raise lines in out; the width of their value
+    if options.raise_acceleration_mm_s2 and plan.runs and acceleration_line(options.flavor, 0.0) is not None:
+        raise_width = len(_fmt(options.raise_acceleration_mm_s2[1], 0))
+    follows_plan = samples.follows_plan
     min_samples = max(1, int(np.ceil(options.min_segment_time_s * fs - 1e-9)))
-    break_times = [(breakpoints(command_mm[a:b + 1], options.tolerance_mm, min_samples) + a) / fs for a, b in plan.runs]
     # A copied line runs at the sample nearest its planned time (at most half a sample off), so
     # that blocks end on samples of the command: a block ending between two samples would bend
     # the command there, and ask more acceleration of the controller than the command does.
-    copied_samples = np.rint(plan.line_time_s[[i for i, b in enumerate(blocks) if b.kind is not Kind.MOVE]] * fs)
-    copied_times = copied_samples / fs
-    g5_runs = []  # per run: its blocks' ends (sample indices) and curves
-    if options.output_format == "g5":
-        copied = np.unique(copied_samples.astype(np.int64))
-        for a, b in plan.runs:
-            splits = copied[np.searchsorted(copied, a, "right"):np.searchsorted(copied, b, "left")] - a
-            run_ends, curves = g5_blocks(command_mm[a:b + 1], splits, options.tolerance_mm, min_samples)
-            g5_runs.append((run_ends + a, curves))
-    emitter = _Emitter(command_mm[0], newline)
+    copied_samples = np.rint(plan.line_time_s[~plan.is_move] * fs)
+    copied_times = iter((copied_samples / fs).tolist())
+    copied = np.unique(copied_samples.astype(np.int64))
+    newline = b"\n"
+    emitter = None
     run_index, written_until_s = 0, 0.0
+    run_breaks, run_g5 = None, None  # the current run's block ends (dense) or blocks and curves (g5)
 
     unterminated = False  # the last copied line had no line ending (the end of the file)
 
@@ -401,74 +511,121 @@ def write_program(blocks: list[Block], plan: Plan, command_mm: np.ndarray, optio
     def emit(*lines: str) -> None:
         emit_text(b"".join(x.encode() + newline for x in lines), len(lines))
 
-    def at_many(columns: np.ndarray, t_s: np.ndarray) -> np.ndarray:
-        """Linear interpolation of sampled ``columns`` at the times ``t_s``."""
-        x = np.clip(t_s * fs, 0.0, len(columns) - 1.0)
-        k = np.minimum(x.astype(np.int64), max(len(columns) - 2, 0))
-        w = (x - k)[:, None]
-        below, above = np.take(columns, k, axis=0), np.take(columns, np.minimum(k + 1, len(columns) - 1), axis=0)
-        return below * (1.0 - w) + above * w  # (np.take gathers rows a few times faster than indexing)
+    def emit_raise() -> None:
+        nonlocal unterminated
+        out.write(newline if unterminated else b"")
+        unterminated = False
+        raise_at.append(out.tell())
+        emit(acceleration_line(options.flavor, options.raise_acceleration_mm_s2[1], width=raise_width))
+
+    def block_ends(first: int, last: int, start_s: float, stop_s: float):
+        """The current run's block ends after ``start_s`` up to ``stop_s`` (s), and their curves, in
+        batches as they become known (the last one ends at stop_s)."""
+        nonlocal run_breaks, run_g5
+        if options.output_format == "g5" and emitter.modal.plane == 17:  # G5 is an XY-plane command
+            if run_g5 is None:  # fitted whole: the run's samples are held
+                splits = copied[np.searchsorted(copied, first, "right"):np.searchsorted(copied, last, "left")] - first
+                run_ends, curves = g5_blocks(samples.rows(first, last + 1), splits, options.tolerance_mm, min_samples)
+                run_g5 = (run_ends + first, curves)
+            run_ends, run_curves = run_g5  # every copied line's sample among them
+            rows = slice(*np.searchsorted(run_ends, np.rint(np.array([start_s, stop_s]) * fs), "right"))
+            yield run_ends[rows] / fs, run_curves[rows]
+            return
+        if run_breaks is None:
+            run_breaks = _Breaks(last - first + 1, options.tolerance_mm, min_samples)
+        half = 0.5 * options.min_segment_time_s
+        ends = run_breaks.ends
+        while True:
+            # The ends known so far strictly between start + half and stop - half (in seconds),
+            # until one at or past stop is known.
+            final = ends[-1] >= min(stop_s * fs, last) - first or run_breaks.fed == run_breaks.n
+            low = bisect.bisect_left(ends, math.floor((start_s + half) * fs) - first - 1)
+            times = (np.asarray(ends[low:bisect.bisect_right(ends, math.ceil((stop_s - half) * fs) - first + 1)]) + first) / fs
+            inner = times[np.searchsorted(times, start_s + half, "right"):np.searchsorted(times, stop_s - half, "left")]
+            del ends[:min(low, len(ends) - 1)]  # passed: later calls start after them
+            if final:
+                yield np.append(inner, stop_s), None
+                return
+            if inner.size:
+                yield inner, None
+                start_s = inner[-1]
+            fed = first + run_breaks.fed
+            run_breaks.feed(samples.rows(fed, min(fed + _FEED, last + 1)))
 
     def motion_until(t_end_s: float, end_exact_mm: np.ndarray) -> None:
-        """G1 blocks from where the output is to ``t_end_s``; the axes that follow the plan end
-        exactly at ``end_exact_mm`` (the position the program reached there)."""
-        nonlocal run_index, written_until_s
-        half = 0.5 * options.min_segment_time_s
+        """Blocks from where the output is to ``t_end_s``; the axes that follow the plan end
+        exactly at ``end_exact_mm`` (the position the program reached there; NaN: as planned)."""
+        nonlocal run_index, written_until_s, run_breaks, run_g5
         while run_index < len(plan.runs):
             first, last = plan.runs[run_index]
-            start_s, run_end_s = max(written_until_s, first / fs), last / fs
+            run_end_s = last / fs
             stop_s = min(t_end_s, run_end_s)
+            start_s = max(written_until_s, first / fs)
             if stop_s > start_s:
-                curves = None
-                if g5_runs and emitter.modal.plane == 17:  # G5 is an XY-plane command
-                    run_ends, run_curves = g5_runs[run_index]  # every copied line's sample among them
-                    rows = slice(*np.searchsorted(run_ends, np.rint(np.array([start_s, stop_s]) * fs), "right"))
-                    ends, curves = run_ends[rows] / fs, run_curves[rows]
-                else:
-                    times = break_times[run_index]  # ascending: the ones strictly between start + half and stop - half
-                    inner = times[np.searchsorted(times, start_s + half, "right"):np.searchsorted(times, stop_s - half, "left")]
-                    ends = np.append(inner, stop_s)
-                targets = at_many(command_mm, ends)
-                if stop_s == t_end_s:
-                    targets[-1, follows_plan] = end_exact_mm[follows_plan]
-                text, count = emitter.blocks(targets, np.diff(np.append(start_s, ends)), curves)
-                emit_text(text, count)
-                stats.motion_blocks += count
-                written_until_s = stop_s
+                for ends, curves in block_ends(first, last, start_s, stop_s):
+                    targets = samples.at(ends, fs)
+                    if ends[-1] == t_end_s:
+                        exact = np.where(np.isnan(end_exact_mm), samples.at(ends[-1:], fs, planned=True)[0], end_exact_mm)
+                        targets[-1, follows_plan] = exact[follows_plan]
+                    text, count = emitter.blocks(targets, np.diff(np.append(start_s, ends)), curves)
+                    emit_text(text, count)
+                    stats.motion_blocks += count
+                    start_s = written_until_s = float(ends[-1])
+                    samples.release(int(start_s * fs) - 1)
             if t_end_s < run_end_s:
                 return
             run_index += 1
-            if run_index == len(plan.runs) and restore_line:
-                emit(restore_line)  # the last motion is done: the controller's limit as the program left it
+            run_breaks = run_g5 = None
+            if run_index == len(plan.runs) and raise_width and options.restore_acceleration_mm_s2:
+                emit(acceleration_line(options.flavor, *options.restore_acceleration_mm_s2))  # as the program left it
 
-    # Where the plan and the command are as each copied line runs: all at once, as per line the
-    # calls cost more than the arithmetic.
-    at_copied = zip(copied_times.tolist(), at_many(plan.positions_mm, copied_times), at_many(command_mm, copied_times))
     header_done = False
-    for i, block in enumerate(blocks):
+    previous_modal = Modal()
+    for block in blocks:
+        if emitter is None:
+            newline = b"\r\n" if block.raw.endswith(b"\r\n") else b"\n"  # (only the last line has no ending)
+            emitter = _Emitter(samples.rows(0, 1)[0] if samples.n_samples else np.zeros(4), newline)
         if not header_done and _is_code(block):
             emit(*(f"{comment[0]}{text}{comment[1]}" for text in options.header))
-            if raise_line and plan.runs:
-                emit(raise_line)
+            if raise_width:
+                emit_raise()
             header_done = True
         if block.kind is Kind.MOVE:
+            previous_modal = block.modal
             continue
-        t, planned, commanded = next(at_copied)
-        reached = np.where(np.isnan(block.position_mm), planned, block.position_mm)
-        motion_until(t, reached)
-        emit(*mode_lines(options.flavor, emitter.modal, blocks[i - 1].modal if i else Modal()))
+        t = next(copied_times)
+        motion_until(t, block.position_mm)
+        reached = samples.at(np.array([t]), fs, planned=True)[0]  # where the program is: the plan where the line does not say
+        reached = np.where(np.isnan(block.position_mm), reached, block.position_mm)
+        commanded = samples.at(np.array([t]), fs)[0]
+        emit(*mode_lines(options.flavor, emitter.modal, previous_modal))
         out.write(block.raw)
         unterminated = not block.raw.endswith((b"\n", b"\r"))
         stats.lines_out += 1
         stats.passthrough_lines += 1
         commanded[follows_plan] = reached[follows_plan]  # the last block ended exactly there
         emitter.passthrough(block, commanded, reached)
-        if block.limits is not None and raise_line and run_index < len(plan.runs):
-            emit(raise_line)  # the program set the controller's limit: the command still needs ours
-    end_modal = blocks[-1].modal if blocks else Modal()
-    motion_until(np.inf, plan.positions_mm[-1])
-    emit(*mode_lines(options.flavor, emitter.modal, end_modal))
+        previous_modal = block.modal
+        if block.limits is not None and raise_width and run_index < len(plan.runs):
+            emit_raise()  # the program set the controller's limit: the command still needs ours
+    if emitter is None:
+        emitter = _Emitter(np.zeros(4), newline)
+    samples.ensure(samples.n_samples)
+    motion_until(np.inf, samples.planned[-1])
+    emit(*mode_lines(options.flavor, emitter.modal, previous_modal))
+    if raise_at:  # now that the whole command is known: what it needs, at least the planner's, at most the profile's
+        floor, ceiling = options.raise_acceleration_mm_s2
+        needed = float(np.ceil(min(max(samples.peak_bend_mm * fs * fs, floor), ceiling)))
+        line = acceleration_line(options.flavor, needed, width=raise_width).encode()
+        end = out.tell()
+        for offset in raise_at:
+            out.seek(offset)
+            out.write(line)
+        out.seek(end)
     return stats
+
+
+_FEED = 1 << 14  # samples given to the block-end search at once
 
 
 def _is_code(block: Block) -> bool:
@@ -476,11 +633,3 @@ def _is_code(block: Block) -> bool:
     text = block.raw.strip()
     return bool(text) and not text.startswith((b";", b"(", b"%"))
 
-
-def _newline(blocks: list[Block]) -> bytes:
-    for block in blocks:
-        if block.raw.endswith(b"\r\n"):
-            return b"\r\n"
-        if block.raw.endswith(b"\n"):
-            return b"\n"
-    return b"\n"

@@ -279,3 +279,14 @@ def test_sample_period_must_be_positive(period):
 def test_empty_inputs():
     dyn = AxisDynamics([Mode(20.0, 0.1, 15791.4, 0.0)], 1e-4)
     assert dyn.simulate([]).size == 0 and dyn.markov(0).size == 0
+
+
+def test_response_in_pieces_is_the_simulation():
+    """The response to a command given in pieces (empty ones among them) is the response to the
+    whole command: the modes' states carry over exactly."""
+    dynamics = AxisDynamics(PATENT.axes["Y"].modes, 1e-4)
+    command = np.cumsum(np.random.default_rng(5).normal(size=5000)) * 1e-3 + 3.0
+    step = dynamics.response(command[0])
+    cuts = [0, 0, 17, 17, 1000, 1001, 4321, 5000]
+    pieces = np.concatenate([step(command[a:b]) for a, b in zip(cuts[:-1], cuts[1:])])
+    assert np.array_equal(pieces, dynamics.simulate(command))
