@@ -47,8 +47,8 @@ def sweep_samples(axis: AxisProfile, centre_mm: float, start_hz: float, end_hz: 
     """Positions every ``block_s`` from the centre back to the centre: x = c + A(t) sin(phi(t)),
     phi's frequency rising exponentially from start_hz to end_hz over duration_s (and on at the
     same rate over the raised-cosine ramps of ramp_s added before and after, so the whole band
-    is swept at full amplitude), A the largest amplitude (at most amplitude_mm) within the
-    axis' limits at the current frequency; then scaled down, if needed, until the finite
+    is swept at full amplitude), A the largest amplitude (at most amplitude_mm) within 90% of
+    the axis' limits at the current frequency; then scaled down, if needed, until the finite
     differences of the samples, with the rest before and after, keep every limit."""
     t = np.arange(int(round((duration_s + 2 * ramp_s) / block_s)) + 1) * block_s
     rate = math.log(end_hz / start_hz) / duration_s
@@ -58,7 +58,8 @@ def sweep_samples(axis: AxisProfile, centre_mm: float, start_hz: float, end_hz: 
     limits = [(axis.max_velocity_mm_s, 1), (axis.max_acceleration_mm_s2, 2)]
     if axis.max_jerk_mm_s3:
         limits.append((axis.max_jerk_mm_s3, 3))
-    amplitude = np.minimum(amplitude_mm, np.min([lim / w**k for lim, k in limits], axis=0))
+    # 90% of each limit: the rising frequency and the ramps add a little to the sine's derivatives
+    amplitude = np.minimum(amplitude_mm, np.min([0.9 * lim / w**k for lim, k in limits], axis=0))
     ramp = 0.5 - 0.5 * np.cos(np.pi * np.clip(np.minimum(t, t[-1] - t) / ramp_s, 0.0, 1.0))
     offset = amplitude * ramp * np.sin(phase)
     padded = np.concatenate([[0.0] * 3, offset, [0.0] * 3])

@@ -12,10 +12,10 @@ pairs, unstable poles flipped into the left half plane, gives the poles of each 
 linear least-squares solve gives each mode's numerator alpha + beta s (no direct term, zeros
 free: right-half-plane zeros are kept); a nonlinear least-squares refinement of (frequency,
 damping, alpha, beta), and of a time offset for recordings, on the complex residual relative to
-the measured peak, gives the result. Without a mode count, every count up to ``max_modes`` is
-fitted from 1 up, and the smallest count n is kept whose RMS error neither n + 1 nor n + 2 modes
-divide by more than ``MODE_COUNT_GAIN`` (two, so that a close pair of modes, which one more mode
-alone may not fit, is still found).
+the measured |G| at each frequency, gives the result. Without a mode count, every count up to ``max_modes`` is
+fitted from 1 up, and the smallest count n is kept whose RMS error (relative to the peak) neither
+n + 1 nor n + 2 modes divide by more than ``MODE_COUNT_GAIN`` (two, so that a close pair of
+modes, which one more mode alone may not fit, is still found).
 
 Malformed files raise ``InputError`` naming the file and line.
 """
@@ -29,7 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy import optimize, signal
+from scipy import ndimage, optimize, signal
 
 from .profile import AxisProfile, MachineProfile, Mode, format_profile, parse_profile
 from .trajectory import InputError
@@ -140,25 +140,38 @@ def _read_numeric_csv(path, headers: set[tuple[str, ...]], comment: str | None =
 def fit_frf(frequency_hz: np.ndarray, response: np.ndarray, n_modes: int | None = None, max_modes: int = 8,
             weights: np.ndarray | None = None, fit_delay: bool = False) -> Fit:
     """Fit ``n_modes`` modes (or the automatic count, see the module) to ``response`` at
-    ``frequency_hz``. ``weights`` (>= 0, one per frequency) scale the residuals; ``fit_delay``
-    also fits a time offset tau, the measurement being G(s) exp(-s tau)."""
+    ``frequency_hz``. The residuals are relative to the measured |G| at each frequency, times
+    ``weights`` (>= 0, one per frequency, e.g. the coherence); ``fit_delay`` also fits a time
+    offset tau, the measurement being G(s) exp(-s tau)."""
     f = np.asarray(frequency_hz, dtype=float)
     h = np.asarray(response, dtype=complex)
-    weights = np.ones_like(f) if weights is None else np.asarray(weights, dtype=float)
+    # Residuals relative to each measured |G| (the least-squares estimate for noise proportional
+    # to the response) and scaled by the peak: accurate at the anti-resonances and the low
+    # frequencies, where a compensator inverts the model, as well as at the peaks.
+    relative = np.abs(h).max() / np.maximum(np.abs(h), 1e-6 * np.abs(h).max())
+    weights = relative * (1.0 if weights is None else np.asarray(weights, dtype=float))
     w_ref = 2 * np.pi * f[-1]  # frequencies scaled by the top of the band, responses by the peak
     s, peak = 1j * (2 * np.pi * f) / w_ref, np.abs(h).max()
     hn = h / peak
 
+    fits, xs = {}, {}
+
     def fit(n):
-        return _fit_count(s, hn, weights, n, _delay_guess(s, hn, weights, n) if fit_delay else None, peak, w_ref)
+        tau0 = _delay_guess(s, hn, weights, n) if fit_delay else None
+        xs[n] = _fit_count(s, hn, weights, n, tau0, xs.get(n - 1))
+        error = np.abs(_model(xs[n], s, n, fit_delay) - hn)[weights > 0]
+        wn, zeta, a, b = xs[n][:n] * w_ref, xs[n][n:2 * n], xs[n][2 * n:3 * n], xs[n][3 * n:4 * n]
+        modes = tuple(Mode(wn[i] / (2 * np.pi), zeta[i], peak * a[i] * wn[i] ** 2, peak * b[i] * wn[i])
+                      for i in np.argsort(wn))
+        fits[n] = Fit(modes, xs[n][-1] / w_ref if fit_delay else 0.0, float(np.sqrt(np.mean(error**2))),
+                      float(error.max()), {})
 
     if n_modes:
-        fits = {n_modes: fit(n_modes)}
+        fit(n_modes)
         chosen = n_modes
     else:
-        fits = {}
         for n in range(1, max_modes + 1):
-            fits[n] = fit(n)
+            fit(n)
             chosen = _chosen_count({k: v.rms_error for k, v in fits.items()}, max_modes)
             if chosen:
                 break
@@ -178,18 +191,24 @@ def _chosen_count(errors: dict[int, float], max_modes: int) -> int | None:
     return None
 
 
-def _fit_count(s, hn, weights, n, tau0, peak, w_ref) -> Fit:
-    """The fit with exactly ``n`` modes to ``hn`` (scaled s and response; see the module);
-    ``tau0``: the scaled time offset to start from, None for no offset."""
+def _fit_count(s, hn, weights, n, tau0, previous):
+    """The parameters (w, zeta, a, b per mode, then tau if fitted; scaled) of the best fit with
+    exactly ``n`` modes to ``hn``, refined from two starts: the poles of vector fitting, and the
+    ``n - 1`` modes of ``previous`` (their parameters) with one more where their residual is
+    largest. ``tau0``: the scaled time offset to start from, None for no offset."""
     fit_delay = tau0 is not None
-    aligned = hn * np.exp(s * tau0) if fit_delay else hn
-    poles = _vector_fit(s, aligned, weights, n)
-    wn, zeta = np.abs(poles), np.clip(-poles.real / np.abs(poles), 1e-4, 0.99)
-    a, b = _numerators(s, aligned, weights, wn, zeta)
-    x0 = np.concatenate([wn, zeta, a, b] + ([[tau0]] if fit_delay else []))
+    starts = [(_vector_fit(s, hn * np.exp(s * tau0) if fit_delay else hn, weights, n), tau0)]
+    if previous is not None:
+        m = n - 1
+        # where the complex residual, averaged over neighbouring frequencies, is largest: noise
+        # averages out there, a missing mode does not
+        residual = weights * (_model(previous, s, m, fit_delay) - hn)
+        w_new = s.imag[np.argmax(np.abs(ndimage.uniform_filter1d(residual.real, 15) + 1j * ndimage.uniform_filter1d(residual.imag, 15)))]
+        w_prev, zeta_prev = previous[:m], previous[m:2 * m]
+        poles = np.append(w_prev * (-zeta_prev + 1j * np.sqrt(1 - zeta_prev**2)), w_new * (-0.01 + 1j))
+        starts.append((poles, previous[-1] if fit_delay else None))
     lower = np.concatenate([np.full(n, s.imag.min()), np.full(n, 1e-5), np.full(2 * n, -np.inf)] + ([[-np.inf]] if fit_delay else []))
     upper = np.concatenate([np.full(n, s.imag.max()), np.full(n, 0.999), np.full(2 * n, np.inf)] + ([[np.inf]] if fit_delay else []))
-    x0 = np.clip(x0, lower + 1e-12, upper - 1e-12)
 
     def residual(x):
         r = weights * (_model(x, s, n, fit_delay) - hn)
@@ -199,15 +218,16 @@ def _fit_count(s, hn, weights, n, tau0, peak, w_ref) -> Fit:
         d = weights[:, None] * _model_derivatives(x, s, n, fit_delay)
         return np.vstack([d.real, d.imag])
 
-    x = optimize.least_squares(residual, x0, jac=jacobian, bounds=(lower, upper), x_scale="jac", xtol=1e-12,
-                               ftol=1e-12, gtol=1e-12, max_nfev=100 * len(x0)).x
-    error = np.abs(_model(x, s, n, fit_delay) - hn)
-    wn, zeta, a, b = x[:n] * w_ref, x[n:2 * n], x[2 * n:3 * n], x[3 * n:4 * n]
-    order = np.argsort(wn)
-    modes = tuple(Mode(wn[i] / (2 * np.pi), zeta[i], peak * a[i] * wn[i] ** 2, peak * b[i] * wn[i]) for i in order)
-    delay_s = x[-1] / w_ref if fit_delay else 0.0
-    in_band = weights > 0
-    return Fit(modes, delay_s, float(np.sqrt(np.mean(error[in_band] ** 2))), float(error[in_band].max()), {})
+    best = None
+    for poles, tau in starts:
+        wn, zeta = np.abs(poles), np.clip(-poles.real / np.abs(poles), 1e-4, 0.99)
+        a, b = _numerators(s, hn * np.exp(s * tau) if fit_delay else hn, weights, wn, zeta)
+        x0 = np.clip(np.concatenate([wn, zeta, a, b] + ([[tau]] if fit_delay else [])), lower + 1e-12, upper - 1e-12)
+        result = optimize.least_squares(residual, x0, jac=jacobian, bounds=(lower, upper), x_scale="jac",
+                                        xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=100 * len(x0))
+        if best is None or result.cost < best.cost:
+            best = result
+    return best.x
 
 
 def _model(x, s, n, fit_delay):
@@ -368,11 +388,16 @@ def klipper_cfg_modes(path: str | Path) -> dict[str, Mode]:
         text = Path(path).read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(path, None, f"cannot read: {exc}") from None
-    main, saved = [], []
+    # The main part and the SAVE_CONFIG block, each with the other's lines blank (so configparser's
+    # line numbers are the file's); the block's lines before its first section are its banner.
+    main, saved, in_section = [], [], False
     for line in text.splitlines():
-        (saved if line.startswith("#*#") else main).append(line[3:] if line.startswith("#*#") else line)
+        block = line.startswith("#*#")
+        content = line[3:] if block else ""
+        in_section = in_section or (block and content.strip().startswith("["))
+        main.append("" if block else line)
+        saved.append(content if in_section else "")
     values, lines = {}, {}
-    # Line numbers of the keys, for messages: configparser does not keep them.
     for part in ("\n".join(main), "\n".join(saved)):
         parser = configparser.RawConfigParser(strict=False, inline_comment_prefixes=("#", ";"))
         try:
@@ -383,7 +408,7 @@ def klipper_cfg_modes(path: str | Path) -> dict[str, Mode]:
             values.update(parser["input_shaper"])
     if not values and not any(line.strip().lower().startswith("[input_shaper]") for line in main + saved):
         raise InputError(path, None, "no [input_shaper] section (nor one in the #*# SAVE_CONFIG block)")
-    for number, line in enumerate(text.splitlines(), start=1):
+    for number, line in enumerate(text.splitlines(), start=1):  # the keys' lines, for messages
         key = line.removeprefix("#*#").split(":", 1)[0].split("=", 1)[0].strip().lower()
         if key in values:
             lines[key] = number
