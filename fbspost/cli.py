@@ -21,11 +21,14 @@ import click
 import numpy as np
 
 from . import __version__
+from . import excite as excite_module
+from . import identify as ident
+from .atomicfile import atomic_write
 from .dynamics import AxisDynamics
 from .gcode import FLAVORS
 from .optimizer import AxisLimits, FBSSettings, compensate_axis
 from .pipeline import AxisReport, CompensateOptions, Report, compensate_file
-from .profile import MachineProfile, ProfileError, bundled_profiles, load_profile
+from .profile import AXIS_NAMES, MachineProfile, ProfileError, bundled_profiles, load_profile
 from .trajectory import InputError, read_trajectory_csv, write_trajectory_csv
 
 
@@ -306,6 +309,163 @@ def trajectory(input_csv, machine, output, lookahead, knot_spacing, commit_spans
     lines.append(f"wrote {output} in {time.perf_counter() - started:.2f} s")
     if not quiet:
         click.echo("\n".join(lines), err=True)
+
+
+_positive = click.FloatRange(min=0, min_open=True)
+
+
+@main.command()
+@click.argument("frf_csv", required=False, type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--axis", type=click.Choice(list(AXIS_NAMES), case_sensitive=False),
+              help="The axis measured (optional with --klipper-cfg: then X and Y as found).")
+@click.option("--modes", "n_modes", type=click.IntRange(1, 12), help="Modes to fit (default: chosen automatically).")
+@click.option("--max-modes", type=click.IntRange(1, 12), default=8, show_default=True,
+              help="Most modes the automatic choice tries.")
+@click.option("--output", "-o", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="The profile to write.")
+@click.option("--merge", type=click.Path(dir_okay=False, path_type=Path),
+              help="Start from this profile (its other axes, limits and settings kept; comments not).")
+@click.option("--plot", type=click.Path(dir_okay=False, path_type=Path),
+              help="Also write a PNG of measured and fitted magnitude and phase.")
+@click.option("--klipper-csv", type=click.Path(dir_okay=False, path_type=Path),
+              help="Coarse: one mode from Klipper calibrate_shaper's CSV (psd_<axis> peak, half-power damping).")
+@click.option("--klipper-cfg", type=click.Path(dir_okay=False, path_type=Path),
+              help="Coarse: one mode per axis from printer.cfg's [input_shaper] (also in the #*# block).")
+@click.option("--accel-log", type=click.Path(dir_okay=False, path_type=Path),
+              help="Accelerometer CSV recorded while the --program sweep ran (time_s or #time, accel_x, ...).")
+@click.option("--program", type=click.Path(dir_okay=False, path_type=Path),
+              help="The sweep program of `fbspost excite` that was recorded.")
+@click.option("--accel-column", help="Column of --accel-log along the axis (default accel_<axis>).")
+@click.option("--name", help="Name of a new profile (default: the output file's name).")
+@click.option("--sample-rate", type=_positive, help="Hz, new profile (default 1000).")
+@click.option("--planner-acceleration", type=_positive, help="mm/s^2, new profile (default 3000).")
+@click.option("--square-corner-velocity", type=click.FloatRange(min=0), help="mm/s, new profile (default 5).")
+@click.option("--max-velocity", type=_positive, help="mm/s, the axis (default: kept with --merge, else 300).")
+@click.option("--max-acceleration", type=_positive, help="mm/s^2, the axis (default: kept with --merge, else 10000).")
+@click.option("--max-jerk", type=_positive, help="mm/s^3, the axis (default: kept with --merge, else none).")
+def identify(frf_csv, axis, n_modes, max_modes, output, merge, plot, klipper_csv, klipper_cfg, accel_log, program,
+             accel_column, name, sample_rate, planner_acceleration, square_corner_velocity, max_velocity,
+             max_acceleration, max_jerk):
+    """Build a profile's axis model from measurements.
+
+    From a measured frequency response FRF_CSV (header frequency_hz,real,imag or
+    frequency_hz,magnitude,phase_deg; commanded to actual position, or commanded to measured
+    acceleration, the same ratio), from an accelerometer recording of `fbspost excite`'s sweep
+    (--accel-log with --program), or, as coarse estimates, from Klipper's calibrate_shaper CSV
+    (--klipper-csv) or printer.cfg (--klipper-cfg). Fits the modes, prints each and the fit
+    error, and writes a new profile (limits from the options or their defaults) or merges the
+    axis into --merge (comments there are not kept).
+    """
+    sources = [s for s in (frf_csv, klipper_csv, klipper_cfg, accel_log) if s]
+    if len(sources) != 1:
+        raise click.UsageError("give exactly one of FRF_CSV, --klipper-csv, --klipper-cfg, --accel-log")
+    if bool(accel_log) != bool(program):
+        raise click.UsageError("--accel-log and --program go together")
+    if not axis and not klipper_cfg:
+        raise click.UsageError("--axis is required")
+    if plot and (klipper_csv or klipper_cfg):
+        raise click.UsageError("--plot needs a frequency response (FRF_CSV or --accel-log)")
+    axis = axis.upper() if axis else None
+    base = load_profile(merge) if merge else None
+    lines = [f"fbspost {__version__}: identify from {sources[0]}"]
+    picture = None
+    if klipper_csv or klipper_cfg:
+        if klipper_csv:
+            mode, f1, f2 = ident.klipper_psd_mode(klipper_csv, axis)
+            found = {axis: mode}
+            lines.append(f"axis {axis}: PSD peak {mode.frequency_hz:.4g} Hz, half power {f1:.4g}..{f2:.4g} Hz")
+            note = f"axis {axis}: COARSE ESTIMATE from Klipper calibrate_shaper data {klipper_csv.name}"
+        else:
+            found = ident.klipper_cfg_modes(klipper_cfg)
+            if axis:
+                if axis not in found:
+                    raise InputError(klipper_cfg, None, f"[input_shaper] has no shaper_freq_{axis.lower()}")
+                found = {axis: found[axis]}
+            note = f"axes {', '.join(found)}: COARSE ESTIMATE from Klipper [input_shaper] of {klipper_cfg.name}"
+        for name_, mode in found.items():
+            lines.append(f"axis {name_}: 1 mode {mode.frequency_hz:.4g} Hz, damping {mode.damping:.4g}, "
+                         f"alpha {mode.alpha:.6g}, beta 0")
+        lines.append("warning: a coarse estimate (one mode, no phase, no zeros), a starting point only: "
+                     "measure a frequency response (fbspost excite) for a real model")
+        axes_modes = {k: (v,) for k, v in found.items()}
+    else:
+        if accel_log:
+            sweep = excite_module.read_sweep(program, axis)
+            times_s, accel = ident.read_accel_log(accel_log, accel_column or f"accel_{axis.lower()}")
+            rec = ident.frf_from_recording(times_s, accel, sweep)
+            fit = ident.fit_frf(rec.frequency_hz, rec.response, n_modes, max_modes, weights=rec.coherence,
+                                fit_delay=True)
+            frequency_hz, measured = rec.frequency_hz, rec.response * np.exp(2j * np.pi * rec.frequency_hz * fit.delay_s)
+            lines.append(f"recording: {len(times_s)} samples at {rec.sample_rate_hz:.1f} Hz; the sweep starts at "
+                         f"{rec.offset_s + fit.delay_s:.6f} s of its time base"
+                         + ("; accelerometer axis reversed: sign flipped" if rec.inverted else ""))
+            note = f"axis {axis}: identified from the recording {accel_log.name} of {program.name}"
+        else:
+            frequency_hz, measured = ident.read_frf_csv(frf_csv)
+            fit = ident.fit_frf(frequency_hz, measured, n_modes, max_modes)
+            note = f"axis {axis}: identified from {frf_csv.name}"
+        lines.append(f"axis {axis}: {len(frequency_hz)} frequencies {frequency_hz[0]:.4g}..{frequency_hz[-1]:.4g} Hz, "
+                     f"{len(fit.modes)} modes" + ("" if n_modes else " (chosen automatically)"))
+        for i, m in enumerate(fit.modes, start=1):
+            lines.append(f"  mode {i}: {m.frequency_hz:.5g} Hz, damping {m.damping:.4g}, alpha {m.alpha:.6g}, "
+                         f"beta {m.beta:.6g}")
+        lines.append(f"fit error: RMS {100 * fit.rms_error:.3g}%, max {100 * fit.max_error:.3g}% of the peak |G| "
+                     f"{np.abs(measured).max():.4g}; RMS by mode count: "
+                     + ", ".join(f"{n}: {100 * e:.3g}%" for n, e in fit.errors_by_count.items()))
+        dc_gain = sum(m.alpha / m.omega_rad_s**2 for m in fit.modes)
+        lines.append(f"DC gain of the fit {dc_gain:.4f} (scaled to 1 in the profile)")
+        axes_modes = {axis: fit.modes}
+        if plot:
+            picture = ident.plot_png(frequency_hz, measured, fit.response(frequency_hz), note)
+    options = dict(sample_rate=sample_rate, planner_acceleration=planner_acceleration,
+                   square_corner_velocity=square_corner_velocity, max_velocity=max_velocity,
+                   max_acceleration=max_acceleration, max_jerk=max_jerk)
+    profile = ident.profile_with_axes(base, axes_modes, note, options, name or output.stem)
+    text = ident.profile_text(profile, output)
+    if not base:
+        lines.append("new profile: limits and rates not given are defaults (see --help): check them")
+    atomic_write(output, lambda f: f.write(text.encode()))
+    lines.append(f"wrote {output}")
+    if picture:
+        atomic_write(plot, lambda f: f.write(picture))
+        lines.append(f"wrote {plot}")
+    click.echo("\n".join(lines), err=True)
+
+
+@main.command()
+@_machine_option
+@click.option("--axis", required=True, type=click.Choice(list(AXIS_NAMES), case_sensitive=False))
+@click.option("--output", "-o", required=True, type=click.Path(dir_okay=False, path_type=Path))
+@click.option("--center", "centre_mm", required=True, type=float, help="Position (mm) the sweep is about.")
+@click.option("--start-hz", type=_positive, default=5.0, show_default=True)
+@click.option("--end-hz", type=_positive, default=120.0, show_default=True)
+@click.option("--duration", "duration_s", type=_positive, default=30.0, show_default=True,
+              help="Seconds from --start-hz to --end-hz (plus 0.5 s ramps at both ends).")
+@click.option("--amplitude", "amplitude_mm", type=_positive, default=1.0, show_default=True,
+              help="Largest amplitude (mm); smaller where the axis' limits require.")
+@click.option("--block-time", "block_s", type=_positive, default=1e-3, show_default=True,
+              help="Time of each G1 block (s).")
+def excite(machine, axis, output, centre_mm, start_hz, end_hz, duration_s, amplitude_mm, block_s):
+    """Write a sine-sweep program of one axis, to record with an accelerometer.
+
+    The axis' position sweeps from --start-hz to --end-hz (exponentially) about --center, in G1
+    blocks of --block-time, with the amplitude the axis' velocity, acceleration and jerk limits
+    allow; it starts and ends at rest. Record the whole run, then `fbspost identify --accel-log
+    LOG.csv --program PROGRAM --axis AXIS`.
+    """
+    profile = load_profile(machine)
+    axis = axis.upper()
+    if axis not in profile.axes:
+        raise ProfileError(f"{profile.source}: axes.{axis}: the profile has no axis {axis}")
+    if not start_hz < end_hz <= 0.25 / block_s:
+        raise click.UsageError(f"need --start-hz < --end-hz <= {0.25 / block_s:g} Hz (4 blocks per period)")
+    positions = excite_module.sweep_samples(profile.axes[axis], centre_mm, start_hz, end_hz, duration_s,
+                                            amplitude_mm, block_s)
+    text = excite_module.sweep_program(profile.axes[axis], positions, block_s, start_hz, end_hz, profile.name)
+    atomic_write(output, lambda f: f.write(text.encode()))
+    click.echo(f"fbspost {__version__}: wrote {output}: axis {axis} {start_hz:g}..{end_hz:g} Hz about "
+               f"{centre_mm:g} mm, {(len(positions) - 1) * block_s:g} s, largest amplitude "
+               f"{np.abs(positions - centre_mm).max():.4g} mm", err=True)
 
 
 if __name__ == "__main__":

@@ -1,4 +1,4 @@
-"""Machine profiles: read and validate a TOML profile, list the bundled ones.
+"""Machine profiles: read and validate a TOML profile, list the bundled ones, write one.
 
 Takes a bundled profile name or a path to a ``.toml`` file; gives a ``MachineProfile`` with the
 sample rate, the planner settings and, per compensated axis, its kinematic limits and modal
@@ -180,3 +180,31 @@ def parse_profile(data: dict, source: str) -> MachineProfile:
         axes[axis_name] = AxisProfile(axis_name, max_velocity, max_acceleration, max_jerk, tuple(modes))
 
     return MachineProfile(name.strip(), description, source, sample_rate, acceleration, scv, axes)
+
+
+def format_profile(profile: MachineProfile) -> str:
+    """The TOML text of ``profile`` in the layout above, which ``load_profile`` reads back to the
+    same values (floats in their shortest exact form; the modes as they are, so the DC gain of 1
+    is computed again on reading, equal up to rounding). Comments are not kept."""
+
+    def number(value: float) -> str:
+        text = repr(float(value))  # shortest round-trip form: valid TOML (1e-05, 15797.5, 2e+20)
+        return text if any(c in text for c in ".en") else text + ".0"
+
+    def string(value: str) -> str:
+        escaped = value.replace("\\", "\\\\").replace('"', '\\"')
+        return '"' + "".join(c if c >= " " and c != "\x7f" else f"\\u{ord(c):04x}" for c in escaped) + '"'
+
+    lines = [f"name = {string(profile.name)}", f"description = {string(profile.description)}", "",
+             "[motion]", f"sample_rate = {number(profile.sample_rate_hz)}", "",
+             "[planner]", f"acceleration = {number(profile.planner_acceleration_mm_s2)}",
+             f"square_corner_velocity = {number(profile.planner_square_corner_velocity_mm_s)}"]
+    for name, axis in profile.axes.items():
+        lines += ["", f"[axes.{name}]", f"max_velocity = {number(axis.max_velocity_mm_s)}",
+                  f"max_acceleration = {number(axis.max_acceleration_mm_s2)}"]
+        if axis.max_jerk_mm_s3 is not None:
+            lines.append(f"max_jerk = {number(axis.max_jerk_mm_s3)}")
+        modes = [f"  {{ frequency = {number(m.frequency_hz)}, damping = {number(m.damping)}, "
+                 f"alpha = {number(m.alpha)}, beta = {number(m.beta)} }}," for m in axis.modes]
+        lines += ["modes = [", *modes, "]"] if modes else ["modes = []"]
+    return "\n".join(lines) + "\n"

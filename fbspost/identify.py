@@ -1,0 +1,590 @@
+"""Axis models from measurements: fit modes to a frequency response, or estimate them coarsely
+from what Klipper users already have.
+
+Takes a measured frequency response (CSV ``frequency_hz,real,imag`` or
+``frequency_hz,magnitude,phase_deg``, commanded to actual position, or commanded to measured
+acceleration: the same ratio), an accelerometer recording of ``fbspost excite``'s sweep, Klipper's
+``calibrate_shaper`` CSV or a ``printer.cfg``; gives ``profile.Mode`` tuples for one axis, with
+the fit error.
+
+The fit (``fit_frf``): relaxed vector fitting (Gustavsen and Semlyen) with complex-conjugate pole
+pairs, unstable poles flipped into the left half plane, gives the poles of each mode count; a
+linear least-squares solve gives each mode's numerator alpha + beta s (no direct term, zeros
+free: right-half-plane zeros are kept); a nonlinear least-squares refinement of (frequency,
+damping, alpha, beta), and of a time offset for recordings, on the complex residual relative to
+the measured |G| at each frequency, gives the result. Without a mode count, every count up to ``max_modes`` is
+fitted from 1 up, and the smallest count n is kept whose RMS error (relative to the peak) neither
+n + 1 nor n + 2 modes divide by more than ``MODE_COUNT_GAIN`` (two, so that a close pair of
+modes, which one more mode alone may not fit, is still found).
+
+Malformed files raise ``InputError`` naming the file and line.
+"""
+from __future__ import annotations
+
+import configparser
+import csv
+import io
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage, optimize, signal
+
+from .profile import AxisProfile, MachineProfile, Mode, format_profile, parse_profile
+from .trajectory import InputError
+
+try:
+    import tomllib
+except ModuleNotFoundError:  # Python 3.10
+    import tomli as tomllib
+MODE_COUNT_GAIN = 1.25  # one more mode must divide the RMS error by more than this to be kept
+KLIPPER_DEFAULT_DAMPING = 0.1  # Klipper's damping_ratio_x/y when printer.cfg does not set it
+_VF_ITERATIONS = 30
+
+
+@dataclass(frozen=True)
+class Fit:
+    """Modes fitted to a frequency response, with the error of the fit over the measured band."""
+
+    modes: tuple[Mode, ...]  # as fitted: DC gain sum(alpha / w^2) not normalized
+    delay_s: float  # time offset removed from the measurement (0 unless fitted)
+    rms_error: float  # RMS of |fitted - measured| over the band / max |measured|
+    max_error: float  # max of the same
+    errors_by_count: dict[int, float]  # mode count -> RMS error, for every count tried
+
+    def response(self, frequency_hz: np.ndarray) -> np.ndarray:
+        """The fitted model G(j 2 pi f), without the delay."""
+        return modal_response(self.modes, frequency_hz)
+
+
+def modal_response(modes, frequency_hz: np.ndarray) -> np.ndarray:
+    """sum_i (alpha_i + beta_i s) / (s^2 + 2 zeta_i w_i s + w_i^2) at s = j 2 pi f."""
+    s = 2j * np.pi * np.asarray(frequency_hz, dtype=float)
+    return sum((m.alpha + m.beta * s) / (s * s + 2 * m.damping * m.omega_rad_s * s + m.omega_rad_s**2)
+               for m in modes) + np.zeros_like(s)
+
+
+# ---- reading a measured frequency response ------------------------------------------------------
+
+def read_frf_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """(frequency_hz, complex response) from a CSV with the header ``frequency_hz,real,imag`` or
+    ``frequency_hz,magnitude,phase_deg`` (magnitude a plain ratio, not dB); frequencies > 0 and
+    strictly increasing."""
+    header, rows = _read_numeric_csv(path, {("frequency_hz", "real", "imag"),
+                                            ("frequency_hz", "magnitude", "phase_deg")})
+    data = np.array([values for _, values in rows])
+    lines = [line for line, _ in rows]
+    frequency_hz = data[:, 0]
+    for i in range(len(frequency_hz)):
+        if frequency_hz[i] <= 0:
+            raise InputError(path, lines[i], f"frequency {frequency_hz[i]:g} Hz must be > 0")
+        if i and frequency_hz[i] <= frequency_hz[i - 1]:
+            raise InputError(path, lines[i], f"frequencies must increase: {frequency_hz[i]:g} Hz after "
+                                             f"{frequency_hz[i - 1]:g} Hz")
+    if header[1] == "real":
+        response = data[:, 1] + 1j * data[:, 2]
+    else:
+        if (data[:, 1] < 0).any():
+            i = int(np.argmax(data[:, 1] < 0))
+            raise InputError(path, lines[i], "magnitude must be >= 0 (a ratio, not dB)")
+        response = data[:, 1] * np.exp(1j * np.radians(data[:, 2]))
+    if len(frequency_hz) < 8:
+        raise InputError(path, None, f"{len(frequency_hz)} frequencies: at least 8 are needed for a fit")
+    return frequency_hz, response
+
+
+def _read_numeric_csv(path, headers: set[tuple[str, ...]], comment: str | None = None):
+    """The header (one of ``headers``, cells stripped, extra trailing cells ignored) and the rows as
+    (line number, the header's columns as floats); blank lines skipped, lines starting with
+    ``comment`` skipped (a header may start with it)."""
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(path, None, f"cannot read: {exc}") from None
+    expected = " or ".join(",".join(h) for h in sorted(headers))
+    header, width, rows = None, 0, []
+    for lineno, row in enumerate(csv.reader(io.StringIO(text)), start=1):
+        cells = [c.strip() for c in row]
+        if not any(cells):
+            continue
+        if header is None:
+            names = tuple(c.lstrip(comment or "") for c in cells)
+            header = next((h for h in headers if names[:len(h)] == h), None)
+            if header is None:
+                if comment and cells[0].startswith(comment):
+                    continue
+                raise InputError(path, lineno, f"header {','.join(cells)!r}: expected {expected}")
+            width = len(header)
+            continue
+        if comment and cells[0].startswith(comment):
+            continue
+        if len(cells) < width:
+            raise InputError(path, lineno, f"expected {width} values, got {len(cells)}")
+        try:
+            values = [float(c) for c in cells[:width]]
+        except ValueError:
+            raise InputError(path, lineno, f"not a number in {','.join(cells[:width])!r}") from None
+        if not all(math.isfinite(v) for v in values):
+            raise InputError(path, lineno, "values must be finite")
+        rows.append((lineno, values))
+    if header is None:
+        raise InputError(path, 1, f"empty file: expected the header {expected}")
+    if not rows:
+        raise InputError(path, None, "no data rows")
+    return header, rows
+
+
+# ---- the fit ------------------------------------------------------------------------------------
+
+def fit_frf(frequency_hz: np.ndarray, response: np.ndarray, n_modes: int | None = None, max_modes: int = 8,
+            weights: np.ndarray | None = None, fit_delay: bool = False) -> Fit:
+    """Fit ``n_modes`` modes (or the automatic count, see the module) to ``response`` at
+    ``frequency_hz``. The residuals are relative to the measured |G| at each frequency, times
+    ``weights`` (>= 0, one per frequency, e.g. the coherence); ``fit_delay`` also fits a time
+    offset tau, the measurement being G(s) exp(-s tau)."""
+    f = np.asarray(frequency_hz, dtype=float)
+    h = np.asarray(response, dtype=complex)
+    # Residuals relative to each measured |G| (the least-squares estimate for noise proportional
+    # to the response) and scaled by the peak: accurate at the anti-resonances and the low
+    # frequencies, where a compensator inverts the model, as well as at the peaks.
+    relative = np.abs(h).max() / np.maximum(np.abs(h), 1e-6 * np.abs(h).max())
+    weights = relative * (1.0 if weights is None else np.asarray(weights, dtype=float))
+    w_ref = 2 * np.pi * f[-1]  # frequencies scaled by the top of the band, responses by the peak
+    s, peak = 1j * (2 * np.pi * f) / w_ref, np.abs(h).max()
+    hn = h / peak
+
+    fits, xs = {}, {}
+
+    def fit(n):
+        tau0 = _delay_guess(s, hn, weights, n) if fit_delay else None
+        xs[n] = _fit_count(s, hn, weights, n, tau0, xs.get(n - 1))
+        error = np.abs(_model(xs[n], s, n, fit_delay) - hn)[weights > 0]
+        wn, zeta, a, b = xs[n][:n] * w_ref, xs[n][n:2 * n], xs[n][2 * n:3 * n], xs[n][3 * n:4 * n]
+        modes = tuple(Mode(wn[i] / (2 * np.pi), zeta[i], peak * a[i] * wn[i] ** 2, peak * b[i] * wn[i])
+                      for i in np.argsort(wn))
+        fits[n] = Fit(modes, xs[n][-1] / w_ref if fit_delay else 0.0, float(np.sqrt(np.mean(error**2))),
+                      float(error.max()), {})
+
+    if n_modes:
+        fit(n_modes)
+        chosen = n_modes
+    else:
+        for n in range(1, max_modes + 1):
+            fit(n)
+            chosen = _chosen_count({k: v.rms_error for k, v in fits.items()}, max_modes)
+            if chosen:
+                break
+    best = fits[chosen]
+    return Fit(best.modes, best.delay_s, best.rms_error, best.max_error, {n: v.rms_error for n, v in fits.items()})
+
+
+def _chosen_count(errors: dict[int, float], max_modes: int) -> int | None:
+    """The smallest count n whose RMS error neither n + 1 nor n + 2 modes (up to max_modes)
+    divide by more than MODE_COUNT_GAIN; None while those are not all fitted yet."""
+    for n in sorted(errors):
+        following = [m for m in (n + 1, n + 2) if m <= max_modes]
+        if any(m not in errors for m in following):
+            return None
+        if not following or errors[n] <= MODE_COUNT_GAIN * min(errors[m] for m in following):
+            return n
+    return None
+
+
+def _fit_count(s, hn, weights, n, tau0, previous):
+    """The parameters (w, zeta, a, b per mode, then tau if fitted; scaled) of the best fit with
+    exactly ``n`` modes to ``hn``, refined from two starts: the poles of vector fitting, and the
+    ``n - 1`` modes of ``previous`` (their parameters) with one more where their residual is
+    largest. ``tau0``: the scaled time offset to start from, None for no offset."""
+    fit_delay = tau0 is not None
+    starts = [(_vector_fit(s, hn * np.exp(s * tau0) if fit_delay else hn, weights, n), tau0)]
+    if previous is not None:
+        m = n - 1
+        # where the complex residual, averaged over neighbouring frequencies, is largest: noise
+        # averages out there, a missing mode does not
+        residual = weights * (_model(previous, s, m, fit_delay) - hn)
+        w_new = s.imag[np.argmax(np.abs(ndimage.uniform_filter1d(residual.real, 15) + 1j * ndimage.uniform_filter1d(residual.imag, 15)))]
+        w_prev, zeta_prev = previous[:m], previous[m:2 * m]
+        poles = np.append(w_prev * (-zeta_prev + 1j * np.sqrt(1 - zeta_prev**2)), w_new * (-0.01 + 1j))
+        starts.append((poles, previous[-1] if fit_delay else None))
+    lower = np.concatenate([np.full(n, s.imag.min()), np.full(n, 1e-5), np.full(2 * n, -np.inf)] + ([[-np.inf]] if fit_delay else []))
+    upper = np.concatenate([np.full(n, s.imag.max()), np.full(n, 0.999), np.full(2 * n, np.inf)] + ([[np.inf]] if fit_delay else []))
+
+    def residual(x):
+        r = weights * (_model(x, s, n, fit_delay) - hn)
+        return np.concatenate([r.real, r.imag])
+
+    def jacobian(x):
+        d = weights[:, None] * _model_derivatives(x, s, n, fit_delay)
+        return np.vstack([d.real, d.imag])
+
+    best = None
+    for poles, tau in starts:
+        wn, zeta = np.abs(poles), np.clip(-poles.real / np.abs(poles), 1e-4, 0.99)
+        a, b = _numerators(s, hn * np.exp(s * tau) if fit_delay else hn, weights, wn, zeta)
+        x0 = np.clip(np.concatenate([wn, zeta, a, b] + ([[tau]] if fit_delay else [])), lower + 1e-12, upper - 1e-12)
+        result = optimize.least_squares(residual, x0, jac=jacobian, bounds=(lower, upper), x_scale="jac",
+                                        xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=100 * len(x0))
+        if best is None or result.cost < best.cost:
+            best = result
+    return best.x
+
+
+def _model(x, s, n, fit_delay):
+    """Sum of (a w^2 + b w s)/(s^2 + 2 zeta w s + w^2) in scaled s; a, b dimensionless gains."""
+    wn, zeta, a, b = (x[i * n:(i + 1) * n, None] for i in range(4))
+    g = ((a * wn**2 + b * wn * s) / (s * s + 2 * zeta * wn * s + wn**2)).sum(axis=0)
+    return g * np.exp(-s * x[-1]) if fit_delay else g
+
+
+def _model_derivatives(x, s, n, fit_delay):
+    """d _model / d x, one column per parameter."""
+    wn, zeta, a, b = (x[i * n:(i + 1) * n] for i in range(4))
+    s_ = s[:, None]
+    den = s_ * s_ + 2 * zeta * wn * s_ + wn**2
+    num = a * wn**2 + b * wn * s_
+    d_w = (2 * a * wn + b * s_) / den - num * (2 * zeta * s_ + 2 * wn) / den**2
+    d_zeta = -num * 2 * wn * s_ / den**2
+    columns = np.hstack([d_w, d_zeta, wn**2 / den, wn * s_ / den])
+    if not fit_delay:
+        return columns
+    delay = np.exp(-s * x[-1])[:, None]
+    g = (num / den).sum(axis=1, keepdims=True)
+    return np.hstack([columns * delay, -s_ * g * delay])
+
+
+def _basis(s, wn, zeta):
+    """Columns 1/(s^2 + 2 zeta w s + w^2) w^2 and s w / (same): the numerators' unknowns a, b."""
+    den = s[:, None] ** 2 + 2 * zeta * wn * s[:, None] + wn**2
+    return np.hstack([wn**2 / den, wn * s[:, None] / den])
+
+
+def _numerators(s, h, weights, wn, zeta):
+    """Least-squares a, b of every mode for fixed poles."""
+    basis = weights[:, None] * _basis(s, wn, zeta)
+    rhs = weights * h
+    ab = np.linalg.lstsq(np.vstack([basis.real, basis.imag]), np.concatenate([rhs.real, rhs.imag]), rcond=None)[0]
+    return ab[:len(wn)], ab[len(wn):]
+
+
+def _vector_fit(s, h, weights, n_pairs, poles=None, iterations=_VF_ITERATIONS):
+    """Upper-half-plane poles of ``n_pairs`` stable complex-conjugate pairs within the band
+    fitted to h(s) by relaxed vector fitting, from ``poles`` (default: lightly damped, spread
+    over the band): each iteration solves sigma h ~ p for p and the relaxed sigma (both with the
+    current poles) and moves the poles to the zeros of sigma."""
+    band = (s.imag.min(), s.imag.max())
+    if poles is None:
+        w0 = np.linspace(*band, n_pairs + 2)[1:-1]
+        poles = -0.01 * w0 + 1j * w0
+    k = len(s)
+    for _ in range(iterations):
+        phi = _pair_basis(s, poles)
+        sw = weights[:, None]
+        a = np.hstack([sw * phi, -(sw * h[:, None]) * phi, -(weights * h)[:, None]])
+        rows = np.vstack([a.real, a.imag])
+        rhs = np.zeros(2 * k)
+        # relaxation: the real part of sigma summed over the band is k (not sigma's d fixed at 1)
+        scale = np.linalg.norm(weights * h) / k
+        relax = np.concatenate([np.zeros(2 * n_pairs), scale * phi.real.sum(axis=0), [scale * k]])
+        x = np.linalg.lstsq(np.vstack([rows, relax]), np.concatenate([rhs, [scale * k]]), rcond=None)[0]
+        c_sigma, d_sigma = x[2 * n_pairs:4 * n_pairs], x[-1]
+        if abs(d_sigma) < 1e-8:
+            d_sigma = math.copysign(1e-8, d_sigma)
+        state, b = _pair_realization(poles)
+        zeros = np.linalg.eigvals(state - np.outer(b, c_sigma) / d_sigma)
+        poles = _stable_pairs(zeros, n_pairs, band)
+    return poles
+
+
+def _pair_basis(s, poles):
+    """Real-coefficient basis of each pair p, p*: 1/(s-p) + 1/(s-p*) and j/(s-p) - j/(s-p*)."""
+    a, b = 1 / (s[:, None] - poles), 1 / (s[:, None] - poles.conj())
+    return np.hstack([a + b, 1j * (a - b)])
+
+
+def _pair_realization(poles):
+    """(A, b) whose c^T (sI - A)^-1 b is the pair basis with coefficients c (real form)."""
+    n = len(poles)
+    state = np.zeros((2 * n, 2 * n))
+    b = np.zeros(2 * n)
+    for i, p in enumerate(poles):  # states ordered [re_0..re_n-1, im_0..im_n-1], as the basis
+        state[i, i] = state[n + i, n + i] = p.real
+        state[i, n + i], state[n + i, i] = p.imag, -p.imag
+        b[i] = 2.0
+    return state, b
+
+
+def _stable_pairs(roots, n_pairs, band):
+    """``n_pairs`` upper-half-plane poles from the 2 n_pairs roots: unstable ones mirrored into
+    the left half plane; real roots, which the model has no term for, joined two by two into the
+    pair of their product and sum (kept underdamped); natural frequencies outside ``band``
+    moved to its nearer edge (a mode outside the measurement is not identified: there it would
+    only stand in for other effects, such as the recording's time offset)."""
+    roots = -np.abs(roots.real) + 1j * roots.imag
+    upper = list(roots[roots.imag > 1e-9])
+    real = np.sort(roots[np.abs(roots.imag) <= 1e-9].real)
+    for r1, r2 in zip(real[::2], real[1::2]):
+        w = math.sqrt(r1 * r2)
+        zeta = min(0.95, -(r1 + r2) / (2 * w))
+        upper.append(w * (-zeta + 1j * math.sqrt(1 - zeta * zeta)))
+    upper = np.array(sorted(upper, key=lambda p: abs(p))[:n_pairs])
+    return upper * np.clip(np.abs(upper), *band) / np.abs(upper)
+
+
+def _delay_guess(s, h, weights, n_modes):
+    """The time offset (scaled) whose removal lets vector fitting fit best, on a grid."""
+    best = (np.inf, 0.0)
+    poles = None
+    for tau in np.linspace(-6.0, 6.0, 41):  # +-6 / w_ref: about one period of the top frequency
+        hd = h * np.exp(s * tau)
+        poles = _vector_fit(s, hd, weights, n_modes, poles, iterations=10)  # warm: the last tau's poles
+        wn, zeta = np.abs(poles), -poles.real / np.abs(poles)
+        a, b = _numerators(s, hd, weights, wn, zeta)
+        err = np.linalg.norm(weights * ((_basis(s, wn, zeta) @ np.concatenate([a, b])) - hd))
+        best = min(best, (err, tau))
+    return best[1]
+
+
+# ---- Klipper's measurements: coarse one-mode estimates ------------------------------------------
+
+def klipper_psd_mode(path: str | Path, axis: str) -> tuple[Mode, float, float]:
+    """One mode from the ``psd_<axis>`` column of Klipper's calibrate_shaper CSV (header
+    ``freq,psd_x,psd_y,psd_z,psd_xyz,...``; the shaper columns after it are ignored): the
+    frequency of the PSD peak and the damping from its half-power band f1..f2 (where the PSD,
+    a power, falls to half the peak), zeta = (f2 - f1) / (2 f0); alpha = w^2, beta = 0 (unit DC
+    gain). Gives (mode, f1, f2)."""
+    column = f"psd_{axis.lower()}"
+    if column not in ("psd_x", "psd_y", "psd_z"):
+        raise InputError(path, None, f"no PSD column for axis {axis} (calibrate_shaper has psd_x, psd_y, psd_z)")
+    _, rows = _read_numeric_csv(path, {("freq", "psd_x", "psd_y", "psd_z", "psd_xyz")})
+    data = np.array([values for _, values in rows])
+    freq_hz, psd = data[:, 0], data[:, ("psd_x", "psd_y", "psd_z").index(column) + 1]
+    lines = [line for line, _ in rows]
+    bad = np.flatnonzero(np.diff(freq_hz) <= 0)
+    if bad.size:
+        raise InputError(path, lines[bad[0] + 1], "frequencies must increase")
+    peak = int(np.argmax(psd))
+    if not psd[peak] > 0:
+        raise InputError(path, None, f"{column} has no positive value")
+    half = psd[peak] / 2
+    below = np.flatnonzero(psd[:peak] < half)
+    above = np.flatnonzero(psd[peak:] < half)
+    if not below.size or not above.size:
+        raise InputError(path, None, f"{column}: the peak at {freq_hz[peak]:g} Hz does not fall to half power "
+                                     "on both sides within the file's band: no damping estimate")
+    i, j = below[-1], peak + above[0]  # the crossings, interpolated linearly in the PSD
+    f1 = float(np.interp(half, [psd[i], psd[i + 1]], [freq_hz[i], freq_hz[i + 1]]))
+    f2 = float(np.interp(half, [psd[j], psd[j - 1]], [freq_hz[j], freq_hz[j - 1]]))
+    f0 = float(freq_hz[peak])
+    return _unit_mode(f0, (f2 - f1) / (2 * f0)), f1, f2
+
+
+def klipper_cfg_modes(path: str | Path) -> dict[str, Mode]:
+    """One mode per axis (X, Y) from the ``[input_shaper]`` section of a Klipper printer.cfg:
+    ``shaper_freq_x/y`` and ``damping_ratio_x/y`` (Klipper's default 0.1). The SAVE_CONFIG block
+    (``#*#`` lines at the end, where SHAPER_CALIBRATE results are saved) overrides the main part,
+    as in Klipper. Gives {axis: mode} for the axes that have a frequency."""
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(path, None, f"cannot read: {exc}") from None
+    # The main part and the SAVE_CONFIG block, each with the other's lines blank (so configparser's
+    # line numbers are the file's); the block's lines before its first section are its banner.
+    main, saved, in_section = [], [], False
+    for line in text.splitlines():
+        block = line.startswith("#*#")
+        content = line[3:] if block else ""
+        in_section = in_section or (block and content.strip().startswith("["))
+        main.append("" if block else line)
+        saved.append(content if in_section else "")
+    values, lines = {}, {}
+    for part in ("\n".join(main), "\n".join(saved)):
+        parser = configparser.RawConfigParser(strict=False, inline_comment_prefixes=("#", ";"))
+        try:
+            parser.read_string(part, source=str(path))
+        except configparser.Error as exc:
+            raise InputError(path, getattr(exc, "lineno", None), f"not a Klipper config: {exc.message.splitlines()[0]}") from None
+        if parser.has_section("input_shaper"):
+            values.update(parser["input_shaper"])
+    if not values and not any(line.strip().lower().startswith("[input_shaper]") for line in main + saved):
+        raise InputError(path, None, "no [input_shaper] section (nor one in the #*# SAVE_CONFIG block)")
+    for number, line in enumerate(text.splitlines(), start=1):  # the keys' lines, for messages
+        key = line.removeprefix("#*#").split(":", 1)[0].split("=", 1)[0].strip().lower()
+        if key in values:
+            lines[key] = number
+    modes = {}
+    for axis in ("x", "y"):
+        if f"shaper_freq_{axis}" not in values:
+            continue
+        frequency = _cfg_number(path, lines, values, f"shaper_freq_{axis}")
+        damping = (_cfg_number(path, lines, values, f"damping_ratio_{axis}")
+                   if f"damping_ratio_{axis}" in values else KLIPPER_DEFAULT_DAMPING)
+        if not frequency > 0 or not 0 < damping < 1:
+            raise InputError(path, lines.get(f"shaper_freq_{axis}"),
+                             f"shaper_freq_{axis} must be > 0 and damping_ratio_{axis} in (0, 1)")
+        modes[axis.upper()] = _unit_mode(frequency, damping)
+    if not modes:
+        raise InputError(path, None, "[input_shaper] has neither shaper_freq_x nor shaper_freq_y")
+    return modes
+
+
+def _cfg_number(path, lines, values, key):
+    try:
+        value = float(values[key])
+    except ValueError:
+        raise InputError(path, lines.get(key), f"{key}: not a number: {values[key]!r}") from None
+    if not math.isfinite(value):
+        raise InputError(path, lines.get(key), f"{key} must be finite")
+    return value
+
+
+def _unit_mode(frequency_hz: float, damping: float) -> Mode:
+    """The single mode w^2 / (s^2 + 2 zeta w s + w^2) (DC gain 1)."""
+    return Mode(frequency_hz, damping, (2 * math.pi * frequency_hz) ** 2, 0.0)
+
+
+# ---- an accelerometer recording of fbspost excite's sweep ----------------------------------------
+
+@dataclass(frozen=True)
+class Recording:
+    """The frequency response estimated from a recording of a sweep, over the sweep's band."""
+
+    frequency_hz: np.ndarray
+    response: np.ndarray  # H1 = S_xy / S_xx, commanded to measured acceleration
+    coherence: np.ndarray
+    offset_s: float  # the recording's time of the sweep's start (with the plant's delay, see fit)
+    inverted: bool  # the accelerometer axis pointed against the machine axis: sign flipped
+    sample_rate_hz: float
+
+
+def read_accel_log(path: str | Path, column: str) -> tuple[np.ndarray, np.ndarray]:
+    """(times_s, acceleration) of ``column`` from an accelerometer CSV: header
+    ``time_s,accel_x,accel_y,accel_z`` or Klipper's raw ``#time,accel_x,accel_y,accel_z``
+    (lines starting with ``#`` before it skipped); times strictly increasing."""
+    headers = {("time_s", "accel_x", "accel_y", "accel_z"), ("time", "accel_x", "accel_y", "accel_z")}
+    header, rows = _read_numeric_csv(path, headers, comment="#")
+    if column not in header[1:]:
+        raise InputError(path, None, f"no column {column!r} (the columns are {', '.join(header)})")
+    data = np.array([values for _, values in rows])
+    bad = np.flatnonzero(np.diff(data[:, 0]) <= 0)
+    if bad.size:
+        raise InputError(path, rows[bad[0] + 1][0], "times must increase")
+    if len(data) < 1000:
+        raise InputError(path, None, f"{len(data)} samples: too short a recording for a sweep")
+    return data[:, 0], data[:, header.index(column)]
+
+
+def frf_from_recording(times_s: np.ndarray, accel: np.ndarray, sweep) -> Recording:
+    """H1 from the measured acceleration ``accel`` at ``times_s`` (its own time base) and the
+    commanded motion of ``sweep`` (``excite.Sweep``): the recording is put on a uniform grid at
+    its mean rate; the commanded acceleration, band-limited alike, is aligned with it by
+    cross-correlation; S_xy / S_xx and the coherence by Welch averaging over the sweep with a
+    second of rest on each side, in three Hann segments of half its length (a quarter apart):
+    a lightly damped mode rings for seconds after the sweep passes it, and a sweep excites each
+    frequency only once, so long segments matter more than many averages."""
+    fs = (len(times_s) - 1) / (times_s[-1] - times_s[0])
+    grid = times_s[0] + np.arange(len(times_s)) / fs
+    measured = np.interp(grid, times_s, accel)
+    duration_s = sweep.times_s[-1]
+    # Aligned on the sweep's first octave only: well below the modes the axis follows its command
+    # (G ~ 1), while near a mode the response lags by up to half a period and its ringing
+    # dominates the correlation.
+    octave_s = duration_s * math.log(2) / math.log(sweep.end_hz / sweep.start_hz)
+    command = _commanded_acceleration(sweep, np.arange(int(octave_s * fs) + 1) / fs, fs)
+    if len(measured) < len(command):
+        raise ValueError("the recording is shorter than the sweep")
+    corr = signal.correlate(measured - measured.mean(), command, mode="valid", method="fft")
+    k = int(np.argmax(np.abs(corr)))
+    inverted = corr[k] < 0
+    if 0 < k < len(corr) - 1:  # the peak between samples (parabola through three)
+        c0, c1, c2 = corr[k - 1:k + 2] * (-1 if inverted else 1)
+        k += 0.5 * (c0 - c2) / (c0 - 2 * c1 + c2)
+    offset_s = grid[0] + k / fs
+    keep = (grid >= offset_s - 1.0) & (grid <= offset_s + duration_s + 1.0)
+    y = -measured[keep] if inverted else measured[keep]
+    x = _commanded_acceleration(sweep, grid[keep] - offset_s, fs)
+    welch = dict(fs=fs, nperseg=len(x) // 2, noverlap=len(x) // 4)
+    f, s_xx = signal.welch(x, **welch)
+    _, s_xy = signal.csd(x, y, **welch)
+    _, coherence = signal.coherence(x, y, **welch)
+    band = (f >= sweep.start_hz) & (f <= sweep.end_hz)
+    return Recording(f[band], s_xy[band] / s_xx[band], coherence[band], offset_s, bool(inverted), fs)
+
+
+def _commanded_acceleration(sweep, times_s: np.ndarray, fs: float, oversample: int = 8) -> np.ndarray:
+    """The sweep's commanded acceleration at ``times_s`` (uniform at ``fs``): second differences
+    of the piecewise-linear command on a grid ``oversample`` times finer, low-passed at 0.4 fs
+    without phase shift (the corners of the blocks would alias into the band)."""
+    fine = times_s[0] + np.arange(len(times_s) * oversample) / (oversample * fs)
+    accel = np.gradient(np.gradient(sweep.position(fine), fine), fine)
+    sos = signal.butter(8, 0.4 * fs, fs=oversample * fs, output="sos")
+    return signal.sosfiltfilt(sos, accel)[::oversample]
+
+
+# ---- the result: a profile, a plot ---------------------------------------------------------------
+
+NEW_PROFILE_DEFAULTS = {  # what a new profile gets unless given: a printer-like machine at 1 kHz
+    "sample_rate": 1000.0, "planner_acceleration": 3000.0, "square_corner_velocity": 5.0,
+    "max_velocity": 300.0, "max_acceleration": 10000.0,
+}
+
+
+def profile_with_axes(base: MachineProfile | None, axes_modes: dict[str, tuple[Mode, ...]], note: str,
+                      options: dict, name: str) -> MachineProfile:
+    """``base`` (a ``MachineProfile``, or None for a new one) with the axes of ``axes_modes``
+    replaced or added: modes normalized to a DC gain of 1; an axis' limits from ``options``
+    (the keys of NEW_PROFILE_DEFAULTS and max_jerk; None: not given) where given, else from
+    ``base``'s axis, else the defaults (no jerk limit); ``note`` is added to the description."""
+    def pick(key, existing):
+        given = options.get(key)
+        return given if given is not None else existing if existing is not None else NEW_PROFILE_DEFAULTS[key]
+
+    axes = dict(base.axes) if base else {}
+    for axis_name, modes in axes_modes.items():
+        old = axes.get(axis_name)
+        dc_gain = sum(m.alpha / m.omega_rad_s**2 for m in modes)
+        normalized = tuple(Mode(float(m.frequency_hz), float(m.damping), float(m.alpha / dc_gain), float(m.beta / dc_gain))
+                           for m in modes)
+        axes[axis_name] = AxisProfile(
+            axis_name,
+            pick("max_velocity", old and old.max_velocity_mm_s),
+            pick("max_acceleration", old and old.max_acceleration_mm_s2),
+            options.get("max_jerk") or (old.max_jerk_mm_s3 if old else None),
+            normalized)
+    description = f"{base.description}; {note}" if base and base.description else note
+    return MachineProfile(
+        base.name if base else name, description, "",
+        pick("sample_rate", base and base.sample_rate_hz),
+        pick("planner_acceleration", base and base.planner_acceleration_mm_s2),
+        pick("square_corner_velocity", base and base.planner_square_corner_velocity_mm_s),
+        axes)
+
+
+def profile_text(profile: MachineProfile, path: str | Path) -> str:
+    """The TOML text of ``profile``, checked as ``load_profile`` will check the file ``path``
+    (``ProfileError`` before anything is written)."""
+    text = format_profile(profile)
+    parse_profile(tomllib.loads(text), str(path))
+    return text
+
+
+def plot_png(frequency_hz: np.ndarray, measured: np.ndarray, fitted: np.ndarray, title: str) -> bytes:
+    """A PNG of measured and fitted magnitude and phase against frequency."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    figure = Figure(figsize=(8, 6.5), constrained_layout=True)
+    magnitude, phase = figure.subplots(2, 1, sharex=True)
+    for data, style, label in ((measured, ".", "measured"), (fitted, "-", "fitted model")):
+        magnitude.semilogy(frequency_hz, np.abs(data), style, markersize=2, label=label)
+        phase.plot(frequency_hz, np.degrees(np.unwrap(np.angle(data))), style, markersize=2, label=label)
+    magnitude.set_ylabel("|G| (actual / commanded)")
+    magnitude.set_title(title)
+    magnitude.legend()
+    phase.set_ylabel("phase (deg)")
+    phase.set_xlabel("frequency (Hz)")
+    for ax in (magnitude, phase):
+        ax.grid(True, which="both", alpha=0.3)
+    out = io.BytesIO()
+    FigureCanvasAgg(figure).print_png(out)
+    return out.getvalue()
