@@ -87,6 +87,7 @@ class Executed:
         self.path = []  # the same, and inside G5 blocks at every multiple of the sample period
         self.g5_blocks = 0  # how many of the blocks were G5
         self.e_at_lines = []  # E (program coordinate) at every line that is not a motion line
+        self.at_lines = []  # (x, y, z, e) there, machine coordinates (NaN: not yet known)
         self.nonmotion = []  # those lines' bytes, in order
         self.extruded = 0.0  # sum of positive and negative E moves
         self.dwells = []  # when each G4 ends
@@ -201,6 +202,7 @@ def execute(path, sample_rate_hz: float = 10000.0, dwell_p_seconds: bool = False
                 feed = v * scale / 60.0
         run.nonmotion.append(raw)
         run.e_at_lines.append(pos["E"] - offset["E"])
+        run.at_lines.append(tuple(np.nan if pos[a] is None else pos[a] for a in "XYZE"))
     run.duration_s = t
     return run
 
