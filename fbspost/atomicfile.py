@@ -1,8 +1,11 @@
 """Write a file so that readers see either the old file or the complete new one, never a part.
 
 Takes a destination path and a writer callback; writes a temporary file beside the destination,
-flushes it to disk and renames it over the destination (keeping an existing file's permissions).
-On any error, or an interrupt, the temporary file is removed and the destination is untouched.
+flushes it to disk, renames it over the destination (keeping an existing file's permissions and,
+where allowed, its owner; through a symbolic link, the file it points to is replaced) and
+flushes the directory, so the rename survives a power cut. On any error, or an interrupt, the
+temporary file is removed and the destination is untouched; an ``OSError`` names the
+destination (``filename``) and says what failed (``strerror``: ``cannot write: ...``).
 """
 from __future__ import annotations
 
@@ -14,19 +17,33 @@ from typing import IO
 
 
 def atomic_write(path: str | Path, write: Callable[[IO[bytes]], None]) -> None:
-    path = Path(path)
+    path = Path(os.path.realpath(path))
+    try:
+        _replace(path, write)
+    except OSError as exc:
+        raise OSError(exc.errno, f"cannot write: {exc.strerror or exc}", str(path)) from None
+
+
+def _replace(path: Path, write: Callable[[IO[bytes]], None]) -> None:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
             write(f)
             f.flush()
             os.fsync(f.fileno())
-        if path.exists():
-            os.chmod(tmp, path.stat().st_mode & 0o7777)
-        else:
+        try:
+            old = path.stat()
+        except FileNotFoundError:
             umask = os.umask(0)
             os.umask(umask)
             os.chmod(tmp, 0o666 & ~umask)
+        else:
+            if (old.st_uid, old.st_gid) != (os.geteuid(), os.getegid()):
+                try:  # a print server running as root must not take the user's file
+                    os.chown(tmp, old.st_uid, old.st_gid)
+                except PermissionError:
+                    pass
+            os.chmod(tmp, old.st_mode & 0o7777)  # after chown, which clears set-id bits
         os.replace(tmp, path)
     except BaseException:
         try:
@@ -34,3 +51,17 @@ def atomic_write(path: str | Path, write: Callable[[IO[bytes]], None]) -> None:
         except FileNotFoundError:
             pass
         raise
+    _sync_directory(path.parent)
+
+
+def _sync_directory(folder: Path) -> None:
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:  # not every platform opens directories
+        return
+    try:
+        os.fsync(fd)
+    except OSError:  # nor syncs them
+        pass
+    finally:
+        os.close(fd)

@@ -2,7 +2,9 @@
 
 Takes arguments and files; gives exit status 0 on success, 1 on bad input (one line
 ``error: FILE:LINE: message`` on stderr, no traceback, no output file; with several programs,
-one such line per failed file and the others still written), 2 on bad usage, 130 on interrupt.
+one such line per failed file and the others still written), 2 on bad usage, 128 + the signal's
+number when interrupted (130 for Ctrl-C, 143 for SIGTERM, 129 for SIGHUP), leaving no output or
+temporary file behind.
 """
 from __future__ import annotations
 
@@ -11,6 +13,7 @@ import multiprocessing
 import os
 import signal
 import sys
+import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -33,17 +36,61 @@ from .trajectory import InputError, read_trajectory_csv, write_trajectory_csv
 
 
 class _FriendlyGroup(click.Group):
-    """Bad input ends in one line on stderr and exit status 1, never a traceback."""
+    """Bad input ends in one line on stderr and exit status 1, never a traceback; an interrupt
+    unwinds (removing temporary files) and ends in one line and 128 + the signal's number."""
 
     def invoke(self, ctx):
+        previous = _catch_signals()
         try:
             return super().invoke(ctx)
         except (ProfileError, InputError, OSError) as exc:
-            click.echo(f"error: {exc}", err=True)
+            click.echo(f"error: {_describe(exc)}", err=True)
             ctx.exit(1)
-        except KeyboardInterrupt:
+        except KeyboardInterrupt as exc:
             click.echo("error: interrupted; no output written", err=True)
-            ctx.exit(130)
+            ctx.exit(_interrupt_status(exc))
+        finally:
+            for signum, handler in previous.items():
+                signal.signal(signum, handler)
+
+
+# Signals that end a run as Ctrl-C does. Their default action would kill the process at once and
+# leave the temporary file of an output being written.
+_ENDING_SIGNALS = (signal.SIGINT, signal.SIGTERM, *((signal.SIGHUP,) if hasattr(signal, "SIGHUP") else ()))
+
+
+class _Interrupted(KeyboardInterrupt):
+    """SIGTERM, SIGHUP or SIGINT, raised where the program is, so that it unwinds."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.status = 128 + signum
+
+
+def _interrupted(signum, frame):
+    # Further signals must not cut short the clean-up this one starts.
+    for other in _ENDING_SIGNALS:
+        signal.signal(other, signal.SIG_IGN)
+    raise _Interrupted(signum)
+
+
+def _catch_signals() -> dict:
+    """Installs the handler (on the main thread only, where Python runs handlers); gives the
+    handlers it replaced."""
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+    return {signum: signal.signal(signum, _interrupted) for signum in _ENDING_SIGNALS}
+
+
+def _interrupt_status(exc: KeyboardInterrupt) -> int:
+    return getattr(exc, "status", 128 + signal.SIGINT)
+
+
+def _describe(exc: Exception) -> str:
+    """One line: an OSError as ``FILE: what failed`` when it names its file."""
+    if isinstance(exc, OSError) and exc.filename is not None and exc.strerror:
+        return _one_line(f"{exc.filename}: {exc.strerror}")
+    return _one_line(str(exc))
 
 
 _machine_option = click.option("--machine", "-m", required=True,
@@ -140,7 +187,8 @@ def _compensate_single(source: Path, target: Path, profile: MachineProfile, opti
         report = compensate_file(source, target, profile, options,
                                  progress=lambda fraction: bar.update(int(fraction * 1000) - bar.pos))
     if report_path:
-        report_path.write_text(json.dumps(report.as_dict(), indent=2) + "\n")
+        text = json.dumps(report.as_dict(), indent=2) + "\n"
+        atomic_write(report_path, lambda f: f.write(text.encode()))
     if not quiet:
         click.echo(_summary(source, target, profile, report), err=True)
 
@@ -168,10 +216,10 @@ def _compensate_many(pairs: list[tuple[Path, Path]], profile: MachineProfile, op
                 finish(source, target, _compensate_one(source, target, profile, options))
         else:
             _compensate_in_pool(pairs, profile, options, workers, finish)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         done = sum(not isinstance(o, str) for o in outcomes.values())
         click.echo(f"error: interrupted; {done} of {len(pairs)} files compensated, the others unchanged", err=True)
-        click.get_current_context().exit(130)
+        click.get_current_context().exit(_interrupt_status(exc))
     return [source for source, _ in pairs if isinstance(outcomes[source], str)]
 
 
@@ -238,7 +286,9 @@ def _compensate_one(source: Path, target: Path, profile: MachineProfile, options
         return compensate_file(source, target, profile, options)
     except InputError as exc:
         return _one_line(str(exc))  # already FILE:LINE: message
-    except (ProfileError, OSError) as exc:
+    except OSError as exc:
+        return _describe(exc) if exc.filename is not None else _one_line(f"{source}: {exc}")
+    except ProfileError as exc:
         return _one_line(f"{source}: {exc}")
     except Exception as exc:  # a bug, or out of memory: still only this file fails
         return _one_line(f"{source}: internal error: {type(exc).__name__}: {exc}")

@@ -111,10 +111,11 @@ _NAN = math.nan
 _TWO_PI = 2.0 * math.pi
 _GAUSS_X, _GAUSS_W = np.polynomial.legendre.leggauss(5)
 
-# One word: a letter and its value (a number, an RRF "string", an RRF {expression}, or nothing),
-# or any other non-blank character (junk: an error wherever the line's values are needed).
+# One word: a letter and its value (a number, NaN or infinity as a C library writes them, so that
+# the error can name them, an RRF "string", an RRF {expression}, or nothing), or any other
+# non-blank character (junk: an error wherever the line's values are needed).
 _WORD = re.compile(
-    r'([A-Za-z])\s*([-+]?\s*(?:\d+\.?\d*|\.\d+)|"(?:[^"]|"")*"?|\{[^}]*\}?|)|(\S)'
+    r'([A-Za-z])\s*([-+]?\s*(?:\d+\.?\d*|\.\d+|(?i:nan|inf(?:inity)?)(?![A-Za-z]))|"(?:[^"]|"")*"?|\{[^}]*\}?|)|(\S)'
 )
 # The common line, fast, straight from its bytes: [N123] G0/G1 with X Y Z E in this order, F first
 # or last, one space between words, [*checksum], [; comment]. Anything else takes the general path.

@@ -39,7 +39,8 @@ def finite_derivative_max(u, order, period_s):
 import re  # noqa: E402
 
 _WORD = re.compile(rb"([A-Za-z])\s*([-+]?(?:\d+\.?\d*|\.\d+))")
-_MOTION = {b"G0", b"G00", b"G1", b"G01", b"G5", b"G05"}
+_MOTION = {b"G0", b"G1", b"G5"}
+_ARCS = {b"G2", b"G3"}
 _ARC_STEPS = 4096  # chords per G5 curve for its arc length (their sum is within ~1e-8 of it)
 
 
@@ -50,10 +51,32 @@ def split_code(raw: bytes) -> list[tuple[bytes, float]]:
 
 
 def is_motion_line(raw: bytes) -> bool:
-    """A G0/G1/G5 line that names an axis (X Y Z E): what a post-processor may rewrite."""
+    """A G0/G1/G5 line that names an axis (X Y Z E), or any G2/G3 (a full circle names none):
+    what a post-processor may rewrite."""
     words = split_code(raw)
-    g = {f"G{int(v)}".encode() for k, v in words if k == b"G"}
-    return bool(g & _MOTION) and any(k in (b"X", b"Y", b"Z", b"E") for k, _ in words)
+    g = {f"G{v:g}".encode() for k, v in words if k == b"G"}
+    return bool(g & _ARCS) or (bool(g & _MOTION) and any(k in (b"X", b"Y", b"Z", b"E") for k, _ in words))
+
+
+def arc_length(start, end, offset_ij, radius, clockwise):
+    """Length of a G2/G3 arc in the XY plane with its helical rise ``end[2] - start[2]``, from
+    the start, the end and either the centre's offset (I, J) or the radius R (negative: the
+    long way round), the way RS274NGC defines them. The same end as the start is a full circle."""
+    (x0, y0, z0), (x1, y1, z1) = start, end
+    if radius is None:
+        cx, cy = x0 + offset_ij[0], y0 + offset_ij[1]
+    else:  # the centre on the chord's bisector, to the right of the chord going clockwise
+        half = np.hypot(x1 - x0, y1 - y0) / 2
+        rise = np.sqrt(max(radius**2 - half**2, 0.0)) * (1 if (radius > 0) != clockwise else -1)
+        cx = (x0 + x1) / 2 - rise * (y1 - y0) / (2 * half)
+        cy = (y0 + y1) / 2 + rise * (x1 - x0) / (2 * half)
+    r = np.hypot(x0 - cx, y0 - cy)
+    turn = (np.arctan2(y1 - cy, x1 - cx) - np.arctan2(y0 - cy, x0 - cx)) % (2 * np.pi)  # counterclockwise
+    if clockwise:
+        turn = (2 * np.pi - turn) % (2 * np.pi)
+    if turn < 1e-12:
+        turn = 2 * np.pi
+    return float(np.hypot(r * turn, z1 - z0))
 
 
 class Executed:
@@ -64,8 +87,11 @@ class Executed:
         self.path = []  # the same, and inside G5 blocks at every multiple of the sample period
         self.g5_blocks = 0  # how many of the blocks were G5
         self.e_at_lines = []  # E (program coordinate) at every line that is not a motion line
+        self.at_lines = []  # (x, y, z, e) there, machine coordinates (NaN: not yet known)
         self.nonmotion = []  # those lines' bytes, in order
         self.extruded = 0.0  # sum of positive and negative E moves
+        self.dwells = []  # when each G4 ends
+        self.duration_s = 0.0  # when the last line ends
 
 
 def bezier_points(p0, p1, p2, p3, u):
@@ -84,9 +110,11 @@ def arc_lengths(p0, p1, p2, p3):
     return grid, np.concatenate([[0.0], np.cumsum(chords)])
 
 
-def execute(path, sample_rate_hz: float = 10000.0) -> Executed:
-    """G0/G1 with X Y Z E F, G5 with I J P Q X Y Z E F (timed by the curve's XY length; Z and E
-    linear in its parameter, as Marlin moves them; only in G17), G90/G91, M82/M83, G92, G20/G21,
+def execute(path, sample_rate_hz: float = 10000.0, dwell_p_seconds: bool = False) -> Executed:
+    """G0/G1 with X Y Z E F, G2/G3 with I J or R in G17 (timed by their helical length; their
+    end points only), G5 with I J P Q X Y Z E F (timed by the curve's XY length; Z and E
+    linear in its parameter, as Marlin moves them; only in G17), G4 (P milliseconds, or seconds
+    with ``dwell_p_seconds`` as in LinuxCNC; S seconds), G90/G91, M82/M83, G92, G20/G21,
     G17/G18/G19; other lines are recorded as non-motion. ``path`` gets the points inside G5
     blocks at every multiple of 1 / ``sample_rate_hz``. The first position of an axis is where it
     is first set (a move from an unknown place is instant)."""
@@ -107,7 +135,7 @@ def execute(path, sample_rate_hz: float = 10000.0) -> Executed:
                     rel = not (abs_e if a == "E" else abs_xyz)
                     value = v * scale
                     target[a] = (pos[a] or 0.0) + value if rel else value + offset[a]
-                elif a in "IJPQ":
+                elif a in "IJPQR":
                     curve[a] = v * scale
                 elif a == "F":
                     feed = v * scale / 60.0
@@ -127,6 +155,11 @@ def execute(path, sample_rate_hz: float = 10000.0) -> Executed:
                 run.path += [(ti, x, y, z0 + (z3 - z0) * ui, pos["E"] + (target["E"] - pos["E"]) * ui)
                              for ti, (x, y), ui in zip(inside, xy, u)]
                 run.g5_blocks += 1
+            elif codes and codes[0][0] == b"G" and codes[0][1] in (2.0, 3.0):
+                assert plane == 17 and not unknown, f"an arc outside G17 or from an unknown start: {raw!r}"
+                xyz0, xyz1 = ([p[a] or 0.0 for a in "XYZ"] for p in (pos, target))
+                t += arc_length(xyz0, xyz1, (curve.get("I", 0.0), curve.get("J", 0.0)), curve.get("R"),
+                                codes[0][1] == 2.0) / feed
             else:
                 d_xyz = np.sqrt(sum((target[a] - pos[a]) ** 2 for a in known)) if known else 0.0
                 d_e = abs(target["E"] - pos["E"])
@@ -155,6 +188,10 @@ def execute(path, sample_rate_hz: float = 10000.0) -> Executed:
                 scale = 1.0
             elif code in (b"G17", b"G18", b"G19"):
                 plane = int(code[1:])
+            elif code == b"G4":
+                seconds = dict(words)
+                t += seconds.get(b"S", seconds.get(b"P", 0.0) / (1.0 if dwell_p_seconds else 1000.0))
+                run.dwells.append(t)
             elif code == b"G92":
                 for kk, vv in words:
                     a = kk.decode()
@@ -165,7 +202,30 @@ def execute(path, sample_rate_hz: float = 10000.0) -> Executed:
                 feed = v * scale / 60.0
         run.nonmotion.append(raw)
         run.e_at_lines.append(pos["E"] - offset["E"])
+        run.at_lines.append(tuple(np.nan if pos[a] is None else pos[a] for a in "XYZE"))
+    run.duration_s = t
     return run
+
+
+# What fbspost adds to a program: its header, the controller's acceleration, mode lines.
+INSERTED = (b"; fbspost", b"M204", b"SET_VELOCITY_LIMIT", b"G90", b"G91", b"M82", b"M83", b"G20", b"G21",
+            b"G17", b"G18", b"G19")
+
+
+def kept_lines(original: list[bytes], output: list[bytes]) -> list[int]:
+    """Where each of the ``original`` lines is among the ``output`` lines, asserting that they are
+    all there, byte-exact and in order (a last line without a line ending may have gained one,
+    when fbspost writes after it) and that every other output line is one fbspost adds."""
+    where, i = [], 0
+    for j, line in enumerate(output):
+        if i < len(original) and (line == original[i] or (
+                i == len(original) - 1 and not original[i].endswith(b"\n") and line.rstrip(b"\r\n") == original[i])):
+            where.append(j)
+            i += 1
+        else:
+            assert line.startswith(INSERTED), f"output line {j}: {line!r} is not the original's {i}: {original[i:i + 1]!r}"
+    assert i == len(original), f"original line {original[i]!r} missing from the output"
+    return where
 
 
 def positions_at(points, t):

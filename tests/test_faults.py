@@ -1,0 +1,260 @@
+"""Faults while `fbspost compensate` writes: an unwritable directory, a full disk, a failed rename,
+SIGINT and SIGTERM mid-run. Whatever happens, the input is byte-for-byte intact, no output or
+temporary file remains, and the error is one line; in-place replacement is one atomic rename of
+a complete, flushed file that keeps the input's permissions and owner."""
+import errno
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from fbspost import atomicfile
+from fbspost.cli import main
+
+ROOT = Path(__file__).resolve().parent.parent
+TUBE = ROOT / "tests" / "data" / "tube-marlin2.gcode"  # 8400 lines: about 3 s at 1 kHz
+# A few moves, a retract and passthrough lines: compensated in a fraction of a second.
+SHORT = (b"M83\r\nG1 X0 Y0 Z0.2 F6000\r\nM106 S128 ; fan\r\nG1 X20 Y10 E0.8 F3000\r\nG1 X20 Y20 E0.4\r\n"
+         b"G1 E-0.8 F2400\r\nG4 P100\r\nG1 X5 Y5 F9000\r\nM107\r\n")
+
+
+def compensate(*args):
+    return CliRunner().invoke(main, ["compensate", "-m", "bedslinger-example", "-q", *map(str, args)])
+
+
+@pytest.fixture
+def program(tmp_path):
+    path = tmp_path / "part.gcode"
+    path.write_bytes(SHORT)
+    return path
+
+
+@pytest.fixture(scope="module")
+def expected(tmp_path_factory):
+    """SHORT compensated without any fault: what a complete output is."""
+    folder = tmp_path_factory.mktemp("expected")
+    (folder / "part.gcode").write_bytes(SHORT)
+    assert compensate(folder / "part.gcode", "-o", folder / "out.gcode").exit_code == 0
+    return (folder / "out.gcode").read_bytes()
+
+
+def assert_nothing_lost(result_code, stderr, program, original, status=1, words=""):
+    """The exit status, one line on stderr (no traceback), the input intact and alone in its folder."""
+    assert result_code == status, stderr
+    assert stderr.count("\n") == 1 and stderr.startswith("error: ") and "Traceback" not in stderr, stderr
+    assert words in stderr
+    assert program.read_bytes() == original
+    assert sorted(p.name for p in program.parent.iterdir()) == [program.name]
+
+
+# ---- unwritable places -------------------------------------------------------------------------
+
+@pytest.fixture
+def unwritable_dir(tmp_path):
+    """A directory no file can be created in, even by root (for whom permissions do not count,
+    sysfs refuses new files)."""
+    if os.geteuid() != 0:
+        folder = tmp_path / "read-only"
+        folder.mkdir(mode=0o555)
+        yield folder
+        folder.chmod(0o755)
+        return
+    try:
+        os.close(tempfile.mkstemp(dir="/sys")[0])
+    except PermissionError:
+        yield Path("/sys")
+        return
+    pytest.skip("no directory refuses root here")
+
+
+def test_unwritable_output_directory(program, unwritable_dir):
+    target = unwritable_dir / "part.gcode"
+    result = compensate(program, "-o", target)
+    assert_nothing_lost(result.exit_code, result.stderr, program, SHORT, words=f"error: {target}: cannot write: ")
+    assert not target.exists()
+
+
+def test_in_place_in_a_directory_that_refuses_new_files(program, monkeypatch):
+    """In place, the temporary file goes beside the input: its directory refusing it (as a
+    read-only directory does, for anyone but root) leaves the input as it was."""
+    def refuse(*args, **kwargs):
+        raise PermissionError(errno.EACCES, "Permission denied", str(kwargs.get("dir")))
+
+    monkeypatch.setattr(atomicfile.tempfile, "mkstemp", refuse)
+    result = compensate(program)
+    assert_nothing_lost(result.exit_code, result.stderr, program, SHORT,
+                        words=f"error: {program}: cannot write: Permission denied")
+
+
+def test_output_below_a_regular_file(program):
+    target = program.parent / "part.gcode" / "out.gcode"
+    result = compensate(program, "-o", target)
+    assert_nothing_lost(result.exit_code, result.stderr, program, SHORT, words=f"error: {target}: cannot write: ")
+
+
+# ---- a full disk ---------------------------------------------------------------------------------
+
+class _FullDisk:
+    """A file object that takes ``room`` bytes, then fails as a full disk does."""
+
+    def __init__(self, f, room):
+        self.f, self.room = f, room
+
+    def write(self, data):
+        if len(data) > self.room:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        self.room -= len(data)
+        return self.f.write(data)
+
+    def __getattr__(self, name):
+        return getattr(self.f, name)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.f.close()
+
+
+@pytest.mark.parametrize("room", [0, 100, 4000])
+def test_disk_full_mid_write(program, monkeypatch, expected, room):
+    assert len(expected) > room  # the disk fills before the output is complete
+    fdopen = os.fdopen
+    monkeypatch.setattr(atomicfile.os, "fdopen", lambda fd, mode: _FullDisk(fdopen(fd, mode), room))
+    result = compensate(program)
+    assert_nothing_lost(result.exit_code, result.stderr, program, SHORT,
+                        words=f"error: {program}: cannot write: No space left on device")
+
+
+def test_disk_full_at_flush(program, monkeypatch):
+    """Network and copy-on-write filesystems may report the full disk only when the data is synced."""
+    def full(fd):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(atomicfile.os, "fsync", full)
+    result = compensate(program)
+    assert_nothing_lost(result.exit_code, result.stderr, program, SHORT, words="No space left on device")
+
+
+def test_rename_fails(program, monkeypatch):
+    def busy(src, dst):
+        raise OSError(errno.EBUSY, "Device or resource busy")
+
+    monkeypatch.setattr(atomicfile.os, "replace", busy)
+    result = compensate(program)
+    assert_nothing_lost(result.exit_code, result.stderr, program, SHORT, words="Device or resource busy")
+
+
+# ---- in-place replacement ------------------------------------------------------------------------
+
+def test_in_place_is_one_rename_of_a_complete_synced_file(program, monkeypatch, expected):
+    """Until the rename the input holds its own bytes; the file renamed over it already holds the
+    whole output, synced to disk; rename(2) swaps them atomically, so no reader (or crash) ever
+    sees the input missing or partial."""
+    events = []
+    fsync, replace = os.fsync, os.replace
+
+    def synced(fd):
+        events.append("fsync")
+        fsync(fd)
+
+    def renamed(src, dst):
+        events.append("replace")
+        assert Path(dst) == program and Path(src).parent == program.parent
+        assert program.read_bytes() == SHORT and Path(src).read_bytes() == expected
+        replace(src, dst)
+
+    monkeypatch.setattr(atomicfile.os, "fsync", synced)
+    monkeypatch.setattr(atomicfile.os, "replace", renamed)
+    assert compensate(program).exit_code == 0
+    assert events[:2] == ["fsync", "replace"]  # the data, then the rename (then the directory entry)
+    assert program.read_bytes() == expected
+    assert sorted(p.name for p in program.parent.iterdir()) == ["part.gcode"]
+
+
+@pytest.mark.parametrize("mode", [0o600, 0o640, 0o664, 0o755, 0o2750])
+def test_in_place_keeps_permissions(program, mode):
+    os.chmod(program, mode)
+    assert compensate(program).exit_code == 0
+    assert program.stat().st_mode & 0o7777 == mode
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="only root can give a file to another user")
+def test_in_place_keeps_the_owner(program):
+    """Run as root (a print server's service), the file stays its user's."""
+    os.chown(program, 1234, 5678)
+    assert compensate(program).exit_code == 0
+    assert (program.stat().st_uid, program.stat().st_gid) == (1234, 5678)
+
+
+def test_in_place_through_a_symlink_replaces_its_target(tmp_path, program, expected):
+    """A link to the program (a slicer's export folder, say) stays a link; the program changes."""
+    link = tmp_path / "link.gcode"
+    link.symlink_to(program.name)
+    assert compensate(link).exit_code == 0
+    assert link.is_symlink() and program.read_bytes() == expected
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["link.gcode", "part.gcode"]
+
+
+# ---- signals -------------------------------------------------------------------------------------
+
+def start(*args):
+    return subprocess.Popen([sys.executable, "-m", "fbspost.cli", "compensate", *map(str, args),
+                             "-m", "bedslinger-example", "-q"],
+                            cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+
+
+def open_files(pid):
+    folder = f"/proc/{pid}/fd"
+    try:
+        return [os.path.join(folder, fd) for fd in os.listdir(folder)]
+    except FileNotFoundError:  # ended
+        return []
+
+
+def temporary_files(folder):
+    return [p for p in folder.iterdir() if p.name.endswith(".tmp")]
+
+
+@pytest.mark.skipif(not Path("/proc/self/fd").is_dir(), reason="needs /proc to see the run start")
+@pytest.mark.parametrize("signum, status", [(signal.SIGINT, 130), (signal.SIGTERM, 143)],
+                         ids=["SIGINT", "SIGTERM"])
+def test_signal_while_computing(tmp_path, signum, status):
+    program = tmp_path / "part.gcode"
+    program.write_bytes(TUBE.read_bytes())
+    proc = start(program, "-o", tmp_path / "out.gcode")
+    # Once the program is open (its flavor detected, then read), the imports are over; half a
+    # second later reading and planning are done and the optimizer is at work.
+    deadline = time.monotonic() + 60
+    while not any(os.path.realpath(fd) == str(program) for fd in open_files(proc.pid)):
+        assert proc.poll() is None and time.monotonic() < deadline, "the program was never opened"
+        time.sleep(0.002)
+    time.sleep(0.5)
+    assert proc.poll() is None, "finished before the signal"
+    proc.send_signal(signum)
+    _, stderr = proc.communicate(timeout=60)
+    assert_nothing_lost(proc.returncode, stderr, program, TUBE.read_bytes(), status=status, words="interrupted")
+
+
+@pytest.mark.parametrize("signum, status", [(signal.SIGINT, 130), (signal.SIGTERM, 143)],
+                         ids=["SIGINT", "SIGTERM"])
+def test_signal_while_writing_in_place(tmp_path, signum, status):
+    """The signal arrives once the temporary file exists (G5 output: seconds of writing)."""
+    program = tmp_path / "part.gcode"
+    program.write_bytes(TUBE.read_bytes())
+    proc = start(program, "--format", "g5")
+    deadline = time.monotonic() + 60
+    while not temporary_files(tmp_path):
+        assert proc.poll() is None and time.monotonic() < deadline, "no temporary file seen"
+        time.sleep(0.002)
+    time.sleep(0.2)  # some output written
+    assert proc.poll() is None, "finished before the signal"
+    proc.send_signal(signum)
+    _, stderr = proc.communicate(timeout=60)
+    assert_nothing_lost(proc.returncode, stderr, program, TUBE.read_bytes(), status=status, words="interrupted")

@@ -1,0 +1,234 @@
+"""Properties of `compensate` over random valid programs (hypothesis), judged by the executor in
+reference.py: the output parses; every non-motion line is there byte-exact and in order; E (and Z,
+which has no modes) at every one of them, X and Y where the machine rests (G4) and every axis at
+the end are the original's; the output lasts as long as the planned original; the predicted
+error is never worse than the original's.
+
+The programs: Marlin, 10 to 40 lines of G0/G1 (X Y Z E F), G2/G3 (I J and R), G4, M82/M83
+with absolute and relative E, G90/G91, G92 E0 and G92 X Y, comments (`;` and `( )`, with bytes
+that are not UTF-8), passthrough lines, blank lines, LF and CRLF endings, the last line with or
+without one. A few mm at tens of mm/s: a second or two of motion each.
+
+`test_fuzz` runs the same checks for about a minute with a fixed seed. Known failures, each an
+xfail with the minimal programs found (as @example): lines where the machine rests (G4, M400,
+T0) in `test_with_stops`, the largest error in `test_largest_error_never_worse`, a G92 of X Y
+in mid-motion in `test_g92_in_mid_motion`; the other tests generate programs without them.
+"""
+import math
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, Phase, example, given, seed, settings, strategies as st
+
+from fbspost.gcode import read_gcode
+from fbspost.pipeline import CompensateOptions, compensate_file
+from fbspost.planner import plan_blocks
+from fbspost.profile import load_profile
+from reference import execute, kept_lines, rms, sample_blocks, simulate_lsim
+
+PRINTER = load_profile("bedslinger-example")
+OPTIONS = CompensateOptions(flavor="marlin")
+PASSTHROUGH = [b"M106 S128", b"M107", b"M104 S205", b"M140 S60", b"M117 Layer 2", b"; LAYER_CHANGE",
+               b"(a CNC comment)", b"", b"M204 S2500", b"M221 S95"]
+STOPS = [b"T0", b"M400"]  # the machine rests there, as at G4
+
+
+def fixed(value: float, decimals: int = 3) -> str:
+    return f"{value:.{decimals}f}"
+
+
+@st.composite
+def programs(draw, stops: bool = True) -> bytes:
+    """A valid Marlin program; its position is tracked here in program coordinates, so that arcs
+    end on their circle and stay a few mm in size. Without ``stops``: no line where the machine
+    rests (G4, M400, T0) and so no G92 X Y (see test_with_stops)."""
+    x, y = (round(draw(st.floats(0, 20)), 3) for _ in range(2))
+    z, e = 0.2, 0.0
+    abs_xyz, abs_e = True, draw(st.booleans())
+    lines = [b"G21", b"G90", b"M82" if abs_e else b"M83", b"G92 E0",
+             f"G1 X{fixed(x)} Y{fixed(y)} Z{fixed(z)} F{draw(st.integers(1200, 6000))}".encode()]
+    comment = st.binary(max_size=12).map(lambda b: b.replace(b"\n", b"").replace(b"\r", b""))
+
+    def words(nx, ny):
+        """X Y words to (nx, ny), in the distance mode; updates the position."""
+        nonlocal x, y
+        out = f"X{fixed(nx - x if not abs_xyz else nx)} Y{fixed(ny - y if not abs_xyz else ny)}"
+        x, y = nx, ny
+        return out
+
+    def extrusion():
+        nonlocal e
+        de = round(draw(st.floats(-0.8, 1.2)), 4)
+        e = round(e + de, 4)
+        return f" E{fixed(e if abs_e else de, 4)}"
+
+    for _ in range(draw(st.integers(5, 35))):
+        kind = draw(st.sampled_from(["move"] * 6 + ["arc"] * 3 + ["e-mode", "g92", "distance", "pass", "pass",
+                                                                   "comment"] + ["dwell", "stop"] * stops))
+        if kind == "move":
+            nx, ny = (round(draw(st.floats(0, 20)), 3) for _ in range(2))
+            line = draw(st.sampled_from(["G1 ", "G1 ", "G0 "])) + words(nx, ny)
+            if draw(st.integers(0, 9)) == 0:
+                dz = draw(st.sampled_from([0.2, -0.2, 0.4]))
+                z = round(z + dz, 3)
+                line += f" Z{fixed(dz if not abs_xyz else z)}"
+            if draw(st.booleans()):
+                line += extrusion()
+            if draw(st.booleans()):
+                line += f" F{draw(st.integers(600, 9000))}"
+            lines.append(line.encode() + (b" ; " + draw(comment) if draw(st.integers(0, 5)) == 0 else b""))
+        elif kind == "arc":
+            code = draw(st.sampled_from(["G2", "G3"]))
+            if draw(st.booleans()):  # I J: the centre at a radius of 1 to 8 mm, the end on the circle
+                r, a = draw(st.floats(1, 8)), draw(st.floats(0, 2 * math.pi))
+                i, j = round(-r * math.cos(a), 3), round(-r * math.sin(a), 3)
+                cx, cy, r = x + i, y + j, math.hypot(i, j)
+                b = a + draw(st.floats(0.2, 2 * math.pi - 0.2))
+                line = f"{code} {words(round(cx + r * math.cos(b), 3), round(cy + r * math.sin(b), 3))} " \
+                       f"I{fixed(i)} J{fixed(j)}"
+            else:  # R: at least half the chord; negative takes the long way round
+                d, a = draw(st.floats(1, 10)), draw(st.floats(0, 2 * math.pi))
+                r = d / 2 * draw(st.floats(1.01, 3)) * draw(st.sampled_from([1, -1]))
+                line = f"{code} {words(round(x + d * math.cos(a), 3), round(y + d * math.sin(a), 3))} R{fixed(r)}"
+            if draw(st.booleans()):
+                line += extrusion()
+            lines.append(line.encode())
+        elif kind == "dwell":
+            lines.append(draw(st.sampled_from([f"G4 P{draw(st.integers(0, 300))}", f"G4 S0.{draw(st.integers(0, 3))}"])).encode())
+        elif kind == "e-mode":
+            abs_e = draw(st.booleans())
+            lines.append(b"M82" if abs_e else b"M83")
+        elif kind == "g92":
+            if not stops or draw(st.booleans()):
+                e = 0.0
+                lines.append(b"G92 E0")
+            else:  # a new origin where the machine rests (see test_g92_in_mid_motion)
+                x, y = (round(draw(st.floats(-10, 10)), 3) for _ in range(2))
+                lines += [b"M400", f"G92 X{fixed(x)} Y{fixed(y)}".encode()]
+        elif kind == "distance":  # in Marlin G90/G91 set E's mode too
+            abs_xyz = abs_e = draw(st.booleans())
+            lines.append(b"G90" if abs_xyz else b"G91")
+        elif kind == "pass":
+            lines.append(draw(st.sampled_from(PASSTHROUGH)))
+        elif kind == "stop":
+            lines.append(draw(st.sampled_from(STOPS)))
+        else:
+            lines.append(draw(st.sampled_from([b"; ", b"(", b";("])) + draw(comment).replace(b")", b"")
+                         + draw(st.sampled_from([b"", b")"])))
+    endings = [draw(st.sampled_from([b"\n", b"\r\n"])) for _ in lines]
+    if draw(st.booleans()):
+        endings[-1] = b""
+    return b"".join(line + ending for line, ending in zip(lines, endings))
+
+
+def compensated(program: bytes):
+    """(the program's path, the output's path, the report) in a temporary folder kept alive by
+    the returned handle."""
+    folder = tempfile.TemporaryDirectory()
+    source, target = Path(folder.name) / "in.gcode", Path(folder.name) / "out.gcode"
+    source.write_bytes(program)
+    report = compensate_file(source, target, PRINTER, OPTIONS)
+    return folder, source, target, report
+
+
+def check_program_kept(program: bytes, largest_error: bool = False):
+    """Every property; the largest predicted error too with ``largest_error`` (see
+    test_largest_error_never_worse)."""
+    folder, source, target, report = compensated(program)
+    with folder:
+        list(read_gcode(target, "marlin"))  # fbspost reads what it wrote
+        original, output = execute(source), execute(target)
+        kept = kept_lines(original.nonmotion, output.nonmotion)
+        # E (program coordinates) and Z (no modes) at every non-motion line, exact to the written
+        # decimals (X and Y where the machine rests: test_with_stops).
+        np.testing.assert_allclose(np.array(output.e_at_lines)[kept], original.e_at_lines, rtol=0, atol=1e-7)
+        at_out, at_in = np.reshape(output.at_lines, (-1, 4))[kept], np.reshape(original.at_lines, (-1, 4))
+        known = ~np.isnan(at_in[:, 2])
+        np.testing.assert_allclose(at_out[known, 2], at_in[known, 2], rtol=0, atol=1e-7)
+        dwelling = np.array([line.startswith((b"G4", *STOPS)) for line in original.nonmotion], bool) & known
+        np.testing.assert_allclose(at_out[dwelling, :2], at_in[dwelling, :2], rtol=0, atol=1e-7)
+        assert output.extruded == pytest.approx(original.extruded, abs=1e-7)
+        if original.ends:
+            np.testing.assert_allclose(output.ends[-1][1:], original.ends[-1][1:], rtol=0, atol=1e-7)
+        # As long as the controller takes for the original (never less than the original at its feeds).
+        plan = plan_blocks(list(read_gcode(source, "marlin")), PRINTER)
+        assert original.duration_s <= plan.duration_s + 1e-9
+        assert output.duration_s == pytest.approx(plan.duration_s, rel=0.01, abs=2e-3)
+        assert report.warnings == []
+        # The predicted error, the report's and that of the output run block by block through
+        # scipy's simulation of the profile, against the planned original (0.2 um: the written
+        # decimals and the blocks' 1 um tolerance).
+        for axis in report.axes.values():
+            assert axis.rms_error_after_um <= axis.rms_error_before_um * (1 + 1e-9)
+            assert not largest_error or axis.max_error_after_um <= axis.max_error_before_um * (1 + 1e-9)
+        if not output.ends:
+            return
+        _, command = sample_blocks(output.ends, PRINTER.sample_rate_hz)
+        n = min(len(command), len(plan.positions_mm))
+        for column, name in ((0, "X"), (1, "Y")):
+            before, after = modelled_error(plan.positions_mm[:n, column], command[:n, column],
+                                           PRINTER.axes[name].modes, 1.0 / PRINTER.sample_rate_hz)
+            assert rms(after) <= rms(before) + 2e-4, f"{name}: {rms(before) * 1e3:.3f} -> {rms(after) * 1e3:.3f} um"
+            assert not largest_error or np.abs(after).max() <= np.abs(before).max() + 2e-4, name
+
+
+def modelled_error(desired, command, modes, period_s):
+    """Desired minus the scipy simulation of the desired as the command (the planned original),
+    and of the command, over the motion and the settling for 0.2 s after it."""
+    hold = int(0.2 / period_s)
+    desired = np.concatenate([desired, np.full(hold, desired[-1])])
+    command = np.concatenate([command, np.full(len(desired) - len(command), command[-1])])
+    return (desired - simulate_lsim(modes, period_s, desired)), (desired - simulate_lsim(modes, period_s, command))
+
+
+COMMON = dict(deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+# Known failures: the saved examples fail at once; no shrinking of new ones (minutes per example).
+KNOWN = settings(max_examples=5, derandomize=True, phases=[Phase.explicit, Phase.generate], **COMMON)
+
+
+@settings(max_examples=15, derandomize=True, **COMMON)
+@given(programs(stops=False))
+def test_program_kept(program):
+    check_program_kept(program)
+
+
+@pytest.mark.xfail(strict=False, reason="planner/writer: a line where the machine rests (G4, M400, T0) is "
+                                        "written one sample before its run of motion ends when the run's end "
+                                        "time rounds down: the last millisecond of motion comes after it (or "
+                                        "never, at the end of the program)")
+@KNOWN
+@example(b"G1 X0 Y12.028 F1151\nG1 X20 Y19.469 E-0.1302 F1475\nG4 P100\n")  # rests 9 um short
+@example(b"G1 X19.651 Y8.295 F1125\nG3 X20.858 Y6.828 R2.479\nG4 P132\n")  # ends 3.7 um short
+@example(b"G1 X2.322 Y10.870 Z0.2 F4073\nG0 X2.902 Y18.239\nG1 X0.707 Y11.768\nG2 X-1.629 Y11.824 R-1.461\n"
+         b"G4 P5\nG3 X-4.693 Y-1.533 I-2.337 J-6.494\n")  # lasts 43 ms (6 %) longer
+@given(programs(stops=True))
+def test_with_stops(program):
+    check_program_kept(program)
+
+
+@pytest.mark.xfail(strict=False, reason="compensation may raise the largest error of a run (RMS always drops); "
+                                        "the fallback to the planned original is not there yet")
+@KNOWN
+@example(b"G1 X2.789 Y0 Z0.2 F1200\nG1 X0 Y0 Z0.4\n")  # X: largest 68.6 -> 85.2 um, RMS 25.7 -> 14.8 um
+@given(programs(stops=False))
+def test_largest_error_never_worse(program):
+    check_program_kept(program, largest_error=True)
+
+
+@pytest.mark.xfail(strict=False, reason="writer: after a G92 in mid-motion only the axes whose offset changed in "
+                                        "the original are carried over; the controller sets every named axis "
+                                        "where the compensated command is")
+def test_g92_in_mid_motion():
+    """G92 Y0 where the original is at Y0 but the compensated command 55 um further: the output
+    must end at the original's machine Y, not 55 um off."""
+    check_program_kept(b"G1 X10.409 Y2.084 Z0.2 F1422\nG1 X11.911 Y0 Z0.4\nG92 X-10 Y0\nG1 X0.69 Y0 Z0.6\n")
+
+
+@settings(max_examples=60, database=None, phases=[Phase.explicit, Phase.generate], **COMMON)
+@seed(20261121)
+@given(programs(stops=False))
+def test_fuzz(program):
+    """About a minute on two cores, a fixed seed, no shrinking (a failure prints its program)."""
+    check_program_kept(program)
