@@ -14,9 +14,10 @@ path, and per method its command, its modelled actual positions and their ``Metr
 - Tracking error: planned minus modelled actual position (path: the XYZ distance), over the
   whole grid. Contour error: distance from the modelled actual position to the programmed
   path (the planned pieces' straight lines, arcs as their chords), in XYZ so that a print's
-  layers are not taken for each other (Z is the plan's unless Z has modes), at the samples inside
-  extruding moves (E increasing) if the program extrudes at all (a printer), else inside feed
-  moves (every move but LinuxCNC's G0). Command contour error: the same for the command itself
+  layers are not taken for each other (Z is the plan's unless Z has modes). If the program
+  extrudes at all (a printer), the path is its extruding moves and the samples those where the
+  planned E rises on both sides; otherwise the path is its feed moves (every move but LinuxCNC's
+  G0) and the samples those inside them. Command contour error: the same for the command itself
   (a shaper's smoothing, its corner rounding; FBS's deliberate pre-distortion).
 - Residual vibration: the largest |actual - final position| over ``settle_s`` after the
   command's last motion. Duration: from the command's first motion (of any axis) to its last.
@@ -173,7 +174,7 @@ def simulate_program(program: str | Path, profile: MachineProfile, shapers: tupl
     after = math.ceil(max(lags + [0.0]) / period_s - 1e-9) + math.ceil(settle_s / period_s)
     desired = np.pad(plan.positions_mm, ((before, after), (0, 0)), mode="edge")
     time_s = (np.arange(len(desired)) - before) * period_s
-    printer, mask, starts, ends = _contour_moves(blocks, plan, time_s)
+    printer, mask, starts, ends = _contour_moves(blocks, plan, time_s, desired)
     sim = Simulation(str(program), profile, flavor, printer, time_s, desired, mask, starts, ends, settle_s, modelled,
                      warnings=[f"plan: {note}" for note in plan.notes])
     if executed:
@@ -265,15 +266,22 @@ def _modelled(profile: MachineProfile) -> list[str]:
     return [a for a in AXES if a in profile.axes and profile.axes[a].modes]
 
 
-def _contour_moves(blocks: list[Block], plan: Plan, time_s: np.ndarray):
-    """(printer, samples inside the contour moves, their pieces' XYZ starts and ends)."""
+def _contour_moves(blocks: list[Block], plan: Plan, time_s: np.ndarray, desired_mm: np.ndarray):
+    """(printer, the contour samples, the contour pieces' XYZ starts and ends). A printer's
+    samples are those where the planned E rises on both sides (inside an extruding move, not at
+    its junction with a travel); a CNC's those inside a feed move's time."""
     pieces = plan.pieces
     extruding = pieces.end_mm[:, 3] > pieces.start_mm[:, 3]
     printer = bool(extruding.any())
-    chosen = extruding if printer else np.isfinite([blocks[b].feed_mm_s for b in pieces.block])
-    inside = np.searchsorted(pieces.start_s, time_s, side="right") - 1
-    piece = np.maximum(inside, 0)
-    mask = (inside >= 0) & chosen[piece] & (time_s <= pieces.start_s[piece] + pieces.duration_s[piece])
+    if printer:
+        chosen = extruding
+        rising = np.diff(desired_mm[:, 3]) > 0
+        mask = np.append(rising, False) & np.insert(rising, 0, False)
+    else:
+        chosen = np.isfinite([blocks[b].feed_mm_s for b in pieces.block])
+        inside = np.searchsorted(pieces.start_s, time_s, side="right") - 1
+        piece = np.maximum(inside, 0)
+        mask = (inside >= 0) & chosen[piece] & (time_s <= pieces.start_s[piece] + pieces.duration_s[piece])
     return printer, mask, pieces.start_mm[chosen, _XYZ], pieces.end_mm[chosen, _XYZ]
 
 
