@@ -24,7 +24,7 @@ from reference import execute, rms, sample_blocks, segments_distance, simulate_l
 ROOT = Path(__file__).resolve().parent.parent
 BUTTERFLY = ROOT / "samples" / "butterfly-dense.gcode"
 TUBE = Path(__file__).resolve().parent / "data" / "tube-marlin2.gcode"
-TUBE_LINES = 1068  # its first two layers (34 s of print): the whole 274 s takes minutes here
+TUBE_LINES = 1068  # its first two layers (49 s of motion): the whole 274 s print takes minutes here
 SETTLE_PERIODS = 5  # README: residual vibration over 5 periods of the lowest mode
 
 
