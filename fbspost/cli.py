@@ -31,7 +31,10 @@ from .dynamics import AxisDynamics
 from .gcode import FLAVORS
 from .optimizer import AxisLimits, FBSSettings, compensate_axis
 from .pipeline import AxisReport, CompensateOptions, Report, compensate_file
+from .plots import FORMATS as PLOT_FORMATS, write_plot  # matplotlib is imported when plotting
 from .profile import AXIS_NAMES, MachineProfile, ProfileError, bundled_profiles, load_profile
+from .shapers import MAX_DAMPING, SHAPERS
+from .simulate import shaper_settings, simulate_program
 from .trajectory import InputError, read_trajectory_csv, write_trajectory_csv
 
 
@@ -516,6 +519,120 @@ def excite(machine, axis, output, centre_mm, start_hz, end_hz, duration_s, ampli
     click.echo(f"fbspost {__version__}: wrote {output}: axis {axis} {start_hz:g}..{end_hz:g} Hz about "
                f"{centre_mm:g} mm, {(len(positions) - 1) * block_s:g} s, largest amplitude "
                f"{np.abs(positions - centre_mm).max():.4g} mm", err=True)
+
+
+def _shaper_names(ctx, param, value: str) -> tuple[str, ...]:
+    names = tuple(n.strip().lower() for n in value.split(",") if n.strip())
+    if names == ("none",):
+        return ()
+    for name in names:
+        if name not in SHAPERS:
+            raise click.BadParameter(f"unknown shaper {name!r}: expected some of {','.join(SHAPERS)}, or none")
+    return names
+
+
+def _per_axis(low: float, high: float | None):
+    """A click callback reading AXIS=VALUE,... with low < value (< high)."""
+
+    def parse(ctx, param, value: str | None) -> dict[str, float]:
+        out = {}
+        for item in (value or "").split(","):
+            if not item.strip():
+                continue
+            axis, _, number = item.partition("=")
+            try:
+                out[axis.strip().upper()] = float(number)
+            except ValueError:
+                raise click.BadParameter(f"{item.strip()!r}: expected AXIS=VALUE, e.g. X=48") from None
+            if not (low < out[axis.strip().upper()] and (high is None or out[axis.strip().upper()] < high)):
+                raise click.BadParameter(f"{item.strip()!r}: must be > {low:g}" + (f" and < {high:g}" if high else ""))
+        return out
+
+    return parse
+
+
+@main.command()
+@click.argument("input_path", metavar="INPUT", type=click.Path(dir_okay=False, path_type=Path))
+@_machine_option
+@click.option("--compensated", type=click.Path(dir_okay=False, path_type=Path), metavar="OUT.gcode",
+              help="Run this compensated program (from `fbspost compensate`) block by block at its feed as the "
+                   "FBS row, instead of compensating now.")
+@click.option("--shapers", default=",".join(SHAPERS), show_default=True, callback=_shaper_names,
+              help="Klipper input shapers to compare, comma-separated, or none.")
+@click.option("--shaper-freq", "shaper_freq", callback=_per_axis(0.0, None), metavar="AXIS=HZ,...",
+              help="Shaper frequency per axis, e.g. X=48,Y=36 (default: the axis' dominant mode).")
+@click.option("--shaper-damping", "shaper_damping", callback=_per_axis(0.0, 1.0), metavar="AXIS=RATIO,...",
+              help="Shaper damping ratio per axis, e.g. X=0.1,Y=0.1 (default: the dominant mode's).")
+@click.option("--flavor", type=click.Choice(FLAVORS), help="Firmware dialect (default: detected from INPUT).")
+@click.option("--json", "as_json", is_flag=True, help="Print the figures as JSON (keys in the README) instead of tables.")
+@click.option("--plot", "plot_path", type=click.Path(dir_okay=False, path_type=Path), metavar="FILE",
+              help="Also write plots: FILE.png (one page) or FILE.pdf (one panel per page).")
+def simulate(input_path, machine, compensated, shapers, shaper_freq, shaper_damping, flavor, as_json, plot_path):
+    """Compare the original, FBS and Klipper's input shapers on INPUT, through the profile's model.
+
+    Plans INPUT as the controller would and runs every axis with modes through its model: the
+    original plan; FBS (compensated now, or the --compensated program run block by block at its
+    feed); each input shaper applied to the plan (Klipper's definitions and time shift; its
+    frequency and damping from the axis' dominant mode unless given). Per method, for the path
+    and each axis: tracking error RMS/max, contour error RMS/max (on extruding moves if the
+    program extrudes, else on feed moves), the command's own distance from the path (a shaper's
+    smoothing), residual vibration after the last move, duration and how much earlier/later the
+    motion starts/ends than the plan, largest command velocity and acceleration. Units: um, s,
+    mm/s, mm/s^2.
+    """
+    if plot_path and plot_path.suffix.lower() not in PLOT_FORMATS:
+        raise click.BadParameter(f"{plot_path}: expected a .png or .pdf file", param_hint="--plot")
+    profile = load_profile(machine)
+    try:
+        settings = shaper_settings(profile, shaper_freq, shaper_damping)
+    except ValueError as exc:
+        raise click.UsageError(str(exc)) from None
+    for name in shapers:
+        for axis, (_, damping) in settings.items():
+            if damping > MAX_DAMPING[name]:
+                raise click.UsageError(f"{name} is defined for damping ratios up to {MAX_DAMPING[name]:g}, axis {axis} "
+                                       f"has {damping:g}: give --shaper-damping or leave {name} out of --shapers")
+    sim = simulate_program(input_path, profile, shapers, settings, compensated, flavor)
+    if plot_path:
+        write_plot(sim, plot_path)
+    if as_json:
+        click.echo(json.dumps(sim.as_dict(), indent=2))
+    else:
+        click.echo(_simulate_tables(sim))
+
+
+def _simulate_tables(sim) -> str:
+    """The human-readable figures: one row per method, the path first, then each axis."""
+    p = sim.profile
+    moves = "extruding moves (the program extrudes)" if sim.printer else "feed moves (the program does not extrude)"
+    lines = [f"fbspost simulate: {sim.program} on {p.name} ({sim.flavor}, {p.sample_rate_hz:g} Hz); "
+             f"contour error on {moves}; residual vibration over {sim.settle_s:.3g} s after the last motion"]
+    lines += [f"  {m.label}" for m in sim.methods]
+    lines += ["", "path      contour um        tracking um       residual  command off path  duration   starts    ends     "
+                  "|v| max  |a| max",
+              "          RMS       max     RMS       max     max um    RMS um    max um  s          early s   late s   "
+              "mm/s     mm/s^2"]
+    for m in sim.methods:
+        q = m.path
+        lines.append(f"{m.name:9s} {_g(q.rms_contour_error_um, 9)} {_g(q.max_contour_error_um, 7)} "
+                     f"{_g(q.rms_tracking_error_um, 9)} {_g(q.max_tracking_error_um, 7)} {_g(q.residual_vibration_um, 9)} "
+                     f"{_g(q.rms_command_contour_error_um, 9)} {_g(q.max_command_contour_error_um, 7)} "
+                     f"{q.duration_s:<10.4f} {q.start_advance_s:<9.4f} {q.end_delay_s:<8.4f} "
+                     f"{_g(q.max_velocity_mm_s, 8)} {q.max_acceleration_mm_s2:.0f}")
+    for axis in sim.modelled:
+        lines += ["", f"axis {axis}    tracking um       residual  |v| max  |a| max",
+                  "          RMS       max     max um    mm/s     mm/s^2"]
+        for m in sim.methods:
+            q = m.axes[axis]
+            lines.append(f"{m.name:9s} {_g(q.rms_tracking_error_um, 9)} {_g(q.max_tracking_error_um, 7)} "
+                         f"{_g(q.residual_vibration_um, 9)} {_g(q.max_velocity_mm_s, 8)} {q.max_acceleration_mm_s2:.0f}")
+    lines += [f"warning: {w}" for w in sim.warnings]
+    return "\n".join(lines)
+
+
+def _g(value: float, width: int) -> str:
+    """4 significant digits, left-aligned; below 1e-6 (rounding of a zero) as 0."""
+    return f"{value if abs(value) >= 1e-6 else 0.0:<{width}.4g}"
 
 
 if __name__ == "__main__":

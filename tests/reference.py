@@ -245,17 +245,23 @@ def sample_blocks(ends, sample_rate_hz):
 def contour_error(path_xy, points_xy, piece_mm=0.5, candidates=16):
     """Distance from every point to the polyline ``path_xy``: the exact distance to the nearest of
     the ``candidates`` path pieces (pieces no longer than ``piece_mm``) whose middles are closest."""
+    path_xy = np.asarray(path_xy, dtype=float)
+    return segments_distance(path_xy[:-1], path_xy[1:], points_xy, piece_mm, candidates)
+
+
+def segments_distance(seg_starts, seg_ends, points, piece_mm=0.5, candidates=16):
+    """``contour_error`` for separate straight segments (rows of starts and ends, any dimension)."""
     from scipy.spatial import cKDTree
 
-    path_xy = np.asarray(path_xy, dtype=float)
     starts, ends = [], []
-    for a, b in zip(path_xy[:-1], path_xy[1:]):
-        n = max(1, int(np.ceil(np.hypot(*(b - a)) / piece_mm)))
+    for a, b in zip(np.asarray(seg_starts, dtype=float), np.asarray(seg_ends, dtype=float)):
+        n = max(1, int(np.ceil(np.linalg.norm(b - a) / piece_mm)))
         f = np.linspace(0.0, 1.0, n + 1)[:, None]
         pts = a + f * (b - a)
         starts.append(pts[:-1])
         ends.append(pts[1:])
     starts, ends = np.concatenate(starts), np.concatenate(ends)
+    points_xy = np.asarray(points)
     tree = cKDTree((starts + ends) / 2)
     _, idx = tree.query(points_xy, k=min(candidates, len(starts)))
     idx = idx.reshape(len(points_xy), -1)

@@ -1,0 +1,340 @@
+"""What a program does on a machine, compensated or not: the original plan, FBS and Klipper's input
+shapers, each through the axes' models, side by side.
+
+Takes a program, a machine profile, the shapers to compare (their frequency and damping per axis,
+by default the axis' dominant mode) and optionally a compensated program to execute instead of
+compensating now; gives a ``Simulation``: one time grid (the profile's sample period, from the
+earliest shaped start to the latest end plus ``settle_s``), the planned positions, the programmed
+path, and per method its command, its modelled actual positions and their ``Metrics``.
+
+- Methods: ``original`` (the plan, as the machine's controller runs it), ``fbs`` (the plan
+  compensated per run of motion as ``fbspost compensate`` does; or a compensated program run
+  block by block at its feed, no acceleration, as its dense output is meant to run), and each
+  shaper applied to the plan of every axis with modes (``shapers.shape``).
+- Tracking error: planned minus modelled actual position (path: the XYZ distance), over the
+  whole grid. Contour error: distance from the modelled actual position to the programmed
+  path (the planned pieces' straight lines, arcs as their chords), in XYZ so that a print's
+  layers are not taken for each other (Z is the plan's unless Z has modes). If the program
+  extrudes at all (a printer), the path is its extruding moves and the samples those where the
+  planned E rises on both sides; otherwise the path is its feed moves (every move but LinuxCNC's
+  G0) and the samples those inside them. Command contour error: the same for the command itself
+  (a shaper's smoothing, its corner rounding; FBS's deliberate pre-distortion).
+- Residual vibration: the largest |actual - final position| over ``settle_s`` after the
+  command's last motion. Duration: from the command's first motion (of any axis) to its last.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .dynamics import AxisDynamics
+from .gcode import AXES, Block, Kind, detect_flavor, read_gcode
+from .optimizer import AxisCompensator, AxisLimits, FBSSettings
+from .planner import EXTRUDE_ONLY_MM, Plan, _fill_unknown, plan_blocks
+from .profile import AxisProfile, MachineProfile, ProfileError
+from .shapers import SHAPERS, Shaper, klipper_shaper, shape
+from .trajectory import InputError
+
+SETTLE_PERIODS = 5.0  # residual vibration is watched for this many periods of the lowest mode
+MOVING_MM = 1e-9  # a command this far from its rest has left it (shaped rests round to ~1e-13)
+_PIECE_MM = 0.25  # the path is searched in straight pieces no longer than this
+_XYZ = slice(0, 3)
+
+
+@dataclass(frozen=True)
+class AxisMetrics:
+    rms_tracking_error_um: float
+    max_tracking_error_um: float
+    residual_vibration_um: float
+    max_velocity_mm_s: float  # of the command
+    max_acceleration_mm_s2: float  # of the command, second differences on the grid
+
+
+@dataclass(frozen=True)
+class PathMetrics:
+    rms_contour_error_um: float
+    max_contour_error_um: float
+    rms_tracking_error_um: float
+    max_tracking_error_um: float
+    residual_vibration_um: float
+    rms_command_contour_error_um: float
+    max_command_contour_error_um: float
+    duration_s: float
+    added_duration_s: float  # over the original's
+    start_advance_s: float  # starts this much before the original
+    end_delay_s: float  # ends this much after the original
+    max_velocity_mm_s: float  # XYZ
+    max_acceleration_mm_s2: float  # XYZ
+
+
+@dataclass
+class Method:
+    name: str  # original | fbs | a shaper name
+    label: str  # for people: how it was made
+    shapers: dict[str, Shaper]  # per axis; empty but for shapers
+    command_mm: np.ndarray  # (n, 4) on the grid
+    actual_mm: np.ndarray  # (n, 4) modelled
+    contour_error_mm: np.ndarray  # at the contour samples
+    nearest_mm: np.ndarray  # (k, 3) the path's point nearest to each of those actual positions
+    path: PathMetrics | None = None
+    axes: dict[str, AxisMetrics] = field(default_factory=dict)
+
+
+@dataclass
+class Simulation:
+    program: str
+    profile: MachineProfile
+    flavor: str
+    printer: bool  # the program extrudes: contour error on extruding moves, else on feed moves
+    time_s: np.ndarray  # (n,) the grid; 0 is the plan's start
+    desired_mm: np.ndarray  # (n, 4) the plan, held at rest before and after
+    contour_mask: np.ndarray  # (n,) samples inside the contour moves
+    path_start_mm: np.ndarray  # (m, 3) XYZ: the programmed path's pieces
+    path_end_mm: np.ndarray
+    settle_s: float
+    modelled: list[str]  # axes with modes
+    methods: list[Method] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+
+    def as_dict(self) -> dict:
+        """The ``--json`` document (keys documented in the README)."""
+        return {
+            "program": self.program,
+            "profile": self.profile.name,
+            "flavor": self.flavor,
+            "sample_rate_hz": self.profile.sample_rate_hz,
+            "contour_moves": "extruding" if self.printer else "feed",
+            "settle_s": self.settle_s,
+            "start_s": float(self.time_s[0]),
+            "end_s": float(self.time_s[-1]),
+            "methods": [{
+                "name": m.name,
+                "label": m.label,
+                "shaper": {a: {"type": s.name, "frequency_hz": s.frequency_hz, "damping": s.damping,
+                               "amplitudes": s.amplitudes.tolist(), "times_s": s.times_s.tolist()}
+                           for a, s in m.shapers.items()} or None,
+                "path": asdict(m.path),
+                "axes": {a: asdict(v) for a, v in m.axes.items()},
+            } for m in self.methods],
+            "warnings": list(self.warnings),
+        }
+
+
+def dominant_mode(axis: AxisProfile):
+    """The mode with the highest resonance peak |alpha + j beta w| / (2 damping w^2): the peak a
+    resonance test (Klipper's calibrate_shaper) finds."""
+    return max(axis.modes, key=lambda m: abs(complex(m.alpha, m.beta * m.omega_rad_s)) / (2 * m.damping * m.omega_rad_s**2))
+
+
+def shaper_settings(profile: MachineProfile, frequency_hz: dict[str, float] | None = None,
+                    damping: dict[str, float] | None = None) -> dict[str, tuple[float, float]]:
+    """(frequency, damping) of the shapers per axis with modes: the given ones, else the
+    dominant mode's. A given axis without modes is an error."""
+    modelled = _modelled(profile)
+    for given in (frequency_hz or {}, damping or {}):
+        for axis in given:
+            if axis not in modelled:
+                raise ValueError(f"axis {axis} has no modes in {profile.name}: shapers go on {', '.join(modelled)}")
+    settings = {}
+    for name in modelled:
+        mode = dominant_mode(profile.axes[name])
+        settings[name] = ((frequency_hz or {}).get(name, mode.frequency_hz), (damping or {}).get(name, mode.damping))
+    return settings
+
+
+def simulate_program(program: str | Path, profile: MachineProfile, shapers: tuple[str, ...] = SHAPERS,
+                     settings: dict[str, tuple[float, float]] | None = None, compensated: str | Path | None = None,
+                     flavor: str | None = None) -> Simulation:
+    """Every method on ``program`` (see the module docstring); ``settings`` as ``shaper_settings``
+    gives them (its default)."""
+    modelled = _modelled(profile)
+    if not modelled:
+        raise ProfileError(f"{profile.source}: no axis has modes: nothing to simulate")
+    flavor = flavor or detect_flavor(program)
+    blocks = list(read_gcode(program, flavor))
+    plan = plan_blocks(blocks, profile)
+    if not plan.runs:
+        raise InputError(program, None, "no motion to simulate")
+    settings = settings or shaper_settings(profile)
+    shaper_rows = {name: {a: klipper_shaper(name, *settings[a]) for a in modelled} for name in shapers}
+    period_s = 1.0 / profile.sample_rate_hz
+    executed = execute_program(list(read_gcode(compensated, flavor))) if compensated else None
+
+    # The grid: rest before the earliest shaped start, after the latest end, then the settling.
+    leads = [s.lead_s for row in shaper_rows.values() for s in row.values()]
+    lags = [s.lag_s for row in shaper_rows.values() for s in row.values()]
+    if executed:
+        lags.append(executed[0][-1] - (len(plan.positions_mm) - 1) * period_s)
+    settle_s = SETTLE_PERIODS / min(m.frequency_hz for a in modelled for m in profile.axes[a].modes)
+    before = math.ceil(max(leads, default=0.0) / period_s - 1e-9)
+    after = math.ceil(max(lags + [0.0]) / period_s - 1e-9) + math.ceil(settle_s / period_s)
+    desired = np.pad(plan.positions_mm, ((before, after), (0, 0)), mode="edge")
+    time_s = (np.arange(len(desired)) - before) * period_s
+    printer, mask, starts, ends = _contour_moves(blocks, plan, time_s, desired)
+    sim = Simulation(str(program), profile, flavor, printer, time_s, desired, mask, starts, ends, settle_s, modelled,
+                     warnings=[f"plan: {note}" for note in plan.notes])
+    if executed:
+        command = np.column_stack([np.interp(time_s, executed[0], executed[1][:, i]) for i in range(len(AXES))])
+        fbs = ("fbs", f"fbs: {compensated} run block by block at its feed", command)
+    else:
+        fbs = ("fbs", "fbs: compensated now", _compensate(desired, plan.runs, before, profile, modelled, sim.warnings))
+    rows = [("original", "original: the plan", desired), fbs]
+    for name, row in shaper_rows.items():
+        command = desired.copy()
+        for axis, shaper in row.items():
+            command[:, AXES.index(axis)] = shape(desired[:, AXES.index(axis)], period_s, shaper)
+        label = f"{name}: " + ", ".join(f"{a} {s.frequency_hz:.4g} Hz damping {s.damping:.3g}" for a, s in row.items())
+        rows.append((name, label, command))
+
+    dynamics = {a: AxisDynamics(profile.axes[a].modes, period_s) for a in modelled}
+    distance = PathDistance(starts, ends)
+    for name, label, command in rows:
+        actual = command.copy()
+        for axis, model in dynamics.items():
+            actual[:, AXES.index(axis)] = model.simulate(command[:, AXES.index(axis)])
+        error, nearest = distance(actual[mask, _XYZ])
+        sim.methods.append(Method(name, label, shaper_rows.get(name, {}), command, actual, error, nearest))
+    _measure(sim, period_s, distance)
+    return sim
+
+
+def execute_program(blocks: list[Block]) -> tuple[np.ndarray, np.ndarray]:
+    """Waypoints (times_s (m,), positions_mm (m, 4)) of ``blocks`` run one after another, every
+    linear piece of a MOVE at its block's feed without acceleration (a G5 as its chords, a
+    LinuxCNC G0 in no time); a STOP waits its dwell where it puts the machine. Unknown positions
+    are held as the planner holds them."""
+    points, feeds, dwells = [np.full((1, len(AXES)), np.nan)], [math.inf], [0.0]
+    for block in blocks:
+        if block.kind is Kind.MOVE and block.points_mm is not None:
+            points.append(block.points_mm)
+            feeds += [block.feed_mm_s] * len(block.points_mm)
+            dwells += [0.0] * len(block.points_mm)
+        elif block.kind is Kind.STOP:  # there at once (a jump if it moved the machine), then the dwell
+            points.append(np.vstack([block.position_mm, block.position_mm]))
+            feeds += [math.inf, math.inf]
+            dwells += [0.0, block.dwell_s]
+    filled, _ = _fill_unknown(np.concatenate(points))
+    delta = np.diff(filled, axis=0)
+    xyz = np.linalg.norm(delta[:, _XYZ], axis=1)
+    length = np.where(xyz < EXTRUDE_ONLY_MM, np.abs(delta[:, 3]), xyz)
+    steps = length / np.asarray(feeds[1:]) + np.asarray(dwells[1:])
+    return np.concatenate([[0.0], np.cumsum(steps)]), filled
+
+
+class PathDistance:
+    """Exact distance from points to a set of straight pieces, and the nearest point on them."""
+
+    def __init__(self, start_mm: np.ndarray, end_mm: np.ndarray):
+        count = np.maximum(1, np.ceil(np.linalg.norm(end_mm - start_mm, axis=1) / _PIECE_MM)).astype(int)
+        piece = np.repeat(np.arange(len(start_mm)), count)
+        step = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
+        d = (end_mm - start_mm)[piece] / count[piece, None]
+        self.a = start_mm[piece] + step[:, None] * d
+        self.d = d
+        self.half_mm = 0.5 * float(np.linalg.norm(d, axis=1).max(initial=0.0))
+        self.tree = cKDTree(self.a + 0.5 * d)
+
+    def __call__(self, points_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        distance = np.full(len(points_mm), np.inf)
+        nearest = np.zeros((len(points_mm), self.a.shape[1]))
+        todo, k = np.arange(len(points_mm)), 4
+        while todo.size:
+            reach, candidate = self.tree.query(points_mm[todo], k=min(k, len(self.a)))
+            reach, candidate = reach.reshape(todo.size, -1), candidate.reshape(todo.size, -1)
+            p = points_mm[todo][:, None, :]
+            a, d = self.a[candidate], self.d[candidate]
+            length2 = np.einsum("ijk,ijk->ij", d, d)
+            u = np.clip(np.einsum("ijk,ijk->ij", p - a, d) / np.where(length2 > 0, length2, 1.0), 0.0, 1.0)
+            point = a + u[..., None] * d
+            gap = np.sqrt(np.einsum("ijk,ijk->ij", p - point, p - point))
+            best = gap.argmin(axis=1)
+            rows = np.arange(todo.size)
+            distance[todo], nearest[todo] = gap[rows, best], point[rows, best]
+            # A middle is on the path, so the nearest one bounds the distance: every piece holding a
+            # nearer point has its middle within that bound plus half a piece. Those whose k
+            # nearest middles may not include all such pieces are searched again with more.
+            complete = (reach[:, -1] > reach[:, 0] + self.half_mm) | (reach.shape[1] == len(self.a))
+            todo, k = todo[~complete], 4 * k
+        return distance, nearest
+
+
+def _modelled(profile: MachineProfile) -> list[str]:
+    return [a for a in AXES if a in profile.axes and profile.axes[a].modes]
+
+
+def _contour_moves(blocks: list[Block], plan: Plan, time_s: np.ndarray, desired_mm: np.ndarray):
+    """(printer, the contour samples, the contour pieces' XYZ starts and ends). A printer's
+    samples are those where the planned E rises on both sides (inside an extruding move, not at
+    its junction with a travel); a CNC's those inside a feed move's time."""
+    pieces = plan.pieces
+    extruding = pieces.end_mm[:, 3] > pieces.start_mm[:, 3]
+    printer = bool(extruding.any())
+    if printer:
+        chosen = extruding
+        rising = np.diff(desired_mm[:, 3]) > 0
+        mask = np.append(rising, False) & np.insert(rising, 0, False)
+    else:
+        chosen = np.isfinite([blocks[b].feed_mm_s for b in pieces.block])
+        inside = np.searchsorted(pieces.start_s, time_s, side="right") - 1
+        piece = np.maximum(inside, 0)
+        mask = (inside >= 0) & chosen[piece] & (time_s <= pieces.start_s[piece] + pieces.duration_s[piece])
+    return printer, mask, pieces.start_mm[chosen, _XYZ], pieces.end_mm[chosen, _XYZ]
+
+
+def _compensate(desired: np.ndarray, runs: list[tuple[int, int]], offset: int, profile: MachineProfile,
+                modelled: list[str], warnings: list[str]) -> np.ndarray:
+    """The FBS command: every run of motion of every axis with modes, as ``fbspost compensate``
+    computes it (without writing it)."""
+    command = desired.copy()
+    for name in modelled:
+        column, axis = AXES.index(name), profile.axes[name]
+        compensate = AxisCompensator(AxisDynamics(axis.modes, 1.0 / profile.sample_rate_hz),
+                                     AxisLimits.from_profile(axis), FBSSettings(), "limited")
+        for first, last in runs:
+            result = compensate(desired[offset + first:offset + last + 1, column])
+            command[offset + first:offset + last + 1, column] = result.command_mm
+            warnings += [f"fbs: axis {name}: {w}" for w in result.warnings]
+    return command
+
+
+def _measure(sim: Simulation, period_s: float, distance: PathDistance) -> None:
+    """Every method's metrics; the original's timing is the reference for the others'."""
+    columns = [AXES.index(a) for a in sim.modelled]
+    settle = math.ceil(sim.settle_s / period_s)
+    reference = None
+    for method in sim.methods:
+        command, actual = method.command_mm, method.actual_mm
+        # the last sample before the command leaves its start, the first at its end for good
+        first = np.argmax(np.abs(command - command[0]).max(axis=1) > MOVING_MM) - 1
+        last = len(command) - np.argmax(np.abs(command - command[-1]).max(axis=1)[::-1] > MOVING_MM)
+        start_s, end_s = sim.time_s[first], sim.time_s[last]
+        reference = reference or (start_s, end_s)
+        error = sim.desired_mm - actual
+        residual = actual[last:last + settle + 1] - command[last]
+        velocity = np.diff(command, axis=0) / period_s
+        accel = np.diff(command, 2, axis=0) / period_s**2
+        command_error, _ = distance(command[sim.contour_mask, _XYZ])
+        method.axes = {sim.modelled[i]: AxisMetrics(
+            _rms_um(error[:, c]), _max_um(error[:, c]), _max_um(residual[:, c]),
+            float(np.abs(velocity[:, c]).max()), float(np.abs(accel[:, c]).max()))
+            for i, c in enumerate(columns)}
+        method.path = PathMetrics(
+            _rms_um(method.contour_error_mm), _max_um(method.contour_error_mm),
+            _rms_um(np.linalg.norm(error[:, _XYZ], axis=1)), _max_um(np.linalg.norm(error[:, _XYZ], axis=1)),
+            _max_um(np.linalg.norm(residual[:, _XYZ], axis=1)),
+            _rms_um(command_error), _max_um(command_error),
+            float(end_s - start_s), float((end_s - start_s) - (reference[1] - reference[0])),
+            float(reference[0] - start_s), float(end_s - reference[1]),
+            float(np.linalg.norm(velocity[:, _XYZ], axis=1).max()), float(np.linalg.norm(accel[:, _XYZ], axis=1).max()))
+
+
+def _rms_um(error_mm: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.square(error_mm)))) * 1e3 if error_mm.size else 0.0
+
+
+def _max_um(error_mm: np.ndarray) -> float:
+    return float(np.abs(error_mm).max(initial=0.0)) * 1e3
