@@ -100,6 +100,7 @@ class Block:
     feed_mm_s: float | None = None  # MOVE: requested feed along the path; math.inf for a rapid (G0)
     dwell_s: float = 0.0  # STOP: time at rest (G4)
     limits: PlannerLimits | None = None  # planner changes made by this line
+    sets_position: tuple[int, ...] = ()  # axes (indices into AXES) whose program position this line sets where the machine is (G92)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -499,13 +500,15 @@ class _Reader:
                 raise self.error(n, f"feed F{f} must be positive")
             self.feed = feed * scale / 60.0
 
+        sets_position = ()
         for g in others:
             if g == 4.0:
                 kind = Kind.STOP
                 dwell = self.dwell(n, params, junk)
             elif g == 92.0:
                 axis_words_used = True
-                modal_changed |= self.g92(n, params, dups, junk, scale)
+                sets_position = self.g92(n, params, dups, junk, scale)
+                modal_changed |= bool(sets_position)
             elif g == 92.1 or (self.cnc and g == 92.2):
                 if g == 92.2:
                     self.saved_off = self.off[:]
@@ -565,7 +568,7 @@ class _Reader:
                 self.motion = motion
             self.forget((0, 1, 2), e_too=True)
             kind = Kind.STOP
-        return self.block(n, raw, kind, dwell_s=dwell, limits=limits)
+        return self.block(n, raw, kind, dwell_s=dwell, limits=limits, sets_position=sets_position)
 
     # -- commands -------------------------------------------------------------------------------
 
@@ -586,7 +589,8 @@ class _Reader:
             raise self.error(n, "dwell time must not be negative")
         return seconds
 
-    def g92(self, n, params, dups, junk, scale) -> bool:
+    def g92(self, n, params, dups, junk, scale) -> tuple[int, ...]:
+        """Sets the program position of the axes named (indices into AXES, which it gives)."""
         if junk is not None:
             raise self.error(n, junk)
         if dups and dups & set("XYZE"):
@@ -602,14 +606,14 @@ class _Reader:
             elif self.cnc:
                 raise self.error(n, "G92 needs at least one axis word")
             else:  # Marlin, RRF: nothing to set
-                return False
+                return ()
         pos, off = self.pos, self.off
         for i, v in values.items():
             if pos[i] != pos[i]:  # unknown machine position: it is now known in this frame
                 pos[i] = v + off[i]
             else:
                 off[i] = pos[i] - v
-        return True
+        return tuple(values)
 
     def limits(self, n, m, params, scale):
         """PlannerLimits of M201/M203/M204/M205/M566, None if nothing is set, False if unknown."""

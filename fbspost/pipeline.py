@@ -97,7 +97,7 @@ def compensate_file(input_path: str | Path, output_path: str | Path, profile: Ma
     plan = plan_blocks(limits.watch(_timed(read_gcode(input_path, flavor), stages, "read")), profile)
     stages["plan"] = time.perf_counter() - clock - stages["read"]
     report = Report(str(input_path), str(output_path), profile.name, flavor, len(plan.line_time_s), 0,
-                    plan.duration_s, 0.0)
+                    plan.duration_s, 0.0, warnings=list(plan.warnings))
     period_s = 1.0 / profile.sample_rate_hz
     axes = {AXES.index(a): profile.axes[a] for a in AXES if a in profile.axes and profile.axes[a].modes}
     compensators = {c: AxisCompensator(AxisDynamics(axis.modes, period_s), AxisLimits.from_profile(axis),

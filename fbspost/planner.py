@@ -53,6 +53,7 @@ EXTRUDE_ONLY_MM = 1e-9  # Klipper: an XYZ length below this makes an extrude-onl
 SCAN_CHUNK = 4096  # pieces per chunk of the min-plus scans (bounds the cumulative-sum magnitude)
 SAMPLE_CHUNK = 1 << 14  # samples evaluated at once (keeps the temporaries in cache)
 MAX_NOTES = 20  # notes about lines with unknown positions, at most
+CLAMPED = "feeds beyond the machine's velocity limits run clamped, as the controller runs them"
 
 _NA = len(AXES)
 _E = AXES.index("E")
@@ -100,11 +101,13 @@ class Plan:
     line_time_s: np.ndarray  # (n_blocks,): MOVE: end of its motion; PASS: when the motion reaches it; STOP: at rest at it (before its dwell)
     move_start_s: np.ndarray  # (n_blocks,): MOVE: start of its motion; other blocks: = line_time_s
     is_move: np.ndarray  # (n_blocks,) bool: the block is a MOVE (rewritten), not a copied line
+    is_stop: np.ndarray  # (n_blocks,) bool: the block is a STOP (the machine at rest at it)
     runs: list[tuple[int, int]]  # [first, last] sample indices (inclusive) of each run of motion, at rest at both
     duration_s: float  # end of the last motion or dwell
     segments: _Segments
     pieces: Pieces | None = None  # the piece-level plan the samples come from
     notes: list[str] = field(default_factory=list)  # assumptions made (unknown positions)
+    warnings: list[str] = field(default_factory=list)  # feeds beyond the machine's limits, clamped (CLAMPED...)
 
     def samples(self, first: int, stop: int) -> np.ndarray:
         """(stop - first, 4) X Y Z E at samples first .. stop - 1 (mm). Each sample depends on its
@@ -263,11 +266,12 @@ def plan_blocks(blocks: Iterable[Block], profile: MachineProfile) -> Plan:
     waypoints = [np.full((1, _NA), np.nan)]  # the position before the program: first known values
     row_block, row_count, row_motion = [], [], []  # who added each group of waypoint rows
     move_feed, move_state = [], []  # per motion group
-    dwell, is_move, row_line = [], [], []
+    dwell, is_move, is_stop, row_line = [], [], [], []
     stop_blocks = []
     for j, block in enumerate(blocks):
         dwell.append(0.0)
         is_move.append(block.kind is Kind.MOVE)
+        is_stop.append(block.kind is Kind.STOP)
         if block.limits is not None:
             state.apply(block.limits, block.line_no)
             states.append(state.row())
@@ -296,7 +300,7 @@ def plan_blocks(blocks: Iterable[Block], profile: MachineProfile) -> Plan:
             row_count.append(1)
             row_motion.append(False)
     nb = len(dwell)
-    dwell, is_move = np.asarray(dwell), np.asarray(is_move, dtype=bool)
+    dwell, is_move, is_stop = np.asarray(dwell), np.asarray(is_move, dtype=bool), np.asarray(is_stop, dtype=bool)
 
     raw = np.concatenate(waypoints)
     filled, never = _fill_unknown(raw)
@@ -340,6 +344,13 @@ def plan_blocks(blocks: Iterable[Block], profile: MachineProfile) -> Plan:
         axis_v_limit = np.where(abs_unit > 0, axis_v / abs_unit, np.inf).min(axis=1, initial=np.inf)
         axis_a_limit = np.where(abs_unit > 0, axis_a / abs_unit, np.inf).min(axis=1, initial=np.inf)
     max_v = np.minimum(np.minimum(feed, planner_v), axis_v_limit)
+    clamped = np.flatnonzero(np.isfinite(feed) & (axis_v_limit < feed))  # as the controller does (a G0 means it)
+    clamped = clamped[np.unique(piece_block[clamped], return_index=True)[1]]  # the first piece of each block
+    warnings = []
+    if clamped.size:  # one line: slicers write Z moves at travel feeds on every layer
+        i = clamped[0]
+        warnings.append(f"{CLAMPED}: line {seg_line[keep][i]} (feed {feed[i] * 60:.6g} mm/min, runs at "
+                        f"{max_v[i] * 60:.6g} mm/min)" + (f" and {clamped.size - 1} more lines" if clamped.size > 1 else ""))
     extrudes = delta[:, _E] > 0
     accel = np.where(extrudes | np.isnan(accel_travel), accel_print, accel_travel)
     accel = np.minimum(accel, axis_a_limit)
@@ -450,5 +461,5 @@ def plan_blocks(blocks: Iterable[Block], profile: MachineProfile) -> Plan:
     seg_t0, seg_ref = seg_t0[order], seg_ref[order]
     seg_a0, seg_a1, seg_a2 = seg_a0[order], seg_a1[order], seg_a2[order]
     runs = [(int(a), int(b)) for a, b in zip(run_first_sample, run_last_sample)]
-    return Plan(fs, n_samples, line_time, move_start, is_move, runs, duration_s,
-                _Segments(seg_t0, seg_ref, seg_a0, seg_a1, seg_a2), pieces, notes)
+    return Plan(fs, n_samples, line_time, move_start, is_move, is_stop, runs, duration_s,
+                _Segments(seg_t0, seg_ref, seg_a0, seg_a1, seg_a2), pieces, notes, warnings)

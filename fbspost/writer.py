@@ -234,6 +234,7 @@ class _Emitter:
             return
         self.written *= old_unit / self.unit_mm
         changed = np.asarray(block.modal.offsets_mm) != old_offsets
+        changed[list(block.sets_position)] = True  # an axis set where it already was: set where the command is
         if changed.any():
             self.shift_mm[changed] = (command_mm - planned_mm)[changed]
             self.written[changed] = self.to_program(command_mm)[changed]
@@ -491,6 +492,11 @@ def write_program(blocks: Iterable[Block], plan: Plan, samples: SampleWindow, op
     # that blocks end on samples of the command: a block ending between two samples would bend
     # the command there, and ask more acceleration of the controller than the command does.
     copied_samples = np.rint(plan.line_time_s[~plan.is_move] * fs)
+    # A line at rest runs where the run of motion before it has ended: its last sample, the
+    # time rounded up (rounded to the nearest, the rest of the run would come after the line);
+    # and lines run in order.
+    copied_samples[plan.is_stop[~plan.is_move]] = np.ceil(plan.line_time_s[plan.is_stop] * fs)
+    copied_samples = np.maximum.accumulate(copied_samples)
     copied_times = iter((copied_samples / fs).tolist())
     copied = np.unique(copied_samples.astype(np.int64))
     newline = b"\n"

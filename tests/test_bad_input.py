@@ -172,8 +172,6 @@ def test_feed_beyond_the_machine_is_clamped_as_the_controller_does(tmp_path):
     assert (np.abs(np.diff(ends[:, 1])[dt > 0] / dt[dt > 0]) <= 300 * (1 + 1e-3)).all()
 
 
-@pytest.mark.xfail(strict=False, reason="the clamp is the planner's (plan.pieces.max_v_mm_s < the block's "
-                                        "feed); no warning yet: it needs pipeline.py")
 def test_feed_beyond_the_machine_is_a_warning_naming_the_line(tmp_path):
     program = tmp_path / "part.gcode"
     program.write_text(FAST)

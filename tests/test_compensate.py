@@ -12,7 +12,7 @@ from click.testing import CliRunner
 from fbspost.cli import main
 from fbspost.gcode import read_gcode
 from fbspost.pipeline import CompensateOptions, compensate_file
-from fbspost.planner import plan_blocks
+from fbspost.planner import CLAMPED, plan_blocks
 from fbspost.profile import load_profile
 from reference import contour_error, execute, is_motion_line, positions_at, rms, sample_blocks, simulate_lsim
 
@@ -143,7 +143,7 @@ def test_sliced_output_within_axis_limits(sliced):
     velocity per block, and acceleration from block to block (5% for the chords' approximation
     of the sampled command, as for the butterfly)."""
     _, target, report = sliced
-    assert not report.warnings
+    assert not [w for w in report.warnings if not w.startswith(CLAMPED)]  # (Z moves at travel feeds)
     ends = np.array(execute(target).ends)
     dt = np.diff(ends[:, 0])
     moving = dt > 0

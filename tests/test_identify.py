@@ -9,6 +9,7 @@ numbers written into Klipper files here.
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +19,7 @@ from scipy import signal
 
 from fbspost.cli import main
 from fbspost.dynamics import AxisDynamics
+from fbspost import excite as excite_module
 from fbspost.examples import butterfly
 from fbspost.optimizer import AxisLimits, compensate_axis
 from fbspost.profile import Mode, load_profile
@@ -149,7 +151,12 @@ def simulated_recording(program: Path, log: Path, modes, offset_s=1234.5678, rat
     rows = "".join(f"{ti:.6f},{a:.3f},{n:.3f},9810.000\n"
                    for ti, a, n in zip(t_log - start_s + offset_s, measured, rng.standard_normal(t_log.size)))
     log.write_text("#time,accel_x,accel_y,accel_z\n" + rows)
-    return offset_s + 1.0 - start_s
+    return offset_s + 1.0 + dwells_s(program.read_text().split(excite_module._BEGIN)[0]) - start_s
+
+
+def dwells_s(text: str) -> float:
+    """The G4 P (ms) dwells in a program's text, s: the executor times them."""
+    return sum(float(ms) / 1e3 for ms in re.findall(r"^G4 P([\d.]+)", text, re.M))
 
 
 def test_round_trip_excite_record_identify_within_5_percent(tmp_path):
@@ -182,7 +189,8 @@ def test_excite_program_keeps_the_limits_and_rests_at_the_centre(tmp_path):
     (tmp_path / "x.gcode").write_text("G1 Y0 F600\n" + text)
     t, pos = sample_blocks(execute(tmp_path / "x.gcode", 1000.0).ends, 1000.0)
     y = pos[:, 0]
-    assert t[-1] == pytest.approx(11.0, abs=2e-3)  # 10 s and two 0.5 s ramps (dwells not timed)
+    last_move = text[:text.rindex("\nG1 ")]
+    assert t[-1] == pytest.approx(11.0 + dwells_s(last_move), abs=2e-3)  # 10 s, two 0.5 s ramps and the dwells
     assert y[0] == y[-1] == 110.0
     assert finite_derivative_max(y, 1, 1e-3) <= axis.max_velocity_mm_s * (1 + 1e-6)
     assert finite_derivative_max(y, 2, 1e-3) <= axis.max_acceleration_mm_s2 * (1 + 1e-3)

@@ -10,9 +10,10 @@ that are not UTF-8), passthrough lines, blank lines, LF and CRLF endings, the la
 without one. A few mm at tens of mm/s: a second or two of motion each.
 
 `test_fuzz` runs the same checks for about a minute with a fixed seed. Known failures, each an
-xfail with the minimal programs found (as @example): lines where the machine rests (G4, M400,
-T0) in `test_with_stops`, the largest error in `test_largest_error_never_worse`, a G92 of X Y
-in mid-motion in `test_g92_in_mid_motion`; the other tests generate programs without them.
+xfail with the minimal programs found (as @example), both for want of the fallback to the
+planned original: the RMS error with lines where the machine rests (G4, M400, T0) in
+`test_with_stops`, the largest error in `test_largest_error_never_worse`; the other tests
+generate programs without them.
 """
 import math
 import tempfile
@@ -24,7 +25,7 @@ from hypothesis import HealthCheck, Phase, example, given, seed, settings, strat
 
 from fbspost.gcode import read_gcode
 from fbspost.pipeline import CompensateOptions, compensate_file
-from fbspost.planner import plan_blocks
+from fbspost.planner import CLAMPED, plan_blocks
 from fbspost.profile import load_profile
 from reference import execute, kept_lines, rms, sample_blocks, simulate_lsim
 
@@ -156,7 +157,7 @@ def check_program_kept(program: bytes, largest_error: bool = False):
         plan = plan_blocks(list(read_gcode(source, "marlin")), PRINTER)
         assert original.duration_s <= plan.duration_s + 1e-9
         assert output.duration_s == pytest.approx(plan.duration_s, rel=0.01, abs=2e-3)
-        assert report.warnings == []
+        assert [w for w in report.warnings if not w.startswith(CLAMPED)] == []
         # The predicted error, the report's and that of the output run block by block through
         # scipy's simulation of the profile, against the planned original (0.2 um: the written
         # decimals and the blocks' 1 um tolerance).
@@ -194,15 +195,28 @@ def test_program_kept(program):
     check_program_kept(program)
 
 
-@pytest.mark.xfail(strict=False, reason="planner/writer: a line where the machine rests (G4, M400, T0) is "
-                                        "written one sample before its run of motion ends when the run's end "
-                                        "time rounds down: the last millisecond of motion comes after it (or "
-                                        "never, at the end of the program)")
+@pytest.mark.parametrize("program", [
+    b"G1 X0 Y12.028 F1151\nG1 X20 Y19.469 E-0.1302 F1475\nG4 P100\n",  # rested 9 um short
+    b"G1 X19.651 Y8.295 F1125\nG3 X20.858 Y6.828 R2.479\nG4 P132\n",  # ended 3.7 um short
+    b"G1 X2.322 Y10.870 Z0.2 F4073\nG0 X2.902 Y18.239\nG1 X0.707 Y11.768\nG2 X-1.629 Y11.824 R-1.461\n"
+    b"G4 P5\nG3 X-4.693 Y-1.533 I-2.337 J-6.494\n",  # lasted 43 ms (6 %) longer
+])
+def test_lines_at_rest_run_where_the_motion_ended(program):
+    """Runs whose end time rounded down once put the line at rest a sample before the motion's
+    end (found by test_with_stops)."""
+    check_program_kept(program)
+
+
+@pytest.mark.xfail(strict=False, reason="with lines at rest the compensated RMS error can exceed the original's "
+                                        "(the fallback to the planned original is not there yet)")
 @KNOWN
-@example(b"G1 X0 Y12.028 F1151\nG1 X20 Y19.469 E-0.1302 F1475\nG4 P100\n")  # rests 9 um short
+@example(b"G1 X0 Y12.028 F1151\nG1 X20 Y19.469 E-0.1302 F1475\nG4 P100\n")  # rested 9 um short (fixed)
 @example(b"G1 X19.651 Y8.295 F1125\nG3 X20.858 Y6.828 R2.479\nG4 P132\n")  # ends 3.7 um short
 @example(b"G1 X2.322 Y10.870 Z0.2 F4073\nG0 X2.902 Y18.239\nG1 X0.707 Y11.768\nG2 X-1.629 Y11.824 R-1.461\n"
-         b"G4 P5\nG3 X-4.693 Y-1.533 I-2.337 J-6.494\n")  # lasts 43 ms (6 %) longer
+         b"G4 P5\nG3 X-4.693 Y-1.533 I-2.337 J-6.494\n")  # lasted 43 ms (6 %) longer (fixed)
+@example(b"G21\nG90\nM82\r\nG92 E0\nG1 X0.000 Y11.253 Z0.200 F2119\nM104 S205\r\nM82\r\nG2 X-2.468 Y8.439 I-1.480 "
+         b"J-1.191\r\nG1 X0.000 Y19.428 Z0.400 E0.0736\nG2 X3.015 Y18.167 R-3.393 E1.1586\r\nM400\r\nG92 X-0.737 "
+         b"Y-3.039\nG2 X-2.527 Y-3.552 R-2.500\nG2 X5.737 Y-9.183 R5.050\nM400\nG1 X14.783 Y20.000")  # Y RMS 35.9 -> 40.1 um
 @given(programs(stops=True))
 def test_with_stops(program):
     check_program_kept(program)
@@ -217,9 +231,6 @@ def test_largest_error_never_worse(program):
     check_program_kept(program, largest_error=True)
 
 
-@pytest.mark.xfail(strict=False, reason="writer: after a G92 in mid-motion only the axes whose offset changed in "
-                                        "the original are carried over; the controller sets every named axis "
-                                        "where the compensated command is")
 def test_g92_in_mid_motion():
     """G92 Y0 where the original is at Y0 but the compensated command 55 um further: the output
     must end at the original's machine Y, not 55 um off."""
