@@ -112,9 +112,7 @@ class AxisDynamics:
 
     def frequency_response(self, frequency_hz: np.ndarray) -> np.ndarray:
         """Continuous G(j 2 pi f), commanded to actual position."""
-        s = 2j * np.pi * np.asarray(frequency_hz, dtype=float)
-        return sum((m.alpha + m.beta * s) / (s * s + 2 * m.damping * m.omega_rad_s * s + m.omega_rad_s**2)
-                   for m in self.modes)
+        return modal_response(self.modes, frequency_hz)
 
     def poles(self) -> np.ndarray:
         """Continuous poles, rad/s."""
@@ -137,3 +135,11 @@ class AxisDynamics:
         cancelled = np.abs(numerator) <= 1e-12 * np.abs(terms).sum(axis=0)
         leading = np.argmin(cancelled) if not cancelled.all() else numerator.size
         return np.roots(numerator[leading:])
+
+
+def modal_response(modes, frequency_hz: np.ndarray) -> np.ndarray:
+    """sum_i (alpha_i + beta_i s) / (s^2 + 2 zeta_i w_i s + w_i^2) at s = j 2 pi f: the continuous
+    frequency response of ``modes`` (profile.Mode), commanded to actual position."""
+    s = 2j * np.pi * np.asarray(frequency_hz, dtype=float)
+    return sum((m.alpha + m.beta * s) / (s * s + 2 * m.damping * m.omega_rad_s * s + m.omega_rad_s**2)
+               for m in modes) + np.zeros_like(s)

@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage, optimize, signal
 
+from .dynamics import modal_response
 from .profile import AxisProfile, MachineProfile, Mode, format_profile, parse_profile
 from .trajectory import InputError
 
@@ -56,13 +57,6 @@ class Fit:
     def response(self, frequency_hz: np.ndarray) -> np.ndarray:
         """The fitted model G(j 2 pi f), without the delay."""
         return modal_response(self.modes, frequency_hz)
-
-
-def modal_response(modes, frequency_hz: np.ndarray) -> np.ndarray:
-    """sum_i (alpha_i + beta_i s) / (s^2 + 2 zeta_i w_i s + w_i^2) at s = j 2 pi f."""
-    s = 2j * np.pi * np.asarray(frequency_hz, dtype=float)
-    return sum((m.alpha + m.beta * s) / (s * s + 2 * m.damping * m.omega_rad_s * s + m.omega_rad_s**2)
-               for m in modes) + np.zeros_like(s)
 
 
 # ---- reading a measured frequency response ------------------------------------------------------

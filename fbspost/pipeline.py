@@ -98,14 +98,11 @@ def compensate_file(input_path: str | Path, output_path: str | Path, profile: Ma
     stages["plan"] = time.perf_counter() - clock - stages["read"]
     report = Report(str(input_path), str(output_path), profile.name, flavor, len(plan.line_time_s), 0,
                     plan.duration_s, 0.0, warnings=list(plan.warnings))
-    period_s = 1.0 / profile.sample_rate_hz
-    axes = {AXES.index(a): profile.axes[a] for a in AXES if a in profile.axes and profile.axes[a].modes}
-    compensators = {c: AxisCompensator(AxisDynamics(axis.modes, period_s), AxisLimits.from_profile(axis),
-                                       options.settings, options.lookahead) for c, axis in axes.items()}
-    errors = {c: (_ErrorStats(), _ErrorStats()) for c in axes}
-    follows_plan = np.array([c not in axes for c in range(len(AXES))])
-    chunks = _timed(_compensated(plan, compensators, errors, report, progress), stages, "optimize")
-    ceilings = [axis.max_acceleration_mm_s2 for c, axis in axes.items() if c < 3]  # XYZ
+    compensators = _compensators(profile, options)
+    errors = {c: (_ErrorStats(), _ErrorStats()) for c in compensators}
+    follows_plan = np.array([c not in compensators for c in range(len(AXES))])
+    chunks = _timed(_compensated(plan, compensators, errors, report.warnings, progress), stages, "optimize")
+    ceilings = [profile.axes[AXES[c]].max_acceleration_mm_s2 for c in compensators if c < 3]  # XYZ
     write_options = WriteOptions(
         flavor=flavor, output_format=options.output_format, tolerance_mm=options.tolerance_mm,
         min_segment_time_s=options.min_segment_time_s,
@@ -130,12 +127,30 @@ def compensate_file(input_path: str | Path, output_path: str | Path, profile: Ma
     return report
 
 
-def _compensated(plan: Plan, compensators: dict[int, AxisCompensator], errors: dict, report: Report, progress):
+def compensated_samples(plan: Plan, profile: MachineProfile, options: CompensateOptions = CompensateOptions(),
+                        warnings: list[str] | None = None) -> np.ndarray:
+    """The command for every sample of ``plan`` at once (n_samples, 4), as ``compensate_file``
+    computes it (for programs that fit in memory); the optimizers' warnings added to ``warnings``."""
+    compensators = _compensators(profile, options)
+    errors = {c: (_ErrorStats(), _ErrorStats()) for c in compensators}
+    chunks = _compensated(plan, compensators, errors, [] if warnings is None else warnings, None)
+    return np.concatenate([command for _, command in chunks] or [np.zeros((0, len(AXES)))])
+
+
+def _compensators(profile: MachineProfile, options: CompensateOptions) -> dict[int, AxisCompensator]:
+    """One per axis (column of AXES) that has modes in the profile."""
+    period_s = 1.0 / profile.sample_rate_hz
+    axes = {c: profile.axes[name] for c, name in enumerate(AXES) if name in profile.axes and profile.axes[name].modes}
+    return {c: AxisCompensator(AxisDynamics(axis.modes, period_s), AxisLimits.from_profile(axis), options.settings,
+                               options.lookahead) for c, axis in axes.items()}
+
+
+def _compensated(plan: Plan, compensators: dict[int, AxisCompensator], errors: dict, warnings: list[str], progress):
     """(planned, command) chunks of samples, every sample in order: the command is the plan
     but on the compensated axes (columns) during the runs. Adds up every compensated axis'
     modelled tracking error, over each run and the settling after it (the residual vibration
     the compensation also reduces, and may trade a little in-motion error for), before and
-    after, and the optimizers' warnings."""
+    after, and the optimizers' warnings to ``warnings``."""
     period_s = 1.0 / plan.sample_rate_hz
     total = max(1, sum(last - first + 1 for first, last in plan.runs))
     done = next_sample = 0
@@ -174,7 +189,7 @@ def _compensated(plan: Plan, compensators: dict[int, AxisCompensator], errors: d
         for c, stream in streams.items():
             result = stream.finish()
             commands[c] = np.concatenate([commands[c], result.command_mm])
-            report.warnings += [f"axis {AXES[c]}, motion starting at {first * period_s:.3f} s: {w}" for w in result.warnings]
+            warnings += [f"axis {AXES[c]}, motion starting at {first * period_s:.3f} s: {w}" for w in result.warnings]
         chunk, _, _ = ready(planned_rows, commands)
         done += len(chunk[0])
         for c, (before, after) in errors.items():

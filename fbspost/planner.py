@@ -242,7 +242,7 @@ def junction_limits(unit_prev: np.ndarray, unit_next: np.ndarray, jd_prev, jd_ne
 
 # ---- the planner -----------------------------------------------------------------------------
 
-def _fill_unknown(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def fill_unknown(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Hold NaN entries at the last known value of their axis (before it: the first known value;
     never known: 0). Also returns which axes were never known."""
     nan = np.isnan(points)
@@ -303,7 +303,7 @@ def plan_blocks(blocks: Iterable[Block], profile: MachineProfile) -> Plan:
     dwell, is_move, is_stop = np.asarray(dwell), np.asarray(is_move, dtype=bool), np.asarray(is_stop, dtype=bool)
 
     raw = np.concatenate(waypoints)
-    filled, never = _fill_unknown(raw)
+    filled, never = fill_unknown(raw)
     notes = [f"{AXES[i]}: position never known, planned at 0 mm" for i in np.flatnonzero(never)]
     row_count_a = np.asarray(row_count, dtype=np.int64)
     seg_block = np.repeat(np.asarray(row_block, dtype=np.int64), row_count_a)  # segment i: row i -> i+1

@@ -33,8 +33,8 @@ from scipy.spatial import cKDTree
 
 from .dynamics import AxisDynamics
 from .gcode import AXES, Block, Kind, detect_flavor, read_gcode
-from .optimizer import AxisCompensator, AxisLimits, FBSSettings
-from .planner import EXTRUDE_ONLY_MM, Plan, _fill_unknown, plan_blocks
+from .pipeline import compensated_samples
+from .planner import EXTRUDE_ONLY_MM, Plan, fill_unknown, plan_blocks
 from .profile import AxisProfile, MachineProfile, ProfileError
 from .shapers import SHAPERS, Shaper, klipper_shaper, shape
 from .trajectory import InputError
@@ -181,7 +181,10 @@ def simulate_program(program: str | Path, profile: MachineProfile, shapers: tupl
         command = np.column_stack([np.interp(time_s, executed[0], executed[1][:, i]) for i in range(len(AXES))])
         fbs = ("fbs", f"fbs: {compensated} run block by block at its feed", command)
     else:
-        fbs = ("fbs", "fbs: compensated now", _compensate(desired, plan.runs, before, profile, modelled, sim.warnings))
+        optimizer_warnings = []
+        command = np.pad(compensated_samples(plan, profile, warnings=optimizer_warnings), ((before, after), (0, 0)), mode="edge")
+        sim.warnings += [f"fbs: {w}" for w in optimizer_warnings]
+        fbs = ("fbs", "fbs: compensated now", command)
     rows = [("original", "original: the plan", desired), fbs]
     for name, row in shaper_rows.items():
         command = desired.copy()
@@ -217,7 +220,7 @@ def execute_program(blocks: list[Block]) -> tuple[np.ndarray, np.ndarray]:
             points.append(np.vstack([block.position_mm, block.position_mm]))
             feeds += [math.inf, math.inf]
             dwells += [0.0, block.dwell_s]
-    filled, _ = _fill_unknown(np.concatenate(points))
+    filled, _ = fill_unknown(np.concatenate(points))
     delta = np.diff(filled, axis=0)
     xyz = np.linalg.norm(delta[:, _XYZ], axis=1)
     length = np.where(xyz < EXTRUDE_ONLY_MM, np.abs(delta[:, 3]), xyz)
@@ -283,22 +286,6 @@ def _contour_moves(blocks: list[Block], plan: Plan, time_s: np.ndarray, desired_
         piece = np.maximum(inside, 0)
         mask = (inside >= 0) & chosen[piece] & (time_s <= pieces.start_s[piece] + pieces.duration_s[piece])
     return printer, mask, pieces.start_mm[chosen, _XYZ], pieces.end_mm[chosen, _XYZ]
-
-
-def _compensate(desired: np.ndarray, runs: list[tuple[int, int]], offset: int, profile: MachineProfile,
-                modelled: list[str], warnings: list[str]) -> np.ndarray:
-    """The FBS command: every run of motion of every axis with modes, as ``fbspost compensate``
-    computes it (without writing it)."""
-    command = desired.copy()
-    for name in modelled:
-        column, axis = AXES.index(name), profile.axes[name]
-        compensate = AxisCompensator(AxisDynamics(axis.modes, 1.0 / profile.sample_rate_hz),
-                                     AxisLimits.from_profile(axis), FBSSettings(), "limited")
-        for first, last in runs:
-            result = compensate(desired[offset + first:offset + last + 1, column])
-            command[offset + first:offset + last + 1, column] = result.command_mm
-            warnings += [f"fbs: axis {name}: {w}" for w in result.warnings]
-    return command
 
 
 def _measure(sim: Simulation, period_s: float, distance: PathDistance) -> None:
