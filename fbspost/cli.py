@@ -146,8 +146,8 @@ def compensate(inputs, machine, output, output_dir, jobs, output_format, toleran
     original timing. Every other line is copied byte-exact, in order.
 
     Several INPUT files (for print farms) are each replaced in place, or written to
-    --output-dir; --jobs N compensates N of them at once in separate processes (each holds its
-    whole program in memory). A file that fails gets one line `error: FILE:LINE: message` and
+    --output-dir; --jobs N compensates N of them at once in separate processes. A file that
+    fails gets one line `error: FILE:LINE: message` and
     is left unchanged; the others are still compensated. Exit status 0 if every file
     succeeded, otherwise 1 with a last line naming the failed files.
     """
