@@ -1,15 +1,18 @@
-"""Benchmark the whole pipeline on sliced prints of about 1 min, 10 min, 1 h and 6 h, then complete
-vs limited look-ahead on the patent's butterfly.
+"""Benchmark the whole pipeline on sliced prints of about 1 min, 10 min, 1 h and 6 h and on a 100 MB
+CNC program, then complete vs limited look-ahead on the patent's butterfly.
 
-Run from the repository root:  python bench/pipeline.py [--sizes 1m,10m] [--cache bench/.programs]
+Run from the repository root:  python bench/pipeline.py [--sizes 1m,10m,cnc] [--cache bench/.programs]
 
 The prints are the tube of tests/data/make_sliced.py, scaled and sliced with PrusaSlicer 2.5
-(`prusa-slicer` on PATH) the first time and kept in the cache folder. Each is compensated for
-bedslinger-example in a fresh process, so that its peak memory is its own.
+(`prusa-slicer` on PATH) the first time and kept in the cache folder. The CNC program (LinuxCNC)
+is a raster finishing pass over a wavy surface, 0.25 mm segments at 50 mm/s, about 2.8 million
+lines, generated the first time. Each program is compensated for bedslinger-example (1 kHz, X Y
+Z E) in a fresh process, so that its peak memory is its own.
 """
 from __future__ import annotations
 
 import argparse
+import math
 import subprocess
 import sys
 import tempfile
@@ -21,6 +24,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests" / "data"))
 
+import numpy as np  # noqa: E402
+
 import make_sliced  # noqa: E402  (the corpus' models and slicer settings)
 from engine import butterfly_table  # noqa: E402
 from fbspost.pipeline import compensate_file  # noqa: E402
@@ -29,6 +34,7 @@ from fbspost.profile import load_profile  # noqa: E402
 PROFILE = "bedslinger-example"
 # Size -> scale of the 20 x 4 mm tube; chosen so that PrusaSlicer's estimate is near the size.
 SCALES = {"1m": 0.45, "10m": 1.45, "1h": 3.25, "6h": 7.0}
+CNC = "cnc"  # the size name of the CNC program
 STAGES = ("read", "plan", "optimize", "write")
 
 
@@ -45,6 +51,29 @@ def sliced_program(size: str, cache: Path) -> Path:
             subprocess.run(["prusa-slicer", "--export-gcode", *make_sliced.COMMON, "--gcode-flavor", "marlin2",
                             "--scale", f"{SCALES[size]:g}", "-o", str(out), str(stl)], check=True,
                            stdout=subprocess.DEVNULL)
+            out.replace(path)
+    return path
+
+
+def cnc_program(cache: Path, size_mb: float = 100.0) -> Path:
+    """Raster rows 60 mm long, 0.25 mm segments, stepping 0.5 mm in Y over a 60 mm square again
+    and again, Z on a smooth surface, until the program has ``size_mb`` MB."""
+    path = cache / "cnc-100MB.ngc"
+    if not path.exists():
+        cache.mkdir(parents=True, exist_ok=True)
+        x = np.linspace(0.0, 60.0, 241)
+        with tempfile.TemporaryDirectory(dir=cache) as tmp:
+            out = Path(tmp) / path.name
+            with open(out, "w") as f:
+                f.write("%\nG21 G90 G17\nG0 Z5\nG0 X0 Y0\nG1 Z-1 F600\n")
+                row = 0
+                while f.tell() < size_mb * 1e6:
+                    y = (row * 0.5) % 60.0
+                    xs = x if row % 2 == 0 else x[::-1]
+                    z = -1.0 + 0.5 * np.sin(xs / 7.0) * math.cos(y / 9.0)
+                    f.write("".join(f"G1 X{a:.4f} Y{y:.4f} Z{b:.4f} F3000\n" for a, b in zip(xs, z)))
+                    row += 1
+                f.write("G0 Z5\nM2\n")
             out.replace(path)
     return path
 
@@ -69,7 +98,7 @@ def pipeline_table(sizes: list[str], cache: Path) -> None:
     print(f"{'program':16} {'lines':>8} {'print s':>8} {'wall s':>8} {'x real':>7} {'peak MB':>8} "
           + " ".join(f"{stage + ' S/s':>12}" for stage in STAGES))
     for size in sizes:
-        program = sliced_program(size, cache)
+        program = cnc_program(cache) if size == CNC else sliced_program(size, cache)
         with ProcessPoolExecutor(1, mp_context=get_context("spawn")) as pool:
             report, wall_s, peak_mb = pool.submit(measure, program).result()
         samples = report["print_time_s"] * sample_rate_hz
@@ -82,16 +111,16 @@ def pipeline_table(sizes: list[str], cache: Path) -> None:
 
 def size_list(text: str) -> list[str]:
     sizes = text.split(",")
-    unknown = set(sizes) - set(SCALES)
+    unknown = set(sizes) - set(SCALES) - {CNC}
     if unknown:
-        raise argparse.ArgumentTypeError(f"unknown size {', '.join(sorted(unknown))}; sizes: {', '.join(SCALES)}")
+        raise argparse.ArgumentTypeError(f"unknown size {', '.join(sorted(unknown))}; sizes: {', '.join(SCALES)}, {CNC}")
     return sizes
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--sizes", type=size_list, default=list(SCALES),
-                        help=f"comma-separated subset of {','.join(SCALES)} (default: all)")
+    parser.add_argument("--sizes", type=size_list, default=[*SCALES, CNC],
+                        help=f"comma-separated subset of {','.join(SCALES)},{CNC} (default: all)")
     parser.add_argument("--cache", type=Path, default=ROOT / "bench" / ".programs",
                         help="folder of the sliced programs (made when missing)")
     args = parser.parse_args()

@@ -18,10 +18,10 @@ from .atomicfile import atomic_write
 from .dynamics import AxisDynamics
 from .gcode import AXES, Block, detect_flavor, read_gcode
 from .optimizer import AxisCompensator, AxisLimits, FBSSettings
-from .planner import Plan, plan_blocks
+from .planner import Plan, PlanStream
 from .profile import MachineProfile
 from .trajectory import InputError
-from .writer import SampleWindow, WriteOptions, format_refusal, write_program
+from .writer import ProgramAccelerations, SampleWindow, WriteOptions, format_refusal, write_program
 
 
 @dataclass(frozen=True)
@@ -80,11 +80,11 @@ _CHUNK = 1 << 14  # samples planned, compensated and written at once
 
 def compensate_file(input_path: str | Path, output_path: str | Path, profile: MachineProfile,
                     options: CompensateOptions = CompensateOptions(), progress=None) -> Report:
-    """``progress(fraction)`` is called as the motion is compensated (0 to 1), if given.
+    """``progress(fraction)`` is called as the program is read (0 to 1), if given.
 
-    Streams: the program is read twice (to plan it, then to write it: the blocks are not
-    held) and its samples are planned, compensated and written a stretch at a time, so memory
-    holds the piece-level plan, the optimizers' look-ahead and the writer's, not the samples.
+    Streams: the program is read once; its blocks are planned, compensated and written a
+    stretch at a time, so memory holds the planner's, the optimizers' and the writer's
+    look-ahead, however long the program is.
     """
     started = time.perf_counter()
     flavor = options.flavor or detect_flavor(input_path)
@@ -92,16 +92,17 @@ def compensate_file(input_path: str | Path, output_path: str | Path, profile: Ma
     if refusal:  # before the work
         raise InputError(input_path, None, refusal)
     stages = dict.fromkeys(("read", "plan", "optimize", "write"), 0.0)
-    clock = time.perf_counter()
-    limits = _LimitsSeen(profile)
-    plan = plan_blocks(limits.watch(_timed(read_gcode(input_path, flavor), stages, "read")), profile)
-    stages["plan"] = time.perf_counter() - clock - stages["read"]
-    report = Report(str(input_path), str(output_path), profile.name, flavor, len(plan.line_time_s), 0,
-                    plan.duration_s, 0.0, warnings=list(plan.warnings))
+    accelerations = ProgramAccelerations(profile.planner_acceleration_mm_s2)
+    blocks = _timed(read_gcode(input_path, flavor), stages, "read")
+    if progress:
+        blocks = _reported(blocks, _count_lines(input_path), progress)
+    plan = PlanStream(accelerations.watch(blocks), profile)
     compensators = _compensators(profile, options)
     errors = {c: (_ErrorStats(), _ErrorStats()) for c in compensators}
     follows_plan = np.array([c not in compensators for c in range(len(AXES))])
-    chunks = _timed(_compensated(plan, compensators, errors, report.warnings, progress), stages, "optimize")
+    optimizer_warnings: list[str] = []
+    chunks = _timed(_compensated(plan, compensators, errors, optimizer_warnings), stages, "optimize",
+                    exclude=lambda: plan.time_s)
     ceilings = [profile.axes[AXES[c]].max_acceleration_mm_s2 for c in compensators if c < 3]  # XYZ
     write_options = WriteOptions(
         flavor=flavor, output_format=options.output_format, tolerance_mm=options.tolerance_mm,
@@ -109,20 +110,18 @@ def compensate_file(input_path: str | Path, output_path: str | Path, profile: Ma
         header=(f"fbspost {__version__}: filtered B-spline compensation for machine profile {profile.name}",
                 f"fbspost settings: format {options.output_format}, tolerance {options.tolerance_mm:g} mm, "
                 f"minimum segment {options.min_segment_time_s * 1e3:g} ms, flavor {flavor}, {options.lookahead} look-ahead"),
-        raise_acceleration_mm_s2=(limits.highest, max(ceilings)) if ceilings else None,
-        restore_acceleration_mm_s2=limits.final)
+        raise_acceleration_mm_s2=max(ceilings) if ceilings else None)
     stats = []
     clock = time.perf_counter()
-    read_before = stages["read"]
     atomic_write(output_path, lambda f: stats.append(write_program(
-        _timed(read_gcode(input_path, flavor), stages, "read"), plan,
-        SampleWindow(chunks, plan.n_samples, follows_plan), write_options, f)))
-    stages["write"] = time.perf_counter() - clock - stages["optimize"] - (stages["read"] - read_before)
+        plan, SampleWindow(chunks, plan, follows_plan), write_options, f, accelerations)))
+    stages["plan"] = plan.time_s - stages["read"]
+    stages["write"] = time.perf_counter() - clock - plan.time_s - stages["optimize"]
+    report = Report(str(input_path), str(output_path), profile.name, flavor, plan.n_blocks, stats[0].lines_out,
+                    plan.duration_s, 0.0, warnings=plan.warnings + optimizer_warnings, stage_time_s=stages)
     for c, (before, after) in errors.items():
         if before.count:
             report.axes[AXES[c]] = AxisReport.from_stats(before, after)
-    report.lines_out = stats[0].lines_out
-    report.stage_time_s = stages
     report.compute_time_s = time.perf_counter() - started
     return report
 
@@ -133,7 +132,7 @@ def compensated_samples(plan: Plan, profile: MachineProfile, options: Compensate
     computes it (for programs that fit in memory); the optimizers' warnings added to ``warnings``."""
     compensators = _compensators(profile, options)
     errors = {c: (_ErrorStats(), _ErrorStats()) for c in compensators}
-    chunks = _compensated(plan, compensators, errors, [] if warnings is None else warnings, None)
+    chunks = _compensated(plan, compensators, errors, [] if warnings is None else warnings)
     return np.concatenate([command for _, command in chunks] or [np.zeros((0, len(AXES)))])
 
 
@@ -145,16 +144,20 @@ def _compensators(profile: MachineProfile, options: CompensateOptions) -> dict[i
                                options.lookahead) for c, axis in axes.items()}
 
 
-def _compensated(plan: Plan, compensators: dict[int, AxisCompensator], errors: dict, warnings: list[str], progress):
-    """(planned, command) chunks of samples, every sample in order: the command is the plan
-    but on the compensated axes (columns) during the runs. Adds up every compensated axis'
-    modelled tracking error, over each run and the settling after it (the residual vibration
-    the compensation also reduces, and may trade a little in-motion error for), before and
-    after, and the optimizers' warnings to ``warnings``."""
+def _compensated(plan: Plan | PlanStream, compensators: dict[int, AxisCompensator], errors: dict,
+                 warnings: list[str]) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """(planned, command) chunks of samples, every sample in order, as the plan settles them:
+    the command is the plan but on the compensated axes (columns) during the runs. Adds up every
+    compensated axis' modelled tracking error, over each run and the settling after it (the
+    residual vibration the compensation also reduces, and may trade a little in-motion error
+    for), before and after, and the optimizers' warnings to ``warnings``."""
     period_s = 1.0 / plan.sample_rate_hz
-    total = max(1, sum(last - first + 1 for first, last in plan.runs))
-    done = next_sample = 0
-    for first, last in plan.runs:
+    r = next_sample = 0
+    while True:
+        plan.wait(lambda: len(plan.runs) > r or plan.done)
+        if len(plan.runs) <= r:
+            break
+        first = plan.runs[r][0]
         if next_sample < first:  # at rest
             rest = plan.samples(next_sample, first)
             yield rest, rest
@@ -175,29 +178,34 @@ def _compensated(plan: Plan, compensators: dict[int, AxisCompensator], errors: d
                 after.add(desired - responses[c][1](command[:, c]))
             return (planned_rows[:n], command), planned_rows[n:], {c: v[n:] for c, v in commands.items()}
 
-        for a in range(first, last + 1, _CHUNK):
-            planned = plan.samples(a, min(a + _CHUNK, last + 1))
+        a = first
+        while True:
+            plan.wait(lambda: plan.runs[r][1] is not None or plan.frontier >= a + _CHUNK)
+            last = plan.runs[r][1]
+            stop = min(a + _CHUNK, plan.frontier if last is None else last + 1)
+            planned = plan.samples(a, stop)
+            plan.release(stop)
             planned_rows = np.concatenate([planned_rows, planned])
             for c, stream in streams.items():
                 commands[c] = np.concatenate([commands[c], stream.push(planned[:, c])])
             chunk, planned_rows, commands = ready(planned_rows, commands)
             if len(chunk[0]):
-                done += len(chunk[0])
                 yield chunk
-            if progress:
-                progress(done / total)
+            a = stop
+            if last is not None and a > last:
+                break
         for c, stream in streams.items():
             result = stream.finish()
             commands[c] = np.concatenate([commands[c], result.command_mm])
             warnings += [f"axis {AXES[c]}, motion starting at {first * period_s:.3f} s: {w}" for w in result.warnings]
         chunk, _, _ = ready(planned_rows, commands)
-        done += len(chunk[0])
         for c, (before, after) in errors.items():
             hold = np.full(compensators[c].settings.settle_samples, chunk[0][-1, c])
             before.add(hold - responses[c][0](hold))
             after.add(hold - responses[c][1](hold))
         yield chunk
         next_sample = last + 1
+        r += 1
     if next_sample < plan.n_samples:
         rest = plan.samples(next_sample, plan.n_samples)
         yield rest, rest
@@ -226,39 +234,30 @@ class _ErrorStats:
         return self.peak_mm * 1e3
 
 
-class _LimitsSeen:
-    """The acceleration limits a program sets, noted as its blocks pass: the highest (with the
-    profile's planner value: the least the raised limit may be) and the (print, travel) pair the
-    program leaves the controller with."""
-
-    def __init__(self, profile: MachineProfile):
-        self.highest = profile.planner_acceleration_mm_s2
-        self.accel, self.travel = profile.planner_acceleration_mm_s2, None
-
-    def watch(self, blocks: Iterable[Block]) -> Iterator[Block]:
-        for block in blocks:
-            if block.limits is not None:
-                if block.limits.acceleration_mm_s2:
-                    self.accel = block.limits.acceleration_mm_s2
-                    self.highest = max(self.highest, self.accel)
-                if block.limits.travel_acceleration_mm_s2 is not None:
-                    self.travel = block.limits.travel_acceleration_mm_s2
-            yield block
-
-    @property
-    def final(self) -> tuple[float, float]:
-        return self.accel, (self.accel if self.travel is None else self.travel)
+def _count_lines(path: str | Path) -> int:
+    with open(path, "rb") as f:
+        return max(1, sum(chunk.count(b"\n") for chunk in iter(lambda: f.read(1 << 20), b"")))
 
 
-def _timed(items: Iterable, stages: dict[str, float], stage: str) -> Iterator:
-    """``items`` as they come, the time taken to make them added to ``stages[stage]``."""
+def _reported(blocks: Iterable[Block], total_lines: int, progress) -> Iterator[Block]:
+    """``blocks``, ``progress`` told the fraction of the lines read now and then."""
+    for i, block in enumerate(blocks):
+        if i % 4096 == 0:
+            progress(min(block.line_no / total_lines, 1.0))
+        yield block
+    progress(1.0)
+
+
+def _timed(items: Iterable, stages: dict[str, float], stage: str, exclude=lambda: 0.0) -> Iterator:
+    """``items`` as they come, the time taken to make them added to ``stages[stage]``, less the
+    time that ``exclude()`` counts meanwhile (another stage's, inside)."""
     iterator = iter(items)
     while True:
-        clock = time.perf_counter()
+        clock, other = time.perf_counter(), exclude()
         try:
             item = next(iterator)
         except StopIteration:
-            stages[stage] += time.perf_counter() - clock
+            stages[stage] += time.perf_counter() - clock - (exclude() - other)
             return
-        stages[stage] += time.perf_counter() - clock
+        stages[stage] += time.perf_counter() - clock - (exclude() - other)
         yield item

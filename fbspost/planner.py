@@ -34,14 +34,26 @@ when the rest between two runs is shorter than that needs, the later run starts 
 sample after the earlier one ends (less than 2 sample periods of extra rest, only at STOPs).
 
 Axes whose position is unknown (NaN in the blocks) are held at their last known value; before
-they are first known, at that first value; axes never known, at 0. ``Plan.notes`` says so.
+they are first known, at that first value if they are known within the first PROLOGUE_ROWS
+waypoints, else at 0 until they are; axes never known, at 0. ``Plan.notes`` says so.
+
+The plan streams (``PlanStream``): blocks are read a batch at a time, and what they decide is
+settled: pieces whose junction speeds no later block can change (the min-plus scans are
+monotone: a speed is decided where the backward pass gives the same bits with the motion
+assumed to stop after the last piece read as with it assumed to go on), their samples, the
+lines they time and the runs. Every sum and scan is carried over batches in the order a single
+batch would take it, so the plan is bit for bit the same however the program is cut:
+``plan_blocks`` is the stream read to the end and held whole.
 Units: mm, s, mm/s, mm/s^2.
 """
 from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Iterable
+import itertools
+import time
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -50,7 +62,9 @@ from .gcode import AXES, Block, Kind
 from .profile import MachineProfile
 
 EXTRUDE_ONLY_MM = 1e-9  # Klipper: an XYZ length below this makes an extrude-only move
-SCAN_CHUNK = 4096  # pieces per chunk of the min-plus scans (bounds the cumulative-sum magnitude)
+SCAN_CHUNK = 4096  # pieces per chunk of the min-plus scans (bounds the cumulative-sum magnitude), from piece 0 on
+BATCH_BLOCKS = 4096  # blocks read per step of the stream
+PROLOGUE_ROWS = 1 << 16  # waypoints searched for an unknown axis' first position (held until then)
 SAMPLE_CHUNK = 1 << 14  # samples evaluated at once (keeps the temporaries in cache)
 MAX_NOTES = 20  # notes about lines with unknown positions, at most
 CLAMPED = "feeds beyond the machine's velocity limits run clamped, as the controller runs them"
@@ -81,13 +95,38 @@ class Pieces:
 @dataclass
 class _Segments:
     """The plan's piecewise-quadratic timeline: position = a0 + a1 tau + a2 tau^2, tau = t - ref,
-    from t0 on (sorted by t0; of equal starts the later one rules)."""
+    from t0 on (t0 never decreases; of equal starts the later one rules)."""
 
     t0: np.ndarray  # (s,) s
     ref: np.ndarray  # (s,) s
     a0: np.ndarray  # (s, 4) mm
     a1: np.ndarray  # (s, 4) mm/s
     a2: np.ndarray  # (s, 4) mm/s^2
+
+    def evaluate(self, first: int, stop: int, fs: float) -> np.ndarray:
+        """(stop - first, 4) X Y Z E at samples first .. stop - 1 (t = k / fs)."""
+        t = np.arange(first, stop) / fs
+        if not t.size:
+            return np.zeros((0, _NA))
+        # the segment of each sample (searchsorted right, minus 1) by merging the sorted sample
+        # times with the segment starts in the stretch: cheaper than a search per sample
+        lo, hi = np.searchsorted(self.t0, t[[0, -1]], side="right")
+        entered = np.searchsorted(t, self.t0[lo:hi], side="left")  # sample where each later segment starts
+        index = (lo - 1) + np.cumsum(np.bincount(entered, minlength=t.size))
+        tau = (t - np.take(self.ref, index))[:, None]
+        out = np.take(self.a2, index, axis=0)
+        out *= tau
+        out += np.take(self.a1, index, axis=0)
+        out *= tau
+        out += np.take(self.a0, index, axis=0)
+        return out
+
+    def __getitem__(self, rows) -> _Segments:
+        return _Segments(self.t0[rows], self.ref[rows], self.a0[rows], self.a1[rows], self.a2[rows])
+
+    @classmethod
+    def joined(cls, parts: list[_Segments]) -> _Segments:
+        return cls(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("t0", "ref", "a0", "a1", "a2")))
 
 
 @dataclass
@@ -112,22 +151,20 @@ class Plan:
     def samples(self, first: int, stop: int) -> np.ndarray:
         """(stop - first, 4) X Y Z E at samples first .. stop - 1 (mm). Each sample depends on its
         time alone, so any cut into stretches gives the same values."""
-        seg = self.segments
-        t = np.arange(first, stop) / self.sample_rate_hz
-        if not t.size:
-            return np.zeros((0, _NA))
-        # the segment of each sample (searchsorted right, minus 1) by merging the sorted sample
-        # times with the segment starts in the stretch: cheaper than a search per sample
-        lo, hi = np.searchsorted(seg.t0, t[[0, -1]], side="right")
-        entered = np.searchsorted(t, seg.t0[lo:hi], side="left")  # sample where each later segment starts
-        index = (lo - 1) + np.cumsum(np.bincount(entered, minlength=t.size))
-        tau = (t - np.take(seg.ref, index))[:, None]
-        out = np.take(seg.a2, index, axis=0)
-        out *= tau
-        out += np.take(seg.a1, index, axis=0)
-        out *= tau
-        out += np.take(seg.a0, index, axis=0)
-        return out
+        return self.segments.evaluate(first, stop, self.sample_rate_hz)
+
+    # The stream's interface (``PlanStream``), for a plan that is whole: everything is known.
+    done = True
+
+    @property
+    def frontier(self) -> int:
+        return self.n_samples
+
+    def wait(self, known: Callable[[], bool]) -> None:
+        pass
+
+    def release(self, sample: int) -> None:
+        pass
 
     @functools.cached_property
     def positions_mm(self) -> np.ndarray:
@@ -189,18 +226,20 @@ class _LimitState:
 
 # ---- the min-plus scans ----------------------------------------------------------------------
 
-def forward_pass(limit_v2: np.ndarray, delta_v2: np.ndarray, chunk: int = SCAN_CHUNK) -> np.ndarray:
-    """F[0] = L[0], F[i] = min(L[i], F[i-1] + delta[i-1]): the squared speed reachable at every
-    junction accelerating from the earlier ones. ``limit_v2`` has one more entry than
-    ``delta_v2`` (2 a d of the piece between junctions i and i+1).
+def forward_pass(limit_v2: np.ndarray, delta_v2: np.ndarray, chunk: int = SCAN_CHUNK,
+                 carry: float = math.inf) -> np.ndarray:
+    """F[0] = min(L[0], carry), F[i] = min(L[i], F[i-1] + delta[i-1]): the squared speed reachable
+    at every junction accelerating from the earlier ones. ``limit_v2`` has one more entry than
+    ``delta_v2`` (2 a d of the piece between junctions i and i+1), or as many (the last piece
+    leads to a junction not given).
 
-    Computed as F[i] = min(L[i], C[i] + min_{k<i}(L[k] - C[k])), C the cumulative sum of delta
-    from the chunk's start; the chunk's first entry carries the previous chunk's result. The
-    exclusive minimum keeps a junction's own limit exact; a limit inherited from an earlier
-    junction is at least delta[i-1], and its rounding error is a few ulps of C."""
+    Computed as F[i] = min(L[i], C[i] + min_{k<i}(L[k] - C[k])), C the sequential cumulative sum
+    of delta from the chunk's start (chunks from entry 0 on); the chunk's first entry carries
+    the previous chunk's result. The exclusive minimum keeps a junction's own limit exact; a
+    limit inherited from an earlier junction is at least delta[i-1], and its rounding error is a
+    few ulps of C. An entry depends only on the entries before it, from its chunk's start."""
     out = np.empty_like(limit_v2)
     n = limit_v2.size
-    carry = math.inf
     for s in range(0, n, chunk):
         e = min(s + chunk, n)
         lim = limit_v2[s:e].copy()
@@ -218,8 +257,27 @@ def forward_pass(limit_v2: np.ndarray, delta_v2: np.ndarray, chunk: int = SCAN_C
 
 def backward_pass(limit_v2: np.ndarray, delta_v2: np.ndarray, chunk: int = SCAN_CHUNK) -> np.ndarray:
     """B[n] = L[n], B[i] = min(L[i], B[i+1] + delta[i]): the squared speed from which every
-    later junction can still be reached decelerating (the mirror image of ``forward_pass``)."""
-    return forward_pass(limit_v2[::-1], delta_v2[::-1], chunk)[::-1].copy()
+    later junction can still be reached decelerating.
+
+    Computed as B[i] = min(L[i], min_{k>i}(L[k] + C[k]) - C[i]), C the sequential cumulative sum
+    of delta from the chunk's start (chunks from entry 0 on, as in ``forward_pass``, so that a
+    batch of junctions cut anywhere gives the same bits wherever its result is decided); the
+    chunk's last candidate is the next chunk's first result. Monotone in every L: a lower or
+    higher end gives a lower or higher result, bits included."""
+    out = np.empty_like(limit_v2)
+    n = limit_v2.size
+    later = math.inf  # the next chunk's first result
+    for s in range(((n - 1) // chunk) * chunk, -1, -chunk):
+        e = min(s + chunk, n)
+        c = np.zeros(e - s + 1)
+        np.cumsum(delta_v2[s:e], out=c[1:1 + min(e, n - 1) - s])  # c[e - s]: the next chunk's first junction
+        candidate = np.empty(e - s + 1)
+        candidate[:-1] = limit_v2[s:e] + c[:-1]
+        candidate[-1] = later + c[-1] if e < n else math.inf
+        suffix = np.minimum.accumulate(candidate[::-1])[::-1]
+        out[s:e] = np.minimum(limit_v2[s:e], suffix[1:] - c[:-1])
+        later = out[s]
+    return out
 
 
 def junction_limits(unit_prev: np.ndarray, unit_next: np.ndarray, jd_prev, jd_next, accel_prev, accel_next,
@@ -257,209 +315,471 @@ def fill_unknown(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return filled, never
 
 
-def plan_blocks(blocks: Iterable[Block], profile: MachineProfile) -> Plan:
-    """The plan of ``blocks`` on ``profile`` (see the module docstring). The blocks are taken
-    one at a time and not kept."""
-    fs = float(profile.sample_rate_hz)
-    state = _LimitState(profile)
-    states = [state.row()]
-    waypoints = [np.full((1, _NA), np.nan)]  # the position before the program: first known values
-    row_block, row_count, row_motion = [], [], []  # who added each group of waypoint rows
-    move_feed, move_state = [], []  # per motion group
-    dwell, is_move, is_stop, row_line = [], [], [], []
-    stop_blocks = []
-    for j, block in enumerate(blocks):
-        dwell.append(0.0)
-        is_move.append(block.kind is Kind.MOVE)
-        is_stop.append(block.kind is Kind.STOP)
-        if block.limits is not None:
-            state.apply(block.limits, block.line_no)
-            states.append(state.row())
-        if block.kind is Kind.MOVE:
-            if block.points_mm is None or len(block.points_mm) == 0:
-                continue
-            points = np.asarray(block.points_mm, dtype=float).reshape(-1, _NA)
-            feed = math.inf if block.feed_mm_s is None else float(block.feed_mm_s)
-            if not feed > 0:
-                raise ValueError(f"line {block.line_no}: feed must be > 0, got {block.feed_mm_s!r}")
-            waypoints.append(points)
-            row_block.append(j)
-            row_line.append(block.line_no)
-            row_count.append(points.shape[0])
-            row_motion.append(True)
-            move_feed.append(feed)
-            move_state.append(len(states) - 1)
-        elif block.kind is Kind.STOP:
-            if not (block.dwell_s >= 0 and math.isfinite(block.dwell_s)):
-                raise ValueError(f"line {block.line_no}: dwell must be >= 0, got {block.dwell_s!r}")
-            dwell[j] = block.dwell_s
-            stop_blocks.append(j)
-            waypoints.append(np.asarray(block.position_mm, dtype=float).reshape(1, _NA))
-            row_block.append(j)
-            row_line.append(block.line_no)
-            row_count.append(1)
-            row_motion.append(False)
-    nb = len(dwell)
-    dwell, is_move, is_stop = np.asarray(dwell), np.asarray(is_move, dtype=bool), np.asarray(is_stop, dtype=bool)
+def plan_blocks(blocks: Iterable[Block], profile: MachineProfile, batch_blocks: int | None = None) -> Plan:
+    """The whole plan of ``blocks`` on ``profile`` (see the module docstring), held in memory."""
+    stream = PlanStream(blocks, profile, batch_blocks, keep=True)
+    while stream.advance():
+        pass
+    return stream.whole()
 
-    raw = np.concatenate(waypoints)
-    filled, never = fill_unknown(raw)
-    notes = [f"{AXES[i]}: position never known, planned at 0 mm" for i in np.flatnonzero(never)]
-    row_count_a = np.asarray(row_count, dtype=np.int64)
-    seg_block = np.repeat(np.asarray(row_block, dtype=np.int64), row_count_a)  # segment i: row i -> i+1
-    seg_line = np.repeat(np.asarray(row_line, dtype=np.int64), row_count_a)
-    seg_motion = np.repeat(np.asarray(row_motion, dtype=bool), row_count_a)
-    ever_known = np.maximum.accumulate(~np.isnan(raw), axis=0)
-    lost = (~seg_motion)[:, None] & np.isnan(raw[1:]) & ever_known[:-1]
-    lost_rows = np.flatnonzero(lost.any(axis=1))
-    for i in lost_rows[:MAX_NOTES]:
-        axes = "".join(AXES[a] for a in np.flatnonzero(lost[i]))
-        notes.append(f"line {seg_line[i]}: {axes} unknown after this line, "
-                     f"held at the last known position")
-    if lost_rows.size > MAX_NOTES:
-        notes.append(f"... and {lost_rows.size - MAX_NOTES} more lines with unknown positions")
 
-    # pieces: the motion segments that move
-    seg_group = np.repeat(np.cumsum(np.asarray(row_motion, dtype=np.int64)) - 1, row_count_a)
-    start = filled[:-1]
-    delta = filled[1:] - start
-    xyz_len = np.sqrt(np.einsum("ij,ij->i", delta[:, :3], delta[:, :3]))
-    extrude_only = xyz_len < EXTRUDE_ONLY_MM
-    length = np.where(extrude_only, np.abs(delta[:, _E]), xyz_len)
-    keep = seg_motion & (length > 0)
-    start, delta, length, extrude_only = start[keep], delta[keep], length[keep], extrude_only[keep]
-    piece_block = seg_block[keep]
-    group = seg_group[keep]
-    end = start + delta
-    m = length.size
+_PIECE_FIELDS = ("block", "run", "start", "end", "length", "extrude_only", "accel", "max_v", "delta_v2", "limit_v2")
 
-    table = np.asarray(states)[np.asarray(move_state, dtype=np.int64)[group]] if m else np.zeros((0, 4 + 2 * _NA))
-    feed = np.asarray(move_feed)[group] if m else np.zeros(0)
-    accel_print, accel_travel, planner_v, jd = table[:, 0], table[:, 1], table[:, 2], table[:, 3]
-    axis_v, axis_a = table[:, 4:4 + _NA], table[:, 4 + _NA:]
-    unit = delta / length[:, None] if m else np.zeros((0, _NA))
-    unit[extrude_only, :_E] = 0.0  # |dE| / length is exactly 1 already
-    abs_unit = np.abs(unit)
-    with np.errstate(divide="ignore"):
-        axis_v_limit = np.where(abs_unit > 0, axis_v / abs_unit, np.inf).min(axis=1, initial=np.inf)
-        axis_a_limit = np.where(abs_unit > 0, axis_a / abs_unit, np.inf).min(axis=1, initial=np.inf)
-    max_v = np.minimum(np.minimum(feed, planner_v), axis_v_limit)
-    clamped = np.flatnonzero(np.isfinite(feed) & (axis_v_limit < feed))  # as the controller does (a G0 means it)
-    clamped = clamped[np.unique(piece_block[clamped], return_index=True)[1]]  # the first piece of each block
-    warnings = []
-    if clamped.size:  # one line: slicers write Z moves at travel feeds on every layer
-        i = clamped[0]
-        warnings.append(f"{CLAMPED}: line {seg_line[keep][i]} (feed {feed[i] * 60:.6g} mm/min, runs at "
-                        f"{max_v[i] * 60:.6g} mm/min)" + (f" and {clamped.size - 1} more lines" if clamped.size > 1 else ""))
-    extrudes = delta[:, _E] > 0
-    accel = np.where(extrudes | np.isnan(accel_travel), accel_print, accel_travel)
-    accel = np.minimum(accel, axis_a_limit)
-    cruise_v2 = max_v * max_v
-    delta_v2 = 2.0 * accel * length
 
-    # runs: pieces between the same two STOP blocks
-    run_key = np.searchsorted(np.asarray(stop_blocks, dtype=np.int64), piece_block, side="left")
-    new_run = np.ones(m, dtype=bool)
-    new_run[1:] = run_key[1:] != run_key[:-1]
-    run_first_piece = np.flatnonzero(new_run)
-    nr = run_first_piece.size
-    run_end_piece = np.append(run_first_piece[1:], m) if nr else run_first_piece  # exclusive
-    piece_run = np.cumsum(new_run) - 1
+class PlanStream:
+    """The plan of a program as its blocks are read (see the module docstring).
 
-    # junctions: limit_v2[i] is the junction before piece i; limit_v2[m] after the last
-    limit_v2 = np.zeros(m + 1)
-    if m > 1:
+    Consumers ask for more with ``advance`` (or ``wait``) and find, settled so far: ``runs``
+    ([first, last] sample indices, last None while the run goes on), the samples below
+    ``frontier`` (``samples``; ``release`` drops what is behind), the blocks with their times
+    (``blocks``), and at the end (``done``) ``n_samples``, ``duration_s``, ``notes`` and
+    ``warnings``. ``keep`` holds everything for ``whole`` (``plan_blocks``)."""
+
+    def __init__(self, blocks: Iterable[Block], profile: MachineProfile, batch_blocks: int | None = None,
+                 keep: bool = False):
+        self.sample_rate_hz = fs = float(profile.sample_rate_hz)
+        self._fs = fs
+        self._blocks_in = iter(blocks)
+        self._batch = batch_blocks or BATCH_BLOCKS
+        self._keep = keep
+        self._limits = _LimitState(profile)
+        self._state_row = self._limits.row()
+        # settled, for the consumers
+        self.runs: list[list] = []
+        self.frontier = 0  # samples below it are settled
+        self.settled_s = 0.0  # the motion is settled up to this time (the end of the last piece settled)
+        self.lines: deque = deque()  # (block, line time s, is_stop) settled and not yet taken
+        self.done = False
+        self.n_blocks = 0
+        self.n_samples: int | None = None
+        self.duration_s: float | None = None
+        self.notes: list[str] = []
+        self.warnings: list[str] = []
+        self.time_s = 0.0  # spent in advance(), reading included
+        self._segments = _Segments(np.zeros(0), np.zeros(0), np.zeros((0, _NA)), np.zeros((0, _NA)), np.zeros((0, _NA)))
+        # read, not yet settled
+        self._eof = False
+        self._pending_blocks: deque = deque()  # (block, is_move, is_stop, dwell before it in total)
+        self._first_pending_block = 0
+        self._rows: list = []  # per block with waypoints: (block index, line, is motion, feed, state row, points)
+        self._cum_dwell = 0.0  # dwells of every block read
+        self._last_row: np.ndarray | None = None  # the last waypoint, filled (None: the prologue)
+        self._ever_known = np.zeros(_NA, dtype=bool)
+        self._zeroed = np.zeros(_NA, dtype=bool)  # axes unknown through the prologue, planned at 0 until known
+        self._lost, self._clamped = 0, 0
+        self._clamped_first = ""
+        self._stops = 0  # STOP blocks turned into waypoints
+        self._pending = {name: None for name in _PIECE_FIELDS}  # pieces from _p0 on
+        self._m = self._p0 = 0  # pieces made; settled
+        self._prev = None  # the last piece made (for the junction after it)
+        self._scan_s0 = 0  # the scans' first junction (a chunk start) ...
+        self._scan_limit, self._scan_delta = np.zeros(0), np.zeros(0)  # ... its limits and deltas on
+        self._scan_carry = math.inf  # the forward pass arriving at _scan_s0
+        # carried over settled pieces and blocks
+        self._cum_dur = 0.0
+        self._t0_max = -math.inf
+        self._open = False  # the last run goes on
+        self._run_key = -1  # STOPs before the last settled piece
+        self._run_clock = self._run_base = 0.0
+        self._end_s, self._last_sample, self._dwell_after_run = 0.0, -1, 0.0
+        self._last_end = np.zeros(_NA)  # where the last settled piece ends
+        self._last_dwell_after = 0.0  # dwells up to the block of the last settled piece
+        self._last_piece = -1
+        self._trail = (-1, 0.0)  # (block, start s) of the block whose pieces are being settled
+        self._latest_end, self._latest_dwell = 0.0, 0.0  # the last block with pieces: its end, dwells to it
+        self._kept: dict[str, list] = {"pieces": [], "segments": [], "blocks": []}
+        self._settled_pieces = (np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0), self._trail)
+
+    # ---- for the consumers ----
+
+    def advance(self) -> bool:
+        """Read the next batch of blocks and settle what it decides; False once done."""
+        if self.done:
+            return False
+        clock = time.perf_counter()
+        self._read()
+        if self._last_row is not None or self._prologue_over():
+            self._make_pieces()
+        self._settle()
+        if self._eof and not self._rows and self._m == self._p0:
+            self._finish()
+        self.time_s += time.perf_counter() - clock
+        return True
+
+    def wait(self, known: Callable[[], bool]) -> None:
+        """Advance until ``known()`` or the end."""
+        while not known() and self.advance():
+            pass
+
+    def samples(self, first: int, stop: int) -> np.ndarray:
+        """(stop - first, 4) settled samples first .. stop - 1 (``wait`` for the frontier first)."""
+        assert stop <= self.frontier, "samples asked for before they are settled"
+        return self._segments.evaluate(first, stop, self._fs)
+
+    def release(self, sample: int) -> None:
+        """Samples before ``sample`` will not be asked for again."""
+        drop = int(np.searchsorted(self._segments.t0, sample / self._fs, side="right")) - 1
+        if drop > len(self._segments.t0) // 2:  # copy seldom
+            self._segments = self._segments[drop:]
+
+    def blocks(self) -> Iterator[tuple[Block, float, bool]]:
+        """The program's blocks in order, each with its line time (s: see ``Plan.line_time_s``)
+        and whether it is a STOP, as they are settled."""
+        while True:
+            if self.lines:
+                yield self.lines.popleft()
+            elif not self.advance():
+                return
+
+    def whole(self) -> Plan:
+        """The plan held (``keep``), once done."""
+        kept = self._kept
+        blocks = [np.concatenate(column) if kept["blocks"] else np.zeros(0) for column in zip(*kept["blocks"])] \
+            or [np.zeros(0), np.zeros(0), np.zeros(0, dtype=bool), np.zeros(0, dtype=bool)]
+        pieces = Pieces(*(np.concatenate(column) for column in zip(*kept["pieces"]))) if kept["pieces"] else \
+            Pieces(*([np.zeros(0, dtype=np.int64)] * 2 + [np.zeros((0, _NA))] * 2 + [np.zeros(0)] * 9))
+        return Plan(self._fs, self.n_samples, *blocks, [tuple(r) for r in self.runs], self.duration_s,
+                    _Segments.joined(kept["segments"]), pieces, self.notes, self.warnings)
+
+    # ---- reading ----
+
+    def _read(self) -> None:
+        j0 = j = self.n_blocks
+        rows, pending, cum_dwell, state_row = self._rows, self._pending_blocks, self._cum_dwell, self._state_row
+        move, stop = Kind.MOVE, Kind.STOP
+        for block in itertools.islice(self._blocks_in, self._batch):
+            kind = block.kind
+            if block.limits is not None:
+                self._limits.apply(block.limits, block.line_no)
+                state_row = self._state_row = self._limits.row()
+            if kind is move:
+                points = block.points_mm  # (k, 4)
+                if points is not None and len(points):
+                    feed = math.inf if block.feed_mm_s is None else float(block.feed_mm_s)
+                    if not feed > 0:
+                        raise ValueError(f"line {block.line_no}: feed must be > 0, got {block.feed_mm_s!r}")
+                    rows.append((j, block.line_no, True, feed, state_row, points))
+                pending.append((block, True, False, cum_dwell))
+            elif kind is stop:
+                dwell = block.dwell_s
+                if not (dwell >= 0 and math.isfinite(dwell)):
+                    raise ValueError(f"line {block.line_no}: dwell must be >= 0, got {dwell!r}")
+                rows.append((j, block.line_no, False, math.nan, state_row, np.reshape(block.position_mm, (1, _NA))))
+                pending.append((block, False, True, cum_dwell))
+                cum_dwell += dwell  # (a running sum: np.cumsum's bits)
+            else:
+                pending.append((block, False, False, cum_dwell))
+            j += 1
+        self._cum_dwell = cum_dwell
+        self.n_blocks = j
+        self._eof = j - j0 < self._batch
+
+    def _prologue_over(self) -> bool:
+        """Every axis known, enough waypoints searched, or the end: the start can be filled."""
+        if self._eof:
+            return True
+        points = [row[5] for row in self._rows]
+        known = np.zeros(_NA, dtype=bool)
+        for p in points:
+            known |= ~np.isnan(p).all(axis=0)
+        return bool(known.all()) or sum(len(p) for p in points) >= PROLOGUE_ROWS
+
+    # ---- waypoints to pieces ----
+
+    def _make_pieces(self) -> None:
+        if not self._rows:
+            return
+        rows, self._rows = self._rows, []
+        counts = np.array([len(r[5]) for r in rows], dtype=np.int64)
+        raw = np.concatenate([r[5] for r in rows]).astype(float, copy=False)
+        seg_block = np.repeat(np.array([r[0] for r in rows], dtype=np.int64), counts)
+        seg_line = np.repeat(np.array([r[1] for r in rows], dtype=np.int64), counts)
+        seg_motion = np.repeat(np.array([r[2] for r in rows], dtype=bool), counts)
+        moving = [r for r in rows if r[2]]
+        n = raw.shape[0]
+        nan = np.isnan(raw)
+        if self._last_row is None:  # the prologue: before its first known value an axis is there
+            filled, never = fill_unknown(np.concatenate([np.full((1, _NA), np.nan), raw]))
+            previous, filled = filled[0], filled[1:]
+            self._zeroed = never
+        else:  # held at the last known value
+            previous = self._last_row
+            source = np.maximum.accumulate(np.where(nan, -1, np.arange(n)[:, None]), axis=0)
+            filled = np.where(source >= 0, np.take_along_axis(raw, np.maximum(source, 0), axis=0), previous)
+        known_before = np.maximum.accumulate(np.concatenate([self._ever_known[None], ~nan]), axis=0)
+        lost = (~seg_motion)[:, None] & nan & known_before[:-1]
+        for i in np.flatnonzero(lost.any(axis=1)):
+            if self._lost < MAX_NOTES:
+                axes = "".join(AXES[a] for a in np.flatnonzero(lost[i]))
+                self.notes.append(f"line {seg_line[i]}: {axes} unknown after this line, held at the last known position")
+            self._lost += 1
+        found = self._zeroed & ~self._ever_known & known_before[-1]
+        for a in np.flatnonzero(found):
+            line = seg_line[np.flatnonzero(~nan[:, a])[0]]
+            self.notes.append(f"{AXES[a]}: position not known in the first {PROLOGUE_ROWS} waypoints, planned at 0 mm "
+                              f"until line {line}")
+        self._ever_known = known_before[-1]
+        self._last_row = filled[-1]
+        stop_blocks = seg_block[~seg_motion]
+        start = np.concatenate([previous[None], filled[:-1]])
+        delta = filled - start
+        xyz_len = np.sqrt(np.einsum("ij,ij->i", delta[:, :3], delta[:, :3]))
+        extrude_only = xyz_len < EXTRUDE_ONLY_MM
+        length = np.where(extrude_only, np.abs(delta[:, _E]), xyz_len)
+        keep = seg_motion & (length > 0)
+        group = np.repeat(np.cumsum([r[2] for r in rows]) - 1, counts)[keep]
+        start, delta, length, extrude_only = start[keep], delta[keep], length[keep], extrude_only[keep]
+        piece_block, piece_line = seg_block[keep], seg_line[keep]
+        run_key = self._stops + np.searchsorted(stop_blocks, piece_block, side="left")
+        self._stops += stop_blocks.size
+        m = length.size
+        if not m:
+            return
+        table = np.asarray([r[4] for r in moving])[group]
+        feed = np.asarray([r[3] for r in moving])[group]
+        accel_print, accel_travel, planner_v, jd = table[:, 0], table[:, 1], table[:, 2], table[:, 3]
+        axis_v, axis_a = table[:, 4:4 + _NA], table[:, 4 + _NA:]
+        unit = delta / length[:, None]
+        unit[extrude_only, :_E] = 0.0  # |dE| / length is exactly 1 already
+        abs_unit = np.abs(unit)
+        with np.errstate(divide="ignore"):
+            axis_v_limit = np.where(abs_unit > 0, axis_v / abs_unit, np.inf).min(axis=1, initial=np.inf)
+            axis_a_limit = np.where(abs_unit > 0, axis_a / abs_unit, np.inf).min(axis=1, initial=np.inf)
+        max_v = np.minimum(np.minimum(feed, planner_v), axis_v_limit)
+        clamped = np.flatnonzero(np.isfinite(feed) & (axis_v_limit < feed))  # as the controller does (a G0 means it)
+        clamped = clamped[np.unique(piece_block[clamped], return_index=True)[1]]  # the first piece of each block
+        if clamped.size and not self._clamped:
+            i = clamped[0]
+            self._clamped_first = (f"{CLAMPED}: line {piece_line[i]} (feed {feed[i] * 60:.6g} mm/min, runs at "
+                                   f"{max_v[i] * 60:.6g} mm/min)")
+        self._clamped += clamped.size
+        extrudes = delta[:, _E] > 0
+        accel = np.where(extrudes | np.isnan(accel_travel), accel_print, accel_travel)
+        accel = np.minimum(accel, axis_a_limit)
+        cruise_v2 = max_v * max_v
+        delta_v2 = 2.0 * accel * length
+
+        # junction limits: limit_v2[i] is the junction before piece i (the first after the last
+        # piece made before: _prev)
         xyz_unit = unit[:, :3]
-        inner = junction_limits(xyz_unit[:-1], xyz_unit[1:], jd[:-1], jd[1:], accel[:-1], accel[1:],
-                                delta_v2[:-1], delta_v2[1:], cruise_v2[:-1], cruise_v2[1:])
-        together = ~new_run[1:] & ~extrude_only[1:] & ~extrude_only[:-1]
-        limit_v2[1:m] = np.where(together, inner, 0.0)
-    v2 = backward_pass(forward_pass(limit_v2, delta_v2), delta_v2) if m else limit_v2
-    v0_2, v1_2 = v2[:-1], v2[1:]
-    peak2 = np.maximum(np.minimum(cruise_v2, 0.5 * (v0_2 + v1_2 + delta_v2)), np.maximum(v0_2, v1_2))
-    v0, vp, v1 = np.sqrt(v0_2), np.sqrt(peak2), np.sqrt(v1_2)
-    d_accel = (peak2 - v0_2) / (2.0 * accel)
-    d_decel = (peak2 - v1_2) / (2.0 * accel)
-    d_cruise = np.maximum(length - d_accel - d_decel, 0.0)
-    t_accel = 2.0 * d_accel / (v0 + vp)
-    t_decel = 2.0 * d_decel / (v1 + vp)
-    t_cruise = d_cruise / vp
-    duration = t_accel + t_cruise + t_decel
+        if self._prev is None:
+            prev = (np.zeros((1, 3)), jd[:1], accel[:1], delta_v2[:1], cruise_v2[:1], np.ones(1, bool), np.full(1, -1))
+        else:
+            prev = self._prev
+        cat = [np.concatenate([p, q]) for p, q in zip(prev, (xyz_unit, jd, accel, delta_v2, cruise_v2, extrude_only, run_key))]
+        u, jd_, acc, dv2, cv2, eo, key = cat
+        inner = junction_limits(u[:-1], u[1:], jd_[:-1], jd_[1:], acc[:-1], acc[1:], dv2[:-1], dv2[1:], cv2[:-1], cv2[1:])
+        together = (key[1:] == key[:-1]) & ~eo[1:] & ~eo[:-1]
+        limit_v2 = np.where(together, inner, 0.0)
+        self._prev = tuple(x[-1:] for x in (xyz_unit, jd, accel, delta_v2, cruise_v2, extrude_only, run_key))
+        new = dict(block=piece_block, run=run_key, start=start, end=start + delta, length=length,
+                   extrude_only=extrude_only, accel=accel, max_v=max_v, delta_v2=delta_v2, limit_v2=limit_v2)
+        for name, value in new.items():
+            held = self._pending[name]
+            self._pending[name] = value if held is None else np.concatenate([held, value])
+        self._scan_limit = np.concatenate([self._scan_limit, limit_v2])
+        self._scan_delta = np.concatenate([self._scan_delta, delta_v2])
+        self._m += m
 
-    # times: runs one after the other, separated by the dwells of the STOPs between them
-    cum_dur = np.zeros(m + 1)
-    np.cumsum(duration, out=cum_dur[1:])
-    cum_dwell = np.zeros(nb + 1)
-    np.cumsum(dwell, out=cum_dwell[1:])
-    run_start_s = np.zeros(nr)
-    run_end_s = np.zeros(nr)
-    run_first_sample = np.zeros(nr, dtype=np.int64)
-    run_last_sample = np.zeros(nr, dtype=np.int64)
-    end_s, last_sample, after_block = 0.0, -1, -1
-    for r in range(nr):
-        p0, p1 = run_first_piece[r], run_end_piece[r]
-        clock = end_s + (cum_dwell[piece_block[p0]] - cum_dwell[after_block + 1])
+    # ---- settling ----
+
+    def _settle(self) -> None:
+        p0, m, s0 = self._p0, self._m, self._scan_s0
+        if m > p0:
+            pending = self._pending
+            ends_at_rest = self._eof or self._stops > pending["run"][-1] or pending["extrude_only"][-1]
+            limit = np.append(self._scan_limit, 0.0 if ends_at_rest else math.inf)
+            reach = forward_pass(limit, self._scan_delta, SCAN_CHUNK, self._scan_carry)
+            v2 = backward_pass(reach, self._scan_delta, SCAN_CHUNK)
+            n = m - p0
+            if not ends_at_rest:  # settle the pieces whose both junctions are decided
+                reach[-1] = 0.0
+                differ = np.flatnonzero(backward_pass(reach, self._scan_delta, SCAN_CHUNK)[p0 - s0:] != v2[p0 - s0:])
+                n = max(int(differ[0]) - 1, 0) if differ.size else n
+            if n:
+                self._settle_pieces(n, v2[p0 - s0:p0 - s0 + n + 1])
+                # the scans restart at the chunk of the first piece not settled
+                s1 = (self._p0 // SCAN_CHUNK) * SCAN_CHUNK
+                if s1 > s0:
+                    self._scan_carry = reach[s1 - 1 - s0] + self._scan_delta[s1 - 1 - s0]
+                    self._scan_limit, self._scan_delta = self._scan_limit[s1 - s0:], self._scan_delta[s1 - s0:]
+                    self._scan_s0 = s1
+        if self._open and (self._stops > self._run_key or self._eof and not self._rows) and self._m == self._p0:
+            self._close_run()
+        self._settle_blocks()
+        if self.runs and self.runs[-1][1] is None:
+            self.frontier = max(self.runs[-1][0] + 1, math.floor(self.settled_s * self._fs) - 1)
+        elif self.runs:
+            self.frontier = self.runs[-1][1] + 1
+
+    def _settle_pieces(self, n: int, v2: np.ndarray) -> None:
+        fs = self._fs
+        pending = self._pending
+        taken = {name: value[:n] for name, value in pending.items()}
+        self._pending = {name: value[n:] for name, value in pending.items()}
+        p0 = self._p0
+        self._p0 += n
+        block, key, start, end, length = taken["block"], taken["run"], taken["start"], taken["end"], taken["length"]
+        accel, max_v, delta_v2 = taken["accel"], taken["max_v"], taken["delta_v2"]
+        cruise_v2 = max_v * max_v
+        v0_2, v1_2 = v2[:-1], v2[1:]
+        peak2 = np.maximum(np.minimum(cruise_v2, 0.5 * (v0_2 + v1_2 + delta_v2)), np.maximum(v0_2, v1_2))
+        v0, vp, v1 = np.sqrt(v0_2), np.sqrt(peak2), np.sqrt(v1_2)
+        d_accel = (peak2 - v0_2) / (2.0 * accel)
+        d_decel = (peak2 - v1_2) / (2.0 * accel)
+        d_cruise = np.maximum(length - d_accel - d_decel, 0.0)
+        t_accel = 2.0 * d_accel / (v0 + vp)
+        t_decel = 2.0 * d_decel / (v1 + vp)
+        t_cruise = d_cruise / vp
+        duration = t_accel + t_cruise + t_decel
+        cum = np.cumsum(np.concatenate([[self._cum_dur], duration]))  # (the running sum's bits)
+
+        # runs: pieces between the same two STOP blocks, one after the other, separated by the
+        # dwells of the STOPs between them
+        segments = []  # (order key, _Segments)
+        clock, base, run = np.empty(n), np.empty(n), np.empty(n, dtype=np.int64)
+        i = 0
+        while i < n:
+            if key[i] != self._run_key:
+                if i:
+                    self._settled_to(p0 + i - 1, cum[i], end[i - 1], block[i - 1])
+                if self._open:
+                    self._close_run(segments)
+                self._open_run(p0 + i, int(key[i]), block[i], start[i], cum[i], segments)
+            j = i + int(np.searchsorted(key[i:], key[i], side="right"))  # (keys never decrease)
+            clock[i:j], base[i:j], run[i:j] = self._run_clock, self._run_base, len(self.runs) - 1
+            i = j
+        piece_start = clock + (cum[:-1] - base)
+        piece_end = clock + (cum[1:] - base)
+        self._settled_to(p0 + n - 1, cum[-1], end[-1], block[-1])
+        self.settled_s = piece_end[-1]
+        self._settled_pieces = (block, piece_start, piece_end, self._trail)
+        last_block_first = int(np.searchsorted(block, block[-1], side="left"))
+        if last_block_first or self._trail[0] != block[-1]:  # its pieces may go on in the next batch
+            self._trail = (int(block[-1]), float(piece_start[last_block_first]))
+        if self._keep:
+            self._kept["pieces"].append((block, run, start, end, length, taken["extrude_only"], accel, max_v,
+                                         v0, vp, v1, piece_start, duration))
+
+        # every sample lies in one segment of a piecewise-quadratic timeline: the three phases of
+        # every piece (the braking phase measured from the piece's end, so pieces end exactly at
+        # their end point), the rest at the end of each run until its last sample, and, from the
+        # sample after that, the start of the next run (a STOP's jump shows there) or, after the
+        # last run, the final position
+        unit_pos = (end - start) / length[:, None]  # position per mm of the piece
+        half_a = (0.5 * accel)[:, None] * unit_pos
+        segments.append((8 * (p0 + np.arange(n))[:, None] + np.arange(3), _Segments(
+            np.stack([piece_start, piece_start + t_accel, piece_start + (t_accel + t_cruise)], axis=1).ravel(),
+            np.stack([piece_start, piece_start + t_accel, piece_end], axis=1).ravel(),
+            np.stack([start, start + d_accel[:, None] * unit_pos, end], axis=1).reshape(-1, _NA),
+            np.stack([v0[:, None] * unit_pos, vp[:, None] * unit_pos, v1[:, None] * unit_pos], axis=1).reshape(-1, _NA),
+            np.stack([half_a, np.zeros_like(half_a), -half_a], axis=1).reshape(-1, _NA))))
+        self._add_segments(segments)
+
+    def _settled_to(self, piece: int, cum: float, end: np.ndarray, block: int) -> None:
+        """The last piece settled (a run closing ends there)."""
+        self._last_piece, self._cum_dur, self._last_end = piece, cum, end
+        self._last_dwell_after = self._dwell_before(block)  # (a MOVE block has no dwell)
+
+    def _settle_blocks(self) -> None:
+        """Time the blocks before the first one with waypoints or pieces not settled: a block
+        without pieces happens when the motion before it ends, after the dwells between."""
+        if self._m > self._p0:
+            stop = int(self._pending["block"][0])
+        else:
+            stop = self._rows[0][0] if self._rows else self.n_blocks
+        count = stop - self._first_pending_block
+        block, piece_start, piece_end, trail = self._settled_pieces
+        self._settled_pieces = (np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0), self._trail)
+        if count <= 0:
+            return
+        taken = [self._pending_blocks.popleft() for _ in range(count)]
+        idx = np.arange(self._first_pending_block, stop)
+        self._first_pending_block = stop
+        dwell_before = np.array([t[3] for t in taken])
+        is_move = np.array([t[1] for t in taken], dtype=bool)
+        is_stop = np.array([t[2] for t in taken], dtype=bool)
+        last_piece = np.searchsorted(block, idx, side="right") - 1
+        has = last_piece >= 0
+        has[has] = block[last_piece[has]] == idx[has]
+        if block.size:
+            first_piece = np.minimum(np.searchsorted(block, idx, side="left"), block.size - 1)
+            block_end = np.where(has, piece_end[np.maximum(last_piece, 0)], 0.0)
+            block_start = np.where(has, np.where(idx == trail[0], trail[1], piece_start[first_piece]), 0.0)
+        else:
+            block_end = block_start = np.zeros(count)
+        latest = np.maximum.accumulate(np.where(has, np.arange(count), -1))
+        end_at = np.where(latest >= 0, block_end[np.maximum(latest, 0)], self._latest_end)
+        dwell_at = np.where(latest >= 0, dwell_before[np.maximum(latest, 0)], self._latest_dwell)  # (a MOVE has no dwell)
+        clock_at = end_at + (dwell_before - dwell_at)
+        line_time = np.where(has, block_end, clock_at)
+        if latest[-1] >= 0:
+            self._latest_end, self._latest_dwell = float(end_at[-1]), float(dwell_at[-1])
+        if self._keep:
+            self._kept["blocks"].append((line_time, np.where(has, block_start, clock_at), is_move, is_stop))
+        else:
+            self.lines.extend(zip((t[0] for t in taken), line_time.tolist(), is_stop.tolist()))
+
+    def _finish(self) -> None:
+        if self._open:
+            self._close_run()
+        segments = []
+        self._next_segment(np.zeros(_NA) if self._last_row is None else self._last_row, 0, segments)
+        self._add_segments(segments)
+        self.duration_s = float(self._latest_end + (self._cum_dwell - self._latest_dwell))
+        self.n_samples = math.ceil(self.duration_s * self._fs) + 1
+        self.notes[:0] = [f"{AXES[i]}: position never known, planned at 0 mm" for i in np.flatnonzero(~self._ever_known)]
+        if self._lost > MAX_NOTES:
+            self.notes.append(f"... and {self._lost - MAX_NOTES} more lines with unknown positions")
+        if self._clamped:  # one line: slicers write Z moves at travel feeds on every layer
+            self.warnings.append(self._clamped_first + (f" and {self._clamped - 1} more lines" if self._clamped > 1 else ""))
+        self.frontier = self.n_samples
+        self.done = True
+
+    def _dwell_before(self, block: int) -> float:
+        """The dwells of the blocks before ``block`` (a block not yet settled)."""
+        return self._pending_blocks[block - self._first_pending_block][3]
+
+    def _open_run(self, piece: int, key: int, block: int, start: np.ndarray, cum: float, segments: list) -> None:
+        fs = self._fs
+        clock = self._end_s + (self._dwell_before(block) - self._dwell_after_run)
         first = math.floor(clock * fs)
-        if first <= last_sample:  # the rest holds no sample of its own: start on the next one
-            first = last_sample + 1
+        if first <= self._last_sample:  # the rest holds no sample of its own: start on the next one
+            first = self._last_sample + 1
             clock = max(clock, first / fs)
-        end_s = clock + (cum_dur[p1] - cum_dur[p0])
-        last_sample = math.ceil(end_s * fs)
-        after_block = piece_block[p1 - 1]
-        run_start_s[r], run_end_s[r] = clock, end_s
-        run_first_sample[r], run_last_sample[r] = first, last_sample
-    base = cum_dur[run_first_piece][piece_run] if m else np.zeros(0)
-    piece_start = run_start_s[piece_run] + (cum_dur[:-1] - base)
-    piece_end = run_start_s[piece_run] + (cum_dur[1:] - base)
+        self._next_segment(start, 8 * piece - 2, segments)
+        self.runs.append([first, None])
+        self._open, self._run_key = True, key
+        self._run_clock, self._run_base = clock, cum
 
-    # block times: a block without pieces happens when the motion before it ends, after the
-    # dwells of the STOP blocks between
-    idx = np.arange(nb)
-    first_piece = np.clip(np.searchsorted(piece_block, idx, side="left"), 0, max(m - 1, 0))
-    last_piece = np.searchsorted(piece_block, idx, side="right") - 1
-    has = last_piece >= 0
-    has[has] = piece_block[last_piece[has]] == idx[has]
-    block_end = np.where(has, piece_end[np.maximum(last_piece, 0)] if m else 0.0, 0.0)
-    block_start = np.where(has, piece_start[first_piece] if m else 0.0, 0.0)
-    latest = np.maximum.accumulate(np.where(has, idx, -1)) if nb else np.zeros(0, dtype=np.int64)
-    clock_at = np.where(latest >= 0, block_end[np.maximum(latest, 0)], 0.0) + (cum_dwell[:-1] - cum_dwell[latest + 1])
-    line_time = np.where(has, block_end, clock_at)
-    move_start = np.where(has, block_start, clock_at)
-    final = latest[-1] if nb else -1
-    duration_s = float((block_end[final] if final >= 0 else 0.0) + (cum_dwell[nb] - cum_dwell[final + 1]))
+    def _close_run(self, segments: list | None = None) -> None:
+        own = segments is None
+        segments = [] if own else segments
+        end_s = self._run_clock + (self._cum_dur - self._run_base)
+        last = math.ceil(end_s * self._fs)
+        self.runs[-1][1] = last
+        self._end_s, self._last_sample, self._dwell_after_run = end_s, last, self._last_dwell_after
+        self._open = False
+        t = np.array([end_s])
+        segments.append((np.array([8 * self._last_piece + 3]), _Segments(t, t, self._last_end[None], np.zeros((1, _NA)),
+                                                                       np.zeros((1, _NA)))))
+        if own:
+            self._add_segments(segments)
 
-    pieces = Pieces(piece_block, piece_run, start, end, length, extrude_only, accel, max_v, v0, vp, v1,
-                    piece_start, duration)
+    def _next_segment(self, position: np.ndarray, key: int, segments: list) -> None:
+        """The position from the sample after the last run's end (before the first run: always)."""
+        t0 = np.array([(self._last_sample + 0.5) / self._fs if self.runs else -np.inf])
+        segments.append((np.array([key]), _Segments(t0, np.zeros(1), position[None], np.zeros((1, _NA)),
+                                                    np.zeros((1, _NA)))))
 
-    # samples: every sample lies in one segment of a piecewise-quadratic timeline, A0 + A1 tau +
-    # A2 tau^2 with tau = t - reference: the three phases of every piece (the braking phase
-    # measured from the piece's end, so pieces end exactly at their end point), the rest at the
-    # end of each run until its last sample, and, from the sample after that, the start of the
-    # next run (a STOP's jump shows there) or, after the last run, the final position
-    n_samples = math.ceil(duration_s * fs) + 1
-    unit_pos = delta / length[:, None] if m else np.zeros((0, _NA))  # position per mm of the piece
-    half_a = (0.5 * accel)[:, None] * unit_pos
-    phase_t0 = np.stack([piece_start, piece_start + t_accel, piece_start + (t_accel + t_cruise)], axis=1)
-    # Sums of rounded times can put a phase an ulp after the next piece's start; sorted, it would
-    # then take over the next piece. Phases are in time order: make their starts say so.
-    phase_t0 = np.maximum.accumulate(phase_t0.ravel()).reshape(phase_t0.shape)
-    phase_ref = np.stack([piece_start, piece_start + t_accel, piece_end], axis=1)
-    phase_a0 = np.stack([start, start + d_accel[:, None] * unit_pos, end], axis=1)  # (m, 3, 4)
-    phase_a1 = np.stack([v0[:, None] * unit_pos, vp[:, None] * unit_pos, v1[:, None] * unit_pos], axis=1)
-    phase_a2 = np.stack([half_a, np.zeros_like(half_a), -half_a], axis=1)
-    run_end = end[run_end_piece - 1]
-    hold_t0 = run_end_s
-    next_t0 = np.append(-np.inf, (run_last_sample + 0.5) / fs)
-    next_pos = np.concatenate([start[run_first_piece], filled[-1:]])
-    seg_t0 = np.concatenate([phase_t0.ravel(), hold_t0, next_t0])
-    seg_ref = np.concatenate([phase_ref.ravel(), hold_t0, np.zeros(nr + 1)])
-    zeros = np.zeros((nr + 1, _NA))
-    seg_a0 = np.concatenate([phase_a0.reshape(-1, _NA), run_end, next_pos])
-    seg_a1 = np.concatenate([phase_a1.reshape(-1, _NA), zeros[:nr], zeros])
-    seg_a2 = np.concatenate([phase_a2.reshape(-1, _NA), zeros[:nr], zeros])
-    order = np.argsort(seg_t0, kind="stable")  # of equal starts, the later (non-empty) one is found
-    seg_t0, seg_ref = seg_t0[order], seg_ref[order]
-    seg_a0, seg_a1, seg_a2 = seg_a0[order], seg_a1[order], seg_a2[order]
-    runs = [(int(a), int(b)) for a, b in zip(run_first_sample, run_last_sample)]
-    return Plan(fs, n_samples, line_time, move_start, is_move, is_stop, runs, duration_s,
-                _Segments(seg_t0, seg_ref, seg_a0, seg_a1, seg_a2), pieces, notes, warnings)
+    def _add_segments(self, parts: list) -> None:
+        keys = np.concatenate([np.ravel(k) for k, _ in parts])
+        seg = _Segments.joined([s for _, s in parts])[np.argsort(keys, kind="stable")]
+        # Sums of rounded times can put a phase an ulp after the next one's start: they are in
+        # time order, make their starts say so (of equal starts, the later rules)
+        seg.t0 = np.maximum.accumulate(np.concatenate([[self._t0_max], seg.t0]))[1:]
+        self._t0_max = seg.t0[-1]
+        if self._keep:
+            self._kept["segments"].append(seg)
+        else:
+            self._segments = _Segments.joined([self._segments, seg])

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import bisect
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,7 +25,7 @@ from scipy.ndimage import maximum_filter1d
 
 from .bezier import curve_lengths, fit_g5
 from .gcode import AXES, Block, Kind, Modal
-from .planner import Plan
+from .planner import PlanStream
 
 _DECIMALS = {"X": 4, "Y": 4, "Z": 4, "E": 5}  # mm: 0.1 um, E: 10 nm of filament
 _FEED_DECIMALS = 3  # mm/min (in/min in G20)
@@ -44,8 +44,7 @@ class WriteOptions:
     tolerance_mm: float = 1e-3
     min_segment_time_s: float = 1e-3
     header: tuple[str, ...] = ()  # comment text, one entry per line
-    raise_acceleration_mm_s2: tuple[float, float] | None = None  # (floor, ceiling) of the controller's limit while the command runs
-    restore_acceleration_mm_s2: tuple[float, float] | None = None  # (print, travel) afterwards
+    raise_acceleration_mm_s2: float | None = None  # the most the controller's limit may be raised to while the command runs
 
 
 @dataclass
@@ -78,7 +77,7 @@ class _Breaks:
     command arrives.
     """
 
-    def __init__(self, n_samples: int, tolerance_mm: float, min_samples: int, max_samples: int = _MAX_SAMPLES):
+    def __init__(self, n_samples: int | None, tolerance_mm: float, min_samples: int, max_samples: int = _MAX_SAMPLES):
         self.n, self.tolerance_mm, self.min_samples, self.size = n_samples, tolerance_mm, min_samples, max_samples
         self.ends = [0]  # found so far (run sample indices)
         self.bend = np.zeros(0)  # |second difference| at samples bend_base + j (bending at the sample after)
@@ -100,7 +99,7 @@ class _Breaks:
 
     def find(self) -> None:
         """Every block end that the samples fed so far decide."""
-        if self.n <= 2:
+        if self.n is not None and self.n <= 2:
             self.ends = list(range(self.n))
             return
         done = self.fed == self.n
@@ -123,9 +122,10 @@ class _Breaks:
                 pieces.append(np.arange(i, stretch_ends[bisect.bisect_right(stretch_ends, i)], step))
                 i = int(pieces[-1][-1]) + step
             self.ends.extend(np.concatenate(pieces)[1:].tolist())
-            self.ends.append(min(i, self.n - 1))
-        # Keep what later spans need: from the last start, and the stretch the mirror reaches.
-        keep = max(min(self.ends[-1], self.n - self.size), self.bend_base)
+            self.ends.append(min(i, self.n - 1) if done else i)
+        # Keep what later spans need: from the last start, and the stretch the mirror reaches
+        # (the run has at least the samples fed).
+        keep = max(min(self.ends[-1], (self.fed if self.n is None else self.n) - self.size), self.bend_base)
         self.bend = self.bend[keep - self.bend_base:]
         self.bend_base = keep
 
@@ -410,16 +410,41 @@ def acceleration_line(flavor: str, print_mm_s2: float, travel_mm_s2: float | Non
     return None
 
 
+class ProgramAccelerations:
+    """The acceleration limits a program sets, noted as its blocks pass (``watch``): the highest
+    (at least the profile's planner value: the least the raised limit may be) and the (print,
+    travel) pair the program leaves the controller with."""
+
+    def __init__(self, planner_mm_s2: float):
+        self.highest = self.accel = planner_mm_s2
+        self.travel = None
+
+    def watch(self, blocks: Iterable[Block]) -> Iterator[Block]:
+        for block in blocks:
+            if block.limits is not None:
+                if block.limits.acceleration_mm_s2:
+                    self.accel = block.limits.acceleration_mm_s2
+                    self.highest = max(self.highest, self.accel)
+                if block.limits.travel_acceleration_mm_s2 is not None:
+                    self.travel = block.limits.travel_acceleration_mm_s2
+            yield block
+
+    @property
+    def final(self) -> tuple[float, float]:
+        return self.accel, (self.accel if self.travel is None else self.travel)
+
+
 class SampleWindow:
     """The planned and the commanded samples (rows X Y Z E, machine mm) as an iterator of
     (planned, command) chunks produces them, in order; rows before ``release``'s index are
-    dropped, so a long program's samples are never all held. ``follows_plan`` (4,) marks the
-    columns the command leaves as planned (E, axes without modes): blocks end exactly where the
-    program puts them. Keeps the largest XYZ second difference of the command (mm per sample^2)."""
+    dropped, so a long program's samples are never all held. ``plan`` (``PlanStream``) tells
+    how many there are once it is done. ``follows_plan`` (4,) marks the columns the command
+    leaves as planned (E, axes without modes): blocks end exactly where the program puts them.
+    Keeps the largest XYZ second difference of the command (mm per sample^2)."""
 
-    def __init__(self, chunks: Iterable[tuple[np.ndarray, np.ndarray]], n_samples: int, follows_plan: np.ndarray):
+    def __init__(self, chunks: Iterable[tuple[np.ndarray, np.ndarray]], plan, follows_plan: np.ndarray):
         self._chunks = iter(chunks)
-        self.n_samples = n_samples
+        self._plan = plan
         self.follows_plan = np.asarray(follows_plan, dtype=bool)
         self.base = 0  # sample index of the first row held
         self.planned = self.command = np.zeros((0, 4))
@@ -429,12 +454,19 @@ class SampleWindow:
     def end(self) -> int:
         return self.base + len(self.command)
 
+    @property
+    def n_samples(self) -> int | None:
+        """None until the plan is done."""
+        return self._plan.n_samples if self._plan.done else None
+
     def ensure(self, stop: int) -> None:
         """Hold the samples up to ``stop`` - 1 (at most the last)."""
-        stop = min(stop, self.n_samples)
         planned, command, end = [self.planned], [self.command], self.end
         while end < stop:
-            p, c = next(self._chunks)
+            try:
+                p, c = next(self._chunks)
+            except StopIteration:
+                break
             planned.append(p)
             command.append(c)
             end += len(c)
@@ -460,10 +492,13 @@ class SampleWindow:
 
     def at(self, t_s: np.ndarray, fs: float, planned: bool = False) -> np.ndarray:
         """Linear interpolation of the commanded (or planned) samples at the times ``t_s``."""
-        x = np.clip(t_s * fs, 0.0, self.n_samples - 1.0)
-        k = np.minimum(x.astype(np.int64), max(self.n_samples - 2, 0))
+        x = np.maximum(t_s * fs, 0.0)
+        self.ensure(int(x.max(initial=0)) + 2)
+        n = self.n_samples
+        if n is not None:  # (else every row asked for is there)
+            x = np.minimum(x, n - 1.0)
+        k = x.astype(np.int64) if n is None else np.minimum(x.astype(np.int64), max(n - 2, 0))
         assert k.min(initial=self.base) >= self.base, "samples asked for after their release"
-        self.ensure(int(k.max(initial=0)) + 2)
         columns = self.planned if planned else self.command
         w = (x - k)[:, None]
         k = k - self.base
@@ -471,11 +506,13 @@ class SampleWindow:
         return below * (1.0 - w) + above * w  # (np.take gathers rows a few times faster than indexing)
 
 
-def write_program(blocks: Iterable[Block], plan: Plan, samples: SampleWindow, options: WriteOptions, out) -> WriteStats:
+def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions, out,
+                  accelerations: ProgramAccelerations | None = None) -> WriteStats:
     """Write the output program to the binary stream ``out`` (seekable: the acceleration raise
-    is written before the command it depends on is known, and filled in at the end).
-
-    ``blocks``: the program's blocks again, in order (from a second read: they are not held).
+    is written before the command it depends on is known, and filled in at the end). The
+    program's blocks come from ``plan`` as it settles them; ``accelerations`` watches them (the
+    raise is at least their highest, and the program's own limits are restored after the last
+    run).
     """
     refusal = format_refusal(options.flavor, options.output_format)
     if refusal:
@@ -484,21 +521,17 @@ def write_program(blocks: Iterable[Block], plan: Plan, samples: SampleWindow, op
     fs = plan.sample_rate_hz
     comment = ("(", ")") if options.flavor == "linuxcnc" else ("; ", "")
     raise_at, raise_width = [], 0  # offsets of the raise lines in out; the width of their value
-    if options.raise_acceleration_mm_s2 and plan.runs and acceleration_line(options.flavor, 0.0) is not None:
-        raise_width = len(_fmt(options.raise_acceleration_mm_s2[1], 0))
+
+    def runs_from(r: int) -> bool:
+        """Whether the program has a run r (or later)."""
+        plan.wait(lambda: len(plan.runs) > r or plan.done)
+        return len(plan.runs) > r
+
+    if options.raise_acceleration_mm_s2 and acceleration_line(options.flavor, 0.0) is not None and runs_from(0):
+        raise_width = len(_fmt(options.raise_acceleration_mm_s2, 0))
     follows_plan = samples.follows_plan
     min_samples = max(1, int(np.ceil(options.min_segment_time_s * fs - 1e-9)))
-    # A copied line runs at the sample nearest its planned time (at most half a sample off), so
-    # that blocks end on samples of the command: a block ending between two samples would bend
-    # the command there, and ask more acceleration of the controller than the command does.
-    copied_samples = np.rint(plan.line_time_s[~plan.is_move] * fs)
-    # A line at rest runs where the run of motion before it has ended: its last sample, the
-    # time rounded up (rounded to the nearest, the rest of the run would come after the line);
-    # and lines run in order.
-    copied_samples[plan.is_stop[~plan.is_move]] = np.ceil(plan.line_time_s[plan.is_stop] * fs)
-    copied_samples = np.maximum.accumulate(copied_samples)
-    copied_times = iter((copied_samples / fs).tolist())
-    copied = np.unique(copied_samples.astype(np.int64))
+    copied_sample = -1  # of the last copied line
     newline = b"\n"
     emitter = None
     run_index, written_until_s = 0, 0.0
@@ -522,14 +555,22 @@ def write_program(blocks: Iterable[Block], plan: Plan, samples: SampleWindow, op
         out.write(newline if unterminated else b"")
         unterminated = False
         raise_at.append(out.tell())
-        emit(acceleration_line(options.flavor, options.raise_acceleration_mm_s2[1], width=raise_width))
+        emit(acceleration_line(options.flavor, options.raise_acceleration_mm_s2, width=raise_width))
 
-    def block_ends(first: int, last: int, start_s: float, stop_s: float):
+    def block_ends(first: int, start_s: float, stop_s: float, soft: bool = False):
         """The current run's block ends after ``start_s`` up to ``stop_s`` (s), and their curves, in
-        batches as they become known (the last one ends at stop_s)."""
+        batches as they become known (the last one ends at stop_s; ``soft``: only those before
+        stop_s - half the minimum segment, dense only)."""
         nonlocal run_breaks, run_g5
         if options.output_format == "g5" and emitter.modal.plane == 17:  # G5 is an XY-plane command
             if run_g5 is None:  # fitted whole: the run's samples are held
+                plan.wait(lambda: plan.runs[run_index][1] is not None)
+                last = plan.runs[run_index][1]
+                ahead = [copied_sample]  # this copied line and those settled after it: all of the run's
+                for block, line_time_s, is_stop in plan.lines:
+                    if block.kind is not Kind.MOVE:
+                        ahead.append(_copied_sample(line_time_s, is_stop, fs, ahead[-1]))
+                copied = np.unique(ahead)
                 splits = copied[np.searchsorted(copied, first, "right"):np.searchsorted(copied, last, "left")] - first
                 run_ends, curves = g5_blocks(samples.rows(first, last + 1), splits, options.tolerance_mm, min_samples)
                 run_g5 = (run_ends + first, curves)
@@ -538,39 +579,55 @@ def write_program(blocks: Iterable[Block], plan: Plan, samples: SampleWindow, op
             yield run_ends[rows] / fs, run_curves[rows]
             return
         if run_breaks is None:
-            run_breaks = _Breaks(last - first + 1, options.tolerance_mm, min_samples)
+            run_breaks = _Breaks(None, options.tolerance_mm, min_samples)
         half = 0.5 * options.min_segment_time_s
         ends = run_breaks.ends
         while True:
+            last = plan.runs[run_index][1]  # (None while the run goes on)
+            if last is not None:
+                run_breaks.n = last - first + 1
             # The ends known so far strictly between start + half and stop - half (in seconds),
             # until one at or past stop is known.
-            final = ends[-1] >= min(stop_s * fs, last) - first or run_breaks.fed == run_breaks.n
+            final = ends[-1] >= min(stop_s * fs, math.inf if last is None else last) - first or run_breaks.fed == run_breaks.n
             low = bisect.bisect_left(ends, math.floor((start_s + half) * fs) - first - 1)
             times = (np.asarray(ends[low:bisect.bisect_right(ends, math.ceil((stop_s - half) * fs) - first + 1)]) + first) / fs
             inner = times[np.searchsorted(times, start_s + half, "right"):np.searchsorted(times, stop_s - half, "left")]
             del ends[:min(low, len(ends) - 1)]  # passed: later calls start after them
             if final:
-                yield np.append(inner, stop_s), None
+                if not soft:
+                    yield np.append(inner, stop_s), None
+                elif inner.size:
+                    yield inner, None
                 return
             if inner.size:
                 yield inner, None
                 start_s = inner[-1]
             fed = first + run_breaks.fed
-            run_breaks.feed(samples.rows(fed, min(fed + _FEED, last + 1)))
+            plan.wait(lambda: plan.runs[run_index][1] is not None or plan.frontier >= fed + _FEED)
+            last = plan.runs[run_index][1]
+            run_breaks.n = None if last is None else last - first + 1
+            run_breaks.feed(samples.rows(fed, fed + _FEED if last is None else min(fed + _FEED, last + 1)))
 
-    def motion_until(t_end_s: float, end_exact_mm: np.ndarray) -> None:
+    def motion_until(t_end_s: float, end_exact_mm: np.ndarray | None = None, soft: bool = False) -> None:
         """Blocks from where the output is to ``t_end_s``; the axes that follow the plan end
-        exactly at ``end_exact_mm`` (the position the program reached there; NaN: as planned)."""
+        exactly at ``end_exact_mm`` (the position the program reached there; NaN: as planned).
+        ``soft``: only the current run's blocks that end well before ``t_end_s``, where no copied
+        line comes before it, once _FLUSH_S is due (dense): so that a program of motion alone is
+        written as it goes."""
         nonlocal run_index, written_until_s, run_breaks, run_g5
         while run_index < len(plan.runs):
+            if not soft:  # the run's end, or that it goes on past t_end_s
+                plan.wait(lambda: plan.runs[run_index][1] is not None or plan.settled_s > t_end_s)
             first, last = plan.runs[run_index]
-            run_end_s = last / fs
+            run_end_s = math.inf if last is None else last / fs
             stop_s = min(t_end_s, run_end_s)
             start_s = max(written_until_s, first / fs)
+            if soft and (t_end_s >= run_end_s or stop_s - start_s < _FLUSH_S or options.output_format == "g5"):
+                return
             if stop_s > start_s:
-                for ends, curves in block_ends(first, last, start_s, stop_s):
+                for ends, curves in block_ends(first, start_s, stop_s, soft):
                     targets = samples.at(ends, fs)
-                    if ends[-1] == t_end_s:
+                    if ends[-1] == t_end_s and not soft:
                         exact = np.where(np.isnan(end_exact_mm), samples.at(ends[-1:], fs, planned=True)[0], end_exact_mm)
                         targets[-1, follows_plan] = exact[follows_plan]
                     text, count = emitter.blocks(targets, np.diff(np.append(start_s, ends)), curves)
@@ -578,19 +635,19 @@ def write_program(blocks: Iterable[Block], plan: Plan, samples: SampleWindow, op
                     stats.motion_blocks += count
                     start_s = written_until_s = float(ends[-1])
                     samples.release(int(start_s * fs) - 1)
-            if t_end_s < run_end_s:
+            if soft or t_end_s < run_end_s:
                 return
             run_index += 1
             run_breaks = run_g5 = None
-            if run_index == len(plan.runs) and raise_width and options.restore_acceleration_mm_s2:
-                emit(acceleration_line(options.flavor, *options.restore_acceleration_mm_s2))  # as the program left it
+            if raise_width and accelerations and not runs_from(run_index):
+                emit(acceleration_line(options.flavor, *accelerations.final))  # as the program left it
 
     header_done = False
     previous_modal = Modal()
-    for block in blocks:
+    for block, line_time_s, is_stop in plan.blocks():
         if emitter is None:
             newline = b"\r\n" if block.raw.endswith(b"\r\n") else b"\n"  # (only the last line has no ending)
-            emitter = _Emitter(samples.rows(0, 1)[0] if samples.n_samples else np.zeros(4), newline)
+            emitter = _Emitter(samples.rows(0, 1)[0], newline)
         if not header_done and _is_code(block):
             emit(*(f"{comment[0]}{text}{comment[1]}" for text in options.header))
             if raise_width:
@@ -598,8 +655,11 @@ def write_program(blocks: Iterable[Block], plan: Plan, samples: SampleWindow, op
             header_done = True
         if block.kind is Kind.MOVE:
             previous_modal = block.modal
+            # the next copied line runs at or after the sample nearest the end of this motion
+            motion_until(line_time_s - 1.0 / fs, soft=True)
             continue
-        t = next(copied_times)
+        copied_sample = _copied_sample(line_time_s, is_stop, fs, copied_sample)
+        t = copied_sample / fs
         motion_until(t, block.position_mm)
         reached = samples.at(np.array([t]), fs, planned=True)[0]  # where the program is: the plan where the line does not say
         reached = np.where(np.isnan(block.position_mm), reached, block.position_mm)
@@ -612,7 +672,7 @@ def write_program(blocks: Iterable[Block], plan: Plan, samples: SampleWindow, op
         commanded[follows_plan] = reached[follows_plan]  # the last block ended exactly there
         emitter.passthrough(block, commanded, reached)
         previous_modal = block.modal
-        if block.limits is not None and raise_width and run_index < len(plan.runs):
+        if block.limits is not None and raise_width and runs_from(run_index):
             emit_raise()  # the program set the controller's limit: the command still needs ours
     if emitter is None:
         emitter = _Emitter(np.zeros(4), newline)
@@ -620,7 +680,7 @@ def write_program(blocks: Iterable[Block], plan: Plan, samples: SampleWindow, op
     motion_until(np.inf, samples.planned[-1])
     emit(*mode_lines(options.flavor, emitter.modal, previous_modal))
     if raise_at:  # now that the whole command is known: what it needs, at least the planner's, at most the profile's
-        floor, ceiling = options.raise_acceleration_mm_s2
+        floor, ceiling = accelerations.highest if accelerations else 0.0, options.raise_acceleration_mm_s2
         needed = float(np.ceil(min(max(samples.peak_bend_mm * fs * fs, floor), ceiling)))
         line = acceleration_line(options.flavor, needed, width=raise_width).encode()
         end = out.tell()
@@ -632,6 +692,17 @@ def write_program(blocks: Iterable[Block], plan: Plan, samples: SampleWindow, op
 
 
 _FEED = 1 << 14  # samples given to the block-end search at once
+_FLUSH_S = 10.0  # motion written without waiting for a copied line, once this much is due
+
+
+def _copied_sample(line_time_s: float, is_stop: bool, fs: float, previous: int) -> int:
+    """The sample a copied line runs at. The nearest to its planned time (at most half a sample
+    off), so that blocks end on samples of the command: a block ending between two samples
+    would bend the command there, and ask more acceleration of the controller than the command
+    does. A line at rest runs where the run of motion before it has ended: its last sample, the
+    time rounded up (rounded to the nearest, the rest of the run would come after the line).
+    Lines run in order."""
+    return max(math.ceil(line_time_s * fs) if is_stop else round(line_time_s * fs), previous)
 
 
 def _is_code(block: Block) -> bool:
