@@ -98,35 +98,61 @@ def test_identified_frf_within_3_percent_of_peak(identified, name):
     assert f"{len(modes)} modes (chosen automatically)" in output and "fit error: RMS" in output
 
 
-def butterfly_rms(modes, desired, command, skip):
-    return rms((desired - simulate_lsim(modes, 1.0 / PATENT.sample_rate_hz, command))[skip:])
+BUTTERFLY_SEEDS = range(5)  # noise seeds 0..4, each must pass (not chosen: the first five)
 
 
-@pytest.mark.parametrize("axis_name", ["X", "Y"])
-def test_identified_profile_compensates_butterfly_like_true_model(identified, axis_name):
-    """Compensated with the identified model, evaluated on the true one. Y: within 10% of the
-    RMS error of compensating with the true model (the brief's criterion). X: the true model
-    leaves only 0.1% of the uncompensated error there, below what a fit to data with 1% noise
-    can match (with other noise seeds the ratio ranges from 1.01 to 4); asserted: at most 0.5%
-    of the uncompensated error, i.e. 99.5% of it removed."""
-    true_axis = PATENT.axes[axis_name]
-    fitted_axis = identified[f"patent-{axis_name}"][1]
+@pytest.fixture(scope="module")
+def butterfly_errors(tmp_path_factory):
+    """Per patent axis, the butterfly's RMS error (mm) run on the true model: (uncompensated,
+    compensated with the true model, [compensated with the model the command identifies from
+    the noisy FRF of each seed in BUTTERFLY_SEEDS])."""
     period_s = 1.0 / PATENT.sample_rate_hz
     _, x, y = butterfly(sample_rate_hz=PATENT.sample_rate_hz, size_mm=0.8)
-    desired = x if axis_name == "X" else y
-    skip = int(0.05 / period_s)
-    limits = AxisLimits.from_profile(true_axis)
-    with_true = compensate_axis(desired, AxisDynamics(true_axis.modes, period_s), limits).command_mm
-    with_fitted = compensate_axis(desired, AxisDynamics(fitted_axis.modes, period_s), limits).command_mm
-    rms_true = butterfly_rms(true_axis.modes, desired, with_true, skip)
-    rms_fitted = butterfly_rms(true_axis.modes, desired, with_fitted, skip)
-    uncompensated = butterfly_rms(true_axis.modes, desired, desired, skip)
-    print(f"{axis_name}: butterfly RMS {1e3 * uncompensated:.3f} um uncompensated, {1e3 * rms_true:.4f} um "
-          f"with the true model, {1e3 * rms_fitted:.4f} um with the identified one ({rms_fitted / rms_true:.3f}x)")
-    if axis_name == "Y":
-        assert rms_fitted <= 1.10 * rms_true
-    else:
-        assert rms_fitted <= 0.005 * uncompensated
+    skip = int(0.05 / period_s)  # the first 50 ms: the compensated command starts before the program
+    out = {}
+    for axis_name, desired in (("X", x), ("Y", y)):
+        true_axis = PATENT.axes[axis_name]
+        limits = AxisLimits.from_profile(true_axis)
+
+        def error(command):
+            return rms((desired - simulate_lsim(true_axis.modes, period_s, command))[skip:])
+
+        def compensated_error(modes):
+            return error(compensate_axis(desired, AxisDynamics(modes, period_s), limits).command_mm)
+
+        fitted = []
+        for seed in BUTTERFLY_SEEDS:
+            d = tmp_path_factory.mktemp(f"butterfly-{axis_name}-{seed}")
+            noisy_frf_csv(d / "frf.csv", true_axis.modes, CASES[f"patent-{axis_name}"][1], seed)
+            result = run("identify", d / "frf.csv", "--axis", "X", "-o", d / "p.toml",
+                         "--merge", MACHINES / "patent-xy-stage.toml")
+            assert result.exit_code == 0, result.output
+            fitted.append(compensated_error(load_profile(d / "p.toml").axes["X"].modes))
+        out[axis_name] = (error(desired), compensated_error(true_axis.modes), fitted)
+        print(f"{axis_name}: butterfly RMS {1e3 * out[axis_name][0]:.3f} um uncompensated, "
+              f"{1e3 * out[axis_name][1]:.4f} um with the true model; with the identified one, by seed: "
+              + ", ".join(f"{1e3 * e:.4f} um ({e / out[axis_name][1]:.3f}x)" for e in fitted))
+    return out
+
+
+@pytest.mark.parametrize("axis_name", ["Y", pytest.param("X", marks=pytest.mark.xfail(strict=True, reason=(
+    "issue 6's criterion is beyond what 1% noise allows on X: the true model leaves 0.1% of the "
+    "uncompensated error, and the identified model's low-frequency error (about 1e-4 of |G| at "
+    "5-15 Hz, where the butterfly's energy is) adds more. The fit reaches the maximum-likelihood "
+    "optimum, and even that estimator meets 1.10x in only about 8% of noise draws (Cramer-Rao); "
+    "20 seeds gave 1.01x to 4.09x, one within 1.10x")))])
+def test_identified_profile_compensates_butterfly_like_true_model(butterfly_errors, axis_name):
+    """Compensated with the identified model and run on the true one: for every seed, within
+    10% of the RMS error of compensating with the true model (issue 6's criterion)."""
+    _, with_true, with_fitted = butterfly_errors[axis_name]
+    assert max(with_fitted) <= 1.10 * with_true
+
+
+def test_identified_x_profile_removes_99_5_percent_of_butterfly_error(butterfly_errors):
+    """What X does meet (see the xfail above): for every seed, at most 0.5% of the uncompensated
+    error left, i.e. at most 4.8 times the true model's 0.1%."""
+    uncompensated, _, with_fitted = butterfly_errors["X"]
+    assert max(with_fitted) <= 0.005 * uncompensated
 
 
 # ---- excite -> recording -> identify ---------------------------------------------------------------
