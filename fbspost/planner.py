@@ -498,10 +498,16 @@ class PlanStream:
         moving = [r for r in rows if r[2]]
         n = raw.shape[0]
         nan = np.isnan(raw)
-        if self._last_row is None:  # the prologue: before its first known value an axis is there
-            filled, never = fill_unknown(np.concatenate([np.full((1, _NA), np.nan), raw]))
+        if self._last_row is None:  # the prologue: before its first known value an axis is there ...
+            filled, _ = fill_unknown(np.concatenate([np.full((1, _NA), np.nan), raw]))
             previous, filled = filled[0], filled[1:]
-            self._zeroed = never
+            # ... if it is known within the first PROLOGUE_ROWS waypoints; else at 0 until it is
+            self._zeroed = nan[:PROLOGUE_ROWS].all(axis=0)
+            if self._zeroed.any():
+                source = np.maximum.accumulate(np.where(nan, -1, np.arange(n)[:, None]), axis=0)
+                held = np.where(source >= 0, np.take_along_axis(raw, np.maximum(source, 0), axis=0), 0.0)
+                filled[:, self._zeroed] = held[:, self._zeroed]
+                previous[self._zeroed] = 0.0
         else:  # held at the last known value
             previous = self._last_row
             source = np.maximum.accumulate(np.where(nan, -1, np.arange(n)[:, None]), axis=0)

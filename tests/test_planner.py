@@ -13,6 +13,7 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 from fbspost.gcode import Block, Kind, Modal, PlannerLimits
+from fbspost import planner
 from fbspost.planner import backward_pass, forward_pass, plan_blocks
 from fbspost.profile import load_profile
 
@@ -479,6 +480,66 @@ def test_unknown_axes_are_never_nan():
     assert np.all(plan.positions_mm[0] == [10, 0, 0, 2])  # X, Y: start at their first known values
     assert any(note.startswith("Z") for note in plan.notes)
     assert plan.duration_s == pytest.approx(rest_to_rest(10, 50, 3000), rel=1e-12)
+
+
+def test_unknown_axis_found_after_the_prologue_is_planned_at_0_until_then(monkeypatch):
+    """Streaming cannot wait for ever for an axis' first position: past PROLOGUE_ROWS waypoints
+    an unknown axis is at 0 until known, and moves from there."""
+    monkeypatch.setattr(planner, "PROLOGUE_ROWS", 3)
+    prog = Program((0.0, 0.0, np.nan, 0.0))
+    for x in (10, 20, 30):
+        prog.move((x, 0, np.nan, 0), feed=50.0)
+    known = prog.move((30, 0, 0.4, 0), feed=5.0)
+    plan = plan_blocks(prog.blocks, BED, batch_blocks=2)
+    assert np.all(plan.positions_mm[:, 2][sample_times(plan) <= plan.move_start_s[known]] == 0.0)
+    assert plan.positions_mm[-1, 2] == 0.4
+    assert plan.line_time_s[known] - plan.move_start_s[known] > 0.4 / 5.0  # a real Z move, at most 5 mm/s
+    monkeypatch.setattr(planner, "PROLOGUE_ROWS", 5)  # known within (the start is a waypoint): there from the start
+    assert np.all(plan_blocks(prog.blocks, BED, batch_blocks=2).positions_mm[:, 2] == 0.4)
+    assert any(note.startswith(f"Z: position not known in the first 3 waypoints, planned at 0 mm until line {known + 1}")
+               for note in plan.notes)
+
+
+def mixed_program(rng, n_blocks):
+    """Moves, corners, extrude-only pieces, dwells, rests without dwell, jumps and lost axes at
+    STOPs, planner-limit changes and passthrough lines, at random."""
+    prog = Program()
+    for _ in range(n_blocks):
+        u = rng.random()
+        if u < 0.06:
+            prog.stop(dwell=float(rng.choice([0.0, 0.0137, 0.5])))
+        elif u < 0.08:
+            prog.stop(position=(rng.uniform(0, 50), np.nan if rng.random() < 0.5 else 5.0, 0.2, prog.pos[3]))
+        elif u < 0.12:
+            prog.passthrough(PlannerLimits(acceleration_mm_s2=float(rng.uniform(500, 5000))))
+        elif u < 0.16:
+            prog.passthrough()
+        else:
+            step = np.append(rng.normal(size=2) * rng.choice([0.05, 1.0, 10.0]), [0.0, rng.uniform(-0.5, 1.0)])
+            if rng.random() < 0.1:
+                step[:2] = 0.0  # extrude-only
+            points = [prog.pos + step * k for k in range(1, int(rng.integers(1, 4)) + 1)]
+            prog.move(*points, feed=float(rng.uniform(5, 300)) if rng.random() < 0.95 else math.inf)
+    return prog
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_plan_is_the_same_however_the_blocks_are_batched(monkeypatch, seed):
+    """Streamed a few blocks at a time (scans in chunks of 16 pieces, so that they carry over
+    chunks and batches both), the plan is bit for bit the plan of every block at once."""
+    monkeypatch.setattr(planner, "SCAN_CHUNK", 16)
+    prog = mixed_program(np.random.default_rng(seed), 400)
+    whole = plan_blocks(prog.blocks, BED, batch_blocks=10**9)
+    assert len(whole.runs) > 5 and whole.pieces.length_mm.size > 300
+    for batch in (1, 7, 64):
+        plan = plan_blocks(prog.blocks, BED, batch_blocks=batch)
+        assert plan.runs == whole.runs and plan.n_samples == whole.n_samples and plan.duration_s == whole.duration_s
+        for name in ("line_time_s", "move_start_s", "is_move", "is_stop"):
+            np.testing.assert_array_equal(getattr(plan, name), getattr(whole, name))
+        for name in ("start_v_mm_s", "end_v_mm_s", "start_s", "duration_s"):
+            np.testing.assert_array_equal(getattr(plan.pieces, name), getattr(whole.pieces, name))
+        np.testing.assert_array_equal(plan.positions_mm, whole.positions_mm)
+        assert plan.notes == whole.notes and plan.warnings == whole.warnings
 
 
 def test_empty_program():
