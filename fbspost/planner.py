@@ -337,8 +337,7 @@ class PlanStream:
 
     def __init__(self, blocks: Iterable[Block], profile: MachineProfile, batch_blocks: int | None = None,
                  keep: bool = False):
-        self.sample_rate_hz = fs = float(profile.sample_rate_hz)
-        self._fs = fs
+        self.sample_rate_hz = self._fs = float(profile.sample_rate_hz)
         self._blocks_in = iter(blocks)
         self._batch = batch_blocks or BATCH_BLOCKS
         self._keep = keep
@@ -366,6 +365,7 @@ class PlanStream:
         self._last_row: np.ndarray | None = None  # the last waypoint, filled (None: the prologue)
         self._ever_known = np.zeros(_NA, dtype=bool)
         self._zeroed = np.zeros(_NA, dtype=bool)  # axes unknown through the prologue, planned at 0 until known
+        self._prologue_seen, self._prologue_count, self._prologue_known = 0, 0, np.zeros(_NA, dtype=bool)
         self._lost, self._clamped = 0, 0
         self._clamped_first = ""
         self._stops = 0  # STOP blocks turned into waypoints
@@ -476,13 +476,11 @@ class PlanStream:
 
     def _prologue_over(self) -> bool:
         """Every axis known, enough waypoints searched, or the end: the start can be filled."""
-        if self._eof:
-            return True
-        points = [row[5] for row in self._rows]
-        known = np.zeros(_NA, dtype=bool)
-        for p in points:
-            known |= ~np.isnan(p).all(axis=0)
-        return bool(known.all()) or sum(len(p) for p in points) >= PROLOGUE_ROWS
+        for row in self._rows[self._prologue_seen:]:
+            self._prologue_known |= ~np.isnan(row[5]).all(axis=0)
+            self._prologue_count += len(row[5])
+        self._prologue_seen = len(self._rows)
+        return self._eof or bool(self._prologue_known.all()) or self._prologue_count >= PROLOGUE_ROWS
 
     # ---- waypoints to pieces ----
 
@@ -619,7 +617,6 @@ class PlanStream:
             self.frontier = self.runs[-1][1] + 1
 
     def _settle_pieces(self, n: int, v2: np.ndarray) -> None:
-        fs = self._fs
         pending = self._pending
         taken = {name: value[:n] for name, value in pending.items()}
         self._pending = {name: value[n:] for name, value in pending.items()}
