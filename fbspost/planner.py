@@ -608,8 +608,9 @@ class PlanStream:
                     self._scan_carry = reach[s1 - 1 - s0] + self._scan_delta[s1 - 1 - s0]
                     self._scan_limit, self._scan_delta = self._scan_limit[s1 - s0:], self._scan_delta[s1 - s0:]
                     self._scan_s0 = s1
-        if self._open and (self._stops > self._run_key or self._eof and not self._rows) and self._m == self._p0:
-            self._close_run()
+        over = self._stops > self._run_key or self._eof and not self._rows
+        if self._open and over and (self._m == self._p0 or self._pending["run"][0] != self._run_key):
+            self._close_run()  # (its last piece settled, the next run's first not yet)
         self._settle_blocks()
         if self.runs and self.runs[-1][1] is None:
             self.frontier = max(self.runs[-1][0] + 1, math.floor(self.settled_s * self._fs) - 1)
