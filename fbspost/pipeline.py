@@ -16,6 +16,7 @@ import numpy as np
 from . import __version__
 from .atomicfile import atomic_write
 from .dynamics import AxisDynamics
+from .fallback import FALLBACK, AxisGuard
 from .gcode import AXES, Block, detect_flavor, read_gcode
 from .optimizer import AxisCompensator, AxisLimits, FBSSettings
 from .planner import Plan, plan_blocks
@@ -146,35 +147,63 @@ def _compensators(profile: MachineProfile, options: CompensateOptions) -> dict[i
 
 
 def _compensated(plan: Plan, compensators: dict[int, AxisCompensator], errors: dict, warnings: list[str], progress):
-    """(planned, command) chunks of samples, every sample in order: the command is the plan
-    but on the compensated axes (columns) during the runs. Adds up every compensated axis'
-    modelled tracking error, over each run and the settling after it (the residual vibration
-    the compensation also reduces, and may trade a little in-motion error for), before and
-    after, and the optimizers' warnings to ``warnings``."""
-    period_s = 1.0 / plan.sample_rate_hz
+    """(planned, command) chunks of samples, every sample in order: the command is the plan but
+    on the compensated axes (columns), where it is the compensated command where that does no
+    harm and the planned original where it would (fallback.AxisGuard). Adds up every compensated
+    axis' modelled tracking error, before and after, over the runs and the settling after each
+    (the residual vibration the compensation also reduces, and may trade a little in-motion
+    error for), and a warning for each stretch that fell back to ``warnings``."""
+    guards = {c: AxisGuard(compensator, *errors[c]) for c, compensator in compensators.items()}
+    held, written = np.zeros((0, len(AXES))), {c: np.zeros(0) for c in guards}
+
+    def ready():
+        """The rows that every axis has its command for."""
+        nonlocal held
+        n = min([len(v) for v in written.values()] + [len(held)])
+        command = held[:n].copy()
+        for c in guards:
+            command[:, c], written[c] = written[c][:n], written[c][n:]
+        planned, held = held[:n], held[n:]
+        return planned, command
+
+    for planned, command, moving, follows in _optimized(plan, compensators, progress):
+        held = np.concatenate([held, planned])
+        for c, guard in guards.items():
+            written[c] = np.concatenate([written[c], guard.push(planned[:, c], command[:, c], moving, follows)])
+        chunk = ready()
+        if len(chunk[0]):
+            yield chunk
+    for c, guard in guards.items():
+        written[c] = np.concatenate([written[c], guard.finish()])
+        warnings += _fallback_warnings(plan, AXES[c], guard)
+    chunk = ready()
+    if len(chunk[0]):
+        yield chunk
+
+
+def _optimized(plan: Plan, compensators: dict[int, AxisCompensator], progress):
+    """(planned, compensated, moving, follows) chunks of samples, every sample in order: the
+    compensated command is the plan but on the compensated axes (columns) during the runs;
+    ``moving``: the chunk is in a run; ``follows``: it continues the one before (not at a rest or
+    a run's start, where the plan may jump)."""
     total = max(1, sum(last - first + 1 for first, last in plan.runs))
     done = next_sample = 0
     for first, last in plan.runs:
         if next_sample < first:  # at rest
             rest = plan.samples(next_sample, first)
-            yield rest, rest
+            yield rest, rest, False, False
         streams = {c: compensator.stream() for c, compensator in compensators.items()}
-        start = plan.samples(first, first + 1)[0]
-        responses = {c: (compensator.dynamics.response(start[c]), compensator.dynamics.response(start[c]))
-                     for c, compensator in compensators.items()}
         planned_rows, commands = np.zeros((0, len(AXES))), {c: np.zeros(0) for c in compensators}
 
         def ready(planned_rows, commands):
             """The rows that every axis has its command for, and what remains."""
             n = min([len(v) for v in commands.values()] + [len(planned_rows)])
             command = planned_rows[:n].copy()
-            for c, (before, after) in errors.items():
+            for c in commands:
                 command[:, c] = commands[c][:n]
-                desired = planned_rows[:n, c]
-                before.add(desired - responses[c][0](desired))
-                after.add(desired - responses[c][1](command[:, c]))
             return (planned_rows[:n], command), planned_rows[n:], {c: v[n:] for c, v in commands.items()}
 
+        follows = False
         for a in range(first, last + 1, _CHUNK):
             planned = plan.samples(a, min(a + _CHUNK, last + 1))
             planned_rows = np.concatenate([planned_rows, planned])
@@ -183,24 +212,38 @@ def _compensated(plan: Plan, compensators: dict[int, AxisCompensator], errors: d
             chunk, planned_rows, commands = ready(planned_rows, commands)
             if len(chunk[0]):
                 done += len(chunk[0])
-                yield chunk
+                yield *chunk, True, follows
+                follows = True
             if progress:
                 progress(done / total)
+        # (The optimizer's warnings of limits not met are the fallback's to give: it falls back there.)
         for c, stream in streams.items():
-            result = stream.finish()
-            commands[c] = np.concatenate([commands[c], result.command_mm])
-            warnings += [f"axis {AXES[c]}, motion starting at {first * period_s:.3f} s: {w}" for w in result.warnings]
+            commands[c] = np.concatenate([commands[c], stream.finish().command_mm])
         chunk, _, _ = ready(planned_rows, commands)
         done += len(chunk[0])
-        for c, (before, after) in errors.items():
-            hold = np.full(compensators[c].settings.settle_samples, chunk[0][-1, c])
-            before.add(hold - responses[c][0](hold))
-            after.add(hold - responses[c][1](hold))
-        yield chunk
+        yield *chunk, True, follows
         next_sample = last + 1
     if next_sample < plan.n_samples:
         rest = plan.samples(next_sample, plan.n_samples)
-        yield rest, rest
+        yield rest, rest, False, False
+
+
+def _fallback_warnings(plan: Plan, axis: str, guard: AxisGuard) -> list[str]:
+    """One for each stretch where ``guard`` fell back to the planned original, saying when, the
+    program lines moving then and why; one more line for those not kept."""
+    fs, out = plan.sample_rate_hz, []
+    for stretch in guard.stretches:
+        start_s, end_s = stretch.start / fs, (min(stretch.stop, plan.n_samples) - 1) / fs
+        moving = np.flatnonzero(plan.is_move & (plan.move_start_s <= end_s) & (plan.line_time_s >= start_s)) + 1
+        lines = ("" if not moving.size else f", line {moving[0]}" if moving.size == 1
+                 else f", lines {moving[0]}-{moving[-1]}")
+        kept = f"; {stretch.level:.0%} of the compensation kept" if stretch.level >= 0.005 else ""
+        out.append(f"{FALLBACK}: axis {axis}, {start_s:.3f}-{end_s:.3f} s{lines} "
+                   f"({' and '.join(sorted(stretch.reasons))}{kept})")
+    count, samples = guard.more
+    if count:
+        out.append(f"{FALLBACK}: axis {axis}, {count} more stretches, {samples / fs:.3f} s in all")
+    return out
 
 
 @dataclass
