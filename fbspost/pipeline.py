@@ -16,6 +16,7 @@ import numpy as np
 from . import __version__
 from .atomicfile import atomic_write
 from .dynamics import AxisDynamics
+from .fallback import FALLBACK, AxisGuard
 from .gcode import AXES, Block, detect_flavor, read_gcode
 from .optimizer import AxisCompensator, AxisLimits, FBSSettings
 from .planner import Plan, PlanStream
@@ -147,11 +148,49 @@ def _compensators(profile: MachineProfile, options: CompensateOptions) -> dict[i
 def _compensated(plan: Plan | PlanStream, compensators: dict[int, AxisCompensator], errors: dict,
                  warnings: list[str]) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """(planned, command) chunks of samples, every sample in order, as the plan settles them:
-    the command is the plan but on the compensated axes (columns) during the runs. Adds up every
-    compensated axis' modelled tracking error, over each run and the settling after it (the
-    residual vibration the compensation also reduces, and may trade a little in-motion error
-    for), before and after, and the optimizers' warnings to ``warnings``."""
-    period_s = 1.0 / plan.sample_rate_hz
+    the command is the plan but on the compensated axes (columns), where it is the compensated
+    command where that does no harm and the planned original where it would
+    (fallback.AxisGuard). Adds up every compensated axis' modelled tracking error, before and
+    after, over the runs and the settling after each (the residual vibration the compensation
+    also reduces, and may trade a little in-motion error for), and a warning for each stretch
+    that fell back to ``warnings``."""
+    guards = {c: AxisGuard(compensator, *errors[c]) for c, compensator in compensators.items()}
+    lines = _StretchLines(plan, guards.values())
+    held, written = np.zeros((0, len(AXES))), {c: np.zeros(0) for c in guards}
+
+    def ready():
+        """The rows that every axis has its command for."""
+        nonlocal held
+        n = min([len(v) for v in written.values()] + [len(held)])
+        command = held[:n].copy()
+        for c in guards:
+            command[:, c], written[c] = written[c][:n], written[c][n:]
+        planned, held = held[:n], held[n:]
+        return planned, command
+
+    for planned, command, moving, follows in _optimized(plan, compensators):
+        held = np.concatenate([held, planned])
+        for c, guard in guards.items():
+            written[c] = np.concatenate([written[c], guard.push(planned[:, c], command[:, c], moving, follows)])
+        lines.note(min((guard.n for guard in guards.values()), default=np.inf) / plan.sample_rate_hz)
+        chunk = ready()
+        if len(chunk[0]):
+            yield chunk
+    for c, guard in guards.items():
+        written[c] = np.concatenate([written[c], guard.finish()])
+    lines.note(np.inf)
+    for c, guard in guards.items():
+        warnings += _fallback_warnings(plan.sample_rate_hz, AXES[c], guard, lines)
+    chunk = ready()
+    if len(chunk[0]):
+        yield chunk
+
+
+def _optimized(plan: Plan | PlanStream, compensators: dict[int, AxisCompensator]):
+    """(planned, compensated, moving, follows) chunks of samples, every sample in order, as the
+    plan settles them: the compensated command is the plan but on the compensated axes (columns)
+    during the runs; ``moving``: the chunk is in a run; ``follows``: it continues the one before
+    (not at a rest or a run's start, where the plan may jump)."""
     r = next_sample = 0
     while True:
         plan.wait(lambda: len(plan.runs) > r or plan.done)
@@ -160,24 +199,19 @@ def _compensated(plan: Plan | PlanStream, compensators: dict[int, AxisCompensato
         first = plan.runs[r][0]
         if next_sample < first:  # at rest
             rest = plan.samples(next_sample, first)
-            yield rest, rest
+            yield rest, rest, False, False
         streams = {c: compensator.stream() for c, compensator in compensators.items()}
-        start = plan.samples(first, first + 1)[0]
-        responses = {c: (compensator.dynamics.response(start[c]), compensator.dynamics.response(start[c]))
-                     for c, compensator in compensators.items()}
         planned_rows, commands = np.zeros((0, len(AXES))), {c: np.zeros(0) for c in compensators}
 
         def ready(planned_rows, commands):
             """The rows that every axis has its command for, and what remains."""
             n = min([len(v) for v in commands.values()] + [len(planned_rows)])
             command = planned_rows[:n].copy()
-            for c, (before, after) in errors.items():
+            for c in commands:
                 command[:, c] = commands[c][:n]
-                desired = planned_rows[:n, c]
-                before.add(desired - responses[c][0](desired))
-                after.add(desired - responses[c][1](command[:, c]))
             return (planned_rows[:n], command), planned_rows[n:], {c: v[n:] for c, v in commands.items()}
 
+        follows = False
         a = first
         while True:
             plan.wait(lambda: plan.runs[r][1] is not None or plan.frontier >= a + _CHUNK)
@@ -190,25 +224,66 @@ def _compensated(plan: Plan | PlanStream, compensators: dict[int, AxisCompensato
                 commands[c] = np.concatenate([commands[c], stream.push(planned[:, c])])
             chunk, planned_rows, commands = ready(planned_rows, commands)
             if len(chunk[0]):
-                yield chunk
+                yield *chunk, True, follows
+                follows = True
             a = stop
             if last is not None and a > last:
                 break
+        # (The optimizer's warnings of limits not met are the fallback's to give: it falls back there.)
         for c, stream in streams.items():
-            result = stream.finish()
-            commands[c] = np.concatenate([commands[c], result.command_mm])
-            warnings += [f"axis {AXES[c]}, motion starting at {first * period_s:.3f} s: {w}" for w in result.warnings]
+            commands[c] = np.concatenate([commands[c], stream.finish().command_mm])
         chunk, _, _ = ready(planned_rows, commands)
-        for c, (before, after) in errors.items():
-            hold = np.full(compensators[c].settings.settle_samples, chunk[0][-1, c])
-            before.add(hold - responses[c][0](hold))
-            after.add(hold - responses[c][1](hold))
-        yield chunk
+        yield *chunk, True, follows
         next_sample = last + 1
         r += 1
     if next_sample < plan.n_samples:
         rest = plan.samples(next_sample, plan.n_samples)
-        yield rest, rest
+        yield rest, rest, False, False
+
+
+class _StretchLines:
+    """The program lines moving during the stretches the guards fell back on, found as the
+    plan's settled moves ((line, start s, end s), ``plan.moves``) go by; moves are dropped once
+    written, and before the start of any stretch still open."""
+
+    def __init__(self, plan: Plan | PlanStream, guards: Iterable[AxisGuard]):
+        self.moves, self.guards = plan.moves, list(guards)
+        self.fs = plan.sample_rate_hz
+        self.found: dict[int, list[int]] = {}  # id(stretch) -> [first line, last line]
+
+    def note(self, written_s: float) -> None:
+        """The moves that ended before ``written_s`` (inf: every one) are done with."""
+        upto = min([written_s] + [g.open.start / self.fs for g in self.guards if g.open is not None])
+        spans = [(s.start / self.fs, (s.stop - 1) / self.fs if s.stop else np.inf, self.found.setdefault(id(s), []))
+                 for g in self.guards for s in g.stretches + ([g.open] if g.open is not None else [])]
+        moves = self.moves
+        while moves and (moves[0][2] < upto or written_s == np.inf):
+            line, start_s, end_s = moves.popleft()
+            for first_s, last_s, found in spans:
+                if start_s <= last_s and end_s >= first_s:
+                    if not found:
+                        found.append(line)
+                    found[1:] = [line]
+
+    def of(self, stretch) -> list[int]:
+        return self.found.get(id(stretch), [])
+
+
+def _fallback_warnings(fs: float, axis: str, guard: AxisGuard, lines: _StretchLines) -> list[str]:
+    """One for each stretch where ``guard`` fell back to the planned original, saying when, the
+    program lines moving then and why; one more line for those not kept."""
+    out = []
+    for stretch in guard.stretches:
+        moving = lines.of(stretch)
+        named = ("" if not moving else f", line {moving[0]}" if moving[0] == moving[-1]
+                 else f", lines {moving[0]}-{moving[-1]}")
+        kept = f"; {stretch.level:.0%} of the compensation kept" if stretch.level >= 0.005 else ""
+        out.append(f"{FALLBACK}: axis {axis}, {stretch.start / fs:.3f}-{(stretch.stop - 1) / fs:.3f} s{named} "
+                   f"({' and '.join(sorted(stretch.reasons))}{kept})")
+    count, samples = guard.more
+    if count:
+        out.append(f"{FALLBACK}: axis {axis}, {count} more stretches, {samples / fs:.3f} s in all")
+    return out
 
 
 @dataclass

@@ -156,6 +156,12 @@ class Plan:
     # The stream's interface (``PlanStream``), for a plan that is whole: everything is known.
     done = True
 
+    @functools.cached_property
+    def moves(self) -> deque:
+        """(line, start s, end s) of every MOVE block (a block per line)."""
+        index = np.flatnonzero(self.is_move)
+        return deque(zip((index + 1).tolist(), self.move_start_s[index].tolist(), self.line_time_s[index].tolist()))
+
     @property
     def frontier(self) -> int:
         return self.n_samples
@@ -348,6 +354,7 @@ class PlanStream:
         self.frontier = 0  # samples below it are settled
         self.settled_s = 0.0  # the motion is settled up to this time (the end of the last piece settled)
         self.lines: deque = deque()  # (block, line time s, is_stop) settled and not yet taken
+        self.moves: deque = deque()  # (line, start s, end s) of the MOVE blocks settled and not yet taken
         self.done = False
         self.n_blocks = 0
         self.n_samples: int | None = None
@@ -717,12 +724,15 @@ class PlanStream:
         dwell_at = np.where(latest >= 0, dwell_before[np.maximum(latest, 0)], self._latest_dwell)  # (a MOVE has no dwell)
         clock_at = end_at + (dwell_before - dwell_at)
         line_time = np.where(has, block_end, clock_at)
+        move_start = np.where(has, block_start, clock_at)
         if latest[-1] >= 0:
             self._latest_end, self._latest_dwell = float(end_at[-1]), float(dwell_at[-1])
         if self._keep:
-            self._kept["blocks"].append((line_time, np.where(has, block_start, clock_at), is_move, is_stop))
+            self._kept["blocks"].append((line_time, move_start, is_move, is_stop))
         else:
             self.lines.extend(zip((t[0] for t in taken), line_time.tolist(), is_stop.tolist()))
+            moves = np.flatnonzero(is_move)
+            self.moves.extend(zip((taken[i][0].line_no for i in moves), move_start[moves].tolist(), line_time[moves].tolist()))
 
     def _finish(self) -> None:
         if self._open:

@@ -10,6 +10,7 @@ import pytest
 from click.testing import CliRunner
 
 from fbspost.cli import main
+from fbspost.fallback import FALLBACK
 from fbspost.gcode import read_gcode
 from fbspost.pipeline import CompensateOptions, compensate_file
 from fbspost.planner import CLAMPED, plan_blocks
@@ -143,7 +144,8 @@ def test_sliced_output_within_axis_limits(sliced):
     velocity per block, and acceleration from block to block (5% for the chords' approximation
     of the sampled command, as for the butterfly)."""
     _, target, report = sliced
-    assert not [w for w in report.warnings if not w.startswith(CLAMPED)]  # (Z moves at travel feeds)
+    # (Z moves at travel feeds; stretches where compensating would raise the modelled error)
+    assert not [w for w in report.warnings if not w.startswith((CLAMPED, FALLBACK))]
     ends = np.array(execute(target).ends)
     dt = np.diff(ends[:, 0])
     moving = dt > 0

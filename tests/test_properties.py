@@ -9,11 +9,11 @@ with absolute and relative E, G90/G91, G92 E0 and G92 X Y, comments (`;` and `( 
 that are not UTF-8), passthrough lines, blank lines, LF and CRLF endings, the last line with or
 without one. A few mm at tens of mm/s: a second or two of motion each.
 
-`test_fuzz` runs the same checks for about a minute with a fixed seed. Known failures, each an
-xfail with the minimal programs found (as @example), both for want of the fallback to the
-planned original: the RMS error with lines where the machine rests (G4, M400, T0) in
-`test_with_stops`, the largest error in `test_largest_error_never_worse`; the other tests
-generate programs without them.
+`test_fuzz` runs the same checks for about a minute with a fixed seed. Known failure, an xfail
+with the minimal programs found (as @example): `test_with_stops`, lines where the machine rests
+(G4, M400, T0), whose output runs up to a few samples off the plan's time after each such line
+(see there); `test_with_stops_command_never_worse` checks its error property on the command
+itself. The other tests generate programs without them.
 """
 import math
 import tempfile
@@ -23,8 +23,9 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, Phase, example, given, seed, settings, strategies as st
 
+from fbspost.fallback import FALLBACK
 from fbspost.gcode import read_gcode
-from fbspost.pipeline import CompensateOptions, compensate_file
+from fbspost.pipeline import CompensateOptions, compensate_file, compensated_samples
 from fbspost.planner import CLAMPED, plan_blocks
 from fbspost.profile import load_profile
 from reference import execute, kept_lines, rms, sample_blocks, simulate_lsim
@@ -157,7 +158,7 @@ def check_program_kept(program: bytes, largest_error: bool = False):
         plan = plan_blocks(list(read_gcode(source, "marlin")), PRINTER)
         assert original.duration_s <= plan.duration_s + 1e-9
         assert output.duration_s == pytest.approx(plan.duration_s, rel=0.01, abs=2e-3)
-        assert [w for w in report.warnings if not w.startswith(CLAMPED)] == []
+        assert [w for w in report.warnings if not w.startswith((CLAMPED, FALLBACK))] == []
         # The predicted error, the report's and that of the output run block by block through
         # scipy's simulation of the profile, against the planned original (0.2 um: the written
         # decimals and the blocks' 1 um tolerance).
@@ -207,8 +208,14 @@ def test_lines_at_rest_run_where_the_motion_ended(program):
     check_program_kept(program)
 
 
-@pytest.mark.xfail(strict=False, reason="with lines at rest the compensated RMS error can exceed the original's "
-                                        "(the fallback to the planned original is not there yet)")
+# A line at rest is written at the run's last sample (its time rounded up) and the next run's
+# blocks start at the plan's next run; the planner starts that run at floor(end + dwell) or one
+# sample after the last, so that the output's time there is a sample off the plan's at each such
+# line (M400: a sample early, G4 P5 after a run ending at 0.367 s: one late); compared sample by
+# sample with the plan, a compensation that helps hides it, but an output that falls back to the
+# original shows it as an error (the Y example: 35.9 -> 36.3 um, though its command: 35.8 -> 12.5 um).
+@pytest.mark.xfail(strict=False, reason="after a line at rest the output runs up to a few samples off the plan's "
+                                        "time (planner and writer round it differently)")
 @KNOWN
 @example(b"G1 X0 Y12.028 F1151\nG1 X20 Y19.469 E-0.1302 F1475\nG4 P100\n")  # rested 9 um short (fixed)
 @example(b"G1 X19.651 Y8.295 F1125\nG3 X20.858 Y6.828 R2.479\nG4 P132\n")  # ends 3.7 um short
@@ -222,10 +229,33 @@ def test_with_stops(program):
     check_program_kept(program)
 
 
-@pytest.mark.xfail(strict=False, reason="compensation may raise the largest error of a run (RMS always drops); "
-                                        "the fallback to the planned original is not there yet")
-@KNOWN
-@example(b"G1 X2.789 Y0 Z0.2 F1200\nG1 X0 Y0 Z0.4\n")  # X: largest 68.6 -> 85.2 um, RMS 25.7 -> 14.8 um
+@settings(max_examples=15, derandomize=True, **COMMON)
+@example(b"G1 X2.322 Y10.870 Z0.2 F4073\nG0 X2.902 Y18.239\nG1 X0.707 Y11.768\nG2 X-1.629 Y11.824 R-1.461\n"
+         b"G4 P5\nG3 X-4.693 Y-1.533 I-2.337 J-6.494\n")
+@example(b"G21\nG90\nM82\r\nG92 E0\nG1 X0.000 Y11.253 Z0.200 F2119\nM104 S205\r\nM82\r\nG2 X-2.468 Y8.439 I-1.480 "
+         b"J-1.191\r\nG1 X0.000 Y19.428 Z0.400 E0.0736\nG2 X3.015 Y18.167 R-3.393 E1.1586\r\nM400\r\nG92 X-0.737 "
+         b"Y-3.039\nG2 X-2.527 Y-3.552 R-2.500\nG2 X5.737 Y-9.183 R5.050\nM400\nG1 X14.783 Y20.000")
+@given(programs(stops=True))
+def test_with_stops_command_never_worse(program):
+    """With lines at rest, the command as compensate computes it (on the plan's samples, where
+    the output's time at those lines does not enter, see test_with_stops) through scipy's
+    simulation, and the report: RMS and largest error per axis never above the original's."""
+    folder, source, _, report = compensated(program)
+    with folder:
+        plan = plan_blocks(list(read_gcode(source, "marlin")), PRINTER)
+    command = compensated_samples(plan, PRINTER, OPTIONS)
+    for column, name in ((0, "X"), (1, "Y")):
+        before, after = modelled_error(plan.positions_mm[:, column], command[:, column],
+                                       PRINTER.axes[name].modes, 1.0 / PRINTER.sample_rate_hz)
+        assert rms(after) <= rms(before) * (1 + 1e-9) + 1e-9, f"{name}: {rms(before) * 1e3:.3f} -> {rms(after) * 1e3:.3f}"
+        assert np.abs(after).max() <= np.abs(before).max() * (1 + 1e-9) + 1e-9, name
+    for axis in report.axes.values():
+        assert axis.rms_error_after_um <= axis.rms_error_before_um * (1 + 1e-9)
+        assert axis.max_error_after_um <= axis.max_error_before_um * (1 + 1e-9)
+
+
+@settings(max_examples=15, derandomize=True, **COMMON)
+@example(b"G1 X2.789 Y0 Z0.2 F1200\nG1 X0 Y0 Z0.4\n")  # X: compensated, largest 68.6 -> 85.2 um (RMS 25.7 -> 14.8)
 @given(programs(stops=False))
 def test_largest_error_never_worse(program):
     check_program_kept(program, largest_error=True)
