@@ -211,11 +211,18 @@ def start(*args):
 
 
 def open_files(pid):
-    folder = f"/proc/{pid}/fd"
+    """The paths of the files ``pid`` has open (those that stay open while looked at)."""
+    folder, paths = f"/proc/{pid}/fd", []
     try:
-        return [os.path.join(folder, fd) for fd in os.listdir(folder)]
+        fds = os.listdir(folder)
     except FileNotFoundError:  # ended
         return []
+    for fd in fds:
+        try:
+            paths.append(os.readlink(os.path.join(folder, fd)))
+        except FileNotFoundError:  # closed meanwhile (the flavor is detected, then the file read)
+            pass
+    return paths
 
 
 def temporary_files(folder):
@@ -232,7 +239,7 @@ def test_signal_while_computing(tmp_path, signum, status):
     # Once the program is open (its flavor detected, then read), the imports are over; half a
     # second later reading and planning are done and the optimizer is at work.
     deadline = time.monotonic() + 60
-    while not any(os.path.realpath(fd) == str(program) for fd in open_files(proc.pid)):
+    while str(program) not in open_files(proc.pid):
         assert proc.poll() is None and time.monotonic() < deadline, "the program was never opened"
         time.sleep(0.002)
     time.sleep(0.5)
