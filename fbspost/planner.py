@@ -29,9 +29,11 @@ minimum_cruise_ratio smoothing switched off:
 STOP blocks are rests: the motion decelerates to 0 at them and a G4 waits dwell_s there. A STOP
 that moved the machine without pieces (G28, a move from an unknown position) takes no time here:
 the position jumps to the STOP's position, and the next run starts from there. Every run of
-motion starts at rest at one sample and ends at rest at another, and runs do not share samples:
-when the rest between two runs is shorter than that needs, the later run starts at the second
-sample after the earlier one ends (less than 2 sample periods of extra rest, only at STOPs).
+motion starts at rest at one sample and ends at rest at another (its end rounded up), and runs do
+not share samples: the rest after a run (its STOPs' dwells) is timed from its last sample, where
+the output runs the line at rest, and the next run starts on the first sample at or after the
+rest's end, the sample after the last at the earliest (less than 2 sample periods of extra
+rest, only at STOPs).
 
 Axes whose position is unknown (NaN in the blocks) are held at their last known value; before
 they are first known, at that first value if they are known within the first PROLOGUE_ROWS
@@ -388,7 +390,7 @@ class PlanStream:
         self._open = False  # the last run goes on
         self._run_key = -1  # STOPs before the last settled piece
         self._run_clock = self._run_base = 0.0
-        self._end_s, self._last_sample, self._dwell_after_run = 0.0, -1, 0.0
+        self._last_sample, self._dwell_after_run = -1, 0.0
         self._last_end = np.zeros(_NA)  # where the last settled piece ends
         self._last_dwell_after = 0.0  # dwells up to the block of the last settled piece
         self._last_piece = -1
@@ -756,11 +758,13 @@ class PlanStream:
 
     def _open_run(self, piece: int, key: int, block: int, start: np.ndarray, cum: float, segments: list) -> None:
         fs = self._fs
-        clock = self._end_s + (self._dwell_before(block) - self._dwell_after_run)
-        first = math.floor(clock * fs)
-        if first <= self._last_sample:  # the rest holds no sample of its own: start on the next one
-            first = self._last_sample + 1
-            clock = max(clock, first / fs)
+        # The rest is timed from the run before's last sample (where the output's line at rest
+        # runs) and the run starts on the first sample after it: a whole sample later at least
+        # (runs do not share samples; the output's first block takes that up: writer).
+        rest_from_s = self._last_sample / fs if self.runs else 0.0
+        clock = rest_from_s + (self._dwell_before(block) - self._dwell_after_run)
+        first = max(math.ceil(clock * fs - 1e-6), self._last_sample + 1)  # (an ulp over is not a sample later)
+        clock = first / fs
         self._next_segment(start, 8 * piece - 2, segments)
         self.runs.append([first, None])
         self._open, self._run_key = True, key
@@ -772,7 +776,7 @@ class PlanStream:
         end_s = self._run_clock + (self._cum_dur - self._run_base)
         last = math.ceil(end_s * self._fs)
         self.runs[-1][1] = last
-        self._end_s, self._last_sample, self._dwell_after_run = end_s, last, self._last_dwell_after
+        self._last_sample, self._dwell_after_run = last, self._last_dwell_after
         self._open = False
         t = np.array([end_s])
         segments.append((np.array([8 * self._last_piece + 3]), _Segments(t, t, self._last_end[None], np.zeros((1, _NA)),

@@ -535,6 +535,7 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
     newline = b"\n"
     emitter = None
     run_index, written_until_s = 0, 0.0
+    dwelt_s = 0.0  # the dwells of the lines at rest since the last block: the controller's time is written_until_s + dwelt_s
     run_breaks, run_g5 = None, None  # the current run's block ends (dense) or blocks and curves (g5)
 
     unterminated = False  # the last copied line had no line ending (the end of the file)
@@ -614,7 +615,7 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
         ``soft``: only the current run's blocks that end well before ``t_end_s``, where no copied
         line comes before it, once _FLUSH_S is due (dense): so that a program of motion alone is
         written as it goes."""
-        nonlocal run_index, written_until_s, run_breaks, run_g5
+        nonlocal run_index, written_until_s, dwelt_s, run_breaks, run_g5
         while run_index < len(plan.runs):
             if not soft:  # the run's end, or that it goes on past t_end_s
                 plan.wait(lambda: plan.runs[run_index][1] is not None or plan.settled_s > t_end_s)
@@ -625,15 +626,19 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
             if soft and (t_end_s >= run_end_s or stop_s - start_s < _FLUSH_S or options.output_format == "g5"):
                 return
             if stop_s > start_s:
+                # A run's first block starts where the controller is, at most a sample before
+                # the run's first sample (planner): it takes up the difference.
+                from_s = start_s if written_until_s >= first / fs else min(written_until_s + dwelt_s, start_s)
                 for ends, curves in block_ends(first, start_s, stop_s, soft):
                     targets = samples.at(ends, fs)
                     if ends[-1] == t_end_s and not soft:
                         exact = np.where(np.isnan(end_exact_mm), samples.at(ends[-1:], fs, planned=True)[0], end_exact_mm)
                         targets[-1, follows_plan] = exact[follows_plan]
-                    text, count = emitter.blocks(targets, np.diff(np.append(start_s, ends)), curves)
+                    text, count = emitter.blocks(targets, np.diff(np.append(from_s, ends)), curves)
                     emit_text(text, count)
                     stats.motion_blocks += count
-                    start_s = written_until_s = float(ends[-1])
+                    from_s = start_s = written_until_s = float(ends[-1])
+                    dwelt_s = 0.0
                     samples.release(int(start_s * fs) - 1)
             if soft or t_end_s < run_end_s:
                 return
@@ -671,6 +676,8 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
         stats.passthrough_lines += 1
         commanded[follows_plan] = reached[follows_plan]  # the last block ended exactly there
         emitter.passthrough(block, commanded, reached)
+        if is_stop:
+            dwelt_s += block.dwell_s
         previous_modal = block.modal
         if block.limits is not None and raise_width and runs_from(run_index):
             emit_raise()  # the program set the controller's limit: the command still needs ours

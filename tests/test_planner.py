@@ -401,14 +401,15 @@ def test_dwell_rests_exactly_and_splits_runs():
     after = prog.passthrough()
     second = prog.move((0, 0, 0, 0), feed=50.0)
     plan = plan_blocks(prog.blocks, BED)
-    t1 = rest_to_rest(10, 50, 3000)
+    t1, fs = rest_to_rest(10, 50, 3000), BED.sample_rate_hz
     assert plan.line_time_s[pause] == pytest.approx(t1, rel=1e-12)
-    assert plan.move_start_s[second] == pytest.approx(t1 + 0.5, rel=1e-12)
-    assert plan.line_time_s[after] == plan.move_start_s[second]
-    assert plan.duration_s == pytest.approx(2 * t1 + 0.5, rel=1e-12)
-    fs = BED.sample_rate_hz
-    assert plan.runs == [(0, math.ceil(t1 * fs)), (math.floor((t1 + 0.5) * fs), plan.positions_mm.shape[0] - 1)]
-    rest = plan.positions_mm[math.ceil(t1 * fs):math.floor((t1 + 0.5) * fs) + 1]
+    # the dwell counts from the sample the first run ends on (where the output runs the G4)
+    last = math.ceil(t1 * fs)
+    assert plan.move_start_s[second] == pytest.approx(last / fs + 0.5, rel=1e-12)
+    assert plan.line_time_s[after] == pytest.approx(t1 + 0.5, rel=1e-12)  # when the original's dwell ends
+    assert plan.duration_s == pytest.approx(last / fs + 0.5 + t1, rel=1e-12)
+    assert plan.runs == [(0, last), (last + 500, plan.positions_mm.shape[0] - 1)]
+    rest = plan.positions_mm[last:last + 501]
     assert np.all(rest == [10, 0, 0, 0])
 
 
