@@ -51,8 +51,8 @@ Units: mm, s, mm/s, mm/s^2.
 from __future__ import annotations
 
 import functools
-import math
 import itertools
+import math
 import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator

@@ -583,10 +583,15 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
             run_breaks = _Breaks(None, options.tolerance_mm, min_samples)
         half = 0.5 * options.min_segment_time_s
         ends = run_breaks.ends
+
+        def run_last() -> int | None:
+            """The run's last sample (None while it goes on), told to its block-end search."""
+            last = plan.runs[run_index][1]
+            run_breaks.n = None if last is None else last - first + 1
+            return last
+
         while True:
-            last = plan.runs[run_index][1]  # (None while the run goes on)
-            if last is not None:
-                run_breaks.n = last - first + 1
+            last = run_last()
             # The ends known so far strictly between start + half and stop - half (in seconds),
             # until one at or past stop is known.
             final = ends[-1] >= min(stop_s * fs, math.inf if last is None else last) - first or run_breaks.fed == run_breaks.n
@@ -605,8 +610,7 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
                 start_s = inner[-1]
             fed = first + run_breaks.fed
             plan.wait(lambda: plan.runs[run_index][1] is not None or plan.frontier >= fed + _FEED)
-            last = plan.runs[run_index][1]
-            run_breaks.n = None if last is None else last - first + 1
+            last = run_last()
             run_breaks.feed(samples.rows(fed, fed + _FEED if last is None else min(fed + _FEED, last + 1)))
 
     def motion_until(t_end_s: float, end_exact_mm: np.ndarray | None = None, soft: bool = False) -> None:
