@@ -16,7 +16,7 @@ from hypothesis import given, settings, strategies as st
 from fbspost.profile import ProfileError, load_profile
 
 MACHINES = Path(__file__).resolve().parents[1] / "machines"
-BUNDLED = ["patent-xy-stage", "bedslinger-example"]
+BUNDLED = ["patent-xy-stage", "bedslinger-example", "printer-two-mode"]
 
 
 def raw_toml(name: str) -> dict:
