@@ -31,6 +31,7 @@ what the horizon leaves out.
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -38,6 +39,7 @@ import numpy as np
 from .optimizer import _LIMIT_TOLERANCE, AxisCompensator
 
 _LONGEST = 16  # units of the longest candidate, at least (and four ramps)
+_RECENT_S = 2.0  # the original's largest error over this much before a decision bounds its errors (and all ahead)
 _DECAY = 1e-9  # the horizon: until the slowest mode has decayed by this much
 _MOVED_MM = 1e-4  # samples where the fallback moves the command less than this are not reported
 _NAMED = 5  # stretches kept for their warnings, per axis (the others only counted)
@@ -77,8 +79,9 @@ class AxisGuard:
     ``stretches`` holds the first stretches that fell back, ``more`` how many others and their
     samples."""
 
-    def __init__(self, compensator: AxisCompensator, before, after):
+    def __init__(self, compensator: AxisCompensator, before, after, enabled: bool = True):
         dynamics, settings = compensator.dynamics, compensator.settings
+        self.enabled = enabled  # False: the compensated command everywhere (its errors still modelled)
         self.dynamics, self.before, self.after = dynamics, before, after
         self.period_s = dynamics.sample_period_s
         self.unit = settings.commit_spans * settings.knot_spacing_samples
@@ -113,7 +116,9 @@ class AxisGuard:
         self.level = 0.0  # w at n - 1
         self.written_before = self.planned_before = self.command_before = None  # the last ``history`` samples before n
         self.emitted = 0  # samples given out
-        self.peak_planned_mm = [0.0, 0.0]  # largest planned error before n: counted, all
+        # the planned error's largest in each unit written in the last _RECENT_S: (end, counted, all)
+        self.recent = deque()
+        self.recent_samples = math.ceil(_RECENT_S / self.period_s)
         self.stretches: list[Stretch] = []
         self.more = [0, 0]  # stretches not kept, their samples
         self.open: Stretch | None = None
@@ -196,12 +201,12 @@ class AxisGuard:
         as many units as it does none; or the safe plan as it was. The samples it decides."""
         horizon, unit, ramp = self.horizon, self.unit, self.ramp
         difference = self.command[:self.reach] - self.planned[:self.reach]
-        if not difference.any():  # w changes nothing here: then compensate at once
+        if not self.enabled or not difference.any():  # w changes nothing here: then compensate at once
             self.weights = np.ones(self.lengths[0] * unit)
             return len(self.weights)
         counted = self.counted[:horizon]
-        windows, peaks = (counted, slice(0, horizon)), self.peak_planned_mm
-        if counted.all():  # one window: the counted samples' peak so far is the stricter
+        windows, peaks = (counted, np.ones(horizon, bool)), self._recent_peaks()
+        if counted.all():  # one window: the counted samples' recent peak is the stricter
             windows, peaks = windows[1:], peaks[:1]
         planned_error = self.error[:horizon] - self._moved(self.x, np.empty(0), horizon)  # the original from n on
         safe_error = planned_error - self._moved(None, self.weights * difference[:len(self.weights)], horizon)
@@ -220,15 +225,19 @@ class AxisGuard:
                 scaled[:ramp] = self.up
                 if self.level:
                     base = base - self._moved(None, self.level * self.up[::-1] * difference[:ramp], horizon)
+            # its largest error is judged where it writes (the blend down after it is written only if
+            # no later decision extends it; judged there, a blend that would do harm at a sharp
+            # corner ahead makes the guard blend down now, which does the same harm earlier)
+            written = np.arange(horizon) < h * unit
             level, short_of = _highest_level(base, self._moved(None, scaled * difference[:len(scaled)], horizon),
-                                             windows, allowed, budget)
+                                             windows, [w & written for w in windows], allowed, budget)
             if level is not None and best is not None and level <= best[0]:
                 continue
             if level is not None:
                 weights = level * scaled
                 if blend:  # (so that an unchanged level is exactly that)
                     weights[:ramp] = self.level + (level - self.level) * self.up
-                if not self._within_limits(weights * difference[:len(weights)]):
+                if not self._within_limits(weights * difference[:len(weights)], h * unit):
                     level, short_of = None, {LIMITS}
             if level is None:
                 if best is None:
@@ -243,18 +252,28 @@ class AxisGuard:
         self.weights = best[2]
         return best[1] * unit
 
-    def _within_limits(self, change: np.ndarray) -> bool:
-        """Is planned + ``change`` (then planned) within the axis' command limits wherever the
-        planned original is? (Where the original itself is beyond one, at a junction's velocity
-        jump, the controller's junction model governs, for the original as for this.)"""
+    def _recent_peaks(self) -> list[float]:
+        """The planned error's largest over the last _RECENT_S written (a unit at least): over the
+        counted samples, over all."""
+        return [max((r[i] for r in self.recent), default=0.0) for i in (1, 2)]
+
+    def _within_limits(self, change: np.ndarray, checked: int) -> bool:
+        """Is planned + ``change`` (then planned) within the axis' command limits over its first
+        ``checked`` samples, wherever the planned original is? (Where the original itself is
+        beyond one, at a junction's velocity jump, the controller's junction model governs, for
+        the original as for this.) Only what a decision writes is checked: the blend down after
+        it is written only if no later decision extends it, and where the compensation holds an
+        axis at its velocity limit no blend of it can keep within: that alone is no reason to
+        fall back."""
         ahead = self.planned[:len(change) + self.history]
         planned = np.concatenate([self.planned_before, ahead])
         written = np.concatenate([self.written_before, ahead])
         written[self.history:self.history + len(change)] += change
         for order, limit in self.limits.items():
             bound = limit * self.period_s**order * (1.0 + _LIMIT_TOLERANCE)
-            ours = np.abs(np.diff(written, order)[self.history - order:])
-            if np.any((ours > bound) & (np.abs(np.diff(planned, order)[self.history - order:]) <= bound)):
+            rows = slice(self.history - order, self.history - order + checked)
+            ours = np.abs(np.diff(written, order)[rows])
+            if np.any((ours > bound) & (np.abs(np.diff(planned, order)[rows]) <= bound)):
                 return False
         return True
 
@@ -277,8 +296,9 @@ class AxisGuard:
             if size not in self.powers:
                 self.powers[size] = np.linalg.matrix_power(self.dynamics.A, size)
             self.x = self.powers[size] @ self.x + self._state(change)
-        for i, window in enumerate((counted, slice(None))):
-            self.peak_planned_mm[i] = max(self.peak_planned_mm[i], np.abs(error[window]).max(initial=0.0))
+        self.recent.append((self.n + size, *(np.abs(error[w]).max(initial=0.0) for w in (counted, slice(None)))))
+        while self.recent[0][0] <= self.n + size - self.recent_samples:
+            self.recent.popleft()
         self.level = w[-1]
         moved = np.abs(command - written)
         where = np.flatnonzero(moved > _MOVED_MM)
@@ -308,30 +328,31 @@ class AxisGuard:
         self.open, self.reasons = None, set()
 
 
-def _highest_level(base: np.ndarray, response: np.ndarray, windows, allowed, budget,
+def _highest_level(base: np.ndarray, response: np.ndarray, windows, peak_windows, allowed, budget,
                    margin: float = 1e-9) -> tuple[float | None, set[str]]:
-    """The highest level a in (0, 1] such that the error base - a response stays, in every
-    window, within ``allowed`` and its sum of squares within ``budget`` (None if there is none),
-    and what a = 1 breaks. The bounds on a are found ``margin`` (relative) inside, so that
-    rounding keeps it within."""
+    """The highest level a in (0, 1] such that the error base - a response stays within
+    ``allowed`` in every one of ``peak_windows`` and its sum of squares within ``budget`` in every
+    one of ``windows`` (boolean masks; None if there is none), and what a = 1 breaks. The bounds
+    on a are found ``margin`` (relative) inside, so that rounding keeps it within."""
     def breaks(error):
         return ({WORSE for w, b in zip(windows, budget)
-                 if error[w] @ error[w] > b * (1.0 + _TIE) + _TIE_MM**2 * error[w].size}
-                | {LARGEST for w, peak in zip(windows, allowed)
+                 if error[w] @ error[w] > b * (1.0 + _TIE) + _TIE_MM**2 * np.count_nonzero(w)}
+                | {LARGEST for w, peak in zip(peak_windows, allowed)
                    if np.abs(error[w]).max(initial=0.0) > peak * (1.0 + _TIE) + _TIE_MM})
 
     failed = breaks(base - response)
     if not failed:
         return 1.0, failed
     low, high = 0.0, 1.0
-    for w, peak, b in zip(windows, allowed, budget):
-        e, r = base[w], response[w]
+    for w, peak, b, pw in zip(windows, allowed, budget, peak_windows):
+        e, r = base[pw], response[pw]
         peak *= 1.0 - margin
         flat = r == 0.0  # |e - a r| <= peak, sample by sample
         if np.any(np.abs(e[flat]) > peak):
             return None, failed
         ends = np.array([(e[~flat] - peak) / r[~flat], (e[~flat] + peak) / r[~flat]])
         low, high = max(low, ends.min(axis=0).max(initial=-np.inf)), min(high, ends.max(axis=0).min(initial=np.inf))
+        e, r = base[w], response[w]
         a, half_b, c = r @ r, e @ r, e @ e - b * (1.0 - margin)  # a^2 (r r) - 2 a (e r) + e e - b <= 0
         if a == 0.0:
             if c > 0.0:

@@ -19,7 +19,7 @@ from .dynamics import AxisDynamics
 from .fallback import FALLBACK, AxisGuard
 from .gcode import AXES, Block, detect_flavor, read_gcode
 from .optimizer import AxisCompensator, AxisLimits, FBSSettings
-from .planner import Plan, PlanStream
+from .planner import Plan, PlanStream, RunMargins
 from .profile import MachineProfile
 from .trajectory import InputError
 from .writer import ProgramAccelerations, SampleWindow, WriteOptions, format_refusal, write_program
@@ -33,6 +33,9 @@ class CompensateOptions:
     min_segment_time_s: float = 1e-3
     lookahead: str = "limited"
     settings: FBSSettings = FBSSettings()
+    lead_time_s: float | None = None  # the command may move this long before each run (None: from the dynamics)
+    settle_time_s: float | None = None  # ... and after it
+    fallback: bool = True  # blend to the planned original where compensating would do harm
 
 
 @dataclass
@@ -68,6 +71,9 @@ class Report:
     lines_out: int
     print_time_s: float
     compute_time_s: float
+    added_time_s: float = 0.0  # the lead and settle margins given to the runs of motion (in print_time_s)
+    lead_time_s: float = 0.0  # per run
+    settle_time_s: float = 0.0
     axes: dict[str, AxisReport] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     stage_time_s: dict[str, float] = field(default_factory=dict)  # read, plan, optimize, write
@@ -94,15 +100,16 @@ def compensate_file(input_path: str | Path, output_path: str | Path, profile: Ma
         raise InputError(input_path, None, refusal)
     stages = dict.fromkeys(("read", "plan", "optimize", "write"), 0.0)
     accelerations = ProgramAccelerations(profile.planner_acceleration_mm_s2)
-    blocks = _timed(read_gcode(input_path, flavor), stages, "read")
+    blocks = _timed(read_gcode(input_path, flavor, profile.home_mm), stages, "read")
     if progress:
         blocks = _reported(blocks, _count_lines(input_path), progress)
-    plan = PlanStream(accelerations.watch(blocks), profile)
+    margins = RunMargins.for_profile(profile, options.lead_time_s, options.settle_time_s)
+    plan = PlanStream(accelerations.watch(blocks), profile, margins=margins)
     compensators = _compensators(profile, options)
     errors = {c: (_ErrorStats(), _ErrorStats()) for c in compensators}
     follows_plan = np.array([c not in compensators for c in range(len(AXES))])
     optimizer_warnings: list[str] = []
-    chunks = _timed(_compensated(plan, compensators, errors, optimizer_warnings), stages, "optimize",
+    chunks = _timed(_compensated(plan, compensators, errors, optimizer_warnings, options.fallback), stages, "optimize",
                     exclude=lambda: plan.time_s)
     ceilings = [profile.axes[AXES[c]].max_acceleration_mm_s2 for c in compensators if c < 3]  # XYZ
     write_options = WriteOptions(
@@ -119,7 +126,8 @@ def compensate_file(input_path: str | Path, output_path: str | Path, profile: Ma
     stages["plan"] = plan.time_s - stages["read"]
     stages["write"] = time.perf_counter() - clock - plan.time_s - stages["optimize"]
     report = Report(str(input_path), str(output_path), profile.name, flavor, plan.n_blocks, stats[0].lines_out,
-                    plan.duration_s, 0.0, warnings=plan.warnings + optimizer_warnings, stage_time_s=stages)
+                    plan.duration_s, 0.0, plan.added_s, margins.lead_s, margins.settle_s,
+                    warnings=plan.warnings + optimizer_warnings, stage_time_s=stages)
     for c, (before, after) in errors.items():
         if before.count:
             report.axes[AXES[c]] = AxisReport.from_stats(before, after)
@@ -133,7 +141,7 @@ def compensated_samples(plan: Plan, profile: MachineProfile, options: Compensate
     computes it (for programs that fit in memory); the optimizers' warnings added to ``warnings``."""
     compensators = _compensators(profile, options)
     errors = {c: (_ErrorStats(), _ErrorStats()) for c in compensators}
-    chunks = _compensated(plan, compensators, errors, [] if warnings is None else warnings)
+    chunks = _compensated(plan, compensators, errors, [] if warnings is None else warnings, options.fallback)
     return np.concatenate([command for _, command in chunks] or [np.zeros((0, len(AXES)))])
 
 
@@ -146,7 +154,7 @@ def _compensators(profile: MachineProfile, options: CompensateOptions) -> dict[i
 
 
 def _compensated(plan: Plan | PlanStream, compensators: dict[int, AxisCompensator], errors: dict,
-                 warnings: list[str]) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+                 warnings: list[str], fallback: bool = True) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """(planned, command) chunks of samples, every sample in order, as the plan settles them:
     the command is the plan but on the compensated axes (columns), where it is the compensated
     command where that does no harm and the planned original where it would
@@ -154,7 +162,7 @@ def _compensated(plan: Plan | PlanStream, compensators: dict[int, AxisCompensato
     after, over the runs and the settling after each (the residual vibration the compensation
     also reduces, and may trade a little in-motion error for), and a warning for each stretch
     that fell back to ``warnings``."""
-    guards = {c: AxisGuard(compensator, *errors[c]) for c, compensator in compensators.items()}
+    guards = {c: AxisGuard(compensator, *errors[c], fallback) for c, compensator in compensators.items()}
     lines = _StretchLines(plan, guards.values())
     held, written = np.zeros((0, len(AXES))), {c: np.zeros(0) for c in guards}
 
