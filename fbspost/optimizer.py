@@ -67,7 +67,7 @@ class FBSSettings:
     overlap_spans: int | None = None  # look-ahead spans solved but not kept
     final_spans: int | None = None  # the last window reaches back at least this far
     settle_samples: int | None = None  # objective horizon after the end
-    settle_weight: float = 5.0  # weight of the error after the end (residual vibration after a stop)
+    settle_weight: float = 0.5  # weight of the error after the end (residual vibration)
     derivative_weights: tuple[float, ...] = ()  # alpha_1, alpha_2, ... in s, s^2, ... (Eq. 13)
     end_rest_order: int = 2  # derivatives 1..r of the command are zero at the end
 

@@ -35,6 +35,11 @@ the output runs the line at rest, and the next run starts on the first sample at
 rest's end, the sample after the last at the earliest (less than 2 sample periods of extra
 rest, only at STOPs).
 
+Margins (``RunMargins``): every run of motion is given ``lead_s`` before its first motion and
+``settle_s`` after its last, where the original rests and the compensated command may prepare the
+start and cancel the ringing after the stop; the lines at rest after a run wait for its settle
+margin as for a dwell. ``added_s`` is their total time.
+
 Axes whose position is unknown (NaN in the blocks) are held at their last known value; before
 they are first known, at that first value if they are known within the first PROLOGUE_ROWS
 waypoints, else at 0 until they are; axes never known, at 0. ``Plan.notes`` says so.
@@ -814,10 +819,11 @@ class PlanStream:
         segments = [] if own else segments
         end_s = self._run_clock + (self._cum_dur - self._run_base)
         # the settle margin, as the lines at rest after the run are timed (the same sum: the same bits)
-        last = math.ceil((end_s + ((self._last_dwell_after + self._settle_s) - self._last_dwell_after)) * self._fs)
+        dwell_after = self._last_dwell_after + self._settle_s  # (the running sum at the STOP after it)
+        last = math.ceil((end_s + (dwell_after - self._last_dwell_after)) * self._fs)
         self.added_s += (self._lead + last - math.ceil(end_s * self._fs)) / self._fs
         self.runs[-1][1] = last
-        self._last_sample, self._dwell_after_run = last, self._last_dwell_after
+        self._last_sample, self._dwell_after_run = last, dwell_after
         self._open = False
         t = np.array([end_s])
         segments.append((np.array([8 * self._last_piece + 3]), _Segments(t, t, self._last_end[None], np.zeros((1, _NA)),
