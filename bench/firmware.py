@@ -1,12 +1,13 @@
 """What Klipper really does with a program and with fbspost's output of it: firmware results.
 
-Run from the repository root:  python bench/firmware.py PROGRAM.gcode PROFILE [LINES]
+Run from the repository root:  python bench/firmware.py PROGRAM.gcode PROFILE [LINES [FLAVOR]]
 Without arguments: the first 8000 lines of tests/data/gear-marlin2.gcode on printer-two-mode,
 then samples/butterfly-polyline.gcode on patent-xy-stage.
 
 For the program's first LINES lines (all by default) it runs (a) the original and (b) fbspost's
 output (``python -m fbspost.cli compensate``) through Klipper's own planner (klippy's
-toolhead.py, tests/klippy_planner.py), samples the motion klippy plans on the profile's grid,
+toolhead.py, tests/klippy_planner.py; the program compensated as a Klipper program, or as
+FLAVOR), samples the motion klippy plans on the profile's grid,
 runs it through the profile's modelled dynamics (fbspost/dynamics.py) and measures the contour
 error as ``fbspost simulate`` does (simulate.PathDistance: the distance from the modelled
 position to the original's path, its extruding moves for a printer, at the samples where the
@@ -69,7 +70,7 @@ def contour_um(actual: np.ndarray, command: np.ndarray, path: PathDistance, prin
     return float(np.sqrt(np.mean(error**2))) * 1e3, float(error.max()) * 1e3
 
 
-def bench(program: str, machine: str, lines: int | None) -> None:
+def bench(program: str, machine: str, lines: int | None, output_flavor: str = "klipper") -> None:
     profile = load_profile(machine)
     flavor = detect_flavor(ROOT / program)
     with tempfile.TemporaryDirectory() as tmp:
@@ -78,11 +79,11 @@ def bench(program: str, machine: str, lines: int | None) -> None:
             original.write_bytes(b"".join(itertools.islice(f, lines)))
         output = Path(tmp) / "compensated.gcode"
         done = subprocess.run([sys.executable, "-m", "fbspost.cli", "compensate", str(original), "-m", machine,
-                               "-o", str(output)], cwd=ROOT, capture_output=True, text=True)
+                               "-o", str(output), "--flavor", output_flavor], cwd=ROOT, capture_output=True, text=True)
         if done.returncode:
             raise SystemExit(done.stderr)
-        time_a, moves_a, plan_a = klippy_run(original, profile, flavor)
-        time_b, _, plan_b = klippy_run(output, profile, flavor)
+        time_a, moves_a, plan_a = klippy_run(original, profile, output_flavor)
+        time_b, _, plan_b = klippy_run(output, profile, output_flavor)
     printer = any(m.is_kinematic and m.axes_r[3] > 0 for m in moves_a)
     chosen = [m for m in moves_a if m.is_kinematic and (m.axes_r[3] > 0 or not printer)]
     path = PathDistance(np.array([m.start_pos[:3] for m in chosen]), np.array([m.end_pos[:3] for m in chosen]))
@@ -102,7 +103,8 @@ def bench(program: str, machine: str, lines: int | None) -> None:
         best = min(best or (name, result), (name, result), key=lambda r: r[1][0])
     lag = max(s.lag_s for s in shapers[best[0]].values())
     rows.append((f"{best[0]} shaper (best)", time_a + lag, best[1]))
-    print(f"{program} ({lines or 'all'} lines) on {machine}, through klippy's own planner (firmware results):")
+    print(f"{program} ({lines or 'all'} lines, {flavor}; compensated as {output_flavor}) on {machine}, "
+          f"through klippy's own planner (firmware results):")
     print(f"  {'run':24} {'print s':>9} {'vs original':>12} {'RMS contour um':>15} {'max um':>9} {'RMS gain':>9}")
     for name, seconds, (rms, peak) in rows:
         print(f"  {name:24} {seconds:9.3f} {100 * (seconds / time_a - 1):+11.2f}% {rms:15.3f} {peak:9.1f} "
@@ -111,7 +113,7 @@ def bench(program: str, machine: str, lines: int | None) -> None:
 
 if __name__ == "__main__":
     if len(sys.argv) > 1:
-        bench(sys.argv[1], sys.argv[2], int(sys.argv[3]) if len(sys.argv) > 3 else None)
+        bench(sys.argv[1], sys.argv[2], int(sys.argv[3]) if len(sys.argv) > 3 else None, *sys.argv[4:5])
     else:
         for job in DEFAULT:
             bench(*job)
