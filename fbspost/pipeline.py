@@ -107,7 +107,7 @@ def compensate_file(input_path: str | Path, output_path: str | Path, profile: Ma
     if progress:
         blocks = _reported(blocks, _count_lines(input_path), progress)
     margins = RunMargins.for_profile(profile, options.lead_time_s, options.settle_time_s)
-    plan = PlanStream(accelerations.watch(blocks), profile, margins=margins)
+    plan = PlanStream(accelerations.watch(blocks), profile, margins=margins, firmware=flavor)
     compensators = _compensators(profile, options)
     errors = {c: (_ErrorStats(), _ErrorStats()) for c in compensators}
     follows_plan = np.array([c not in compensators for c in range(len(AXES))])

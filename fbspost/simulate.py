@@ -158,7 +158,7 @@ def simulate_program(program: str | Path, profile: MachineProfile, shapers: tupl
     flavor = flavor or detect_flavor(program)
     blocks = list(read_gcode(program, flavor, profile.home_mm))
     margins = margins or RunMargins.for_profile(profile)
-    plan = plan_blocks(blocks, profile, margins=margins)
+    plan = plan_blocks(blocks, profile, margins=margins, firmware=flavor)
     if not plan.runs:
         raise InputError(program, None, "no motion to simulate")
     settings = settings or shaper_settings(profile)
