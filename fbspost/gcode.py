@@ -72,6 +72,10 @@ class NeedsInterpreter(InputError):
     """A LinuxCNC feature fbspost does not interpret itself (parameters, O-words, canned cycles,
     ...): ``--expand`` runs the program through LinuxCNC's own interpreter first."""
 
+    def __init__(self, path: str | Path, line: int, feature: str, message: str):
+        super().__init__(path, line, message)
+        self.line, self.feature = line, feature
+
 
 class Kind(enum.Enum):
     MOVE = "move"  # motion fbspost plans and rewrites
@@ -369,7 +373,8 @@ class _Reader:
             feature = _PARAMETER.search(code)
             what = "parameters" if feature and feature.group().startswith("#") else "expressions"
             shown = feature.group() if feature else code
-            raise NeedsInterpreter(self.path, n, f"{what} ({shown}) need --expand (LinuxCNC's interpreter)")
+            raise NeedsInterpreter(self.path, n, f"{what} ({shown})",
+                                   f"{what} ({shown}) need --expand (LinuxCNC's interpreter)")
         if c0 == "_" or (len(code) > 1 and (code[1].isalpha() or code[1] == "_")):
             return self.extended(n, raw, code)
         if not self.cnc:
@@ -432,7 +437,7 @@ class _Reader:
         if m.group(1):
             message = f"O-word {m.group(1)!r}: subroutines and control flow are not supported"
             if self.cnc:
-                raise NeedsInterpreter(self.path, n, f"{message}: {_EXPAND_HINT}")
+                raise NeedsInterpreter(self.path, n, "O-words", f"{message}: {_EXPAND_HINT}")
             raise self.error(n, message)
         return self.block(n, raw, Kind.PASS)
 
@@ -498,7 +503,8 @@ class _Reader:
                 self.abs_ijk = g == 90.1
             elif g in _UNSUPPORTED_G:
                 if self.cnc:
-                    raise NeedsInterpreter(self.path, n, f"{_UNSUPPORTED_G[g]} is not supported: {_EXPAND_HINT}")
+                    raise NeedsInterpreter(self.path, n, _UNSUPPORTED_G[g],
+                                           f"{_UNSUPPORTED_G[g]} is not supported: {_EXPAND_HINT}")
                 raise self.error(n, f"{_UNSUPPORTED_G[g]} is not supported")
             elif g in _NURBS_G or (self.cnc and 5.0 < g < 7.0):
                 if self.cnc and (g == 5.1 or g == 5.2 or g == 5.3):
