@@ -34,9 +34,11 @@ _NUMBER = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
 _M66 = re.compile(r"^[^;(]*?(?<![A-Za-z#<])M\s*0*66(?![\d.])", re.IGNORECASE)
 _PLANES = {"CANON_PLANE_XY": (0, 1, 2, 17), "CANON_PLANE_YZ": (1, 2, 0, 19), "CANON_PLANE_XZ": (2, 0, 1, 18)}
 _WCS = ["G54", "G55", "G56", "G57", "G58", "G59", "G59.1", "G59.2", "G59.3"]
-# M2/M30 print these before PROGRAM_END; M6 prints START_CHANGE ... CHANGE_TOOL
-_END_GROUP = ("SET_G5X_OFFSET", "SET_XY_ROTATION", "SET_FEED_MODE", "SET_FEED_RATE", "STOP_SPINDLE_TURNING",
-              "SET_SPINDLE_MODE")
+# M2/M30 print SET_G5X_OFFSET, then some of these (its resets), then PROGRAM_END; M6 prints
+# START_CHANGE ... CHANGE_TOOL
+_END_RESETS = {"SET_XY_ROTATION", "SELECT_PLANE", "SET_FEED_MODE", "SET_FEED_RATE", "STOP_SPINDLE_TURNING",
+               "SET_SPINDLE_MODE", "PALLET_SHUTTLE", "MIST_OFF", "FLOOD_OFF", "COMMENT", "SET_MOTION_CONTROL_MODE",
+               "SET_NAIVECAM_TOLERANCE", "USE_LENGTH_UNITS", "SET_G92_OFFSET", "USE_TOOL_LENGTH_OFFSET"}
 # canonical calls that are state fbspost writes in its own way (or nothing at all)
 STATE_CALLS = {"USE_LENGTH_UNITS", "SET_G5X_OFFSET", "SET_G92_OFFSET", "SET_XY_ROTATION", "SET_FEED_REFERENCE",
                "ON_RESET", "USE_TOOL_LENGTH_OFFSET", "SET_FEED_RATE", "SET_FEED_MODE", "SELECT_PLANE",
@@ -120,11 +122,13 @@ def expand(program: str | Path, output: str | Path, reason: str, tool_table: str
     header = [f"; fbspost: expanded by LinuxCNC's interpreter rs274 from {Path(program).name}: {reason}",
               "; fbspost: in mm, absolute; the program's G92 and tool length offsets added into the coordinates",
               "G21 G90 G91.1 G17 G94 G40 G49 G80 G54 G92.1"]
+    percent = all(name != "PROGRAM_END" for name, _ in calls)  # a program between % lines, without M2
     writer = _Expander(program)
     with open(output, "w", encoding="utf-8") as f:
-        f.write("\n".join(header) + "\n")
+        f.write("\n".join(["%"] * percent + header) + "\n")
         for line in writer.lines(_grouped(calls)):
             f.write(line + "\n")
+        f.write("%\n" * percent)
 
 
 def _grouped(calls: list[tuple[str, list[str]]]) -> Iterator[tuple[str, list[str]]]:
@@ -136,11 +140,12 @@ def _grouped(calls: list[tuple[str, list[str]]]) -> Iterator[tuple[str, list[str
     i += 1
     while i < n:
         name, args = calls[i]
-        group = len(_END_GROUP)
-        if tuple(c[0] for c in calls[i:i + group]) == _END_GROUP:
-            shuttle = i + group < n and calls[i + group][0] == "PALLET_SHUTTLE"
-            if i + group + shuttle < n and calls[i + group + shuttle][0] == "PROGRAM_END":
-                yield "PROGRAM_END", ["M30" if shuttle else "M2"]
+        if name == "SET_G5X_OFFSET":
+            j = i + 1
+            while j < n and calls[j][0] in _END_RESETS:
+                j += 1
+            if j < n and calls[j][0] == "PROGRAM_END":
+                yield "PROGRAM_END", ["M30" if any(c[0] == "PALLET_SHUTTLE" for c in calls[i:j]) else "M2"]
                 return
         if name == "START_CHANGE":
             while i < n and calls[i][0] != "CHANGE_TOOL":
@@ -290,6 +295,7 @@ class _Expander:
         target = self.to_output(canon)
         center = [values[2] * self.scale + self.g92[first] + self.tool[first],
                   values[3] * self.scale + self.g92[second] + self.tool[second]]
+        center = _equidistant(center, (self.pos[first], self.pos[second]), (target[first], target[second]))
         turns = int(values[4])
         offsets = {first: center[0] - self.pos[first], second: center[1] - self.pos[second]}
         words = " ".join(f"{'IJK'[i]}{_mm(offsets[i])}" for i in sorted(offsets))
@@ -327,6 +333,19 @@ class _Expander:
                  if (self.fresh or arc) and i < 3 or v != self.pos[i]]
         self.pos, self.fresh = list(target), False
         return f"{code} {' '.join(words)}{rest}".rstrip()
+
+
+def _equidistant(center, start, end) -> list[float]:
+    """The centre moved onto the perpendicular bisector of start and end (by rs274's rounding of
+    its 4 printed decimals at most), so that the arc ends on its circle."""
+    du, dv = end[0] - start[0], end[1] - start[1]
+    chord = math.hypot(du, dv)
+    if chord == 0.0:
+        return center
+    nu, nv = -dv / chord, du / chord
+    mu, mv = 0.5 * (start[0] + end[0]), 0.5 * (start[1] + end[1])
+    along = (center[0] - mu) * nu + (center[1] - mv) * nv
+    return [mu + along * nu, mv + along * nv]
 
 
 def _mm(value: float) -> str:
