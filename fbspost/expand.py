@@ -181,7 +181,7 @@ class _Expander:
     def lines(self, calls) -> Iterator[str]:
         for name, args in calls:
             if name in _REFUSED:
-                raise InputError(self.program, None, f"{_REFUSED[name]} is not supported")
+                raise InputError(self.program, None, f"{_REFUSED[name]}: not supported by --expand")
             method = getattr(self, "on_" + name.lower(), None)
             if method is not None:
                 yield from method(args)
