@@ -171,7 +171,7 @@ class _Expander:
         self.g5x = [0.0] * 6  # the work offsets of the system in use, as rs274 has them
         self.g5x_written = {}  # WCS index -> offsets written with G10 L2 (mm)
         self.plane = "CANON_PLANE_XY"
-        self.feed = None  # mm/min, or per minute of inverse time
+        self.feed = None  # as printed: per minute in the program's units, or of inverse time (G93)
         self.inverse_time = False
         self.feed_written = None
         self.pos = [0.0] * 6  # where the tool is in the output's coordinates (rs274 starts at 0)
@@ -238,7 +238,7 @@ class _Expander:
             yield f"G{_PLANES[args[0]][3]}"
 
     def on_set_feed_rate(self, args):
-        self.feed = float(args[0]) * (1.0 if self.inverse_time else self.scale)
+        self.feed = float(args[0])
         return ()
 
     def on_comment(self, args):
@@ -284,7 +284,7 @@ class _Expander:
 
     def on_straight_feed(self, args):
         target = self.target(args)
-        yield self.move("G1", target, self.feed_word(math.dist(self.pos[:3], target[:3]) if self.inverse_time else 0.0))
+        yield self.move("G1", target, self.feed_word(math.dist(self.pos[:3], target[:3])))
 
     def on_arc_feed(self, args):
         first, second, axis, _ = _PLANES[self.plane]
@@ -299,16 +299,9 @@ class _Expander:
         turns = int(values[4])
         offsets = {first: center[0] - self.pos[first], second: center[1] - self.pos[second]}
         words = " ".join(f"{'IJK'[i]}{_mm(offsets[i])}" for i in sorted(offsets))
-        radius = math.hypot(*(offsets[i] for i in sorted(offsets)))
-        sweep = abs(turns) * 2 * math.pi  # at most: inverse time needs the length, full turns included
-        if self.inverse_time:
-            a0 = math.atan2(self.pos[second] - center[1], self.pos[first] - center[0])
-            a1 = math.atan2(target[second] - center[1], target[first] - center[0])
-            part = (a1 - a0) % (2 * math.pi) if turns > 0 else (a0 - a1) % (2 * math.pi)
-            sweep = part + (abs(turns) - 1) * 2 * math.pi
-        length = math.hypot(radius * sweep, target[axis] - self.pos[axis])
         extra = f" P{abs(turns)}" if abs(turns) > 1 else ""
-        yield self.move("G3" if turns > 0 else "G2", target, f" {words}{extra}" + self.feed_word(length), arc=True)
+        # rs274 gives an arc's inverse time feed as units per minute itself
+        yield self.move("G3" if turns > 0 else "G2", target, f" {words}{extra}" + self.feed_word(None), arc=True)
 
     def target(self, args) -> list[float]:
         values = [float(a) for a in args[:6]]
@@ -317,12 +310,14 @@ class _Expander:
     def to_output(self, canon) -> list[float]:
         return [(c * (self.scale if i < 3 else 1.0)) + self.g92[i] + self.tool[i] for i, c in enumerate(canon)]
 
-    def feed_word(self, length_mm: float) -> str:
-        """The F of a feed move: the program's (mm/min), or in inverse time its length over its time."""
+    def feed_word(self, length_mm: float | None) -> str:
+        """The F of a feed move (mm/min): the program's, or of a line in inverse time (G93) its
+        length over its time (``length_mm``; None: the feed is per minute)."""
         if self.feed is None or self.feed <= 0.0:
             raise InputError(self.program, None, "a feed move without a feed rate")
-        feed = length_mm * self.feed if self.inverse_time else self.feed
-        if feed == self.feed_written and not self.inverse_time:
+        inverse = self.inverse_time and length_mm is not None
+        feed = length_mm * self.feed if inverse else self.feed * self.scale
+        if feed == self.feed_written and not inverse:
             return ""
         self.feed_written = feed
         return f" F{_mm(max(feed, 1e-6))}"

@@ -187,3 +187,16 @@ def test_compensate_expands_and_says_so(tmp_path):
     assert text.startswith("; fbspost: expanded by LinuxCNC's interpreter rs274 from part.ngc: line 3 uses "
                            "parameters (#<d>)")
     assert command_problems(program, out) == []
+
+
+@needs_rs274
+def test_inverse_time_becomes_the_feed_that_takes_as_long(tmp_path):
+    """G93 F30 is 1/30 min per move whatever its length: 1 inch in 2 s is 762 mm/min; an arc
+    of radius 10 mm over a half turn (31.416 mm) at F60 in 1 s is 1884.96 mm/min."""
+    program, expanded = tmp_path / "t.ngc", tmp_path / "x.ngc"
+    program.write_text("G20 G90 G0 X0 Y0 Z0\nG93 G1 X1 F30\nG21 G3 X5.4 Y0 I-10 J0 F60\nG94 G1 X0 F100\nM2\n")
+    expand(program, expanded, "test")
+    moves = [line for line in expanded.read_text().splitlines() if line.startswith(("G1", "G3"))]
+    assert moves[0] == "G1 X25.4 F762"
+    assert moves[1].startswith("G3 X5.4 Y0 Z0 I-10 J0 F1884.955")
+    assert moves[2] == "G1 X0 F100"
