@@ -200,3 +200,14 @@ def test_inverse_time_becomes_the_feed_that_takes_as_long(tmp_path):
     assert moves[0] == "G1 X25.4 F762"
     assert moves[1].startswith("G3 X5.4 Y0 Z0 I-10 J0 F1884.955")
     assert moves[2] == "G1 X0 F100"
+
+
+def test_without_rs274_one_line_says_how_to_install_it(tmp_path, monkeypatch):
+    program = tmp_path / "p.ngc"
+    program.write_text("G21 G90\nG0 X0 Y0\n#<d> = 4\nG1 X#<d> F600\nM2\n")
+    monkeypatch.setenv("PATH", str(tmp_path))  # no rs274 there
+    result = CliRunner().invoke(main, ["compensate", str(program), "-m", "patent-xy-stage", "--flavor", "linuxcnc",
+                                       "-o", str(tmp_path / "out.ngc")])
+    assert result.exit_code == 1 and result.stderr == (
+        f"error: {program}: LinuxCNC's interpreter rs274 is not installed: apt-get install linuxcnc-uspace\n")
+    assert not (tmp_path / "out.ngc").exists()
