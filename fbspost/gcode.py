@@ -46,7 +46,8 @@ the first 2000 and last 300 lines. How lines are read:
 - LinuxCNC A B C U V W words (axes fbspost does not plan): the line is a STOP, passed through
   byte-exact, its XYZ end known. E, P, Q, L in M62..M68 are the I/O command's words.
 - Errors: cutter compensation, rotation, scaling, canned cycles, inverse-time or per-revolution
-  feed, parameters and expressions, O-word subroutines and control flow (``NeedsInterpreter``
+  feed, parameters and expressions, O-word subroutines and control flow, and in LinuxCNC G7,
+  G33 and the lathe cycles (``NeedsInterpreter``
   in LinuxCNC programs: ``--expand`` runs them through LinuxCNC's interpreter), G6.2 and other
   unknown motion codes, A B C U V W outside LinuxCNC, missing or non-numeric values, arcs without
   a radius or with R shorter than half the chord, feeds <= 0.
@@ -169,6 +170,12 @@ _UNSUPPORTED_G = {
     **{float(g): f"canned cycles (G{g})" for g in range(81, 90)},
 }
 _LINUXCNC_PASS_G = {40.0, 49.0, 61.0, 61.1, 64.0, 80.0, 94.0}
+_LINUXCNC_INTERPRETED_G = {  # path-changing LinuxCNC codes that only its interpreter runs (--expand)
+    7.0: "lathe diameter mode (G7)", 33.0: "spindle-synchronized motion (G33)", 33.1: "rigid tapping (G33.1)",
+    70.0: "lathe cycles (G70)", 71.0: "lathe cycles (G71)", 72.0: "lathe cycles (G72)",
+    74.0: "canned cycles (G74)", 71.1: "lathe cycles (G71.1)", 71.2: "lathe cycles (G71.2)",
+    72.1: "lathe cycles (G72.1)", 72.2: "lathe cycles (G72.2)",
+}
 # M codes that pass while the machine keeps moving (no motion, no waiting)
 _PASS_M = {3.0, 4.0, 5.0, 7.0, 8.0, 9.0, 18.0, 73.0, 84.0, 104.0, 105.0, 106.0, 107.0, 114.0,
            115.0, 117.0, 118.0, 140.0, 141.0, 221.0, 486.0, 900.0}
@@ -501,10 +508,10 @@ class _Reader:
                 modal_changed = True
             elif g == 90.1 or g == 91.1:
                 self.abs_ijk = g == 90.1
-            elif g in _UNSUPPORTED_G:
+            elif g in _UNSUPPORTED_G or (self.cnc and g in _LINUXCNC_INTERPRETED_G):
                 if self.cnc:
-                    raise NeedsInterpreter(self.path, n, _UNSUPPORTED_G[g],
-                                           f"{_UNSUPPORTED_G[g]} is not supported: {_EXPAND_HINT}")
+                    what = _UNSUPPORTED_G.get(g) or _LINUXCNC_INTERPRETED_G[g]
+                    raise NeedsInterpreter(self.path, n, what, f"{what} is not supported: {_EXPAND_HINT}")
                 raise self.error(n, f"{_UNSUPPORTED_G[g]} is not supported")
             elif g in _NURBS_G or (self.cnc and 5.0 < g < 7.0):
                 if self.cnc and (g == 5.1 or g == 5.2 or g == 5.3):

@@ -96,6 +96,7 @@ def test_g51_is_the_quadratic_spline(tmp_path):
     ("G1 X[1 + 2]", "expressions ([1 + 2]) need --expand"),
     ("o100 while [#1 lt 3]", "O-word 'while': subroutines and control flow are not supported: --expand"),
     ("G81 X1 Y1 Z-1 R1", "canned cycles (G81) is not supported: --expand runs it"),
+    ("G7", "lathe diameter mode (G7) is not supported: --expand runs it"),
     ("G6.2 P1 Q2", "G6.2 is not supported"),
     ("G5.3", "G5.3 without G5.2 first"),
 ])
