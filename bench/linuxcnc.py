@@ -68,6 +68,8 @@ def outcome(program: Path, profile, work: Path) -> str:
         message = str(exc).split(": ", 1)[1] if ": " in str(exc) else str(exc)
         message = re.sub(r"^line \d+ of its expansion: ", "", message)
         return re.sub(r"-?\d+(?:\.\d+)?", "N", message)
+    except Exception as exc:  # noqa: BLE001 (a crash is an outcome to count, not the end of the bench)
+        return f"CRASH: {type(exc).__name__}: {str(exc)[:80]}"
     expanded = needs_expansion(program)
     read = program
     if expanded:
