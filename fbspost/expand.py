@@ -284,7 +284,9 @@ class _Expander:
 
     def on_straight_feed(self, args):
         target = self.target(args)
-        yield self.move("G1", target, self.feed_word(math.dist(self.pos[:3], target[:3])))
+        # LinuxCNC's feed is along XYZ, along A B C for a move of them alone
+        length = math.dist(self.pos[:3], target[:3]) or math.dist(self.pos[3:], target[3:])
+        yield self.move("G1", target, self.feed_word(length))
 
     def on_arc_feed(self, args):
         first, second, axis, _ = _PLANES[self.plane]
