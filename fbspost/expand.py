@@ -47,7 +47,7 @@ MOTION_CALLS = {"STRAIGHT_TRAVERSE", "STRAIGHT_FEED", "ARC_FEED", "NURBS_FEED", 
 _SIMPLE = {  # canonical call -> G-code, {0}, {1} its arguments
     "SET_SPINDLE_SPEED": "S{1}{s0}", "START_SPINDLE_CLOCKWISE": "M3{s0}", "START_SPINDLE_COUNTERCLOCKWISE": "M4{s0}",
     "STOP_SPINDLE_TURNING": "M5{s0}", "ORIENT_SPINDLE": "M19 R{1} P{2}{s0}", "MIST_ON": "M7", "FLOOD_ON": "M8",
-    "DWELL": "G4 P{0}", "SELECT_TOOL": "T{0}", "CHANGE_TOOL_NUMBER": "M61 Q{0}", "MESSAGE": "(MSG,{0})",
+    "DWELL": "G4 P{0}", "SELECT_TOOL": "T{0}", "MESSAGE": "(MSG,{0})",
     "LOG": "(LOG,{0})", "LOGOPEN": "(LOGOPEN,{0})", "LOGAPPEND": "(LOGAPPEND,{0})", "LOGCLOSE": "(LOGCLOSE)",
     "SET_MOTION_OUTPUT_BIT": "M62 P{0}", "CLEAR_MOTION_OUTPUT_BIT": "M63 P{0}", "SET_AUX_OUTPUT_BIT": "M64 P{0}",
     "CLEAR_AUX_OUTPUT_BIT": "M65 P{0}", "SET_MOTION_OUTPUT_VALUE": "M67 E{0} Q{1}",
@@ -59,7 +59,8 @@ _SIMPLE = {  # canonical call -> G-code, {0}, {1} its arguments
 _REFUSED = {
     "NURBS_FEED": "G5/G5.1/G5.2 curves in a program that needs LinuxCNC's interpreter (rs274 does not print "
                   "their control points)",
-    "STRAIGHT_PROBE": "probing (G38)", "START_SPEED_FEED_SYNCH": "spindle-synchronized motion (G33, G76)",
+    "STRAIGHT_PROBE": "probing (G38)", "TURN_PROBE_ON": "probing (G38)",
+    "START_SPEED_FEED_SYNC": "spindle-synchronized motion (G33, G76)",
 }
 
 
@@ -123,12 +124,24 @@ def expand(program: str | Path, output: str | Path, reason: str, tool_table: str
               "; fbspost: in mm, absolute; the program's G92 and tool length offsets added into the coordinates",
               "G21 G90 G91.1 G17 G94 G40 G49 G80 G54 G92.1"]
     percent = all(name != "PROGRAM_END" for name, _ in calls)  # a program between % lines, without M2
-    writer = _Expander(program)
+    writer = _Expander(program, _tool_numbers(tool_table))
     with open(output, "w", encoding="utf-8") as f:
         f.write("\n".join(["%"] * percent + header) + "\n")
         for line in writer.lines(_grouped(calls)):
             f.write(line + "\n")
         f.write("%\n" * percent)
+
+
+def _tool_numbers(tool_table: str | Path | None) -> list[int]:
+    """The tool numbers of the table's lines in order, after 0 (no tool): rs274's tool indices."""
+    numbers = [0]
+    if tool_table:
+        with open(tool_table, encoding="utf-8", errors="replace") as f:
+            for text in f:
+                m = re.match(r"\s*T\s*(\d+)", text.split(";", 1)[0], re.IGNORECASE)
+                if m:
+                    numbers.append(int(m.group(1)))
+    return numbers
 
 
 def _grouped(calls: list[tuple[str, list[str]]]) -> Iterator[tuple[str, list[str]]]:
@@ -162,8 +175,9 @@ def _grouped(calls: list[tuple[str, list[str]]]) -> Iterator[tuple[str, list[str
 class _Expander:
     """Canonical calls to G-code lines: the offsets and units they are in, where the tool is."""
 
-    def __init__(self, program):
+    def __init__(self, program, tools: list[int]):
         self.program = program
+        self.tools = tools  # tool numbers by rs274's index into the table (CHANGE_TOOL_NUMBER gives the index)
         self.scale = 1.0  # mm per program unit
         self.g92 = [0.0] * 6  # mm (deg for A B C)
         self.tool = [0.0] * 6
@@ -263,6 +277,10 @@ class _Expander:
             return ()
         p, q, self.mode = self.mode, float(args[0]) * self.scale, None
         return (f"G64 P{_mm(p)} Q{_mm(q)}" if p > 0.0 else "G64",)
+
+    def on_change_tool_number(self, args):
+        index = int(args[0])
+        return (f"M61 Q{self.tools[index] if index < len(self.tools) else index}",)
 
     def on_program_end(self, args):
         return (args[0],)

@@ -376,10 +376,12 @@ class _Reader:
             return self.block(n, raw, Kind.PASS)
         if c0 in "Oo":
             return self.oword(n, raw, code)
-        if self.cnc and ("#" in code or "[" in code):
+        if self.cnc and ("#" in code or "[" in code or "@" in code or "^" in code):
             feature = _PARAMETER.search(code)
             what = "parameters" if feature and feature.group().startswith("#") else "expressions"
-            shown = feature.group() if feature else code
+            if feature is None:
+                what, feature = "polar coordinates", re.search(r"[@^]\s*[-+.\d]*", code)
+            shown = feature.group()
             raise NeedsInterpreter(self.path, n, f"{what} ({shown})",
                                    f"{what} ({shown}) need --expand (LinuxCNC's interpreter)")
         if c0 == "_" or (len(code) > 1 and (code[1].isalpha() or code[1] == "_")):
@@ -537,6 +539,9 @@ class _Reader:
             if m == 82.0 or m == 83.0:
                 self.abs_e = m == 82.0
                 modal_changed = True
+            elif self.cnc and 70.0 <= m <= 73.0:
+                raise NeedsInterpreter(self.path, n, f"modal state save and restore (M{m:g})",
+                                       f"modal state save and restore (M{m:g}) is not supported: {_EXPAND_HINT}")
             elif self.cnc and (m in _LINUXCNC_PASS_M or m == 66.0):
                 axis_words_used |= m in _IO_M  # M66 E0 L3: the input's number, not an extruder
                 if m == 66.0:

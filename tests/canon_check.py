@@ -56,12 +56,13 @@ def canonical_moves(calls, with_tool: bool) -> tuple[list[tuple], float]:
 
 
 def reader_points(program: str | Path) -> list[np.ndarray]:
-    """Every position fbspost's reader puts the tool at, in order (XYZ, NaN where unknown)."""
+    """Every position fbspost's reader puts the tool at, in order (XYZ, NaN where unknown: a line
+    fbspost copies as it is, where LinuxCNC's path is its own by construction)."""
     points = []
     for block in read_gcode(program, "linuxcnc"):
         if block.kind is Kind.MOVE:
             points.extend(block.points_mm[:, :3])
-        elif block.kind is Kind.STOP and not np.isnan(block.position_mm[:3]).all():
+        elif block.kind is Kind.STOP:
             points.append(block.position_mm[:3])
     return points
 
@@ -94,6 +95,8 @@ def path_problems(original: str | Path, compensated_input: str | Path, expanded:
     points = reader_points(compensated_input)
     k = 0  # every point on a canonical move, in order
     for p in points:
+        if np.isnan(p).all():
+            continue  # a line copied as it is
         while k < len(moves) and _off_move(p, *moves[k]) > tol:
             k += 1
         if k == len(moves):
