@@ -148,11 +148,18 @@ def machines():
 @_margin_options
 @click.option("--fallback/--no-fallback", default=True, show_default=True,
               help="Blend to the planned original where compensating would do harm (off: compensate everywhere).")
+@click.option("--expand/--no-expand", default=None,
+              help="LinuxCNC: run the program through LinuxCNC's interpreter rs274 first and compensate the "
+                   "expanded program (default: when it uses parameters, O-words, canned cycles, ...).")
+@click.option("--tool-table", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+              help="With --expand: the machine's LinuxCNC tool table (tool lengths and diameters).")
+@click.option("--ini", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+              help="With --expand: the machine's LinuxCNC INI file (subroutine paths).")
 @click.option("--report", "report_path", type=click.Path(dir_okay=False, path_type=Path),
               help="Also write the summary as JSON to this file (one INPUT only).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar and no summary on stderr.")
 def compensate(inputs, machine, output, output_dir, jobs, output_format, tolerance, min_segment_time, flavor,
-               lookahead, lead_time_s, settle_time_s, fallback, report_path, quiet):
+               lookahead, lead_time_s, settle_time_s, fallback, expand, tool_table, ini, report_path, quiet):
     """Compensate G-code programs for the machine's dynamics.
 
     Plans each program as the controller would, compensates every axis that has modes in the
@@ -169,7 +176,8 @@ def compensate(inputs, machine, output, output_dir, jobs, output_format, toleran
     profile = load_profile(machine)
     options = CompensateOptions(flavor=flavor, output_format=output_format, tolerance_mm=tolerance,
                                 min_segment_time_s=min_segment_time, lookahead=lookahead, lead_time_s=lead_time_s,
-                                settle_time_s=settle_time_s, fallback=fallback)
+                                settle_time_s=settle_time_s, fallback=fallback, expand=expand,
+                                tool_table=tool_table, ini=ini)
     if len(inputs) == 1:
         _compensate_single(inputs[0], targets[0], profile, options, report_path, quiet)
         return

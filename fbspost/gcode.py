@@ -40,9 +40,19 @@ the first 2000 and last 300 lines. How lines are read:
   speed by the corner speed, so a jerk limit J allows a corner speed J, the meaning of Klipper's
   square corner velocity; SET_VELOCITY_LIMIT VELOCITY ACCEL SQUARE_CORNER_VELOCITY
   MINIMUM_CRUISE_RATIO ACCEL_TO_DECEL.
+- LinuxCNC NURBS (G5.2 ... G5.3, and G5.1 quadratic splines, XY only) are evaluated exactly as
+  LinuxCNC 2.9 defines them (``nurbs_additional_functions.cc``: order L >= 3, the first control
+  point the current position, clamped uniform integer knots, weights P) and cut into pieces
+  within CHORD_TOLERANCE_MM; the G5.2 line, its control point lines and the G5.3 line each
+  carry a share of the curve (one MOVE each), so that none is copied without its curve.
+- LinuxCNC A B C U V W words (axes fbspost does not plan): the line is a STOP, passed through
+  byte-exact, its XYZ end known. E, P, Q, L in M62..M68 are the I/O command's words.
 - Errors: cutter compensation, rotation, scaling, canned cycles, inverse-time or per-revolution
-  feed, A B C U V W moves, O-word subroutines and control flow, missing or non-numeric values,
-  arcs without a radius or with R shorter than half the chord, feeds <= 0.
+  feed, parameters and expressions, O-word subroutines and control flow, and in LinuxCNC G7,
+  G33 and the lathe cycles (``NeedsInterpreter``
+  in LinuxCNC programs: ``--expand`` runs them through LinuxCNC's interpreter), G6.2 and other
+  unknown motion codes, A B C U V W outside LinuxCNC, missing or non-numeric values, arcs without
+  a radius or with R shorter than half the chord, feeds <= 0.
 """
 from __future__ import annotations
 
@@ -59,6 +69,15 @@ from .trajectory import InputError
 
 AXES = ("X", "Y", "Z", "E")  # column order of every position array
 FLAVORS = ("marlin", "klipper", "reprap", "linuxcnc")
+
+
+class NeedsInterpreter(InputError):
+    """A LinuxCNC feature fbspost does not interpret itself (parameters, O-words, canned cycles,
+    ...): ``--expand`` runs the program through LinuxCNC's own interpreter first."""
+
+    def __init__(self, path: str | Path, line: int, feature: str, message: str):
+        super().__init__(path, line, message)
+        self.line, self.feature = line, feature
 
 
 class Kind(enum.Enum):
@@ -155,6 +174,12 @@ _UNSUPPORTED_G = {
     **{float(g): f"canned cycles (G{g})" for g in range(81, 90)},
 }
 _LINUXCNC_PASS_G = {40.0, 49.0, 61.0, 61.1, 64.0, 80.0, 94.0}
+_LINUXCNC_INTERPRETED_G = {  # path-changing LinuxCNC codes that only its interpreter runs (--expand)
+    7.0: "lathe diameter mode (G7)", 33.0: "spindle-synchronized motion (G33)", 33.1: "rigid tapping (G33.1)",
+    70.0: "lathe cycles (G70)", 71.0: "lathe cycles (G71)", 72.0: "lathe cycles (G72)",
+    74.0: "canned cycles (G74)", 71.1: "lathe cycles (G71.1)", 71.2: "lathe cycles (G71.2)",
+    72.1: "lathe cycles (G72.1)", 72.2: "lathe cycles (G72.2)",
+}
 # M codes that pass while the machine keeps moving (no motion, no waiting)
 _PASS_M = {3.0, 4.0, 5.0, 7.0, 8.0, 9.0, 18.0, 73.0, 84.0, 104.0, 105.0, 106.0, 107.0, 114.0,
            115.0, 117.0, 118.0, 140.0, 141.0, 221.0, 486.0, 900.0}
@@ -164,6 +189,11 @@ _LIMIT_M = {201.0, 203.0, 204.0, 205.0, 566.0}
 _KLIPPER_PASS = {"SET_FAN_SPEED", "SET_PRESSURE_ADVANCE", "SET_HEATER_TEMPERATURE",
                  "EXCLUDE_OBJECT_START", "EXCLUDE_OBJECT_END", "EXCLUDE_OBJECT_DEFINE"}
 _OTHER_AXES = "ABCUVW"
+_EXPAND_HINT = "--expand runs it through LinuxCNC's interpreter"
+_NURBS_G = {5.1, 5.2, 5.3, 6.2}  # LinuxCNC splines; G6.2 (LinuxCNC 2.10) is not supported
+_IO_M = {62.0, 63.0, 64.0, 65.0, 66.0, 67.0, 68.0}  # LinuxCNC I/O: E P Q L are its words
+_LINUXCNC_PASS_M = {48.0, 49.0, 50.0, 51.0, 52.0, 53.0, 61.0, 62.0, 63.0, 64.0, 65.0, 67.0, 68.0}
+_PARAMETER = re.compile(r"#\s*(?:<[^>]*>?|\d+|\[)|\[[^\]]*\]?")
 
 
 def read_gcode(path: str | Path, flavor: str, home_mm=(0.0, 0.0, 0.0)) -> Iterator[Block]:
@@ -188,7 +218,13 @@ def _blocks(path: str | Path, flavor: str, home_mm) -> Iterator[Block]:
     line = reader.line
     with handle:
         for line_no, raw in enumerate(handle, 1):
-            yield line(line_no, raw)
+            block = line(line_no, raw)
+            if block.__class__ is Block:
+                yield block
+            elif block is not None:  # a spline's lines, held until its end
+                yield from block
+        if reader.spline is not None:
+            raise reader.error(reader.spline.lines[0][0], "G5.2 without G5.3 (the NURBS is never ended)")
 
 
 class _Reader:
@@ -214,6 +250,7 @@ class _Reader:
         self.wcs = 54.0
         self.tool_length = False  # G43 active (LinuxCNC)
         self.last_bezier_pq = None  # (P, Q) of the previous G5, mm
+        self.spline = None  # an open G5.2 NURBS: its lines are held until G5.3
 
     def fast_move(self, n, raw, g, f1, x, y, z, e, f2) -> Block | None:
         """G0/G1 matched by _FAST_G01: the same as move(), or None to take the general path."""
@@ -300,7 +337,14 @@ class _Reader:
 
     # -- one line ------------------------------------------------------------------------------
 
-    def line(self, n: int, raw: bytes) -> Block:
+    def line(self, n: int, raw: bytes) -> Block | list[Block] | None:
+        """The line's block; inside a G5.2 NURBS None (held), and at its G5.3 every held line's block."""
+        if self.spline is not None:
+            block = self.general(n, raw)
+            if block.__class__ is Block:  # a comment or blank line inside the NURBS
+                self.spline.lines.append(block)
+                return None
+            return block
         m = _FAST_G01.match(raw)
         if m is not None:
             try:
@@ -309,6 +353,9 @@ class _Reader:
                 block = None
             if block is not None:
                 return block
+        return self.general(n, raw)
+
+    def general(self, n: int, raw: bytes) -> Block | list[Block] | None:
         text = raw.decode("utf-8", "replace")
         if n == 1 and text.startswith("\ufeff"):
             text = text[1:]
@@ -335,6 +382,14 @@ class _Reader:
             return self.block(n, raw, Kind.PASS)
         if c0 in "Oo":
             return self.oword(n, raw, code)
+        if self.cnc and ("#" in code or "[" in code or "@" in code or "^" in code):
+            feature = _PARAMETER.search(code)
+            what = "parameters" if feature and feature.group().startswith("#") else "expressions"
+            if feature is None:
+                what, feature = "polar coordinates", re.search(r"[@^]\s*[-+.\d]*", code)
+            shown = feature.group()
+            raise NeedsInterpreter(self.path, n, f"{what} ({shown})",
+                                   f"{what} ({shown}) need --expand (LinuxCNC's interpreter)")
         if c0 == "_" or (len(code) > 1 and (code[1].isalpha() or code[1] == "_")):
             return self.extended(n, raw, code)
         if not self.cnc:
@@ -395,7 +450,10 @@ class _Reader:
         if m is None:
             raise self.error(n, f"cannot read {code!r}")
         if m.group(1):
-            raise self.error(n, f"O-word {m.group(1)!r}: subroutines and control flow are not supported")
+            message = f"O-word {m.group(1)!r}: subroutines and control flow are not supported"
+            if self.cnc:
+                raise NeedsInterpreter(self.path, n, "O-words", f"{message}: {_EXPAND_HINT}")
+            raise self.error(n, message)
         return self.block(n, raw, Kind.PASS)
 
     def extended(self, n, raw, code) -> Block:
@@ -462,8 +520,18 @@ class _Reader:
                 modal_changed = True
             elif g == 90.1 or g == 91.1:
                 self.abs_ijk = g == 90.1
-            elif g in _UNSUPPORTED_G:
+            elif g in _UNSUPPORTED_G or (self.cnc and g in _LINUXCNC_INTERPRETED_G):
+                if self.cnc:
+                    what = _UNSUPPORTED_G.get(g) or _LINUXCNC_INTERPRETED_G[g]
+                    raise NeedsInterpreter(self.path, n, what, f"{what} is not supported: {_EXPAND_HINT}")
                 raise self.error(n, f"{_UNSUPPORTED_G[g]} is not supported")
+            elif g in _NURBS_G or (self.cnc and 5.0 < g < 7.0):
+                if self.cnc and (g == 5.1 or g == 5.2 or g == 5.3):
+                    if motion is not None:
+                        raise self.error(n, "two motion commands on one line")
+                    motion = g
+                else:
+                    raise self.error(n, f"G{g:g} is not supported (a motion fbspost does not know)")
             elif g in _WCS:
                 if g != self.wcs:  # another work coordinate system: offsets we do not know
                     self.wcs = g
@@ -481,6 +549,13 @@ class _Reader:
             if m == 82.0 or m == 83.0:
                 self.abs_e = m == 82.0
                 modal_changed = True
+            elif self.cnc and 70.0 <= m <= 73.0:
+                raise NeedsInterpreter(self.path, n, f"modal state save and restore (M{m:g})",
+                                       f"modal state save and restore (M{m:g}) is not supported: {_EXPAND_HINT}")
+            elif self.cnc and (m in _LINUXCNC_PASS_M or m == 66.0):
+                axis_words_used |= m in _IO_M  # M66 E0 L3: the input's number, not an extruder
+                if m == 66.0:
+                    kind = Kind.STOP  # waits for an input
             elif m in _PASS_M or 862.0 <= m < 863.0:
                 pass
             elif m in _LIMIT_M:
@@ -562,10 +637,16 @@ class _Reader:
 
         # motion: an explicit G0-G5, or axis words continuing the last motion mode
         if motion is None and not axis_words_used and (self.cnc or not (gcodes or mcodes or tool is not None)):
-            if "X" in params or "Y" in params or "Z" in params or "E" in params:
+            if ("X" in params or "Y" in params or "Z" in params or "E" in params
+                    or (self.cnc and any(a in params for a in _OTHER_AXES))):
                 motion = self.motion
                 if motion is None:
                     raise self.error(n, "axis words without a motion command (G0/G1/G2/G3/G5)")
+        if self.spline is not None or motion in _NURBS_G:
+            if unknown or kind is not Kind.PASS or limits is not None or modal_changed or axis_words_used:
+                raise self.error(n, "inside a NURBS only control points (X Y P) and G5.3 are allowed")
+            self.motion = None if motion == 5.3 else motion
+            return self.spline_line(n, raw, motion, params, dups, junk, scale)
         if motion is not None and not unknown:
             self.motion = motion
             block = self.move(n, raw, motion, params, dups, junk, scale, kind is Kind.STOP)
@@ -682,13 +763,16 @@ class _Reader:
             raise self.error(n, junk)
         if dups:
             raise self.error(n, f"{''.join(sorted(dups))} given twice")
+        named = False
         for a in _OTHER_AXES:
             if a in params:
-                raise self.error(n, f"axis {a}: only X Y Z E are supported")
+                if not self.cnc:
+                    raise self.error(n, f"axis {a}: only X Y Z E are supported")
+                self.number(n, a, params[a])
+                named = stop = True  # an axis fbspost does not plan: the controller runs the line as written
         start = self.pos
         target = start[:]
         off = self.off
-        named = False
         for i in (0, 1, 2):
             v = params.get(AXES[i])
             if v is not None:
@@ -865,6 +949,135 @@ class _Reader:
         if target == start and count == 1:
             return None
         return points
+
+    # -- LinuxCNC splines (G5.1, G5.2 ... G5.3) -------------------------------------------------
+
+    def spline_line(self, n, raw, motion, params, dups, junk, scale):
+        """A G5.1 (its block), or a G5.2 NURBS line: held (None) until G5.3 gives every line's block."""
+        if junk is not None:
+            raise self.error(n, junk)
+        if dups:
+            raise self.error(n, f"{''.join(sorted(dups))} given twice")
+        if self.plane != 17:
+            raise self.error(n, f"G{motion:g} splines are only supported in the XY plane (G17)")
+        for a in "Z" + _OTHER_AXES:
+            if a in params:
+                raise self.error(n, f"G{motion:g} splines move X and Y only: {a} is not allowed")
+        if motion == 5.3:
+            if self.spline is None:
+                raise self.error(n, "G5.3 without G5.2 first")
+            return self.spline.end(self, n, raw)
+        if ("X" in params) != ("Y" in params):
+            raise self.error(n, "a spline's control point needs both X and Y")
+        xy = None
+        if "X" in params:
+            xy = [self.number(n, a, params[a]) * scale for a in "XY"]
+            xy = [v + self.off[i] if self.abs_xyz else self.pos[i] + v for i, v in enumerate(xy)]
+        if motion == 5.1:
+            if xy is None or "I" not in params or "J" not in params:
+                raise self.error(n, "G5.1 needs X, Y, I and J")
+            i, j = (self.number(n, a, params[a]) * scale for a in "IJ")
+            x0, y0 = self.pos[0], self.pos[1]
+            return _Spline([(x0, y0, 1.0), (x0 + i, y0 + j, 1.0), (*xy, 1.0)], 3, [(n, raw)]).end(self)
+        weight = self.number(n, "P", params["P"]) if "P" in params else None
+        if self.spline is None:  # G5.2: the first control point is where the tool is
+            order = self.number(n, "L", params["L"]) if "L" in params else 3.0
+            if order != int(order) or order < 3:
+                order = 3.0  # LinuxCNC uses L only above 3
+            w0 = weight if xy is None and weight is not None and weight > 0.0 else 1.0
+            self.spline = _Spline([(self.pos[0], self.pos[1], w0)], int(order), [])
+            if xy is None:
+                self.spline.lines.append((n, raw))
+                return None
+        elif xy is None:
+            raise self.error(n, "a NURBS control point needs X and Y")
+        if weight is None or weight <= 0.0:
+            raise self.error(n, "a NURBS control point needs a positive weight P")
+        self.spline.points.append((*xy, weight))
+        self.spline.lines.append((n, raw))
+        return None
+
+class _Spline:
+    """A LinuxCNC spline being read: control points (x, y, weight) in machine mm, its order, and
+    its lines: (line number, bytes) of the spline's own lines, Blocks of comments between them."""
+
+    def __init__(self, points, order, lines):
+        self.points, self.order, self.lines = points, order, lines
+
+    def end(self, reader: _Reader, n: int | None = None, raw: bytes | None = None) -> list[Block] | Block:
+        """Every held line's block: the curve's pieces shared among the spline's own lines."""
+        if n is not None:
+            self.lines.append((n, raw))
+        reader.spline = None
+        ctrl = np.array(self.points)
+        if len(ctrl) < self.order:
+            raise reader.error(self.lines[-1][0], f"a NURBS of order {self.order} needs at least {self.order} "
+                                                  f"control points, this one has {len(ctrl)}")
+        start = reader.pos
+        target = start[:]
+        target[0], target[1] = ctrl[-1, 0], ctrl[-1, 1]
+        reader.pos = target
+        own = [i for i, line in enumerate(self.lines) if line.__class__ is not Block]
+        moves = start[0] == start[0] and start[1] == start[1] and reader.feed is not None
+        if moves:
+            xy = _spline_pieces(ctrl, self.order, len(own))
+            points = np.empty((len(xy), 4))
+            points[:, :2] = xy
+            points[:, 2:] = start[2:]
+            points[-1] = target
+            shares = np.array_split(points, len(own))
+        out = []
+        at = np.array(start)
+        for i, line in enumerate(self.lines):
+            if line.__class__ is Block:
+                line.position_mm = at.copy()  # a comment: where the curve has got to
+                out.append(line)
+            elif moves:
+                piece = shares[own.index(i)]
+                at = piece[-1].copy()
+                out.append(Block(line[0], line[1], Kind.MOVE, reader.modal, at, piece, reader.feed))
+            else:
+                out.append(Block(line[0], line[1], Kind.STOP, reader.modal, np.array(target)))
+        return out[0] if len(out) == 1 else out
+
+
+def nurbs_points(ctrl: np.ndarray, order: int, u: np.ndarray) -> np.ndarray:
+    """Points (len(u), 2) of LinuxCNC's NURBS: control points ``ctrl`` (m, 3: x, y, weight), order
+    k (degree k - 1), knots k zeros, 1 .. m - k, k times m - k + 1 (``knot_vector_creator``), at
+    parameters ``u`` in [0, m - k + 1]. Cox-de Boor on the weighted points."""
+    m, k = len(ctrl), order
+    knots = np.concatenate([np.zeros(k), np.arange(1.0, m - k + 1), np.full(k, m - k + 1.0)])
+    u = np.asarray(u, dtype=float)[:, None]
+    basis = ((knots[:-1] <= u) & (u < knots[1:])).astype(float)  # order 1, half-open spans
+    basis[u[:, 0] >= knots[-1], m - 1] = 1.0  # the end belongs to the last span
+    for r in range(2, k + 1):
+        left_den = knots[r - 1:-1] - knots[:-r]
+        right_den = knots[r:] - knots[1:-r + 1]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            left = np.where(left_den > 0, (u - knots[:-r]) / left_den, 0.0)
+            right = np.where(right_den > 0, (knots[r:] - u) / right_den, 0.0)
+        basis = left * basis[:, :-1] + right * basis[:, 1:]
+    weighted = basis * ctrl[:, 2]
+    return (weighted @ ctrl[:, :2]) / weighted.sum(axis=1, keepdims=True)
+
+
+def _spline_pieces(ctrl: np.ndarray, order: int, at_least: int) -> np.ndarray:
+    """End points of the chords of the NURBS, every chord within CHORD_TOLERANCE_MM of the curve
+    (checked at each chord's middle parameter, with a margin), at least ``at_least`` of them."""
+    u_end = len(ctrl) - order + 1.0
+    count = max(at_least, 8 * (len(ctrl) - order + 1))
+    while True:
+        u = np.linspace(0.0, u_end, count + 1)
+        points = nurbs_points(ctrl, order, u)
+        middle = nurbs_points(ctrl, order, 0.5 * (u[1:] + u[:-1]))
+        a, b = points[:-1], points[1:]
+        chord = b - a
+        length2 = np.maximum((chord * chord).sum(axis=1), 1e-300)
+        t = np.clip(((middle - a) * chord).sum(axis=1) / length2, 0.0, 1.0)
+        off = np.hypot(*(middle - a - t[:, None] * chord).T)
+        if off.max() <= 0.5 * CHORD_TOLERANCE_MM or count >= 1 << 20:
+            return points[1:]
+        count *= 2
 
 
 def _strip_comments(text: str) -> str:

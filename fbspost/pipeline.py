@@ -1,11 +1,15 @@
-"""The whole job on one program: read, plan, compensate, write, report.
+"""The whole job on one program: (expand,) read, plan, compensate, write, report.
 
-Takes an input G-code path, an output path, a machine profile and options; writes the
+Takes an input G-code path, an output path, a machine profile and options; a LinuxCNC program
+that needs LinuxCNC's interpreter (or any with ``expand=True``) is first expanded by it
+(``expand.py``) and the expanded program is compensated; writes the
 compensated program atomically (nothing is written if anything fails) and gives a ``Report``
 with the predicted tracking error of every compensated axis before and after, per the model.
 """
 from __future__ import annotations
 
+import re
+import tempfile
 import time
 from collections.abc import Iterable, Iterator
 from dataclasses import asdict, dataclass, field
@@ -16,8 +20,9 @@ import numpy as np
 from . import __version__
 from .atomicfile import atomic_write
 from .dynamics import AxisDynamics
+from .expand import expand
 from .fallback import FALLBACK, AxisGuard
-from .gcode import AXES, Block, detect_flavor, read_gcode
+from .gcode import AXES, Block, NeedsInterpreter, detect_flavor, read_gcode
 from .optimizer import AxisCompensator, AxisLimits, FBSSettings
 from .planner import Plan, PlanStream, RunMargins
 from .profile import MachineProfile
@@ -39,6 +44,9 @@ class CompensateOptions:
     lead_time_s: float | None = None  # the command may move this long before each run (None: from the dynamics)
     settle_time_s: float | None = None  # ... and after it
     fallback: bool = True  # blend to the planned original where compensating would do harm
+    expand: bool | None = None  # LinuxCNC: through rs274 first (None: when the program needs it)
+    tool_table: Path | None = None  # rs274's tool table (tool length offsets, cutter radii)
+    ini: Path | None = None  # rs274's INI (subroutine paths)
 
 
 @dataclass
@@ -101,11 +109,41 @@ def compensate_file(input_path: str | Path, output_path: str | Path, profile: Ma
     refusal = format_refusal(flavor, options.output_format)
     if refusal:  # before the work
         raise InputError(input_path, None, refusal)
+    if flavor == "linuxcnc" and options.expand:
+        return _compensate_expanded(input_path, output_path, profile, options, "--expand given", progress, started)
+    try:
+        return _compensate(input_path, input_path, output_path, profile, options, flavor, progress, started)
+    except NeedsInterpreter as exc:
+        if flavor != "linuxcnc" or options.expand is not None:
+            raise
+        reason = f"line {exc.line} uses {exc.feature}"
+        return _compensate_expanded(input_path, output_path, profile, options, reason, progress, started)
+
+
+def _compensate_expanded(input_path, output_path, profile, options, reason, progress, started) -> Report:
+    """Expands the program with rs274, then compensates the expanded program; its errors name
+    the expanded program's line."""
+    with tempfile.TemporaryDirectory(prefix="fbspost-expand-") as work:
+        expanded = Path(work) / (Path(input_path).stem + ".expanded.ngc")
+        expand(input_path, expanded, reason, options.tool_table, options.ini)
+        try:
+            report = _compensate(expanded, input_path, output_path, profile, options, "linuxcnc", progress, started)
+        except InputError as exc:
+            where = re.match(re.escape(str(expanded)) + r":(\d+): (.*)", str(exc), re.DOTALL)
+            if where is None:
+                raise
+            raise InputError(input_path, None, f"line {where.group(1)} of its expansion: {where.group(2)}") from None
+    report.warnings.insert(0, f"expanded by LinuxCNC's interpreter rs274 ({reason})")
+    return report
+
+
+def _compensate(read_path, input_path, output_path, profile, options, flavor, progress, started) -> Report:
+    """Compensates the program at ``read_path`` (``input_path`` itself or its expansion)."""
     stages = dict.fromkeys(("read", "plan", "optimize", "write"), 0.0)
     accelerations = ProgramAccelerations(profile.planner_acceleration_mm_s2)
-    blocks = _timed(read_gcode(input_path, flavor, profile.home_mm), stages, "read")
+    blocks = _timed(read_gcode(read_path, flavor, profile.home_mm), stages, "read")
     if progress:
-        blocks = _reported(blocks, _count_lines(input_path), progress)
+        blocks = _reported(blocks, _count_lines(read_path), progress)
     margins = RunMargins.for_profile(profile, options.lead_time_s, options.settle_time_s)
     plan = PlanStream(accelerations.watch(blocks), profile, margins=margins, firmware=flavor)
     compensators = _compensators(profile, options)

@@ -1,0 +1,141 @@
+"""No silently wrong output for LinuxCNC programs, checked against LinuxCNC's own interpreter.
+
+``path_problems``: the program fbspost compensated (the expansion, or the original when it
+needed none), re-read by fbspost's reader with compensation off, against rs274's canonical moves
+of the original: every point the reader gives lies on a canonical move (a line, or an arc: its
+radius and its axis' travel), moving forward through them, and every canonical move's end is
+among the reader's points, in order.
+``command_problems``: rs274 run on fbspost's output gives the same non-motion canonical calls
+(spindle, coolant, tools, dwells, I/O, messages, stops, program end), in order, as on the original.
+The canonical geometry here is evaluated on its own (not with fbspost.expand's code).
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from fbspost.expand import MOTION_CALLS, STATE_CALLS, canonical_calls
+from fbspost.gcode import Kind, read_gcode
+
+_PLANE_AXES = {"CANON_PLANE_XY": (0, 1, 2), "CANON_PLANE_YZ": (1, 2, 0), "CANON_PLANE_XZ": (2, 0, 1)}
+
+
+def canonical_moves(calls, with_tool: bool) -> tuple[list[tuple], float]:
+    """rs274's moves as (start, end, arc) in mm, XYZ, with the G92 (and tool length) offsets
+    added; arc = (centre, first, second, axis, turns) or None. Also the largest unit (mm) seen."""
+    scale, unit, g92, tool = 1.0, 1.0, np.zeros(3), np.zeros(3)
+    plane, pos, moves = "CANON_PLANE_XY", np.zeros(3), []
+    for name, args in calls:
+        if name == "USE_LENGTH_UNITS":
+            scale = 25.4 if args[0] == "CANON_UNITS_INCHES" else 1.0
+            unit = max(unit, scale)
+        elif name == "SET_G92_OFFSET":
+            g92 = np.array([float(a) for a in args[:3]]) * scale
+        elif name == "USE_TOOL_LENGTH_OFFSET" and with_tool:
+            tool = np.array([float(a) for a in args[:3]]) * scale
+        elif name == "SET_G5X_OFFSET":
+            pos = None  # a new frame: the next move's start is not compared
+        elif name == "SELECT_PLANE":
+            plane = args[0]
+        elif name in ("STRAIGHT_TRAVERSE", "STRAIGHT_FEED"):
+            end = np.array([float(a) for a in args[:3]]) * scale + g92 + tool
+            moves.append((pos, end, None))
+            pos = end
+        elif name == "ARC_FEED":
+            a, b, c = _PLANE_AXES[plane]
+            v = [float(x) for x in args]
+            end, centre = np.zeros(3), np.zeros(3)
+            end[a], end[b], end[c] = v[0], v[1], v[5]
+            centre[a], centre[b] = v[2], v[3]
+            end, centre = end * scale + g92 + tool, centre * scale + g92 + tool
+            moves.append((pos, end, (centre, a, b, c, int(v[4]))))
+            pos = end
+    return moves, unit
+
+
+def reader_points(program: str | Path) -> list[np.ndarray]:
+    """Every position fbspost's reader puts the tool at, in order (XYZ, NaN where unknown: a line
+    fbspost copies as it is, where LinuxCNC's path is its own by construction)."""
+    points = []
+    for block in read_gcode(program, "linuxcnc"):
+        if block.kind is Kind.MOVE:
+            points.extend(block.points_mm[:, :3])
+        elif block.kind is Kind.STOP:
+            points.append(block.position_mm[:3])
+    return points
+
+
+def _off_move(point, start, end, arc) -> float:
+    """Distance of ``point`` from the move (NaN coordinates left out)."""
+    known = ~np.isnan(point)
+    if arc is None or start is None:
+        if start is None:
+            return float(np.linalg.norm((point - end)[known]))
+        d = end - start
+        t = np.clip(np.dot(np.nan_to_num(point - start) * known, d) / max(np.dot(d, d), 1e-300), 0.0, 1.0)
+        return float(np.linalg.norm((point - start - t * d)[known]))
+    centre, a, b, c, _ = arc
+    r0 = math.hypot(start[a] - centre[a], start[b] - centre[b])
+    r1 = math.hypot(end[a] - centre[a], end[b] - centre[b])
+    r = math.hypot(point[a] - centre[a], point[b] - centre[b])
+    radial = max(0.0, min(abs(r - r0), abs(r - r1)) if min(r0, r1) <= r <= max(r0, r1) else min(abs(r - r0), abs(r - r1)))
+    lo, hi = sorted((start[c], end[c]))
+    axial = max(lo - point[c], point[c] - hi, 0.0) if known[c] else 0.0
+    return math.hypot(radial if known[a] and known[b] else 0.0, axial)
+
+
+def path_problems(original: str | Path, compensated_input: str | Path, expanded: bool,
+                  tool_table: str | Path | None = None, tolerance_mm: float = 1e-3) -> list[str]:
+    """Where the reader's path of ``compensated_input`` leaves rs274's path of ``original`` by more
+    than ``tolerance_mm`` (plus rs274's printed rounding, 0.0001 of the program's unit)."""
+    moves, unit = canonical_moves(canonical_calls(original, tool_table), with_tool=expanded)
+    tol = tolerance_mm + 1.5e-4 * unit
+    points = reader_points(compensated_input)
+    k = 0  # every point on a canonical move, in order
+    for p in points:
+        if np.isnan(p).all():
+            continue  # a line copied as it is
+        while k < len(moves) and _off_move(p, *moves[k]) > tol:
+            k += 1
+        if k == len(moves):
+            return [f"point {np.round(p, 4)} is on no canonical move (in order) within {tol * 1e3:.2f} um"]
+    j = 0  # every canonical move's end reached, in order
+    for k, (_, end, _) in enumerate(moves):
+        while j < len(points) and _off_move(points[j], None, end, None) > tol:
+            j += 1
+        if j == len(points):
+            return [f"canonical move {k + 1} ending at {np.round(end, 4)} is never reached (in order)"]
+    return []
+
+
+def _normalized(calls):
+    out = []
+    for name, args in calls:
+        if name in MOTION_CALLS or name in STATE_CALLS or name in ("START_CHANGE", "CHANGE_TOOL"):
+            continue
+        if name == "SET_MOTION_CONTROL_MODE":
+            args = args[:1]  # its tolerance is in the program's units
+        out.append((name, [round(float(a), 6) if _is_number(a) else a for a in args]))
+    return out
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def command_problems(original: str | Path, output: str | Path, tool_table: str | Path | None = None) -> list[str]:
+    """Differences between the non-motion canonical calls of ``original`` and of ``output``."""
+    want = _normalized(canonical_calls(original, tool_table))
+    got = _normalized(canonical_calls(output, tool_table))
+    for i, (w, g) in enumerate(zip(want, got)):
+        if w != g:
+            return [f"non-motion command {i + 1}: expected {w}, got {g}"]
+    if len(want) != len(got):
+        return [f"{len(want)} non-motion commands expected, {len(got)} written"]
+    return []

@@ -1,0 +1,214 @@
+"""LinuxCNC programs (issue 18): NURBS evaluated exactly, clear refusals, I/O words, extra axes,
+and --expand through LinuxCNC's own interpreter with no silently wrong output.
+
+Truths: scipy's BSpline on homogeneous coordinates (an independent NURBS evaluation) and the
+closed form of a circle (a rational quadratic with weights 1, sqrt(2)/2, 1); LinuxCNC's rs274
+for the expanded programs (its canonical path and its non-motion calls, see canon_check)."""
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+from scipy.interpolate import BSpline
+from scipy.spatial import cKDTree
+
+from canon_check import command_problems, path_problems
+from fbspost.cli import main
+from fbspost.expand import expand
+from fbspost.gcode import CHORD_TOLERANCE_MM, Kind, nurbs_points, read_gcode
+
+needs_rs274 = pytest.mark.skipif(shutil.which("rs274") is None,
+                                 reason="LinuxCNC's rs274 is not installed (apt-get install linuxcnc-uspace)")
+NCFILES = Path("/usr/share/linuxcnc/ncfiles")
+
+
+def scipy_nurbs(ctrl, order):
+    """LinuxCNC's NURBS (knots k zeros, 1 .. m - k, k times m - k + 1) by scipy, homogeneous."""
+    m = len(ctrl)
+    knots = np.concatenate([np.zeros(order), np.arange(1.0, m - order + 1), np.full(order, m - order + 1.0)])
+    spline = BSpline(knots, np.column_stack([ctrl[:, :2] * ctrl[:, 2:], ctrl[:, 2]]), order - 1)
+    return lambda u: (lambda h: h[:, :2] / h[:, 2:])(spline(u))
+
+
+def moves(path, text):
+    path.write_text(text)
+    return list(read_gcode(path, "linuxcnc"))
+
+
+def polyline(blocks):
+    return np.concatenate([b.points_mm[:, :2] for b in blocks if b.kind is Kind.MOVE])
+
+
+def off_polyline(points, line):
+    """Each point's distance from the polyline ``line``."""
+    a, b = line[:-1], line[1:]
+    d = b - a
+    t = np.clip(((points[:, None] - a) * d).sum(-1) / np.maximum((d * d).sum(-1), 1e-300), 0, 1)
+    return np.hypot(*(points[:, None] - a - t[..., None] * d).transpose(2, 0, 1)).min(axis=1)
+
+
+CTRL = np.array([[1.0, 2.0, 1.0], [4.0, 6.0, 2.5], [7.0, 1.0, 0.5], [9.0, 5.0, 1.0], [12.0, 3.0, 3.0], [14.0, 8.0, 1.0]])
+
+
+@pytest.mark.parametrize("order", [3, 4, 5, 6])
+def test_nurbs_evaluation_matches_scipy(order):
+    u = np.linspace(0.0, len(CTRL) - order + 1.0, 1001)
+    assert np.abs(nurbs_points(CTRL, order, u) - scipy_nurbs(CTRL, order)(u)).max() < 1e-10
+
+
+@pytest.mark.parametrize("order", [3, 4])
+def test_g52_is_planned_on_the_curve(tmp_path, order):
+    """Every piece end within 0.1 um of scipy's curve, the curve within the chord tolerance of
+    the pieces, the end exact, every line of the NURBS a MOVE (none copied without its curve)."""
+    points = "\n".join(f"X{x:g} Y{y:g} P{w:g}" for x, y, w in CTRL[2:])
+    blocks = moves(tmp_path / "n.ngc", f"G21 G90 G17 F600\nG0 X{CTRL[0, 0]:g} Y{CTRL[0, 1]:g} Z1\n"
+                                       f"G5.2 X{CTRL[1, 0]:g} Y{CTRL[1, 1]:g} P{CTRL[1, 2]:g} L{order}\n"
+                                       f"{points}\n(a comment)\nG5.3\nG1 X0 Y0\nM2\n")
+    assert [b.kind for b in blocks[2:10]] == [Kind.MOVE] * 5 + [Kind.PASS, Kind.MOVE, Kind.MOVE]
+    curve = scipy_nurbs(CTRL, order)(np.linspace(0.0, len(CTRL) - order + 1.0, 2_000_001))  # 1e-5 mm apart
+    pieces = np.concatenate([CTRL[:1, :2], polyline(blocks[2:9])])
+    assert cKDTree(curve).query(pieces)[0].max() < 1e-4
+    assert off_polyline(curve[::500], pieces).max() < CHORD_TOLERANCE_MM * 1.01
+    assert np.array_equal(blocks[8].position_mm[:3], [*CTRL[-1, :2], 1.0])
+
+
+def test_weighted_nurbs_is_a_circle(tmp_path):
+    """Closed form: the rational quadratic (r,0), (r,r) weight sqrt(2)/2, (0,r) is a quarter circle."""
+    blocks = moves(tmp_path / "c.ngc", "G21 G90 F600\nG0 X10 Y0\nG5.2 X10 Y10 P0.70710678118654752 L3\n"
+                                       "X0 Y10 P1\nG5.3\nM2\n")
+    pieces = polyline(blocks)
+    assert np.abs(np.hypot(*pieces.T) - 10.0).max() < 1e-9 and np.allclose(pieces[-1], [0, 10])
+    angles = np.arctan2(pieces[:, 1], pieces[:, 0])
+    assert np.all(np.diff(angles) > 0) and 10 * (1 - math.cos(np.diff(angles).max() / 2)) <= CHORD_TOLERANCE_MM
+
+
+def test_g51_is_the_quadratic_spline(tmp_path):
+    blocks = moves(tmp_path / "q.ngc", "G21 G90 F600\nG0 X0 Y0\nG5.1 X4 Y0 I2 J3\nM2\n")
+    ctrl = np.array([[0.0, 0, 1], [2, 3, 1], [4, 0, 1]])
+    curve = scipy_nurbs(ctrl, 3)(np.linspace(0, 1, 1_000_001))
+    assert cKDTree(curve).query(polyline(blocks))[0].max() < 1e-4
+
+
+@pytest.mark.parametrize("line, words", [
+    ("#<xmax> = 9", "parameters (#<xmax>) need --expand (LinuxCNC's interpreter)"),
+    ("G1 X[1 + 2]", "expressions ([1 + 2]) need --expand"),
+    ("o100 while [#1 lt 3]", "O-word 'while': subroutines and control flow are not supported: --expand"),
+    ("G81 X1 Y1 Z-1 R1", "canned cycles (G81) is not supported: --expand runs it"),
+    ("G7", "lathe diameter mode (G7) is not supported: --expand runs it"),
+    ("G6.2 P1 Q2", "G6.2 is not supported"),
+    ("G5.3", "G5.3 without G5.2 first"),
+])
+def test_without_expand_the_feature_is_named(tmp_path, line, words):
+    program = tmp_path / "p.ngc"
+    program.write_text(f"G21 G90\nG0 X0 Y0 Z1\nG1 X10 F600\n{line}\nG1 X20\nM2\n")
+    result = CliRunner().invoke(main, ["compensate", str(program), "-m", "patent-xy-stage", "--flavor", "linuxcnc",
+                                       "--no-expand", "-o", str(tmp_path / "out.ngc")])
+    assert result.exit_code == 1 and result.stderr.startswith(f"error: {program}:4: ") and words in result.stderr, \
+        result.stderr
+    assert not (tmp_path / "out.ngc").exists()
+
+
+def test_io_words_and_extra_axes(tmp_path):
+    """E in M66/M67/M68 is the I/O word before and after the first motion; A/B/C lines pass as
+    written with the machine at rest, their XYZ end known."""
+    blocks = moves(tmp_path / "io.ngc", "G21 G90\nM66 E0 L0\nM67 E1 Q2.5\nG0 X0 Y0 Z1\nG0 B0\nG1 X5 A30 F600\n"
+                                        "M68 E2 Q1\nG1 Y5\nM2\n")
+    assert [b.kind for b in blocks] == [Kind.PASS, Kind.STOP, Kind.PASS, Kind.STOP, Kind.STOP, Kind.STOP,
+                                        Kind.PASS, Kind.MOVE, Kind.STOP]
+    assert np.array_equal(blocks[7].points_mm, [[5.0, 5.0, 1.0, 0.0]])
+
+
+PROGRAM = """(a program that needs LinuxCNC's interpreter: everything --expand must get right)
+G20 G90 G17 G94 G64 P0.001
+#<r> = 0.25
+T1 M6
+G43 H1
+G0 X0 Y0 Z0.5
+M3 S1200
+M8
+G92 X1 Y-1
+o100 repeat [2]
+  G1 Z-0.05 F20
+  G2 X[1 + #<r> * 2] Y-1 I#<r> J0
+  G3 X1 Y-1 R#<r>
+o100 endrepeat
+G92.1
+G0 X0 Y0 Z0
+G18 G2 X0.5 Z0 I0.25 K0
+G19 G3 Y0.5 Z0 J0.25 K0 P2
+G17 G55 G0 X0 Y0
+G10 L2 P2 X0.5
+G93 G1 X1 Y1 F60
+G94 G81 X0.2 Y0.2 Z-0.1 R0.1 F10
+G80 G54 G0 Z1
+(MSG, half way)
+M62 P1
+M67 E0 Q2.5
+G4 P0.5
+M9
+M5
+M30
+"""
+
+
+@needs_rs274
+def test_expanded_program_follows_linuxcncs_canonical_path(tmp_path):
+    program, expanded = tmp_path / "part.ngc", tmp_path / "part.expanded.ngc"
+    program.write_text(PROGRAM)
+    table = tmp_path / "tool.tbl"
+    table.write_text("T1 P1 Z0.5 D0.125\n")
+    expand(program, expanded, "test", table)
+    assert path_problems(program, expanded, True, table) == []
+    assert command_problems(program, expanded, table) == []
+
+
+@needs_rs274
+@pytest.mark.parametrize("name", ["arcspiral.ngc", "cds.ngc", "comp.ngc", "daisy.ngc", "spiral.ngc"])
+def test_installed_examples_expand_exactly(tmp_path, name):
+    program = NCFILES / name
+    if not program.exists():
+        pytest.skip(f"{program} is not installed")
+    expanded, table = tmp_path / "x.ngc", tmp_path / "tool.tbl"
+    table.write_text("".join(f"T{t} P{t} Z{0.1 * t:g} D{0.0625 * t:g}\n" for t in range(1, 6)))
+    expand(program, expanded, "test", table)
+    assert path_problems(program, expanded, True, table) == []
+    assert command_problems(program, expanded, table) == []
+
+
+@needs_rs274
+def test_compensate_expands_and_says_so(tmp_path):
+    program, out = tmp_path / "part.ngc", tmp_path / "out.ngc"
+    program.write_text("G21 G90\nG0 X0 Y0 Z1\n#<d> = 4\nG1 X#<d> F1200\nG2 X0 Y0 I[-#<d> / 2] J0\nM2\n")
+    result = CliRunner().invoke(main, ["compensate", str(program), "-m", "patent-xy-stage", "--flavor", "linuxcnc",
+                                       "-o", str(out), "-q"])
+    assert result.exit_code == 0, result.stderr
+    text = out.read_text()
+    assert text.startswith("; fbspost: expanded by LinuxCNC's interpreter rs274 from part.ngc: line 3 uses "
+                           "parameters (#<d>)")
+    assert command_problems(program, out) == []
+
+
+@needs_rs274
+def test_inverse_time_becomes_the_feed_that_takes_as_long(tmp_path):
+    """G93 F30 is 1/30 min per move whatever its length: 1 inch in 2 s is 762 mm/min; an arc
+    of radius 10 mm over a half turn (31.416 mm) at F60 in 1 s is 1884.96 mm/min."""
+    program, expanded = tmp_path / "t.ngc", tmp_path / "x.ngc"
+    program.write_text("G20 G90 G0 X0 Y0 Z0\nG93 G1 X1 F30\nG21 G3 X5.4 Y0 I-10 J0 F60\nG94 G1 X0 F100\nM2\n")
+    expand(program, expanded, "test")
+    moves = [line for line in expanded.read_text().splitlines() if line.startswith(("G1", "G3"))]
+    assert moves[0] == "G1 X25.4 F762"
+    assert moves[1].startswith("G3 X5.4 Y0 Z0 I-10 J0 F1884.955")
+    assert moves[2] == "G1 X0 F100"
+
+
+def test_without_rs274_one_line_says_how_to_install_it(tmp_path, monkeypatch):
+    program = tmp_path / "p.ngc"
+    program.write_text("G21 G90\nG0 X0 Y0\n#<d> = 4\nG1 X#<d> F600\nM2\n")
+    monkeypatch.setenv("PATH", str(tmp_path))  # no rs274 there
+    result = CliRunner().invoke(main, ["compensate", str(program), "-m", "patent-xy-stage", "--flavor", "linuxcnc",
+                                       "-o", str(tmp_path / "out.ngc")])
+    assert result.exit_code == 1 and result.stderr == (
+        f"error: {program}: LinuxCNC's interpreter rs274 is not installed: apt-get install linuxcnc-uspace\n")
+    assert not (tmp_path / "out.ngc").exists()
