@@ -11,6 +11,8 @@ import pytest
 from click.testing import CliRunner
 
 from fbspost.cli import main
+from fbspost.planner import RunMargins
+from fbspost.profile import load_profile
 from reference import execute, is_motion_line, kept_lines
 from test_profile import BASE, BROKEN, edited
 
@@ -163,13 +165,15 @@ FAST = "G28\nG1 X0 Y0 F600\nG1 X100 F30000\n"  # 500 mm/s asked; bedslinger-exam
 
 def test_feed_beyond_the_machine_is_clamped_as_the_controller_does(tmp_path):
     """The 100 mm move from rest to rest at the axis' 300 mm/s, accelerating at 3000 mm/s^2:
-    100/300 + 300/3000 s; no block of the output faster than 300 mm/s."""
+    100/300 + 300/3000 s and the run's lead and settle margins; no block of the output faster
+    than 300 mm/s."""
     program = tmp_path / "part.gcode"
     program.write_text(FAST)
     result = compensate(program, "-q", "-o", tmp_path / "out.gcode")
     assert result.exit_code == 0, result.stderr
     ends = np.array(execute(tmp_path / "out.gcode").ends)
-    assert ends[-1, 0] - ends[0, 0] == pytest.approx(100 / 300 + 300 / 3000, abs=2e-3)
+    margins = RunMargins.for_profile(load_profile("bedslinger-example"))
+    assert ends[-1, 0] - ends[0, 0] == pytest.approx(100 / 300 + 300 / 3000 + margins.lead_s + margins.settle_s, abs=2e-3)
     dt = np.diff(ends[:, 0])
     assert (np.abs(np.diff(ends[:, 1])[dt > 0] / dt[dt > 0]) <= 300 * (1 + 1e-3)).all()
 
