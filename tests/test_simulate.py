@@ -56,8 +56,8 @@ def resimulate(program, profile, report, compensated=None):
     contour samples, the path's segments (XYZ), the modelled axes and the settle time. The FBS
     row: ``compensated`` run block by block at its feeds, or else the optimizer on every run."""
     period_s = 1.0 / profile.sample_rate_hz
-    plan = plan_blocks(list(read_gcode(program, detect_flavor(program), profile.home_mm)), profile,
-                       margins=RunMargins.for_profile(profile))
+    blocks = list(read_gcode(program, detect_flavor(program), profile.home_mm))
+    plan = plan_blocks(blocks, profile, margins=RunMargins.for_profile(profile))
     modelled = [a for a in "XYZ" if a in profile.axes and profile.axes[a].modes]
     shapers = {m["name"]: m["shaper"] for m in report["methods"] if m["shaper"]}
     lead = max([-s["times_s"][0] for row in shapers.values() for s in row.values()], default=0.0)
@@ -110,10 +110,13 @@ def resimulate(program, profile, report, compensated=None):
         starts, stops = path[:-1][extruding, :3], path[1:][extruding, :3]
         rising = np.diff(e) > 0  # a sample with E rising on both sides is inside an extruding move
         mask = np.append(rising, False) & np.insert(rising, 0, False)
-    else:
+    else:  # the samples inside the feed moves' times (not in the margins' rests, nor a rapid's)
         starts, stops = path[:-1, :3], path[1:, :3]
         t = (np.arange(len(desired)) - before) * period_s
-        mask = (t >= 0) & (t <= plan.duration_s)
+        mask = np.zeros(len(t), bool)
+        for i, block in enumerate(blocks):
+            if plan.is_move[i] and not re.match(rb"\s*G0?0(?!\d)", block.raw, re.I):
+                mask |= (t >= plan.move_start_s[i]) & (t <= plan.line_time_s[i])
     return rows, desired, mask, (starts, stops), modelled, settle_s
 
 
