@@ -115,7 +115,7 @@ def execute(path, sample_rate_hz: float = 10000.0, dwell_p_seconds: bool = False
     end points only), G5 with I J P Q X Y Z E F (timed by the curve's XY length; Z and E
     linear in its parameter, as Marlin moves them; only in G17), G4 (P milliseconds, or seconds
     with ``dwell_p_seconds`` as in LinuxCNC; S seconds), G90/G91, M82/M83, G92, G20/G21,
-    G17/G18/G19; other lines are recorded as non-motion. ``path`` gets the points inside G5
+    G17/G18/G19, G28 (the homed axes at 0); other lines are recorded as non-motion. ``path`` gets the points inside G5
     blocks at every multiple of 1 / ``sample_rate_hz``. The first position of an axis is where it
     is first set (a move from an unknown place is instant)."""
     run = Executed()
@@ -192,6 +192,9 @@ def execute(path, sample_rate_hz: float = 10000.0, dwell_p_seconds: bool = False
                 seconds = dict(words)
                 t += seconds.get(b"S", seconds.get(b"P", 0.0) / (1.0 if dwell_p_seconds else 1000.0))
                 run.dwells.append(t)
+            elif code == b"G28":  # homing: the named axes (all without a name) at 0
+                named = [kk.decode() for kk, _ in words if kk.decode() in "XYZ"] or list("XYZ")
+                pos.update({a: 0.0 for a in named})
             elif code == b"G92":
                 for kk, vv in words:
                     a = kk.decode()
