@@ -7,7 +7,8 @@ with the predicted tracking error of every compensated axis before and after, pe
 from __future__ import annotations
 
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -33,6 +34,7 @@ class CompensateOptions:
     min_segment_time_s: float = 1e-3
     lookahead: str = "limited"
     settings: FBSSettings = FBSSettings()
+    parallel_axes: bool = True  # each compensated axis on its own thread (same output, bit for bit)
 
 
 @dataclass
@@ -102,7 +104,8 @@ def compensate_file(input_path: str | Path, output_path: str | Path, profile: Ma
     errors = {c: (_ErrorStats(), _ErrorStats()) for c in compensators}
     follows_plan = np.array([c not in compensators for c in range(len(AXES))])
     optimizer_warnings: list[str] = []
-    chunks = _timed(_compensated(plan, compensators, errors, optimizer_warnings), stages, "optimize",
+    pool = ThreadPoolExecutor(len(compensators)) if options.parallel_axes and len(compensators) > 1 else None
+    chunks = _timed(_compensated(plan, compensators, errors, optimizer_warnings, pool), stages, "optimize",
                     exclude=lambda: plan.time_s)
     ceilings = [profile.axes[AXES[c]].max_acceleration_mm_s2 for c in compensators if c < 3]  # XYZ
     write_options = WriteOptions(
@@ -114,8 +117,12 @@ def compensate_file(input_path: str | Path, output_path: str | Path, profile: Ma
         raise_acceleration_mm_s2=max(ceilings) if ceilings else None)
     stats = []
     clock = time.perf_counter()
-    atomic_write(output_path, lambda f: stats.append(write_program(
-        plan, SampleWindow(chunks, plan, follows_plan), write_options, f, accelerations)))
+    try:
+        atomic_write(output_path, lambda f: stats.append(write_program(
+            plan, SampleWindow(chunks, plan, follows_plan), write_options, f, accelerations)))
+    finally:
+        if pool:
+            pool.shutdown(cancel_futures=True)
     stages["plan"] = plan.time_s - stages["read"]
     stages["write"] = time.perf_counter() - clock - plan.time_s - stages["optimize"]
     report = Report(str(input_path), str(output_path), profile.name, flavor, plan.n_blocks, stats[0].lines_out,
@@ -146,14 +153,14 @@ def _compensators(profile: MachineProfile, options: CompensateOptions) -> dict[i
 
 
 def _compensated(plan: Plan | PlanStream, compensators: dict[int, AxisCompensator], errors: dict,
-                 warnings: list[str]) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+                 warnings: list[str], pool: ThreadPoolExecutor | None = None) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """(planned, command) chunks of samples, every sample in order, as the plan settles them:
     the command is the plan but on the compensated axes (columns), where it is the compensated
     command where that does no harm and the planned original where it would
     (fallback.AxisGuard). Adds up every compensated axis' modelled tracking error, before and
     after, over the runs and the settling after each (the residual vibration the compensation
     also reduces, and may trade a little in-motion error for), and a warning for each stretch
-    that fell back to ``warnings``."""
+    that fell back to ``warnings``. ``pool``: threads for the axes, which are independent here."""
     guards = {c: AxisGuard(compensator, *errors[c]) for c, compensator in compensators.items()}
     lines = _StretchLines(plan, guards.values())
     held, written = np.zeros((0, len(AXES))), {c: np.zeros(0) for c in guards}
@@ -168,16 +175,16 @@ def _compensated(plan: Plan | PlanStream, compensators: dict[int, AxisCompensato
         planned, held = held[:n], held[n:]
         return planned, command
 
-    for planned, command, moving, follows in _optimized(plan, compensators):
+    for planned, command, moving, follows in _optimized(plan, compensators, pool):
         held = np.concatenate([held, planned])
-        for c, guard in guards.items():
-            written[c] = np.concatenate([written[c], guard.push(planned[:, c], command[:, c], moving, follows)])
+        pushed = _per_axis(pool, lambda c: guards[c].push(planned[:, c], command[:, c], moving, follows), guards)
+        written = {c: np.concatenate([written[c], pushed[c]]) for c in guards}
         lines.note(min((guard.n for guard in guards.values()), default=np.inf) / plan.sample_rate_hz)
         chunk = ready()
         if len(chunk[0]):
             yield chunk
-    for c, guard in guards.items():
-        written[c] = np.concatenate([written[c], guard.finish()])
+    pushed = _per_axis(pool, lambda c: guards[c].finish(), guards)
+    written = {c: np.concatenate([written[c], pushed[c]]) for c in guards}
     lines.note(np.inf)
     for c, guard in guards.items():
         warnings += _fallback_warnings(plan.sample_rate_hz, AXES[c], guard, lines)
@@ -186,7 +193,7 @@ def _compensated(plan: Plan | PlanStream, compensators: dict[int, AxisCompensato
         yield chunk
 
 
-def _optimized(plan: Plan | PlanStream, compensators: dict[int, AxisCompensator]):
+def _optimized(plan: Plan | PlanStream, compensators: dict[int, AxisCompensator], pool: ThreadPoolExecutor | None):
     """(planned, compensated, moving, follows) chunks of samples, every sample in order, as the
     plan settles them: the compensated command is the plan but on the compensated axes (columns)
     during the runs; ``moving``: the chunk is in a run; ``follows``: it continues the one before
@@ -220,8 +227,8 @@ def _optimized(plan: Plan | PlanStream, compensators: dict[int, AxisCompensator]
             planned = plan.samples(a, stop)
             plan.release(stop)
             planned_rows = np.concatenate([planned_rows, planned])
-            for c, stream in streams.items():
-                commands[c] = np.concatenate([commands[c], stream.push(planned[:, c])])
+            pushed = _per_axis(pool, lambda c: streams[c].push(planned[:, c]), streams)
+            commands = {c: np.concatenate([commands[c], pushed[c]]) for c in streams}
             chunk, planned_rows, commands = ready(planned_rows, commands)
             if len(chunk[0]):
                 yield *chunk, True, follows
@@ -230,8 +237,8 @@ def _optimized(plan: Plan | PlanStream, compensators: dict[int, AxisCompensator]
             if last is not None and a > last:
                 break
         # (The optimizer's warnings of limits not met are the fallback's to give: it falls back there.)
-        for c, stream in streams.items():
-            commands[c] = np.concatenate([commands[c], stream.finish().command_mm])
+        pushed = _per_axis(pool, lambda c: streams[c].finish().command_mm, streams)
+        commands = {c: np.concatenate([commands[c], pushed[c]]) for c in streams}
         chunk, _, _ = ready(planned_rows, commands)
         yield *chunk, True, follows
         next_sample = last + 1
@@ -239,6 +246,13 @@ def _optimized(plan: Plan | PlanStream, compensators: dict[int, AxisCompensator]
     if next_sample < plan.n_samples:
         rest = plan.samples(next_sample, plan.n_samples)
         yield rest, rest, False, False
+
+
+def _per_axis(pool: ThreadPoolExecutor | None, work: Callable[[int], np.ndarray], axes: Iterable[int]) -> dict:
+    """``{c: work(c)}`` for every axis c, on the pool's threads if given: numpy, scipy and DAQP
+    release the GIL in their kernels, so the axes use both cores."""
+    axes = list(axes)
+    return dict(zip(axes, pool.map(work, axes) if pool else map(work, axes)))
 
 
 class _StretchLines:
