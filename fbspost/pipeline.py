@@ -7,6 +7,7 @@ with the predicted tracking error of every compensated axis before and after, pe
 from __future__ import annotations
 
 import time
+from collections import defaultdict
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
@@ -46,6 +47,8 @@ class AxisReport:
     max_error_before_um: float
     rms_error_after_um: float
     max_error_after_um: float
+    windows: int = 0  # the optimizer's windows
+    qp_windows: int = 0  # those whose optimum without the limits broke one (the QP solved)
 
     @classmethod
     def from_errors(cls, before_mm: np.ndarray, after_mm: np.ndarray) -> AxisReport:
@@ -56,8 +59,8 @@ class AxisReport:
         return cls.from_stats(before, after)
 
     @classmethod
-    def from_stats(cls, before: _ErrorStats, after: _ErrorStats) -> AxisReport:
-        return cls(before.rms_um, before.peak_um, after.rms_um, after.peak_um)
+    def from_stats(cls, before: _ErrorStats, after: _ErrorStats, windows: int = 0, qp_windows: int = 0) -> AxisReport:
+        return cls(before.rms_um, before.peak_um, after.rms_um, after.peak_um, windows, qp_windows)
 
 
 @dataclass
@@ -72,7 +75,7 @@ class Report:
     compute_time_s: float
     axes: dict[str, AxisReport] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
-    stage_time_s: dict[str, float] = field(default_factory=dict)  # read, plan, optimize, write
+    stage_time_s: dict[str, float] = field(default_factory=dict)  # read, plan, optimize, fallback, write
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -94,7 +97,7 @@ def compensate_file(input_path: str | Path, output_path: str | Path, profile: Ma
     refusal = format_refusal(flavor, options.output_format)
     if refusal:  # before the work
         raise InputError(input_path, None, refusal)
-    stages = dict.fromkeys(("read", "plan", "optimize", "write"), 0.0)
+    stages = dict.fromkeys(("read", "plan", "optimize", "fallback", "write"), 0.0)
     accelerations = ProgramAccelerations(profile.planner_acceleration_mm_s2)
     blocks = _timed(read_gcode(input_path, flavor), stages, "read")
     if progress:
@@ -105,7 +108,8 @@ def compensate_file(input_path: str | Path, output_path: str | Path, profile: Ma
     follows_plan = np.array([c not in compensators for c in range(len(AXES))])
     optimizer_warnings: list[str] = []
     pool = ThreadPoolExecutor(len(compensators)) if options.parallel_axes and len(compensators) > 1 else None
-    chunks = _timed(_compensated(plan, compensators, errors, optimizer_warnings, pool), stages, "optimize",
+    tally = _Tally()
+    chunks = _timed(_compensated(plan, compensators, errors, optimizer_warnings, pool, tally), stages, "optimize",
                     exclude=lambda: plan.time_s)
     ceilings = [profile.axes[AXES[c]].max_acceleration_mm_s2 for c in compensators if c < 3]  # XYZ
     write_options = WriteOptions(
@@ -125,11 +129,13 @@ def compensate_file(input_path: str | Path, output_path: str | Path, profile: Ma
             pool.shutdown(cancel_futures=True)
     stages["plan"] = plan.time_s - stages["read"]
     stages["write"] = time.perf_counter() - clock - plan.time_s - stages["optimize"]
+    stages["optimize"] -= tally.fallback_s
+    stages["fallback"] = tally.fallback_s
     report = Report(str(input_path), str(output_path), profile.name, flavor, plan.n_blocks, stats[0].lines_out,
                     plan.duration_s, 0.0, warnings=plan.warnings + optimizer_warnings, stage_time_s=stages)
     for c, (before, after) in errors.items():
         if before.count:
-            report.axes[AXES[c]] = AxisReport.from_stats(before, after)
+            report.axes[AXES[c]] = AxisReport.from_stats(before, after, *tally.windows[c])
     report.compute_time_s = time.perf_counter() - started
     return report
 
@@ -140,7 +146,7 @@ def compensated_samples(plan: Plan, profile: MachineProfile, options: Compensate
     computes it (for programs that fit in memory); the optimizers' warnings added to ``warnings``."""
     compensators = _compensators(profile, options)
     errors = {c: (_ErrorStats(), _ErrorStats()) for c in compensators}
-    chunks = _compensated(plan, compensators, errors, [] if warnings is None else warnings)
+    chunks = _compensated(plan, compensators, errors, [] if warnings is None else warnings, None, _Tally())
     return np.concatenate([command for _, command in chunks] or [np.zeros((0, len(AXES)))])
 
 
@@ -153,14 +159,15 @@ def _compensators(profile: MachineProfile, options: CompensateOptions) -> dict[i
 
 
 def _compensated(plan: Plan | PlanStream, compensators: dict[int, AxisCompensator], errors: dict,
-                 warnings: list[str], pool: ThreadPoolExecutor | None = None) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+                 warnings: list[str], pool: ThreadPoolExecutor | None, tally: _Tally) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """(planned, command) chunks of samples, every sample in order, as the plan settles them:
     the command is the plan but on the compensated axes (columns), where it is the compensated
     command where that does no harm and the planned original where it would
     (fallback.AxisGuard). Adds up every compensated axis' modelled tracking error, before and
     after, over the runs and the settling after each (the residual vibration the compensation
     also reduces, and may trade a little in-motion error for), and a warning for each stretch
-    that fell back to ``warnings``. ``pool``: threads for the axes, which are independent here."""
+    that fell back to ``warnings``. ``pool``: threads for the axes, which are independent here;
+    ``tally``: counts the windows and the fallback's time."""
     guards = {c: AxisGuard(compensator, *errors[c]) for c, compensator in compensators.items()}
     lines = _StretchLines(plan, guards.values())
     held, written = np.zeros((0, len(AXES))), {c: np.zeros(0) for c in guards}
@@ -175,15 +182,19 @@ def _compensated(plan: Plan | PlanStream, compensators: dict[int, AxisCompensato
         planned, held = held[:n], held[n:]
         return planned, command
 
-    for planned, command, moving, follows in _optimized(plan, compensators, pool):
+    for planned, command, moving, follows in _optimized(plan, compensators, pool, tally):
         held = np.concatenate([held, planned])
+        clock = time.perf_counter()
         pushed = _per_axis(pool, lambda c: guards[c].push(planned[:, c], command[:, c], moving, follows), guards)
+        tally.fallback_s += time.perf_counter() - clock
         written = {c: np.concatenate([written[c], pushed[c]]) for c in guards}
         lines.note(min((guard.n for guard in guards.values()), default=np.inf) / plan.sample_rate_hz)
         chunk = ready()
         if len(chunk[0]):
             yield chunk
+    clock = time.perf_counter()
     pushed = _per_axis(pool, lambda c: guards[c].finish(), guards)
+    tally.fallback_s += time.perf_counter() - clock
     written = {c: np.concatenate([written[c], pushed[c]]) for c in guards}
     lines.note(np.inf)
     for c, guard in guards.items():
@@ -193,7 +204,8 @@ def _compensated(plan: Plan | PlanStream, compensators: dict[int, AxisCompensato
         yield chunk
 
 
-def _optimized(plan: Plan | PlanStream, compensators: dict[int, AxisCompensator], pool: ThreadPoolExecutor | None):
+def _optimized(plan: Plan | PlanStream, compensators: dict[int, AxisCompensator], pool: ThreadPoolExecutor | None,
+               tally: _Tally):
     """(planned, compensated, moving, follows) chunks of samples, every sample in order, as the
     plan settles them: the compensated command is the plan but on the compensated axes (columns)
     during the runs; ``moving``: the chunk is in a run; ``follows``: it continues the one before
@@ -237,8 +249,12 @@ def _optimized(plan: Plan | PlanStream, compensators: dict[int, AxisCompensator]
             if last is not None and a > last:
                 break
         # (The optimizer's warnings of limits not met are the fallback's to give: it falls back there.)
-        pushed = _per_axis(pool, lambda c: streams[c].finish().command_mm, streams)
-        commands = {c: np.concatenate([commands[c], pushed[c]]) for c in streams}
+        results = _per_axis(pool, lambda c: streams[c].finish(), streams)
+        for c, result in results.items():
+            counts = tally.windows[c]
+            counts[0] += result.windows
+            counts[1] += result.qp_windows
+        commands = {c: np.concatenate([commands[c], results[c].command_mm]) for c in streams}
         chunk, _, _ = ready(planned_rows, commands)
         yield *chunk, True, follows
         next_sample = last + 1
@@ -248,7 +264,7 @@ def _optimized(plan: Plan | PlanStream, compensators: dict[int, AxisCompensator]
         yield rest, rest, False, False
 
 
-def _per_axis(pool: ThreadPoolExecutor | None, work: Callable[[int], np.ndarray], axes: Iterable[int]) -> dict:
+def _per_axis(pool: ThreadPoolExecutor | None, work: Callable[[int], object], axes: Iterable[int]) -> dict:
     """``{c: work(c)}`` for every axis c, on the pool's threads if given: numpy, scipy and DAQP
     release the GIL in their kernels, so the axes use both cores."""
     axes = list(axes)
@@ -298,6 +314,15 @@ def _fallback_warnings(fs: float, axis: str, guard: AxisGuard, lines: _StretchLi
     if count:
         out.append(f"{FALLBACK}: axis {axis}, {count} more stretches, {samples / fs:.3f} s in all")
     return out
+
+
+@dataclass
+class _Tally:
+    """Counted as the work goes: the fallback's wall time, and per axis (column) the optimizer's
+    windows and those that needed the QP."""
+
+    fallback_s: float = 0.0
+    windows: dict[int, list[int]] = field(default_factory=lambda: defaultdict(lambda: [0, 0]))
 
 
 @dataclass

@@ -1,5 +1,6 @@
 """Speed changes keep the output: the same program and settings give the same bytes however the
-work is spread (the compensated axes on threads or one after the other)."""
+work is spread (the compensated axes on threads or one after the other), on programs whose
+limits bind (windows that need the QP)."""
 from dataclasses import replace
 from pathlib import Path
 
@@ -25,4 +26,5 @@ def test_axes_on_threads_write_the_serial_output_byte_for_byte(tmp_path, program
         outputs[parallel] = tmp_path / f"parallel-{parallel}.gcode"
         report = compensate_file(source, outputs[parallel], profile, replace(CompensateOptions(), parallel_axes=parallel))
         assert len(report.axes) == 2 and report.print_time_s > 20.0
+        assert 0 < sum(axis.qp_windows for axis in report.axes.values()) < sum(axis.windows for axis in report.axes.values())
     assert outputs[True].read_bytes() == outputs[False].read_bytes()
