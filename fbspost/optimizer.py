@@ -120,7 +120,6 @@ class AxisResult:
 _LIMIT_TOLERANCE = 1e-7  # relative excess over a limit accepted as meeting it
 _QP_ROUNDS = 4
 _ACTIVE_SET_STEPS = 400
-_DAQP_INFEASIBLE = -1  # DAQP's exit flag for limits that no point meets
 
 
 def _difference_matrix(order: int, n: int, sample_period_s: float) -> sparse.csr_matrix:
@@ -298,7 +297,8 @@ class _Stretch:
         method for small dense QPs) in least-distance form: with H = R^T R and u = R p,
         min ||u - R p_free||^2 s.t. |A R^-1 u + offset| <= 1. R and A R^-1 are the window
         shape's, set up once; each window starts from no held row (the previous window's rows
-        are other samples). None if the limits cannot be met; ours where DAQP fails otherwise."""
+        are other samples). Ours (exact) where DAQP fails or misses the limits: on these
+        ill-conditioned windows (cond(H) to 1e12) it may call a barely feasible window infeasible."""
         lower, upper = -1.0 - offset, 1.0 - offset
         if self._ldp is None:
             self._root = linalg.cholesky(self.H)
@@ -314,7 +314,6 @@ class _Stretch:
             p = linalg.solve_triangular(self._root, u)
             if self.violation(p, offset) <= _LIMIT_TOLERANCE:
                 return p
-        import sys; print('daqp', flag, file=sys.stderr)
         return self._active_set(p_free, offset)
 
     def _active_set(self, p_free: np.ndarray, offset: np.ndarray) -> np.ndarray | None:
