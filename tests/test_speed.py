@@ -1,6 +1,8 @@
 """Speed changes keep the output: the same program and settings give the same bytes however the
 work is spread (the compensated axes on threads or one after the other), on programs whose
 limits bind (windows that need the QP)."""
+import subprocess
+import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -28,3 +30,14 @@ def test_axes_on_threads_write_the_serial_output_byte_for_byte(tmp_path, program
         assert len(report.axes) == 2 and report.print_time_s > 20.0
         assert 0 < sum(axis.qp_windows for axis in report.axes.values()) < sum(axis.windows for axis in report.axes.values())
     assert outputs[True].read_bytes() == outputs[False].read_bytes()
+
+
+def test_help_loads_no_scipy():
+    """`fbspost --help` (and a bad argument) answer without loading scipy, osqp or DAQP: the
+    commands import the stages they run."""
+    code = ("import sys; from click.testing import CliRunner; from fbspost.cli import main; "
+            "assert CliRunner().invoke(main, ['--help']).exit_code == 0; "
+            "print(sorted({m.split('.')[0] for m in sys.modules} & {'scipy', 'osqp', 'daqp', 'matplotlib'}))")
+    loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                            cwd=DATA.parent.parent).stdout
+    assert loaded.strip() == "[]"
