@@ -375,16 +375,17 @@ def corner_moves(period_s, moves=12, distance_mm=3.0, speed_mm_s=60.0, accel_mm_
 
 
 def test_daqp_is_the_optimum_of_the_hard_cases_corner_windows(monkeypatch):
-    """The corner windows of printer-two-mode's X axis (52 + 96 Hz, a knot every sample, 120
-    points, 240 limit rows, cond(H) ~ 1e12): DAQP's point is KKT-certified on every window whose
-    limits bind, and its objective is Goldfarb-Idnani's (an exact method) to 1e-9."""
+    """The corner windows of printer-two-mode's X axis (52 + 96 Hz) with a knot at every sample
+    (the hardest windows: 120 points, 240 limit rows, cond(H) ~ 1e12): DAQP's point is
+    KKT-certified on every window whose limits bind, and its objective is Goldfarb-Idnani's (an
+    exact method) to 1e-9."""
     axis = load_profile("printer-two-mode").axes["X"]
     dynamics = AxisDynamics(axis.modes, 1e-3)
     windows = []
     constrained = _Stretch.constrained
     monkeypatch.setattr(_Stretch, "constrained", lambda self, target, p_fixed, offset, end_values, warm: windows.append(
         (self, target, offset, warm)) or constrained(self, target, p_fixed, offset, end_values, warm))
-    result = AxisCompensator(dynamics, AxisLimits.from_profile(axis))(corner_moves(1e-3))
+    result = AxisCompensator(dynamics, AxisLimits.from_profile(axis), FBSSettings(knot_spacing_samples=1))(corner_moves(1e-3))
     regular = [w for w in windows if w[0].E is None]
     assert len(regular) >= 8 and not result.warnings
     for window, target, offset, warm in regular[:8]:
@@ -419,3 +420,4 @@ def test_stream_in_pieces_equals_the_whole_run_bit_for_bit(seed):
     streamed = np.concatenate(pieces + [result.command_mm])
     assert np.array_equal(streamed, whole.command_mm)
     assert (result.windows, result.qp_windows) == (whole.windows, whole.qp_windows)
+
