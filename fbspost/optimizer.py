@@ -29,7 +29,6 @@ from dataclasses import dataclass, field, replace
 
 import daqp
 import numpy as np
-import osqp
 from scipy import linalg, sparse
 
 from .dynamics import AxisDynamics
@@ -249,6 +248,8 @@ class _Stretch:
         p = self._least_distance(warm, offset) if self.E is None else self._active_set(warm, offset)
         if p is not None:
             return p
+        import osqp  # rarely needed: not loaded before
+
         lower, upper = -1.0 - offset, 1.0 - offset
         n_limit_rows = len(lower)
         if self.E is not None:
