@@ -6,10 +6,11 @@ with the predicted tracking error of every compensated axis before and after, pe
 """
 from __future__ import annotations
 
+import itertools
 import time
 from collections import defaultdict
 from collections.abc import Callable, Iterable, Iterator
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -35,7 +36,7 @@ class CompensateOptions:
     min_segment_time_s: float = 1e-3
     lookahead: str = "limited"
     settings: FBSSettings = FBSSettings()
-    parallel_axes: bool = True  # each compensated axis on its own thread (same output, bit for bit)
+    parallel_axes: bool = True  # each compensated axis on its own threads (same output, bit for bit)
 
 
 @dataclass
@@ -107,9 +108,9 @@ def compensate_file(input_path: str | Path, output_path: str | Path, profile: Ma
     errors = {c: (_ErrorStats(), _ErrorStats()) for c in compensators}
     follows_plan = np.array([c not in compensators for c in range(len(AXES))])
     optimizer_warnings: list[str] = []
-    pool = ThreadPoolExecutor(len(compensators)) if options.parallel_axes and len(compensators) > 1 else None
+    lanes = _Lanes(compensators) if options.parallel_axes else None
     tally = _Tally()
-    chunks = _timed(_compensated(plan, compensators, errors, optimizer_warnings, pool, tally), stages, "optimize",
+    chunks = _timed(_compensated(plan, compensators, errors, optimizer_warnings, lanes, tally), stages, "optimize",
                     exclude=lambda: plan.time_s)
     ceilings = [profile.axes[AXES[c]].max_acceleration_mm_s2 for c in compensators if c < 3]  # XYZ
     write_options = WriteOptions(
@@ -125,8 +126,8 @@ def compensate_file(input_path: str | Path, output_path: str | Path, profile: Ma
         atomic_write(output_path, lambda f: stats.append(write_program(
             plan, SampleWindow(chunks, plan, follows_plan), write_options, f, accelerations)))
     finally:
-        if pool:
-            pool.shutdown(cancel_futures=True)
+        if lanes:
+            lanes.shutdown()
     stages["plan"] = plan.time_s - stages["read"]
     stages["write"] = time.perf_counter() - clock - plan.time_s - stages["optimize"]
     stages["optimize"] -= tally.fallback_s
@@ -159,14 +160,14 @@ def _compensators(profile: MachineProfile, options: CompensateOptions) -> dict[i
 
 
 def _compensated(plan: Plan | PlanStream, compensators: dict[int, AxisCompensator], errors: dict,
-                 warnings: list[str], pool: ThreadPoolExecutor | None, tally: _Tally) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+                 warnings: list[str], lanes: _Lanes | None, tally: _Tally) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """(planned, command) chunks of samples, every sample in order, as the plan settles them:
     the command is the plan but on the compensated axes (columns), where it is the compensated
     command where that does no harm and the planned original where it would
     (fallback.AxisGuard). Adds up every compensated axis' modelled tracking error, before and
     after, over the runs and the settling after each (the residual vibration the compensation
     also reduces, and may trade a little in-motion error for), and a warning for each stretch
-    that fell back to ``warnings``. ``pool``: threads for the axes, which are independent here;
+    that fell back to ``warnings``. ``lanes``: threads for the axes, which are independent here;
     ``tally``: counts the windows and the fallback's time."""
     guards = {c: AxisGuard(compensator, *errors[c]) for c, compensator in compensators.items()}
     lines = _StretchLines(plan, guards.values())
@@ -182,10 +183,11 @@ def _compensated(plan: Plan | PlanStream, compensators: dict[int, AxisCompensato
         planned, held = held[:n], held[n:]
         return planned, command
 
-    for planned, command, moving, follows in _optimized(plan, compensators, pool, tally):
+    fallbacks = lanes and lanes.fallback
+    for planned, command, moving, follows in _optimized(plan, compensators, lanes and lanes.optimizer, tally):
         held = np.concatenate([held, planned])
         clock = time.perf_counter()
-        pushed = _per_axis(pool, lambda c: guards[c].push(planned[:, c], command[:, c], moving, follows), guards)
+        pushed = _per_axis(fallbacks, lambda c: guards[c].push(planned[:, c], command[:, c], moving, follows), guards)
         tally.fallback_s += time.perf_counter() - clock
         written = {c: np.concatenate([written[c], pushed[c]]) for c in guards}
         lines.note(min((guard.n for guard in guards.values()), default=np.inf) / plan.sample_rate_hz)
@@ -193,7 +195,7 @@ def _compensated(plan: Plan | PlanStream, compensators: dict[int, AxisCompensato
         if len(chunk[0]):
             yield chunk
     clock = time.perf_counter()
-    pushed = _per_axis(pool, lambda c: guards[c].finish(), guards)
+    pushed = _per_axis(fallbacks, lambda c: guards[c].finish(), guards)
     tally.fallback_s += time.perf_counter() - clock
     written = {c: np.concatenate([written[c], pushed[c]]) for c in guards}
     lines.note(np.inf)
@@ -204,12 +206,14 @@ def _compensated(plan: Plan | PlanStream, compensators: dict[int, AxisCompensato
         yield chunk
 
 
-def _optimized(plan: Plan | PlanStream, compensators: dict[int, AxisCompensator], pool: ThreadPoolExecutor | None,
-               tally: _Tally):
+def _optimized(plan: Plan | PlanStream, compensators: dict[int, AxisCompensator],
+               lanes: dict[int, ThreadPoolExecutor] | None, tally: _Tally):
     """(planned, compensated, moving, follows) chunks of samples, every sample in order, as the
     plan settles them: the compensated command is the plan but on the compensated axes (columns)
     during the runs; ``moving``: the chunk is in a run; ``follows``: it continues the one before
-    (not at a rest or a run's start, where the plan may jump)."""
+    (not at a rest or a run's start, where the plan may jump). With ``lanes`` (one thread per
+    axis, so each axis' pieces are pushed in order), the optimizers work on the next piece of
+    the run while the chunk of the last one is written."""
     r = next_sample = 0
     while True:
         plan.wait(lambda: len(plan.runs) > r or plan.done)
@@ -230,26 +234,33 @@ def _optimized(plan: Plan | PlanStream, compensators: dict[int, AxisCompensator]
                 command[:, c] = commands[c][:n]
             return (planned_rows[:n], command), planned_rows[n:], {c: v[n:] for c, v in commands.items()}
 
-        follows = False
-        a = first
-        while True:
-            plan.wait(lambda: plan.runs[r][1] is not None or plan.frontier >= a + _CHUNK)
-            last = plan.runs[r][1]
-            stop = min(a + _CHUNK, plan.frontier if last is None else last + 1)
-            planned = plan.samples(a, stop)
-            plan.release(stop)
-            planned_rows = np.concatenate([planned_rows, planned])
-            pushed = _per_axis(pool, lambda c: streams[c].push(planned[:, c]), streams)
-            commands = {c: np.concatenate([commands[c], pushed[c]]) for c in streams}
-            chunk, planned_rows, commands = ready(planned_rows, commands)
-            if len(chunk[0]):
-                yield *chunk, True, follows
-                follows = True
-            a = stop
-            if last is not None and a > last:
-                break
+        def pieces(a):
+            """The run's planned samples, a chunk at a time, as the plan settles them."""
+            while True:
+                plan.wait(lambda: plan.runs[r][1] is not None or plan.frontier >= a + _CHUNK)
+                last = plan.runs[r][1]
+                stop = min(a + _CHUNK, plan.frontier if last is None else last + 1)
+                samples = plan.samples(a, stop)
+                plan.release(stop)
+                yield samples
+                a = stop
+                if last is not None and a > last:
+                    return
+
+        follows, pending = False, None  # pending: the last piece and its pushes under way
+        for planned in itertools.chain(pieces(first), [None]):
+            running = None if planned is None else {c: _submit(lanes, c, streams[c].push, planned[:, c]) for c in streams}
+            if pending is not None:
+                planned_rows = np.concatenate([planned_rows, pending[0]])
+                commands = {c: np.concatenate([commands[c], pending[1][c].result()]) for c in streams}
+                chunk, planned_rows, commands = ready(planned_rows, commands)
+                if len(chunk[0]):
+                    yield *chunk, True, follows
+                    follows = True
+            pending = planned, running
+        last = plan.runs[r][1]
         # (The optimizer's warnings of limits not met are the fallback's to give: it falls back there.)
-        results = _per_axis(pool, lambda c: streams[c].finish(), streams)
+        results = _per_axis(lanes, lambda c: streams[c].finish(), streams)
         for c, result in results.items():
             counts = tally.windows[c]
             counts[0] += result.windows
@@ -264,11 +275,33 @@ def _optimized(plan: Plan | PlanStream, compensators: dict[int, AxisCompensator]
         yield rest, rest, False, False
 
 
-def _per_axis(pool: ThreadPoolExecutor | None, work: Callable[[int], object], axes: Iterable[int]) -> dict:
-    """``{c: work(c)}`` for every axis c, on the pool's threads if given: numpy, scipy and DAQP
-    release the GIL in their kernels, so the axes use both cores."""
-    axes = list(axes)
-    return dict(zip(axes, pool.map(work, axes) if pool else map(work, axes)))
+class _Lanes:
+    """One thread per compensated axis for its optimizer and one for its fallback: numpy, scipy
+    and DAQP release the GIL in their kernels, so the axes, and the optimizers and the writer,
+    use both cores. Work given to one lane runs in order."""
+
+    def __init__(self, axes: Iterable[int]):
+        self.optimizer = {c: ThreadPoolExecutor(1) for c in axes}
+        self.fallback = {c: ThreadPoolExecutor(1) for c in axes}
+
+    def shutdown(self) -> None:
+        for lane in [*self.optimizer.values(), *self.fallback.values()]:
+            lane.shutdown(cancel_futures=True)
+
+
+def _submit(lanes: dict[int, ThreadPoolExecutor] | None, c: int, work: Callable, *args) -> Future:
+    """``work(*args)`` on axis c's lane, or here and now without lanes."""
+    if lanes:
+        return lanes[c].submit(work, *args)
+    done = Future()
+    done.set_result(work(*args))
+    return done
+
+
+def _per_axis(lanes: dict[int, ThreadPoolExecutor] | None, work: Callable[[int], object], axes: Iterable[int]) -> dict:
+    """``{c: work(c)}`` for every axis c, each on its lane if given."""
+    running = {c: _submit(lanes, c, work, c) for c in axes}
+    return {c: future.result() for c, future in running.items()}
 
 
 class _StretchLines:
