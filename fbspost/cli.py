@@ -27,6 +27,7 @@ import numpy as np
 from . import __version__
 from .atomicfile import atomic_write
 from .gcode import FLAVORS
+from .planner import RunMargins
 from .profile import AXIS_NAMES, MachineProfile, ProfileError, bundled_profiles, load_profile
 from .shapers import MAX_DAMPING, SHAPERS
 from .trajectory import InputError, read_trajectory_csv, write_trajectory_csv
@@ -99,6 +100,16 @@ _machine_option = click.option("--machine", "-m", required=True,
                                help="Bundled profile name (see `fbspost machines`) or path to a profile .toml.")
 
 
+def _margin_options(command):
+    """--lead-time and --settle-time (planner.RunMargins; None: from the dynamics)."""
+    command = click.option("--settle-time", "settle_time_s", type=click.FloatRange(min=0),
+                           help="Seconds the command may go on after each run of motion ends, the machine "
+                                "otherwise at rest (default: half the lowest mode's damped period).")(command)
+    return click.option("--lead-time", "lead_time_s", type=click.FloatRange(min=0),
+                        help="Seconds the command may move before each run of motion starts (default: half "
+                             "the lowest mode's damped period).")(command)
+
+
 @click.group(cls=_FriendlyGroup)
 @click.version_option(__version__, prog_name="fbspost")
 def main():
@@ -133,11 +144,14 @@ def machines():
               help="Shortest block (s).")
 @click.option("--flavor", type=click.Choice(FLAVORS), help="Firmware dialect (default: detected from the file).")
 @click.option("--lookahead", type=click.Choice(["limited", "complete"]), default="limited", show_default=True)
+@_margin_options
+@click.option("--fallback/--no-fallback", default=True, show_default=True,
+              help="Blend to the planned original where compensating would do harm (off: compensate everywhere).")
 @click.option("--report", "report_path", type=click.Path(dir_okay=False, path_type=Path),
               help="Also write the summary as JSON to this file (one INPUT only).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar and no summary on stderr.")
 def compensate(inputs, machine, output, output_dir, jobs, output_format, tolerance, min_segment_time, flavor,
-               lookahead, report_path, quiet):
+               lookahead, lead_time_s, settle_time_s, fallback, report_path, quiet):
     """Compensate G-code programs for the machine's dynamics.
 
     Plans each program as the controller would, compensates every axis that has modes in the
@@ -155,7 +169,8 @@ def compensate(inputs, machine, output, output_dir, jobs, output_format, toleran
     targets = _targets(inputs, output, output_dir, report_path)
     profile = load_profile(machine)
     options = CompensateOptions(flavor=flavor, output_format=output_format, tolerance_mm=tolerance,
-                                min_segment_time_s=min_segment_time, lookahead=lookahead)
+                                min_segment_time_s=min_segment_time, lookahead=lookahead, lead_time_s=lead_time_s,
+                                settle_time_s=settle_time_s, fallback=fallback)
     if len(inputs) == 1:
         _compensate_single(inputs[0], targets[0], profile, options, report_path, quiet)
         return
@@ -310,8 +325,9 @@ def _one_line(message: str) -> str:
 def _summary(source: Path, target: Path, profile: MachineProfile, report: Report) -> str:
     """The per-file summary on stderr: sizes, times and the predicted error of every axis."""
     lines = [f"fbspost {__version__}: {source} -> {target} on {profile.name} ({report.flavor}): "
-             f"{report.lines_in} lines in, {report.lines_out} out; print time {report.print_time_s:.1f} s, "
-             f"computed in {report.compute_time_s:.2f} s"]
+             f"{report.lines_in} lines in, {report.lines_out} out; print time {report.print_time_s:.1f} s "
+             f"({report.added_time_s:.2f} s of it lead and settle margins: {report.lead_time_s * 1e3:.3g} + "
+             f"{report.settle_time_s * 1e3:.3g} ms per run of motion), computed in {report.compute_time_s:.2f} s"]
     for name, axis in report.axes.items():
         lines.append(f"axis {name}: predicted RMS error {axis.rms_error_before_um:.4g} -> {axis.rms_error_after_um:.4g} um, "
                      f"max {axis.max_error_before_um:.4g} -> {axis.max_error_after_um:.4g} um")
@@ -578,10 +594,12 @@ def _per_axis(low: float, high: float | None):
 @click.option("--shaper-damping", "shaper_damping", callback=_per_axis(0.0, 1.0), metavar="AXIS=RATIO,...",
               help="Shaper damping ratio per axis, e.g. X=0.1,Y=0.1 (default: the dominant mode's).")
 @click.option("--flavor", type=click.Choice(FLAVORS), help="Firmware dialect (default: detected from INPUT).")
+@_margin_options
 @click.option("--json", "as_json", is_flag=True, help="Print the figures as JSON (keys in the README) instead of tables.")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False, path_type=Path), metavar="FILE",
               help="Also write plots: FILE.png (one page) or FILE.pdf (one panel per page).")
-def simulate(input_path, machine, compensated, shapers, shaper_freq, shaper_damping, flavor, as_json, plot_path):
+def simulate(input_path, machine, compensated, shapers, shaper_freq, shaper_damping, flavor, lead_time_s, settle_time_s,
+             as_json, plot_path):
     """Compare the original, FBS and Klipper's input shapers on INPUT, through the profile's model.
 
     Plans INPUT as the controller would and runs every axis with modes through its model: the
@@ -609,7 +627,8 @@ def simulate(input_path, machine, compensated, shapers, shaper_freq, shaper_damp
             if damping > MAX_DAMPING[name]:
                 raise click.UsageError(f"{name} is defined for damping ratios up to {MAX_DAMPING[name]:g}, axis {axis} "
                                        f"has {damping:g}: give --shaper-damping or leave {name} out of --shapers")
-    sim = simulate_program(input_path, profile, shapers, settings, compensated, flavor)
+    margins = RunMargins.for_profile(profile, lead_time_s, settle_time_s)
+    sim = simulate_program(input_path, profile, shapers, settings, compensated, flavor, margins)
     if plot_path:
         write_plot(sim, plot_path)
     if as_json:

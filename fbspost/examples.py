@@ -58,3 +58,42 @@ def butterfly(sample_rate_hz: float = 10000.0, size_mm: float = 1.0, max_speed_m
         if worst <= 1.0:
             return times_s, xs, ys
         rate /= worst * 1.0005
+
+
+def _program(points_mm: np.ndarray, feeds_mm_min: np.ndarray, title: str) -> str:
+    """A LinuxCNC-style program of G1 blocks through ``points_mm``, F written where it changes."""
+    lines = [f"({title})", "G21 G90 G17", f"G0 X{points_mm[0, 0]:.4f} Y{points_mm[0, 1]:.4f}"]
+    previous = None
+    for (x, y), feed in zip(points_mm[1:], feeds_mm_min):
+        words = f"G1 X{x:.4f} Y{y:.4f}"
+        if feed != previous:
+            words += f" F{feed:.3f}"
+            previous = feed
+        lines.append(words)
+    lines.append("M2")
+    return "\n".join(lines) + "\n"
+
+
+def butterfly_dense_program(size_mm: float) -> str:
+    """The butterfly as 1 ms G1 blocks at the patent stage's planned timing, each with the F that
+    gives it its time (what a CAM system with its own interpolator writes)."""
+    _, x_mm, y_mm = butterfly(sample_rate_hz=10000.0, size_mm=size_mm)
+    dense = np.round(np.column_stack([x_mm, y_mm])[::10], 4)
+    lengths = np.hypot(*np.diff(dense, axis=0).T)
+    keep = np.concatenate([[True], lengths > 0])  # a block that does not move cannot carry time
+    dense = dense[keep]
+    durations = np.diff(np.flatnonzero(keep)) * 1e-3
+    feeds = np.hypot(*np.diff(dense, axis=0).T) / durations * 60.0
+    return _program(dense, np.round(feeds, 3), "butterfly, 1 ms blocks at the patent stage's planned timing")
+
+
+def butterfly_polyline_program(size_mm: float, chord_mm: float = 0.05, feed_mm_min: float = 6000.0) -> str:
+    """The butterfly as chords of ``chord_mm`` at one feed (what a CAM system writes when the
+    controller plans the motion)."""
+    theta = np.linspace(0.0, BUTTERFLY_PARAMETER_END, 400001)
+    cx, cy = butterfly_curve(theta)
+    curve = size_mm * np.column_stack([cx, cy])
+    arc = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(curve, axis=0).T))])
+    stations = np.linspace(0.0, arc[-1], int(np.ceil(arc[-1] / chord_mm)) + 1)
+    chords = np.column_stack([np.interp(stations, arc, curve[:, 0]), np.interp(stations, arc, curve[:, 1])])
+    return _program(chords, np.full(len(chords) - 1, feed_mm_min), f"butterfly, {chord_mm:g} mm chords at F{feed_mm_min:g}")

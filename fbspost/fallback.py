@@ -4,9 +4,8 @@ no harm.
 Takes an axis' compensator (``optimizer.AxisCompensator``) and the program's planned and
 compensated command of that axis, every sample in order, fed in pieces; gives the command to
 write: the compensated command, blended toward the planned original wherever compensating would
-raise the modelled tracking error (its sum of squares, or its largest value above the original's
-largest so far) or break the axis' command limits; the stretches where it did; and the modelled
-error of the planned and of the written command.
+do real harm; the stretches where it did; and the modelled error of the planned and of the
+written command.
 
 The written command is u = p + w (c - p): p planned, c compensated, w in [0, 1] a level, changed
 only by blends (a quintic smoothstep: u stays continuous in acceleration) over ``ramp`` samples,
@@ -15,22 +14,33 @@ knot spans (the optimizer's committed window, about 0.1 s) counted from the prog
 sample: they do not depend on how the samples arrive. The dynamics are linear: the modelled error
 of u is the planned's minus the response to u - p, whose state x is carried as written, whatever
 the optimizer assumed about its own command; the axis is modelled continuously through the rests
-(from rest again where the plan jumps, as after G28).
+(from rest again where the plan jumps, as after a move from an unknown position).
 
 At every moment a *safe plan* is known: w for some units, then blended down to 0 (the planned
-original). Where it starts down, candidates "level a for h more units, then blended down" (h
-from the longest, ``_LONGEST`` units or four blends, halving) are tried against it over a
-horizon that lasts until the slowest mode has decayed by ``_DECAY`` after them: the highest
-a <= 1 whose errors have no larger sum of squares than the safe plan's and none larger than the
-original's largest so far (or the safe plan's), and whose command is within the limits, makes
-the new safe plan; with none, the safe plan goes on: that stretch falls back. Both over the
-samples the report counts (motion and the settling after it) and over all of them. As the first
-safe plan is the original itself, the written error is never worse than the original's, but for
-what the horizon leaves out.
+original). A decision tries candidates "level a for h units, then blended down" (h from the
+longest, ``_LONGEST`` units or four blends, halving) and writes the h units of the one with the
+highest a <= 1 that does no harm:
+
+- its sum of squared errors, over a horizon that lasts until the slowest mode has decayed by
+  ``_DECAY`` after it, is not above the safe plan's (so no stretch and its settling is worse in
+  sum of squares than the original, the first safe plan);
+- no error where it writes is above the original's largest over the ``_RECENT_S`` before the
+  decision and the horizon after it;
+- its command where it writes is within the axis limits wherever the planned original is.
+
+Both over the samples the report counts (motion and the settling after it) and over all of them.
+The blend down after a decision is judged for its sum of squares only: it is written only where
+no later decision is found, and judging its largest error too would make the guard blend down
+early before a sharp corner, doing there the harm it feared. With no candidate, the safe plan's
+next unit is written: that stretch falls back, and is reported whole. So: the written sum of
+squares is never above the original's but for what the horizon leaves out, and every sample
+outside the reported stretches has an error at most the original's largest within ``_RECENT_S``
+plus the longest decision before it and the horizon after it.
 """
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -38,6 +48,7 @@ import numpy as np
 from .optimizer import _LIMIT_TOLERANCE, AxisCompensator
 
 _LONGEST = 16  # units of the longest candidate, at least (and four ramps)
+_RECENT_S = 2.0  # the original's largest error over this much before a decision bounds its errors (and all ahead)
 _DECAY = 1e-9  # the horizon: until the slowest mode has decayed by this much
 _MOVED_MM = 1e-4  # samples where the fallback moves the command less than this are not reported
 _NAMED = 5  # stretches kept for their warnings, per axis (the others only counted)
@@ -77,8 +88,9 @@ class AxisGuard:
     ``stretches`` holds the first stretches that fell back, ``more`` how many others and their
     samples."""
 
-    def __init__(self, compensator: AxisCompensator, before, after):
+    def __init__(self, compensator: AxisCompensator, before, after, enabled: bool = True):
         dynamics, settings = compensator.dynamics, compensator.settings
+        self.enabled = enabled  # False: the compensated command everywhere (its errors still modelled)
         self.dynamics, self.before, self.after = dynamics, before, after
         self.period_s = dynamics.sample_period_s
         self.unit = settings.commit_spans * settings.knot_spacing_samples
@@ -113,11 +125,14 @@ class AxisGuard:
         self.level = 0.0  # w at n - 1
         self.written_before = self.planned_before = self.command_before = None  # the last ``history`` samples before n
         self.emitted = 0  # samples given out
-        self.peak_planned_mm = [0.0, 0.0]  # largest planned error before n: counted, all
+        # the planned error's largest in each unit written in the last _RECENT_S: (end, counted, all)
+        self.recent = deque()
+        self.recent_samples = math.ceil(_RECENT_S / self.period_s)
         self.stretches: list[Stretch] = []
         self.more = [0, 0]  # stretches not kept, their samples
         self.open: Stretch | None = None
         self.reasons: set[str] = set()  # why the checks since the last fully compensated unit fell back
+        self.vetted = True  # the samples being written are a decision's, checked for harm
 
     def push(self, planned_mm, compensated_mm, moving: bool, follows: bool) -> np.ndarray:
         planned_mm = np.asarray(planned_mm, dtype=float)
@@ -196,17 +211,17 @@ class AxisGuard:
         as many units as it does none; or the safe plan as it was. The samples it decides."""
         horizon, unit, ramp = self.horizon, self.unit, self.ramp
         difference = self.command[:self.reach] - self.planned[:self.reach]
-        if not difference.any():  # w changes nothing here: then compensate at once
+        self.vetted = True
+        if not self.enabled or not difference.any():  # w changes nothing here: then compensate at once
             self.weights = np.ones(self.lengths[0] * unit)
             return len(self.weights)
         counted = self.counted[:horizon]
-        windows, peaks = (counted, slice(0, horizon)), self.peak_planned_mm
-        if counted.all():  # one window: the counted samples' peak so far is the stricter
+        windows, peaks = (counted, np.ones(horizon, bool)), self._recent_peaks()
+        if counted.all():  # one window: the counted samples' recent peak is the stricter
             windows, peaks = windows[1:], peaks[:1]
         planned_error = self.error[:horizon] - self._moved(self.x, np.empty(0), horizon)  # the original from n on
         safe_error = planned_error - self._moved(None, self.weights * difference[:len(self.weights)], horizon)
-        allowed = [max(peak, np.abs(self.error[:horizon][w]).max(initial=0.0), np.abs(safe_error[w]).max(initial=0.0))
-                   for w, peak in zip(windows, peaks)]
+        allowed = [max(peak, np.abs(self.error[:horizon][w]).max(initial=0.0)) for w, peak in zip(windows, peaks)]
         budget = [safe_error[w] @ safe_error[w] for w in windows]
         # A change of level steps the command unless the compensated command is the planned one
         # just before n (at rest): blend from the level before to the new one.
@@ -220,15 +235,19 @@ class AxisGuard:
                 scaled[:ramp] = self.up
                 if self.level:
                     base = base - self._moved(None, self.level * self.up[::-1] * difference[:ramp], horizon)
+            # its largest error is judged where it writes (the blend down after it is written only if
+            # no later decision extends it; judged there, a blend that would do harm at a sharp
+            # corner ahead makes the guard blend down now, which does the same harm earlier)
+            written = np.arange(horizon) < h * unit
             level, short_of = _highest_level(base, self._moved(None, scaled * difference[:len(scaled)], horizon),
-                                             windows, allowed, budget)
+                                             windows, [w & written for w in windows], allowed, budget)
             if level is not None and best is not None and level <= best[0]:
                 continue
             if level is not None:
                 weights = level * scaled
                 if blend:  # (so that an unchanged level is exactly that)
                     weights[:ramp] = self.level + (level - self.level) * self.up
-                if not self._within_limits(weights * difference[:len(weights)]):
+                if not self._within_limits(weights * difference[:len(weights)], difference, h * unit):
                     level, short_of = None, {LIMITS}
             if level is None:
                 if best is None:
@@ -239,22 +258,37 @@ class AxisGuard:
                 break
         self.reasons |= failed
         if best is None:  # the safe plan down to the planned original, then decide again
+            self.vetted = False
             return max(1, -(-len(self.weights) // unit)) * unit
         self.weights = best[2]
         return best[1] * unit
 
-    def _within_limits(self, change: np.ndarray) -> bool:
+    def _recent_peaks(self) -> list[float]:
+        """The planned error's largest over the last _RECENT_S written (a unit at least): over the
+        counted samples, over all."""
+        return [max((r[i] for r in self.recent), default=0.0) for i in (1, 2)]
+
+    def _within_limits(self, change: np.ndarray, difference: np.ndarray, checked: int) -> bool:
         """Is planned + ``change`` (then planned) within the axis' command limits wherever the
         planned original is? (Where the original itself is beyond one, at a junction's velocity
-        jump, the controller's junction model governs, for the original as for this.)"""
+        jump, the controller's junction model governs, for the original as for this.) Over the
+        first ``checked`` samples, what the decision writes; after them, the blend down, only
+        where the compensated command itself (planned + ``difference``) is beyond a limit: the
+        blend is written only if no later decision extends it, and where the compensation holds
+        an axis at its velocity limit no blend of it can keep within, which alone is no harm."""
         ahead = self.planned[:len(change) + self.history]
         planned = np.concatenate([self.planned_before, ahead])
         written = np.concatenate([self.written_before, ahead])
         written[self.history:self.history + len(change)] += change
+        compensated = np.concatenate([self.command_before, ahead])
+        compensated[self.history:self.history + len(change)] += difference[:len(change)]
         for order, limit in self.limits.items():
             bound = limit * self.period_s**order * (1.0 + _LIMIT_TOLERANCE)
-            ours = np.abs(np.diff(written, order)[self.history - order:])
-            if np.any((ours > bound) & (np.abs(np.diff(planned, order)[self.history - order:]) <= bound)):
+            rows = slice(self.history - order, None)
+            beyond = (np.abs(np.diff(written, order)[rows]) > bound) & (np.abs(np.diff(planned, order)[rows]) <= bound)
+            judged = np.arange(beyond.size) < checked
+            judged[checked:] = np.abs(np.diff(compensated, order)[rows][checked:]) > bound
+            if np.any(beyond & judged):
                 return False
         return True
 
@@ -277,11 +311,13 @@ class AxisGuard:
             if size not in self.powers:
                 self.powers[size] = np.linalg.matrix_power(self.dynamics.A, size)
             self.x = self.powers[size] @ self.x + self._state(change)
-        for i, window in enumerate((counted, slice(None))):
-            self.peak_planned_mm[i] = max(self.peak_planned_mm[i], np.abs(error[window]).max(initial=0.0))
+        self.recent.append((self.n + size, *(np.abs(error[w]).max(initial=0.0) for w in (counted, slice(None)))))
+        while self.recent[0][0] <= self.n + size - self.recent_samples:
+            self.recent.popleft()
         self.level = w[-1]
-        moved = np.abs(command - written)
-        where = np.flatnonzero(moved > _MOVED_MM)
+        # reported: where the compensation is reduced, and every sample of the safe plan's blend
+        # (written because no decision was found harmless: the guarantees are on decisions)
+        where = np.flatnonzero(np.abs(command - written) > _MOVED_MM) if self.vetted else np.arange(size)
         if where.size:
             if self.open is None:
                 self.open = Stretch(self.n + int(where[0]), 0)
@@ -308,30 +344,31 @@ class AxisGuard:
         self.open, self.reasons = None, set()
 
 
-def _highest_level(base: np.ndarray, response: np.ndarray, windows, allowed, budget,
+def _highest_level(base: np.ndarray, response: np.ndarray, windows, peak_windows, allowed, budget,
                    margin: float = 1e-9) -> tuple[float | None, set[str]]:
-    """The highest level a in (0, 1] such that the error base - a response stays, in every
-    window, within ``allowed`` and its sum of squares within ``budget`` (None if there is none),
-    and what a = 1 breaks. The bounds on a are found ``margin`` (relative) inside, so that
-    rounding keeps it within."""
+    """The highest level a in (0, 1] such that the error base - a response stays within
+    ``allowed`` in every one of ``peak_windows`` and its sum of squares within ``budget`` in every
+    one of ``windows`` (boolean masks; None if there is none), and what a = 1 breaks. The bounds
+    on a are found ``margin`` (relative) inside, so that rounding keeps it within."""
     def breaks(error):
         return ({WORSE for w, b in zip(windows, budget)
-                 if error[w] @ error[w] > b * (1.0 + _TIE) + _TIE_MM**2 * error[w].size}
-                | {LARGEST for w, peak in zip(windows, allowed)
+                 if error[w] @ error[w] > b * (1.0 + _TIE) + _TIE_MM**2 * np.count_nonzero(w)}
+                | {LARGEST for w, peak in zip(peak_windows, allowed)
                    if np.abs(error[w]).max(initial=0.0) > peak * (1.0 + _TIE) + _TIE_MM})
 
     failed = breaks(base - response)
     if not failed:
         return 1.0, failed
     low, high = 0.0, 1.0
-    for w, peak, b in zip(windows, allowed, budget):
-        e, r = base[w], response[w]
+    for w, peak, b, pw in zip(windows, allowed, budget, peak_windows):
+        e, r = base[pw], response[pw]
         peak *= 1.0 - margin
         flat = r == 0.0  # |e - a r| <= peak, sample by sample
         if np.any(np.abs(e[flat]) > peak):
             return None, failed
         ends = np.array([(e[~flat] - peak) / r[~flat], (e[~flat] + peak) / r[~flat]])
         low, high = max(low, ends.min(axis=0).max(initial=-np.inf)), min(high, ends.max(axis=0).min(initial=np.inf))
+        e, r = base[w], response[w]
         a, half_b, c = r @ r, e @ r, e @ e - b * (1.0 - margin)  # a^2 (r r) - 2 a (e r) + e e - b <= 0
         if a == 0.0:
             if c > 0.0:

@@ -16,8 +16,9 @@ the first 2000 and last 300 lines. How lines are read:
   command of a line (later G/M/T letters are its parameters: ``M104 S200 T0`` selects no tool);
   LinuxCNC executes all of them, modal settings first, then G92/G28/..., then the motion.
 - Positions are machine coordinates: program = machine - ``Modal.offsets_mm`` (G92 moves the
-  offsets, not the machine). XYZ are unknown (NaN) at the start and after homing, probing,
-  macros and unknown commands; E starts known at 0 and is lost only where an unknown command
+  offsets, not the machine). XYZ are unknown (NaN) at the start and after probing, macros and
+  unknown commands; a G28 leaves the axes it homes at the machine's home position (``home_mm``;
+  in LinuxCNC, whose G28 goes to a position stored outside the file, they are unknown); E starts known at 0 and is lost only where an unknown command
   may have changed it while E is absolute. A G92 on an unknown axis makes it known; selecting
   another work coordinate system (G54..G59.3, offsets not in the file) makes XYZ unknown. A move
   is a MOVE when the start of every axis it moves (its axis words, and both axes of an arc's
@@ -162,8 +163,9 @@ _KLIPPER_PASS = {"SET_FAN_SPEED", "SET_PRESSURE_ADVANCE", "SET_HEATER_TEMPERATUR
 _OTHER_AXES = "ABCUVW"
 
 
-def read_gcode(path: str | Path, flavor: str) -> Iterator[Block]:
+def read_gcode(path: str | Path, flavor: str, home_mm=(0.0, 0.0, 0.0)) -> Iterator[Block]:
     """Blocks of the G-code file ``path`` read as ``flavor`` (one of FLAVORS), one per line, in order.
+    ``home_mm``: the X Y Z machine position a G28 leaves the axes it homes at (printers).
 
     Streams: the file is read line by line as the iterator is consumed. Raises ``InputError``
     (``FILE:LINE: message``) at the first line it cannot interpret safely, ``ValueError`` at once
@@ -171,15 +173,15 @@ def read_gcode(path: str | Path, flavor: str) -> Iterator[Block]:
     """
     if flavor not in FLAVORS:
         raise ValueError(f"unknown G-code flavor {flavor!r}: expected one of {', '.join(FLAVORS)}")
-    return _blocks(path, flavor)
+    return _blocks(path, flavor, home_mm)
 
 
-def _blocks(path: str | Path, flavor: str) -> Iterator[Block]:
+def _blocks(path: str | Path, flavor: str, home_mm) -> Iterator[Block]:
     try:
         handle = open(path, "rb")
     except OSError as exc:
         raise InputError(path, 0, f"cannot read: {exc}") from None
-    reader = _Reader(path, flavor)
+    reader = _Reader(path, flavor, home_mm)
     line = reader.line
     with handle:
         for line_no, raw in enumerate(handle, 1):
@@ -189,8 +191,9 @@ def _blocks(path: str | Path, flavor: str) -> Iterator[Block]:
 class _Reader:
     """The interpreter's state between lines and the interpretation of one line."""
 
-    def __init__(self, path: str | Path, flavor: str):
+    def __init__(self, path: str | Path, flavor: str, home_mm=(0.0, 0.0, 0.0)):
         self.path = path
+        self.home_mm = [float(v) for v in home_mm]
         self.flavor = flavor
         self.cnc = flavor == "linuxcnc"
         self.pos = [_NAN, _NAN, _NAN, 0.0]  # machine position: XYZ unknown, E at 0
@@ -523,8 +526,12 @@ class _Reader:
                     modal_changed = True
             elif g == 28.0:
                 axis_words_used = True
-                named = [i for i, a in enumerate("XYZ") if a in params]
-                self.forget(named or (0, 1, 2))
+                named = [i for i, a in enumerate("XYZ") if a in params] or (0, 1, 2)
+                if self.cnc:  # LinuxCNC: to the position stored in #5161.., not in the file
+                    self.forget(named)
+                else:  # homing: the homed axes are at the machine's home position
+                    for i in named:
+                        self.pos[i] = self.home_mm[i]
                 kind = Kind.STOP
             elif g == 29.0 or g == 30.0 or 38.0 <= g < 39.0:
                 axis_words_used = True

@@ -35,6 +35,11 @@ the output runs the line at rest, and the next run starts on the first sample at
 rest's end, the sample after the last at the earliest (less than 2 sample periods of extra
 rest, only at STOPs).
 
+Margins (``RunMargins``): every run of motion is given ``lead_s`` before its first motion and
+``settle_s`` after its last, where the original rests and the compensated command may prepare the
+start and cancel the ringing after the stop; the lines at rest after a run wait for its settle
+margin as for a dwell. ``added_s`` is their total time.
+
 Axes whose position is unknown (NaN in the blocks) are held at their last known value; before
 they are first known, at that first value if they are known within the first PROLOGUE_ROWS
 waypoints, else at 0 until they are; axes never known, at 0. ``Plan.notes`` says so.
@@ -181,6 +186,29 @@ class Plan:
                                for k in range(0, self.n_samples, SAMPLE_CHUNK)] or [np.zeros((0, _NA))])
 
 
+@dataclass(frozen=True)
+class RunMargins:
+    """Time given to every run of motion before its first motion (lead) and after its last
+    (settle), where the compensated command may move and the original rests: the optimal command
+    prepares a start (right-half-plane zeros, lightly damped modes) and cancels the ringing after
+    a stop. Rounded to whole samples."""
+
+    lead_s: float = 0.0
+    settle_s: float = 0.0
+
+    @classmethod
+    def for_profile(cls, profile: MachineProfile, lead_s: float | None = None,
+                    settle_s: float | None = None) -> RunMargins:
+        """The given times; each one not given: what the shortest input shaper (ZV) for the
+        profile's lowest mode shifts the motion by, half its damped period (no margin without modes)."""
+        modes = [m for axis in profile.axes.values() for m in axis.modes]
+        default = 0.0
+        if modes:
+            lowest = min(modes, key=lambda m: m.frequency_hz)
+            default = 0.5 / (lowest.frequency_hz * math.sqrt(1.0 - lowest.damping**2))
+        return cls(default if lead_s is None else lead_s, default if settle_s is None else settle_s)
+
+
 # ---- limits in force, block by block ---------------------------------------------------------
 
 class _LimitState:
@@ -323,9 +351,10 @@ def fill_unknown(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return filled, never
 
 
-def plan_blocks(blocks: Iterable[Block], profile: MachineProfile, batch_blocks: int | None = None) -> Plan:
+def plan_blocks(blocks: Iterable[Block], profile: MachineProfile, batch_blocks: int | None = None,
+                margins: RunMargins | None = None) -> Plan:
     """The whole plan of ``blocks`` on ``profile`` (see the module docstring), held in memory."""
-    stream = PlanStream(blocks, profile, batch_blocks, keep=True)
+    stream = PlanStream(blocks, profile, batch_blocks, keep=True, margins=margins)
     while stream.advance():
         pass
     return stream.whole()
@@ -344,8 +373,12 @@ class PlanStream:
     ``warnings``. ``keep`` holds everything for ``whole`` (``plan_blocks``)."""
 
     def __init__(self, blocks: Iterable[Block], profile: MachineProfile, batch_blocks: int | None = None,
-                 keep: bool = False):
+                 keep: bool = False, margins: RunMargins | None = None):
         self.sample_rate_hz = self._fs = float(profile.sample_rate_hz)
+        margins = margins or RunMargins()
+        self._lead = round(margins.lead_s * self._fs)  # samples
+        self._settle_s = round(margins.settle_s * self._fs) / self._fs
+        self.added_s = 0.0  # the margins' time, over the runs settled
         self._blocks_in = iter(blocks)
         self._batch = batch_blocks or BATCH_BLOCKS
         self._keep = keep
@@ -370,7 +403,8 @@ class PlanStream:
         self._pending_blocks: deque = deque()  # (block, is_move, is_stop, dwell before it in total)
         self._first_pending_block = 0
         self._rows: list = []  # per block with waypoints: (block index, line, is motion, feed, state row, points)
-        self._cum_dwell = 0.0  # dwells of every block read
+        self._cum_dwell = 0.0  # dwells of every block read (and the settle margins)
+        self._moved = False  # a MOVE since the last STOP: a run to close, whose settle margin comes first
         self._last_row: np.ndarray | None = None  # the last waypoint, filled (None: the prologue)
         self._ever_known = np.zeros(_NA, dtype=bool)
         self._zeroed = np.zeros(_NA, dtype=bool)  # axes unknown through the prologue, planned at 0 until known
@@ -468,20 +502,30 @@ class PlanStream:
                     if not feed > 0:
                         raise ValueError(f"line {block.line_no}: feed must be > 0, got {block.feed_mm_s!r}")
                     rows.append((j, block.line_no, True, feed, state_row, points))
+                self._moved = True
                 pending.append((block, True, False, cum_dwell))
             elif kind is stop:
                 dwell = block.dwell_s
                 if not (dwell >= 0 and math.isfinite(dwell)):
                     raise ValueError(f"line {block.line_no}: dwell must be >= 0, got {dwell!r}")
                 rows.append((j, block.line_no, False, math.nan, state_row, np.reshape(block.position_mm, (1, _NA))))
+                cum_dwell = self._margin_after_run(cum_dwell)
                 pending.append((block, False, True, cum_dwell))
                 cum_dwell += dwell  # (a running sum: np.cumsum's bits)
             else:
                 pending.append((block, False, False, cum_dwell))
             j += 1
-        self._cum_dwell = cum_dwell
         self.n_blocks = j
         self._eof = j - j0 < self._batch
+        self._cum_dwell = self._margin_after_run(cum_dwell) if self._eof else cum_dwell
+
+    def _margin_after_run(self, cum_dwell: float) -> float:
+        """The running dwell sum with the settle margin of the run that a STOP (or the end) closes:
+        the lines at rest after it wait for it, as for a dwell."""
+        if self._moved:
+            self._moved = False
+            return cum_dwell + self._settle_s
+        return cum_dwell
 
     def _prologue_over(self) -> bool:
         """Every axis known, enough waypoints searched, or the end: the start can be filled."""
@@ -764,7 +808,7 @@ class PlanStream:
         rest_from_s = self._last_sample / fs if self.runs else 0.0
         clock = rest_from_s + (self._dwell_before(block) - self._dwell_after_run)
         first = max(math.ceil(clock * fs - 1e-6), self._last_sample + 1)  # (an ulp over is not a sample later)
-        clock = first / fs
+        clock = (first + self._lead) / fs  # the lead margin: the run starts before its motion
         self._next_segment(start, 8 * piece - 2, segments)
         self.runs.append([first, None])
         self._open, self._run_key = True, key
@@ -774,9 +818,12 @@ class PlanStream:
         own = segments is None
         segments = [] if own else segments
         end_s = self._run_clock + (self._cum_dur - self._run_base)
-        last = math.ceil(end_s * self._fs)
+        # the settle margin, as the lines at rest after the run are timed (the same sum: the same bits)
+        dwell_after = self._last_dwell_after + self._settle_s  # (the running sum at the STOP after it)
+        last = math.ceil((end_s + (dwell_after - self._last_dwell_after)) * self._fs)
+        self.added_s += (self._lead + last - math.ceil(end_s * self._fs)) / self._fs
         self.runs[-1][1] = last
-        self._last_sample, self._dwell_after_run = last, self._last_dwell_after
+        self._last_sample, self._dwell_after_run = last, dwell_after
         self._open = False
         t = np.array([end_s])
         segments.append((np.array([8 * self._last_piece + 3]), _Segments(t, t, self._last_end[None], np.zeros((1, _NA)),

@@ -58,9 +58,11 @@ class MachineProfile:
     planner_acceleration_mm_s2: float
     planner_square_corner_velocity_mm_s: float
     axes: dict[str, AxisProfile]
+    home_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)  # X Y Z where G28 leaves the homed axes
 
 
-_TOP_KEYS = {"name", "description", "motion", "planner", "axes"}
+_TOP_KEYS = {"name", "description", "motion", "planner", "axes", "home"}
+_HOME_KEYS = {"X", "Y", "Z"}
 _MOTION_KEYS = {"sample_rate"}
 _PLANNER_KEYS = {"acceleration", "square_corner_velocity"}
 _AXIS_KEYS = {"max_velocity", "max_acceleration", "max_jerk", "modes"}
@@ -141,6 +143,9 @@ def parse_profile(data: dict, source: str) -> MachineProfile:
     if scv < 0:
         raise fail("planner.square_corner_velocity", f"must be >= 0, got {scv!r}")
 
+    home = table(data, "home", "home", _HOME_KEYS) if "home" in data else {}
+    home_mm = tuple(number(home, a, f"home.{a}", optional=True) or 0.0 for a in "XYZ")
+
     axes_table = table(data, "axes", "axes", set(AXIS_NAMES))
     if not axes_table:
         raise fail("axes", "no axis defined")
@@ -179,7 +184,7 @@ def parse_profile(data: dict, source: str) -> MachineProfile:
             modes = [Mode(m.frequency_hz, m.damping, m.alpha / dc_gain, m.beta / dc_gain) for m in modes]
         axes[axis_name] = AxisProfile(axis_name, max_velocity, max_acceleration, max_jerk, tuple(modes))
 
-    return MachineProfile(name.strip(), description, source, sample_rate, acceleration, scv, axes)
+    return MachineProfile(name.strip(), description, source, sample_rate, acceleration, scv, axes, home_mm)
 
 
 def format_profile(profile: MachineProfile) -> str:
@@ -199,6 +204,8 @@ def format_profile(profile: MachineProfile) -> str:
              "[motion]", f"sample_rate = {number(profile.sample_rate_hz)}", "",
              "[planner]", f"acceleration = {number(profile.planner_acceleration_mm_s2)}",
              f"square_corner_velocity = {number(profile.planner_square_corner_velocity_mm_s)}"]
+    if any(profile.home_mm):
+        lines += ["", "[home]", *(f"{a} = {number(v)}" for a, v in zip("XYZ", profile.home_mm))]
     for name, axis in profile.axes.items():
         lines += ["", f"[axes.{name}]", f"max_velocity = {number(axis.max_velocity_mm_s)}",
                   f"max_acceleration = {number(axis.max_acceleration_mm_s2)}"]

@@ -34,7 +34,7 @@ from scipy.spatial import cKDTree
 from .dynamics import AxisDynamics
 from .gcode import AXES, Block, Kind, detect_flavor, read_gcode
 from .pipeline import compensated_samples
-from .planner import EXTRUDE_ONLY_MM, Plan, fill_unknown, plan_blocks
+from .planner import EXTRUDE_ONLY_MM, Plan, RunMargins, fill_unknown, plan_blocks
 from .profile import AxisProfile, MachineProfile, ProfileError
 from .shapers import SHAPERS, Shaper, klipper_shaper, shape
 from .trajectory import InputError
@@ -148,21 +148,23 @@ def shaper_settings(profile: MachineProfile, frequency_hz: dict[str, float] | No
 
 def simulate_program(program: str | Path, profile: MachineProfile, shapers: tuple[str, ...] = SHAPERS,
                      settings: dict[str, tuple[float, float]] | None = None, compensated: str | Path | None = None,
-                     flavor: str | None = None) -> Simulation:
+                     flavor: str | None = None, margins: RunMargins | None = None) -> Simulation:
     """Every method on ``program`` (see the module docstring); ``settings`` as ``shaper_settings``
-    gives them (its default)."""
+    gives them (its default); ``margins`` as ``compensate`` gives the runs (its default), so that
+    a compensated program's time matches the plan's."""
     modelled = _modelled(profile)
     if not modelled:
         raise ProfileError(f"{profile.source}: no axis has modes: nothing to simulate")
     flavor = flavor or detect_flavor(program)
-    blocks = list(read_gcode(program, flavor))
-    plan = plan_blocks(blocks, profile)
+    blocks = list(read_gcode(program, flavor, profile.home_mm))
+    margins = margins or RunMargins.for_profile(profile)
+    plan = plan_blocks(blocks, profile, margins=margins)
     if not plan.runs:
         raise InputError(program, None, "no motion to simulate")
     settings = settings or shaper_settings(profile)
     shaper_rows = {name: {a: klipper_shaper(name, *settings[a]) for a in modelled} for name in shapers}
     period_s = 1.0 / profile.sample_rate_hz
-    executed = execute_program(list(read_gcode(compensated, flavor))) if compensated else None
+    executed = execute_program(list(read_gcode(compensated, flavor, profile.home_mm))) if compensated else None
 
     # The grid: rest before the earliest shaped start, after the latest end, then the settling.
     leads = [s.lead_s for row in shaper_rows.values() for s in row.values()]

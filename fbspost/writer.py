@@ -653,6 +653,7 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
 
     header_done = False
     previous_modal = Modal()
+    last_line = None
     for block, line_time_s, is_stop in plan.blocks():
         if emitter is None:
             newline = b"\r\n" if block.raw.endswith(b"\r\n") else b"\n"  # (only the last line has no ending)
@@ -667,6 +668,9 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
             # the next copied line runs at or after the sample nearest the end of this motion
             motion_until(line_time_s - 1.0 / fs, soft=True)
             continue
+        if not is_stop and not block.raw.endswith((b"\n", b"\r")):
+            last_line = block  # the file's last line has no ending: after the motion (of a settle margin)
+            break
         copied_sample = _copied_sample(line_time_s, is_stop, fs, copied_sample)
         t = copied_sample / fs
         motion_until(t, block.position_mm)
@@ -690,6 +694,10 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
     samples.ensure(samples.n_samples)
     motion_until(np.inf, samples.planned[-1])
     emit(*mode_lines(options.flavor, emitter.modal, previous_modal))
+    if last_line is not None:
+        out.write(last_line.raw)
+        stats.lines_out += 1
+        stats.passthrough_lines += 1
     if raise_at:  # now that the whole command is known: what it needs, at least the planner's, at most the profile's
         floor, ceiling = accelerations.highest if accelerations else 0.0, options.raise_acceleration_mm_s2
         needed = float(np.ceil(min(max(samples.peak_bend_mm * fs * fs, floor), ceiling)))

@@ -13,7 +13,7 @@ from fbspost.cli import main
 from fbspost.fallback import FALLBACK
 from fbspost.gcode import read_gcode
 from fbspost.pipeline import CompensateOptions, compensate_file
-from fbspost.planner import CLAMPED, plan_blocks
+from fbspost.planner import CLAMPED, RunMargins, plan_blocks
 from fbspost.profile import load_profile
 from reference import contour_error, execute, is_motion_line, positions_at, rms, sample_blocks, simulate_lsim
 
@@ -47,7 +47,7 @@ def test_butterfly_programs_on_patent_stage(butterfly_runs, name, duration_toler
     original = execute(source)
     path = np.array(original.ends)[:, 1:3]
     # The original as the controller plans it (the profile's planner), through the model.
-    plan = plan_blocks(list(read_gcode(source, "linuxcnc")), PATENT)
+    plan = plan_blocks(list(read_gcode(source, "linuxcnc")), PATENT, margins=RunMargins.for_profile(PATENT))
     planned = plan.positions_mm[:, :2]
     before = contour_error(path, modelled_xy(PATENT, planned, period_s))
     # The compensated program, run block by block at its feed, through the model.
@@ -101,7 +101,7 @@ def test_butterfly_g5_follows_the_command_in_fewer_blocks(butterfly_g5_runs, nam
     _, g5_samples = sample_blocks(g5.path, PATENT.sample_rate_hz)
     assert len(g5_samples) == len(dense_samples)
     assert np.hypot(*(g5_samples[:, :2] - dense_samples[:, :2]).T).max() <= 2.2e-3
-    plan = plan_blocks(list(read_gcode(source, "linuxcnc")), PATENT)
+    plan = plan_blocks(list(read_gcode(source, "linuxcnc")), PATENT, margins=RunMargins.for_profile(PATENT))
     assert abs(g5.ends[-1][0] - plan.duration_s) <= duration_tolerance * plan.duration_s
     assert abs(g5.ends[-1][0] - dense.ends[-1][0]) <= 1e-5
     assert [line for line in g5.nonmotion if line in original.nonmotion] == original.nonmotion

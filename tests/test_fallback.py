@@ -57,7 +57,8 @@ def test_a_harmful_stretch_falls_back_and_only_there(move):
     """A bump of 0.2 mm in the compensated command 1.2 s after the move (as an optimizer gone
     wrong there would give): compensating as given is worse than the original there, and its
     largest error too. Written: the compensated command through the move, the planned original
-    over the bump, and never worse than the original; one stretch, the bump's samples, why."""
+    over the bump, and never worse than the original; one stretch: the bump's samples and the
+    blend down to the original before them, at most a blend and a decision long; why."""
     planned, command = move
     bump = np.zeros_like(planned)
     bump[1500:1530] = 0.2 * np.sin(np.linspace(0, np.pi, 30)) ** 2
@@ -71,7 +72,8 @@ def test_a_harmful_stretch_falls_back_and_only_there(move):
     np.testing.assert_allclose(written[1500:1530], planned[1500:1530], rtol=0, atol=1e-9)
     [stretch] = guard.stretches
     moved = np.flatnonzero(bump > 1e-4)  # where it moves the command by 0.1 um or more
-    assert (stretch.start, stretch.stop) == (moved[0], moved[-1] + 1)
+    span = guard.ramp + guard.unit
+    assert moved[0] - span <= stretch.start <= moved[0] and moved[-1] + 1 <= stretch.stop <= moved[-1] + 1 + span
     assert WORSE in stretch.reasons and LARGEST in stretch.reasons
 
 
@@ -116,7 +118,9 @@ def test_largest_error_raised_by_the_compensation_falls_back_with_a_warning(tmp_
     compensated = modelled_error(planned, compensator()(planned).command_mm)
     before = modelled_error(planned, planned)
     assert np.abs(compensated).max() > np.abs(before).max() * 1.2
-    report = compensate_file(source, tmp_path / "out.gcode", PRINTER, CompensateOptions(flavor="marlin"))
+    # (without lead and settle margins: with them the compensation no longer does this harm)
+    options = CompensateOptions(flavor="marlin", lead_time_s=0.0, settle_time_s=0.0)
+    report = compensate_file(source, tmp_path / "out.gcode", PRINTER, options)
     [warning] = [w for w in report.warnings if w.startswith(FALLBACK)]
     found = re.fullmatch(rf"{FALLBACK}: axis X, ([\d.]+)-([\d.]+) s, line 2 \((.*)\)", warning)
     assert found and found[3] == LARGEST, warning

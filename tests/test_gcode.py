@@ -292,7 +292,8 @@ def test_raw_bytes_are_exact(tmp_path):
     assert [b.raw for b in blocks] == lines
     assert b"".join(b.raw for b in blocks) == data
     assert [b.line_no for b in blocks] == list(range(1, 8))
-    assert [b.kind for b in blocks] == [Kind.STOP, Kind.STOP, Kind.PASS, Kind.MOVE, Kind.PASS, Kind.PASS, Kind.MOVE]
+    # (G28 homes to 0: the move to the origin moves nothing)
+    assert [b.kind for b in blocks] == [Kind.STOP, Kind.PASS, Kind.PASS, Kind.MOVE, Kind.PASS, Kind.PASS, Kind.MOVE]
     close(blocks[3].position_mm, (1, 0, 0, 0))
     close(blocks[6].position_mm, (2, 0, 0, 0))
 
@@ -519,8 +520,9 @@ PASS_LINES = [
     "M203 X100", "M205 X10", "G92 E0", "SET_VELOCITY_LIMIT ACCEL=500",
 ]
 STOP_KEEP_LINES = ["G4 P10", "M400", "M0", "M1", "M109 S200", "M190 S60", "M191 S40", "M116", "T1", "M600", "G10", "G11"]
+STOP_HOME_LINES = [("G28 X", "X"), ("G28 Y0 Z0", "YZ"), ("G28", "XYZ"), ("G28 W", "XYZ")]  # (line, axes homed)
 STOP_UNKNOWN_LINES = [  # (line, axes unknown afterwards)
-    ("G28 X", "X"), ("G28 Y0 Z0", "YZ"), ("G28", "XYZ"), ("G28 W", "XYZ"), ("G29", "XYZ"), ("G30", "XYZ"),
+    ("G29", "XYZ"), ("G30", "XYZ"),
     ("G38.2 Z-10", "XYZ"), ('M98 P"x.g"', "XYZ"), ("BED_MESH_CALIBRATE", "XYZ"), ("PRINT_START BED=60", "XYZ"),
     ("G12345", "XYZ"), ("M9999", "XYZ"), ("G80", "XYZ"), ("M32 file.gco", "XYZ"),
 ]
@@ -552,6 +554,18 @@ def test_stop_lines_lose_the_position(tmp_path, line, unknown):
     assert after.kind is Kind.STOP and after.points_mm is None  # passes through: the controller plans it
     close(after.position_mm, (4, 5, 6, 2))  # absolute words: known again
     assert last.kind is Kind.MOVE
+
+
+@pytest.mark.parametrize("line, homed", STOP_HOME_LINES)
+def test_homing_puts_the_axes_at_home(tmp_path, line, homed):
+    """G28 leaves the axes it homes at the home position (0 here), the others where they were; the
+    next move is planned from there."""
+    blocks = read(tmp_path, HOME + "M83\nG1 X1 Y2 Z3 E1\n" + line + "\nG1 X4 Y5 Z6 E1\n")
+    stop, after = blocks[-2:]
+    assert stop.kind is Kind.STOP
+    close(stop.position_mm, [0.0 if a in homed else v for a, v in zip("XYZ", (1, 2, 3))] + [1])
+    assert after.kind is Kind.MOVE
+    close(after.points_mm, [(4, 5, 6, 2)])
 
 
 def test_unknown_start(tmp_path):

@@ -413,6 +413,43 @@ def test_dwell_rests_exactly_and_splits_runs():
     assert np.all(rest == [10, 0, 0, 0])
 
 
+def test_margins_lead_and_settle_every_run():
+    """Lead and settle margins (whole samples): each run starts lead_s before its motion and ends
+    settle_s after it; the line at rest after a run (its dwell, the next run) waits for the settle
+    margin; the program lasts both margins longer per run; ``added_s`` counts them. The same
+    program as test_dwell_rests_exactly_and_splits_runs, with its closed-form times."""
+    prog = Program()
+    first = prog.move((10, 0, 0, 0), feed=50.0)
+    pause = prog.stop(dwell=0.5)
+    second = prog.move((0, 0, 0, 0), feed=50.0)
+    fs, lead, settle = BED.sample_rate_hz, 7, 12
+    plan = plan_blocks(prog.blocks, BED, margins=planner.RunMargins(lead / fs, settle / fs))
+    t1 = rest_to_rest(10, 50, 3000)
+    assert plan.move_start_s[first] == pytest.approx(lead / fs, rel=1e-12)
+    end1 = lead / fs + t1
+    last = math.ceil(end1 * fs) + settle
+    assert plan.line_time_s[pause] == pytest.approx(end1 + settle / fs, rel=1e-12)
+    assert plan.runs[0] == (0, last)
+    second_first = last + 500
+    assert plan.move_start_s[second] == pytest.approx((second_first + lead) / fs, rel=1e-12)
+    assert plan.runs[1] == (second_first, math.ceil((second_first + lead) / fs * fs + t1 * fs) + settle)
+    assert plan.duration_s == pytest.approx((second_first + lead) / fs + t1 + settle / fs, rel=1e-12)
+    positions = plan.positions_mm
+    assert np.all(positions[:lead + 1] == 0.0) and positions[lead + 2, 0] > 0.0  # at rest through the lead
+    assert np.all(positions[math.ceil(end1 * fs):last + 500] == [10, 0, 0, 0])  # the settle margin and the dwell
+    stream = planner.PlanStream(prog.blocks, BED, margins=planner.RunMargins(lead / fs, settle / fs))
+    while stream.advance():
+        pass
+    assert stream.added_s == pytest.approx(2 * (lead + settle) / fs, rel=1e-12)
+
+
+def test_default_margins_are_half_the_lowest_damped_period():
+    lowest = BED.axes["Y"].modes[0]  # 36 Hz: the lowest
+    margins = planner.RunMargins.for_profile(BED)
+    assert margins.lead_s == margins.settle_s == 0.5 / (36.0 * math.sqrt(1 - lowest.damping**2))
+    assert planner.RunMargins.for_profile(BED, 0.0, 0.02) == planner.RunMargins(0.0, 0.02)
+
+
 def test_stop_without_dwell_still_separates_runs():
     prog = Program()
     prog.move((10, 0, 0, 0), feed=50.0)

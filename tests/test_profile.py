@@ -194,6 +194,9 @@ BROKEN = [
     ("unknown-axis-Q", "[axes.Y]", "[axes.Q]", "axes.Q"),
     ("scv-negative", "square_corner_velocity = 5.0", "square_corner_velocity = -1.0",
      "planner.square_corner_velocity"),
+    ("home-unknown-axis", "[motion]", "[home]\nE = 1.0\n\n[motion]", "home.E"),
+    ("home-string", "[motion]", '[home]\nX = "max"\n\n[motion]', "home.X"),
+    ("home-not-a-table", 'name = "test-machine"', 'name = "test-machine"\nhome = 3', "home"),
 ]
 
 
@@ -212,6 +215,16 @@ def test_broken_profile_raises_profile_error(tmp_path, old, new, key):
     with pytest.raises(ProfileError) as info:
         load_profile(path)
     assert_one_line_naming(str(info.value), path, key)
+
+
+def test_home(tmp_path):
+    """[home] gives where G28 leaves the homed axes (0 where not given, and without the table);
+    format_profile writes it back."""
+    from fbspost.profile import format_profile
+    assert load_profile(write(tmp_path, BASE)).home_mm == (0.0, 0.0, 0.0)
+    homed = load_profile(write(tmp_path, edited("[motion]", "[home]\nX = 235.0\nZ = -1\n\n[motion]")))
+    assert homed.home_mm == (235.0, 0.0, -1.0)
+    assert load_profile(write(tmp_path, format_profile(homed))).home_mm == (235.0, 0.0, -1.0)
 
 
 def test_profile_error_is_value_error():

@@ -16,8 +16,9 @@ from click.testing import CliRunner
 from fbspost.cli import main
 from fbspost.dynamics import AxisDynamics
 from fbspost.gcode import detect_flavor, read_gcode
-from fbspost.optimizer import AxisCompensator, AxisLimits, FBSSettings
-from fbspost.planner import plan_blocks
+from fbspost.optimizer import AxisCompensator, AxisLimits
+from fbspost.pipeline import CompensateOptions
+from fbspost.planner import RunMargins, plan_blocks
 from fbspost.profile import load_profile
 from reference import execute, rms, sample_blocks, segments_distance, simulate_lsim
 
@@ -55,7 +56,8 @@ def resimulate(program, profile, report, compensated=None):
     contour samples, the path's segments (XYZ), the modelled axes and the settle time. The FBS
     row: ``compensated`` run block by block at its feeds, or else the optimizer on every run."""
     period_s = 1.0 / profile.sample_rate_hz
-    plan = plan_blocks(list(read_gcode(program, detect_flavor(program))), profile)
+    plan = plan_blocks(list(read_gcode(program, detect_flavor(program), profile.home_mm)), profile,
+                       margins=RunMargins.for_profile(profile))
     modelled = [a for a in "XYZ" if a in profile.axes and profile.axes[a].modes]
     shapers = {m["name"]: m["shaper"] for m in report["methods"] if m["shaper"]}
     lead = max([-s["times_s"][0] for row in shapers.values() for s in row.values()], default=0.0)
@@ -80,7 +82,8 @@ def resimulate(program, profile, report, compensated=None):
     else:
         for axis in modelled:
             column, limits = "XYZE".index(axis), AxisLimits.from_profile(profile.axes[axis])
-            optimizer = AxisCompensator(AxisDynamics(profile.axes[axis].modes, period_s), limits, FBSSettings(), "limited")
+            optimizer = AxisCompensator(AxisDynamics(profile.axes[axis].modes, period_s), limits,
+                                        CompensateOptions().settings, "limited")
             for first, last in plan.runs:
                 fbs[before + first:before + last + 1, column] = optimizer(plan.positions_mm[first:last + 1, column]).command_mm
     commands = {"original": desired, "fbs": fbs}
@@ -159,10 +162,13 @@ def shaper_timing_checks(report, desired, modelled, period_s):
             assert m["path"]["start_advance_s"] == pytest.approx(early, abs=1.01 * period_s), m["name"]
             assert m["path"]["end_delay_s"] == pytest.approx(late, abs=1.01 * period_s), m["name"]
             assert m["path"]["added_duration_s"] == pytest.approx(early + late, abs=2.01 * period_s), m["name"]
-    # FBS ends with the plan and takes no longer (its first micrometres may come a few samples late:
-    # it starts more gently than the plan).
+    # FBS moves only within its lead and settle margins: it starts at most lead_s before the plan's
+    # motion and ends at most settle_s after it.
     fbs = report["methods"][1]["path"]
-    assert abs(fbs["end_delay_s"]) <= period_s and -1e-3 <= fbs["added_duration_s"] <= period_s
+    margins = RunMargins.for_profile(load_profile(report["profile"]))
+    assert -period_s <= fbs["start_advance_s"] <= margins.lead_s + period_s
+    assert -period_s <= fbs["end_delay_s"] <= margins.settle_s + period_s
+    assert fbs["added_duration_s"] <= margins.lead_s + margins.settle_s + 2 * period_s
 
 
 def test_patent_stage_butterfly():
