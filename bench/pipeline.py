@@ -1,13 +1,17 @@
 """Benchmark the whole pipeline on sliced prints of about 1 min, 10 min, 1 h and 6 h and on a 100 MB
 CNC program, then complete vs limited look-ahead on the patent's butterfly.
 
-Run from the repository root:  python bench/pipeline.py [--sizes 1m,10m,cnc] [--cache bench/.programs]
+Run from the repository root:  python bench/pipeline.py [--sizes 1m,10m,cnc,gear1h] [--cache bench/.programs]
 
-The prints are the tube of tests/data/make_sliced.py, scaled and sliced with PrusaSlicer 2.5
-(`prusa-slicer` on PATH) the first time and kept in the cache folder. The CNC program (LinuxCNC)
-is a raster finishing pass over a wavy surface, 0.25 mm segments at 50 mm/s, about 2.8 million
-lines, generated the first time. Each program is compensated for bedslinger-example (1 kHz, X Y
-Z E) in a fresh process, so that its peak memory is its own.
+The prints are the tube of tests/data/make_sliced.py (smooth circles, for bedslinger-example) and
+a spur gear (sharp corners on every layer, for printer-two-mode: X 52 + 96 Hz, Y 34 Hz), scaled
+and sliced with PrusaSlicer 2.5 (`prusa-slicer` on PATH) the first time and kept in the cache
+folder. The CNC program (LinuxCNC) is a raster finishing pass over a wavy surface, 0.25 mm
+segments at 50 mm/s, about 2.8 million lines, generated the first time (bedslinger-example).
+Each program is compensated in a fresh process, so that its peak memory is its own.
+Per program: wall time and times faster than real time, peak memory, samples per second of
+every stage, the share of the optimizer's windows that needed the QP and the fallback's share
+of the wall time.
 """
 from __future__ import annotations
 
@@ -22,7 +26,7 @@ from multiprocessing import get_context
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT / "tests" / "data"))
+sys.path[:0] = [str(ROOT), str(ROOT / "tests" / "data")]  # this checkout's fbspost, not an installed one
 
 import numpy as np  # noqa: E402
 
@@ -31,25 +35,40 @@ from engine import butterfly_table  # noqa: E402
 from fbspost.pipeline import compensate_file  # noqa: E402
 from fbspost.profile import load_profile  # noqa: E402
 
-PROFILE = "bedslinger-example"
-# Size -> scale of the 20 x 4 mm tube; chosen so that PrusaSlicer's estimate is near the size.
-SCALES = {"1m": 0.45, "10m": 1.45, "1h": 3.25, "6h": 7.0}
+# Size -> (model, scale of the 20 x 4 mm model, profile); scales chosen so that PrusaSlicer's
+# estimate is near the size.
+SCALES = {"1m": ("tube", 0.45, "bedslinger-example"), "10m": ("tube", 1.45, "bedslinger-example"),
+          "1h": ("tube", 3.25, "bedslinger-example"), "6h": ("tube", 7.0, "bedslinger-example"),
+          "gear1h": ("gear", 2.9, "printer-two-mode"), "gear6h": ("gear", 6.3, "printer-two-mode")}
 CNC = "cnc"  # the size name of the CNC program
-STAGES = ("read", "plan", "optimize", "write")
+CNC_PROFILE = "bedslinger-example"
+STAGES = ("read", "plan", "optimize", "fallback", "write")
+
+
+def gear(teeth: int = 24, root_mm: float = 8.5, tip_mm: float = 10.0, hole_mm: float = 3.0):
+    """A spur gear 20 mm across and 4 mm tall with straight-flanked teeth and a round hole:
+    four sharp corners per tooth on every perimeter and infill line ends against them."""
+    step = 2 * np.pi / teeth
+    angles = np.arange(teeth)[:, None] * step + np.array([0.0, 0.2, 0.45, 0.65]) * step
+    radii = np.tile([root_mm, tip_mm, tip_mm, root_mm], teeth)
+    t = angles.ravel()
+    outer = np.column_stack([radii * np.cos(t), radii * np.sin(t)])
+    return make_sliced.ring(outer, make_sliced.circle(hole_mm, len(outer)), 0.0, 4.0)
 
 
 def sliced_program(size: str, cache: Path) -> Path:
-    """The tube at this size's scale, sliced once: slicing is not what is measured, and a 6 h
+    """The size's model at its scale, sliced once: slicing is not what is measured, and a 6 h
     print is best sliced only once. Written under a temporary name, so the cache never holds
     half a program."""
-    path = cache / f"tube-{size}.gcode"
+    model, scale, _ = SCALES[size]
+    path = cache / f"{model}-{size.removeprefix(model)}.gcode"
     if not path.exists():
         cache.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryDirectory(dir=cache) as tmp:
-            stl, out = Path(tmp) / "tube.stl", Path(tmp) / path.name
-            make_sliced.write_stl(stl, make_sliced.tube())
+            stl, out = Path(tmp) / f"{model}.stl", Path(tmp) / path.name
+            make_sliced.write_stl(stl, make_sliced.tube() if model == "tube" else gear())
             subprocess.run(["prusa-slicer", "--export-gcode", *make_sliced.COMMON, "--gcode-flavor", "marlin2",
-                            "--scale", f"{SCALES[size]:g}", "-o", str(out), str(stl)], check=True,
+                            "--scale", f"{scale:g}", "-o", str(out), str(stl)], check=True,
                            stdout=subprocess.DEVNULL)
             out.replace(path)
     return path
@@ -78,35 +97,41 @@ def cnc_program(cache: Path, size_mb: float = 100.0) -> Path:
     return path
 
 
-def measure(program: Path) -> tuple[dict, float, float]:
-    """Runs in a fresh process: (report, wall time s, peak resident memory MB of the process)."""
-    profile = load_profile(PROFILE)
+def measure(program: Path, profile_name: str) -> tuple[dict, float, float, float]:
+    """Runs in a fresh process: (report, wall time s, CPU time s of all its threads, peak resident
+    memory MB of the process)."""
+    profile = load_profile(profile_name)
     with tempfile.TemporaryDirectory() as tmp:
-        started = time.perf_counter()
+        started, cpu = time.perf_counter(), time.process_time()
         report = compensate_file(program, Path(tmp) / program.name, profile)
-        wall_s = time.perf_counter() - started
+        wall_s, cpu_s = time.perf_counter() - started, time.process_time() - cpu
     peak_kb = next(int(line.split()[1]) for line in Path("/proc/self/status").read_text().splitlines()
                    if line.startswith("VmHWM:"))
-    return report.as_dict(), wall_s, peak_kb / 1024
+    return report.as_dict(), wall_s, cpu_s, peak_kb / 1024
 
 
 def pipeline_table(sizes: list[str], cache: Path) -> None:
-    sample_rate_hz = load_profile(PROFILE).sample_rate_hz
-    print(f"Whole pipeline on {PROFILE} ({sample_rate_hz:g} Hz): wall time without interpreter start, peak memory of\n"
-          f"the process; samples/s (S/s) per stage, samples = print time x sample rate, once per compensated axis\n"
-          f"for optimize")
-    print(f"{'program':16} {'lines':>8} {'print s':>8} {'wall s':>8} {'x real':>7} {'peak MB':>8} "
-          + " ".join(f"{stage + ' S/s':>12}" for stage in STAGES))
+    print("Whole pipeline: wall time without interpreter start, CPU time (all threads: on two idle cores the\n"
+          "wall time is at least half of it), peak memory of the process; samples/s (S/s)\n"
+          "per stage, samples = print time x sample rate, once per compensated axis for optimize and\n"
+          "fallback; QP %: the optimizer's windows that needed the QP; fallback %: its share of the wall time")
+    print(f"{'program':16} {'profile':19} {'lines':>8} {'print s':>8} {'wall s':>8} {'cpu s':>8} {'x real':>7} {'peak MB':>8} "
+          + " ".join(f"{stage + ' S/s':>12}" for stage in STAGES) + f" {'QP %':>5} {'fallback %':>10}")
     for size in sizes:
         program = cnc_program(cache) if size == CNC else sliced_program(size, cache)
+        profile = CNC_PROFILE if size == CNC else SCALES[size][2]
         with ProcessPoolExecutor(1, mp_context=get_context("spawn")) as pool:
-            report, wall_s, peak_mb = pool.submit(measure, program).result()
-        samples = report["print_time_s"] * sample_rate_hz
-        rates_s = {stage: samples / report["stage_time_s"][stage] for stage in STAGES}
-        rates_s["optimize"] *= len(report["axes"])
+            report, wall_s, cpu_s, peak_mb = pool.submit(measure, program, profile).result()
+        samples = report["print_time_s"] * load_profile(profile).sample_rate_hz
+        rates_s = {stage: samples / max(report["stage_time_s"][stage], 1e-9) for stage in STAGES}
+        for stage in ("optimize", "fallback"):
+            rates_s[stage] *= len(report["axes"])
         rates = " ".join(f"{rates_s[stage]:12.3g}" for stage in STAGES)
-        print(f"{program.name:16} {report['lines_in']:8d} {report['print_time_s']:8.1f} {wall_s:8.2f} "
-              f"{report['print_time_s'] / wall_s:7.1f} {peak_mb:8.0f} {rates}", flush=True)
+        windows = sum(axis["windows"] for axis in report["axes"].values())
+        qp = sum(axis["qp_windows"] for axis in report["axes"].values()) / max(windows, 1)
+        print(f"{program.name:16} {profile:19} {report['lines_in']:8d} {report['print_time_s']:8.1f} {wall_s:8.2f} {cpu_s:8.2f} "
+              f"{report['print_time_s'] / wall_s:7.1f} {peak_mb:8.0f} {rates} {qp:5.0%} "
+              f"{report['stage_time_s']['fallback'] / wall_s:10.0%}", flush=True)
 
 
 def size_list(text: str) -> list[str]:

@@ -19,24 +19,23 @@ from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 import numpy as np
 
 from . import __version__
-from . import excite as excite_module
-from . import identify as ident
 from .atomicfile import atomic_write
-from .dynamics import AxisDynamics
 from .gcode import FLAVORS
-from .optimizer import AxisLimits, FBSSettings, compensate_axis
-from .pipeline import AxisReport, CompensateOptions, Report, compensate_file
 from .planner import RunMargins
-from .plots import FORMATS as PLOT_FORMATS, write_plot  # matplotlib is imported when plotting
 from .profile import AXIS_NAMES, MachineProfile, ProfileError, bundled_profiles, load_profile
 from .shapers import MAX_DAMPING, SHAPERS
-from .simulate import shaper_settings, simulate_program
 from .trajectory import InputError, read_trajectory_csv, write_trajectory_csv
+
+# Each command imports the stages it runs (scipy's signal, ndimage and optimize take seconds to
+# load), so that --help, `machines` and a failing argument answer at once.
+if TYPE_CHECKING:
+    from .pipeline import CompensateOptions, Report
 
 
 class _FriendlyGroup(click.Group):
@@ -172,6 +171,8 @@ def compensate(inputs, machine, output, output_dir, jobs, output_format, toleran
     is left unchanged; the others are still compensated. Exit status 0 if every file
     succeeded, otherwise 1 with a last line naming the failed files.
     """
+    from .pipeline import CompensateOptions
+
     targets = _targets(inputs, output, output_dir, report_path)
     profile = load_profile(machine)
     options = CompensateOptions(flavor=flavor, output_format=output_format, tolerance_mm=tolerance,
@@ -208,6 +209,8 @@ def _targets(inputs: tuple[Path, ...], output: Path | None, output_dir: Path | N
 def _compensate_single(source: Path, target: Path, profile: MachineProfile, options: CompensateOptions,
                        report_path: Path | None, quiet: bool) -> None:
     """One file: errors propagate to the group's one-line handler; a progress bar on a terminal."""
+    from .pipeline import compensate_file
+
     show_progress = not quiet and sys.stderr.isatty()
     with click.progressbar(length=1000, label="compensating", file=sys.stderr, hidden=not show_progress) as bar:
         report = compensate_file(source, target, profile, options,
@@ -219,7 +222,7 @@ def _compensate_single(source: Path, target: Path, profile: MachineProfile, opti
         click.echo(_summary(source, target, profile, report), err=True)
 
 
-_Finish = Callable[[Path, Path, Report | str], None]  # reports one file's outcome: (input, output, outcome)
+_Finish = Callable[[Path, Path, "Report | str"], None]  # reports one file's outcome: (input, output, outcome)
 
 
 def _compensate_many(pairs: list[tuple[Path, Path]], profile: MachineProfile, options: CompensateOptions,
@@ -308,6 +311,8 @@ def _compensate_in_worker(source: Path, target: Path, profile: MachineProfile,
 def _compensate_one(source: Path, target: Path, profile: MachineProfile, options: CompensateOptions) -> Report | str:
     """One file of several, here or in a worker: its report, or its one-line error. Never raises
     but on an interrupt, so one bad file cannot stop the others."""
+    from .pipeline import compensate_file
+
     try:
         return compensate_file(source, target, profile, options)
     except InputError as exc:
@@ -355,6 +360,10 @@ def trajectory(input_csv, machine, output, lookahead, knot_spacing, commit_spans
     Every axis with modes in the profile gets the command whose modelled motion tracks the input
     within the axis' limits; other columns are copied. The output has the same samples.
     """
+    from .dynamics import AxisDynamics
+    from .optimizer import AxisLimits, FBSSettings, compensate_axis
+    from .pipeline import AxisReport
+
     started = time.perf_counter()
     profile = load_profile(machine)
     data = read_trajectory_csv(input_csv, profile.sample_rate_hz)
@@ -433,6 +442,9 @@ def identify(frf_csv, axis, n_modes, max_modes, output, merge, plot, klipper_csv
     error, and writes a new profile (limits from the options or their defaults) or merges the
     axis into --merge (comments there are not kept).
     """
+    from . import excite as excite_module
+    from . import identify as ident
+
     sources = [s for s in (frf_csv, klipper_csv, klipper_cfg, accel_log) if s]
     if len(sources) != 1:
         raise click.UsageError("give exactly one of FRF_CSV, --klipper-csv, --klipper-cfg, --accel-log")
@@ -530,6 +542,8 @@ def excite(machine, axis, output, centre_mm, start_hz, end_hz, duration_s, ampli
     allow; it starts and ends at rest. Record the whole run, then `fbspost identify --accel-log
     LOG.csv --program PROGRAM --axis AXIS`.
     """
+    from . import excite as excite_module
+
     profile = load_profile(machine)
     axis = axis.upper()
     if axis not in profile.axes:
@@ -606,6 +620,9 @@ def simulate(input_path, machine, compensated, shapers, shaper_freq, shaper_damp
     motion starts/ends than the plan, largest command velocity and acceleration. Units: um, s,
     mm/s, mm/s^2.
     """
+    from .plots import FORMATS as PLOT_FORMATS, write_plot  # matplotlib is imported when plotting
+    from .simulate import shaper_settings, simulate_program
+
     if plot_path and plot_path.suffix.lower() not in PLOT_FORMATS:
         raise click.BadParameter(f"{plot_path}: expected a .png or .pdf file", param_hint="--plot")
     profile = load_profile(machine)

@@ -27,8 +27,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, replace
 
+import daqp
 import numpy as np
-import osqp
 from scipy import linalg, sparse
 
 from .dynamics import AxisDynamics
@@ -205,7 +205,7 @@ class _Stretch:
             self.A_fixed, self.A_prev, self.A_state = np.vstack(fixed), np.vstack(prev), np.vstack(state)
             self.row_sample = np.concatenate(row_sample)
         self._qp = None
-        self._hinv_at = None
+        self._ldp = self._hinv_at = None
 
     # ---- the pieces every solve needs -------------------------------------------------------
     def target(self, desired: np.ndarray, state: np.ndarray, p_fixed: np.ndarray) -> np.ndarray:
@@ -238,15 +238,18 @@ class _Stretch:
         """The QP: min ||W (target - Nt_free p)||^2 s.t. every limit row, end conditions, from
         ``warm``, the optimum without the limits. None if unsolved.
 
-        The dual active-set method first; OSQP where that does not finish. For OSQP, limit rows
+        A dual active-set method first (DAQP for a regular window, ours, which takes the end
+        conditions, for a final one); OSQP where that does not finish. For OSQP, limit rows
         are divided by their limit and the objective by its scale, so that its tolerances mean
         the same at any sample rate; its matrices are set up once per window shape and each
         window only changes vectors.
         """
         m = self.m
-        p = self._active_set(warm, offset)
+        p = self._least_distance(warm, offset) if self.E is None else self._active_set(warm, offset)
         if p is not None:
             return p
+        import osqp  # rarely needed: not loaded before
+
         lower, upper = -1.0 - offset, 1.0 - offset
         n_limit_rows = len(lower)
         if self.E is not None:
@@ -289,6 +292,30 @@ class _Stretch:
             tightened_u[:n_limit_rows] -= margin
             self._qp.update(l=tightened_l, u=tightened_u)
         return x
+
+    def _least_distance(self, p_free: np.ndarray, offset: np.ndarray) -> np.ndarray | None:
+        """A regular window's QP by DAQP (Arnstrom, Bemporad, Axehill: a compiled dual active-set
+        method for small dense QPs) in least-distance form: with H = R^T R and u = R p,
+        min ||u - R p_free||^2 s.t. |A R^-1 u + offset| <= 1. R and A R^-1 are the window
+        shape's, set up once; each window starts from no held row (the previous window's rows
+        are other samples). Ours (exact) where DAQP fails or misses the limits: on these
+        ill-conditioned windows (cond(H) to 1e12) it may call a barely feasible window infeasible."""
+        lower, upper = -1.0 - offset, 1.0 - offset
+        if self._ldp is None:
+            self._root = linalg.cholesky(self.H)
+            rows = linalg.solve_triangular(self._root, self.A_free.toarray().T, trans="T").T
+            self._ldp = daqp.Model()
+            self._ldp.setup(np.eye(self.n_free), -(self._root @ p_free), rows, upper, lower)
+            self._ldp.settings = {"primal_tol": 0.1 * _LIMIT_TOLERANCE}
+            self._cold = np.zeros(len(offset), dtype=np.int32)
+        else:
+            self._ldp.update(f=-(self._root @ p_free), bupper=upper, blower=lower, sense=self._cold)
+        u, _, flag, _ = self._ldp.solve()
+        if flag > 0:
+            p = linalg.solve_triangular(self._root, u)
+            if self.violation(p, offset) <= _LIMIT_TOLERANCE:
+                return p
+        return self._active_set(p_free, offset)
 
     def _active_set(self, p_free: np.ndarray, offset: np.ndarray) -> np.ndarray | None:
         """The QP by the dual active-set method of Goldfarb and Idnani: from the optimum without

@@ -8,10 +8,13 @@ with the predicted tracking error of every compensated axis before and after, pe
 """
 from __future__ import annotations
 
+import itertools
 import re
 import tempfile
 import time
-from collections.abc import Iterable, Iterator
+from collections import defaultdict
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -47,6 +50,7 @@ class CompensateOptions:
     expand: bool | None = None  # LinuxCNC: through rs274 first (None: when the program needs it)
     tool_table: Path | None = None  # rs274's tool table (tool length offsets, cutter radii)
     ini: Path | None = None  # rs274's INI (subroutine paths)
+    parallel_axes: bool = True  # each compensated axis on its own threads (same output, bit for bit)
 
 
 @dataclass
@@ -58,6 +62,8 @@ class AxisReport:
     max_error_before_um: float
     rms_error_after_um: float
     max_error_after_um: float
+    windows: int = 0  # the optimizer's windows
+    qp_windows: int = 0  # those whose optimum without the limits broke one (the QP solved)
 
     @classmethod
     def from_errors(cls, before_mm: np.ndarray, after_mm: np.ndarray) -> AxisReport:
@@ -68,8 +74,8 @@ class AxisReport:
         return cls.from_stats(before, after)
 
     @classmethod
-    def from_stats(cls, before: _ErrorStats, after: _ErrorStats) -> AxisReport:
-        return cls(before.rms_um, before.peak_um, after.rms_um, after.peak_um)
+    def from_stats(cls, before: _ErrorStats, after: _ErrorStats, windows: int = 0, qp_windows: int = 0) -> AxisReport:
+        return cls(before.rms_um, before.peak_um, after.rms_um, after.peak_um, windows, qp_windows)
 
 
 @dataclass
@@ -87,7 +93,7 @@ class Report:
     settle_time_s: float = 0.0
     axes: dict[str, AxisReport] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
-    stage_time_s: dict[str, float] = field(default_factory=dict)  # read, plan, optimize, write
+    stage_time_s: dict[str, float] = field(default_factory=dict)  # read, plan, optimize, fallback, write
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -139,7 +145,7 @@ def _compensate_expanded(input_path, output_path, profile, options, reason, prog
 
 def _compensate(read_path, input_path, output_path, profile, options, flavor, progress, started) -> Report:
     """Compensates the program at ``read_path`` (``input_path`` itself or its expansion)."""
-    stages = dict.fromkeys(("read", "plan", "optimize", "write"), 0.0)
+    stages = dict.fromkeys(("read", "plan", "optimize", "fallback", "write"), 0.0)
     accelerations = ProgramAccelerations(profile.planner_acceleration_mm_s2)
     blocks = _timed(read_gcode(read_path, flavor, profile.home_mm), stages, "read")
     if progress:
@@ -150,7 +156,10 @@ def _compensate(read_path, input_path, output_path, profile, options, flavor, pr
     errors = {c: (_ErrorStats(), _ErrorStats()) for c in compensators}
     follows_plan = np.array([c not in compensators for c in range(len(AXES))])
     optimizer_warnings: list[str] = []
-    chunks = _timed(_compensated(plan, compensators, errors, optimizer_warnings, options.fallback), stages, "optimize",
+    lanes = _Lanes(compensators) if options.parallel_axes else None
+    tally = _Tally()
+    chunks = _timed(_compensated(plan, compensators, errors, optimizer_warnings, options.fallback, lanes, tally),
+                    stages, "optimize",
                     exclude=lambda: plan.time_s)
     ceilings = [profile.axes[AXES[c]].max_acceleration_mm_s2 for c in compensators if c < 3]  # XYZ
     write_options = WriteOptions(
@@ -162,16 +171,22 @@ def _compensate(read_path, input_path, output_path, profile, options, flavor, pr
         raise_acceleration_mm_s2=max(ceilings) if ceilings else None)
     stats = []
     clock = time.perf_counter()
-    atomic_write(output_path, lambda f: stats.append(write_program(
-        plan, SampleWindow(chunks, plan, follows_plan), write_options, f, accelerations)))
+    try:
+        atomic_write(output_path, lambda f: stats.append(write_program(
+            plan, SampleWindow(chunks, plan, follows_plan), write_options, f, accelerations)))
+    finally:
+        if lanes:
+            lanes.shutdown()
     stages["plan"] = plan.time_s - stages["read"]
     stages["write"] = time.perf_counter() - clock - plan.time_s - stages["optimize"]
+    stages["optimize"] -= tally.fallback_s
+    stages["fallback"] = tally.fallback_s
     report = Report(str(input_path), str(output_path), profile.name, flavor, plan.n_blocks, stats[0].lines_out,
                     plan.duration_s, 0.0, plan.added_s, margins.lead_s, margins.settle_s,
                     warnings=plan.warnings + optimizer_warnings, stage_time_s=stages)
     for c, (before, after) in errors.items():
         if before.count:
-            report.axes[AXES[c]] = AxisReport.from_stats(before, after)
+            report.axes[AXES[c]] = AxisReport.from_stats(before, after, *tally.windows[c])
     report.compute_time_s = time.perf_counter() - started
     return report
 
@@ -182,7 +197,8 @@ def compensated_samples(plan: Plan, profile: MachineProfile, options: Compensate
     computes it (for programs that fit in memory); the optimizers' warnings added to ``warnings``."""
     compensators = _compensators(profile, options)
     errors = {c: (_ErrorStats(), _ErrorStats()) for c in compensators}
-    chunks = _compensated(plan, compensators, errors, [] if warnings is None else warnings, options.fallback)
+    chunks = _compensated(plan, compensators, errors, [] if warnings is None else warnings, options.fallback,
+                          None, _Tally())
     return np.concatenate([command for _, command in chunks] or [np.zeros((0, len(AXES)))])
 
 
@@ -195,14 +211,16 @@ def _compensators(profile: MachineProfile, options: CompensateOptions) -> dict[i
 
 
 def _compensated(plan: Plan | PlanStream, compensators: dict[int, AxisCompensator], errors: dict,
-                 warnings: list[str], fallback: bool = True) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+                 warnings: list[str], fallback: bool, lanes: _Lanes | None,
+                 tally: _Tally) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """(planned, command) chunks of samples, every sample in order, as the plan settles them:
     the command is the plan but on the compensated axes (columns), where it is the compensated
     command where that does no harm and the planned original where it would
     (fallback.AxisGuard). Adds up every compensated axis' modelled tracking error, before and
     after, over the runs and the settling after each (the residual vibration the compensation
     also reduces, and may trade a little in-motion error for), and a warning for each stretch
-    that fell back to ``warnings``."""
+    that fell back to ``warnings``. ``lanes``: threads for the axes, which are independent here;
+    ``tally``: counts the windows and the fallback's time."""
     guards = {c: AxisGuard(compensator, *errors[c], fallback) for c, compensator in compensators.items()}
     lines = _StretchLines(plan, guards.values())
     held, written = np.zeros((0, len(AXES))), {c: np.zeros(0) for c in guards}
@@ -217,16 +235,21 @@ def _compensated(plan: Plan | PlanStream, compensators: dict[int, AxisCompensato
         planned, held = held[:n], held[n:]
         return planned, command
 
-    for planned, command, moving, follows in _optimized(plan, compensators):
+    fallbacks = lanes and lanes.fallback
+    for planned, command, moving, follows in _optimized(plan, compensators, lanes and lanes.optimizer, tally):
         held = np.concatenate([held, planned])
-        for c, guard in guards.items():
-            written[c] = np.concatenate([written[c], guard.push(planned[:, c], command[:, c], moving, follows)])
+        clock = time.perf_counter()
+        pushed = _per_axis(fallbacks, lambda c: guards[c].push(planned[:, c], command[:, c], moving, follows), guards)
+        tally.fallback_s += time.perf_counter() - clock
+        written = {c: np.concatenate([written[c], pushed[c]]) for c in guards}
         lines.note(min((guard.n for guard in guards.values()), default=np.inf) / plan.sample_rate_hz)
         chunk = ready()
         if len(chunk[0]):
             yield chunk
-    for c, guard in guards.items():
-        written[c] = np.concatenate([written[c], guard.finish()])
+    clock = time.perf_counter()
+    pushed = _per_axis(fallbacks, lambda c: guards[c].finish(), guards)
+    tally.fallback_s += time.perf_counter() - clock
+    written = {c: np.concatenate([written[c], pushed[c]]) for c in guards}
     lines.note(np.inf)
     for c, guard in guards.items():
         warnings += _fallback_warnings(plan.sample_rate_hz, AXES[c], guard, lines)
@@ -235,11 +258,14 @@ def _compensated(plan: Plan | PlanStream, compensators: dict[int, AxisCompensato
         yield chunk
 
 
-def _optimized(plan: Plan | PlanStream, compensators: dict[int, AxisCompensator]):
+def _optimized(plan: Plan | PlanStream, compensators: dict[int, AxisCompensator],
+               lanes: dict[int, ThreadPoolExecutor] | None, tally: _Tally):
     """(planned, compensated, moving, follows) chunks of samples, every sample in order, as the
     plan settles them: the compensated command is the plan but on the compensated axes (columns)
     during the runs; ``moving``: the chunk is in a run; ``follows``: it continues the one before
-    (not at a rest or a run's start, where the plan may jump)."""
+    (not at a rest or a run's start, where the plan may jump). With ``lanes`` (one thread per
+    axis, so each axis' pieces are pushed in order), the optimizers work on the next piece of
+    the run while the chunk of the last one is written."""
     r = next_sample = 0
     while True:
         plan.wait(lambda: len(plan.runs) > r or plan.done)
@@ -260,27 +286,38 @@ def _optimized(plan: Plan | PlanStream, compensators: dict[int, AxisCompensator]
                 command[:, c] = commands[c][:n]
             return (planned_rows[:n], command), planned_rows[n:], {c: v[n:] for c, v in commands.items()}
 
-        follows = False
-        a = first
-        while True:
-            plan.wait(lambda: plan.runs[r][1] is not None or plan.frontier >= a + _CHUNK)
-            last = plan.runs[r][1]
-            stop = min(a + _CHUNK, plan.frontier if last is None else last + 1)
-            planned = plan.samples(a, stop)
-            plan.release(stop)
-            planned_rows = np.concatenate([planned_rows, planned])
-            for c, stream in streams.items():
-                commands[c] = np.concatenate([commands[c], stream.push(planned[:, c])])
-            chunk, planned_rows, commands = ready(planned_rows, commands)
-            if len(chunk[0]):
-                yield *chunk, True, follows
-                follows = True
-            a = stop
-            if last is not None and a > last:
-                break
+        def pieces(a):
+            """The run's planned samples, a chunk at a time, as the plan settles them."""
+            while True:
+                plan.wait(lambda: plan.runs[r][1] is not None or plan.frontier >= a + _CHUNK)
+                last = plan.runs[r][1]
+                stop = min(a + _CHUNK, plan.frontier if last is None else last + 1)
+                samples = plan.samples(a, stop)
+                plan.release(stop)
+                yield samples
+                a = stop
+                if last is not None and a > last:
+                    return
+
+        follows, pending = False, None  # pending: the last piece and its pushes under way
+        for planned in itertools.chain(pieces(first), [None]):
+            running = None if planned is None else {c: _submit(lanes, c, streams[c].push, planned[:, c]) for c in streams}
+            if pending is not None:
+                planned_rows = np.concatenate([planned_rows, pending[0]])
+                commands = {c: np.concatenate([commands[c], pending[1][c].result()]) for c in streams}
+                chunk, planned_rows, commands = ready(planned_rows, commands)
+                if len(chunk[0]):
+                    yield *chunk, True, follows
+                    follows = True
+            pending = planned, running
+        last = plan.runs[r][1]
         # (The optimizer's warnings of limits not met are the fallback's to give: it falls back there.)
-        for c, stream in streams.items():
-            commands[c] = np.concatenate([commands[c], stream.finish().command_mm])
+        results = _per_axis(lanes, lambda c: streams[c].finish(), streams)
+        for c, result in results.items():
+            counts = tally.windows[c]
+            counts[0] += result.windows
+            counts[1] += result.qp_windows
+        commands = {c: np.concatenate([commands[c], results[c].command_mm]) for c in streams}
         chunk, _, _ = ready(planned_rows, commands)
         yield *chunk, True, follows
         next_sample = last + 1
@@ -288,6 +325,35 @@ def _optimized(plan: Plan | PlanStream, compensators: dict[int, AxisCompensator]
     if next_sample < plan.n_samples:
         rest = plan.samples(next_sample, plan.n_samples)
         yield rest, rest, False, False
+
+
+class _Lanes:
+    """One thread per compensated axis for its optimizer and one for its fallback: numpy, scipy
+    and DAQP release the GIL in their kernels, so the axes, and the optimizers and the writer,
+    use both cores. Work given to one lane runs in order."""
+
+    def __init__(self, axes: Iterable[int]):
+        self.optimizer = {c: ThreadPoolExecutor(1) for c in axes}
+        self.fallback = {c: ThreadPoolExecutor(1) for c in axes}
+
+    def shutdown(self) -> None:
+        for lane in [*self.optimizer.values(), *self.fallback.values()]:
+            lane.shutdown(cancel_futures=True)
+
+
+def _submit(lanes: dict[int, ThreadPoolExecutor] | None, c: int, work: Callable, *args) -> Future:
+    """``work(*args)`` on axis c's lane, or here and now without lanes."""
+    if lanes:
+        return lanes[c].submit(work, *args)
+    done = Future()
+    done.set_result(work(*args))
+    return done
+
+
+def _per_axis(lanes: dict[int, ThreadPoolExecutor] | None, work: Callable[[int], object], axes: Iterable[int]) -> dict:
+    """``{c: work(c)}`` for every axis c, each on its lane if given."""
+    running = {c: _submit(lanes, c, work, c) for c in axes}
+    return {c: future.result() for c, future in running.items()}
 
 
 class _StretchLines:
@@ -333,6 +399,15 @@ def _fallback_warnings(fs: float, axis: str, guard: AxisGuard, lines: _StretchLi
     if count:
         out.append(f"{FALLBACK}: axis {axis}, {count} more stretches, {samples / fs:.3f} s in all")
     return out
+
+
+@dataclass
+class _Tally:
+    """Counted as the work goes: the fallback's wall time, and per axis (column) the optimizer's
+    windows and those that needed the QP."""
+
+    fallback_s: float = 0.0
+    windows: dict[int, list[int]] = field(default_factory=lambda: defaultdict(lambda: [0, 0]))
 
 
 @dataclass

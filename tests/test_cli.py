@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from fbspost import cli
+from fbspost import pipeline
 from fbspost.cli import main
 from fbspost.profile import bundled_profiles, load_profile
 from reference import rms, simulate_lsim
@@ -201,14 +201,14 @@ def test_one_bad_file_fails_alone_and_is_left_unchanged(tmp_path, programs):
 def test_unexpected_exception_is_one_line_naming_the_file(tmp_path, programs, monkeypatch):
     """Sequential (--jobs 1), so that the patched pipeline is the one that runs on any platform."""
     first, second = copy_programs(tmp_path, programs)[:2]
-    compensate_file = cli.compensate_file
+    compensate_file = pipeline.compensate_file  # (the commands import their stages when run)
 
     def broken(source, *args, **kwargs):
         if source == second:
             raise RuntimeError("solver exploded\non two lines")
         return compensate_file(source, *args, **kwargs)
 
-    monkeypatch.setattr(cli, "compensate_file", broken)
+    monkeypatch.setattr(pipeline, "compensate_file", broken)
     result = run("compensate", first, second, "-m", "patent-xy-stage", "-q")
     assert result.exit_code == 1
     assert result.stderr.splitlines() == [f"error: {second}: internal error: RuntimeError: solver exploded on two lines",
@@ -219,14 +219,14 @@ def test_unexpected_exception_is_one_line_naming_the_file(tmp_path, programs, mo
 @pytest.mark.skipif(multiprocessing.get_start_method() != "fork", reason="the workers must inherit the patch")
 def test_a_worker_that_dies_fails_only_its_file(tmp_path, programs, monkeypatch):
     paths = copy_programs(tmp_path, programs)
-    compensate_file = cli.compensate_file
+    compensate_file = pipeline.compensate_file  # (the commands import their stages when run)
 
     def killed(source, *args, **kwargs):
         if source == paths[1]:
             os._exit(9)  # as the kernel's out-of-memory killer would end it
         return compensate_file(source, *args, **kwargs)
 
-    monkeypatch.setattr(cli, "compensate_file", killed)
+    monkeypatch.setattr(pipeline, "compensate_file", killed)
     result = run("compensate", *paths, "-m", "patent-xy-stage", "-q", "--jobs", "2")
     assert result.exit_code == 1
     assert result.stderr.splitlines() == [f"error: {paths[1]}: its worker process died (killed, or out of memory?)",

@@ -307,14 +307,24 @@ def test_limits_that_cannot_be_met_are_reported():
     assert "could not be met" in result.warnings[0]
 
 
-@pytest.mark.parametrize("seed", range(20))
-@pytest.mark.parametrize("equalities", [0, 2])
-def test_dual_active_set_step_is_the_qp_optimum(seed, equalities):
-    """The QP step (Goldfarb-Idnani on the factored window) on random problems
-    min 1/2 p'Hp - g'p s.t. |A p + offset| <= 1 and, as in a final window, E p = e: its point
-    meets every row and satisfies the KKT conditions (the gradient cancelled by nonnegative
-    multipliers on the rows at their bounds and free ones on E, found by NNLS here), so it is
-    the optimum; and no feasible point SLSQP finds is better."""
+def kkt_certified(H, g, A, offset, p, E=None, e=None, residual_tol=1e-8):
+    """Whether ``p`` is the optimum of min 1/2 p'Hp - g'p s.t. |A p + offset| <= 1 (and E p = e):
+    it meets every row, and the gradient is cancelled by nonnegative multipliers on the rows at
+    their bounds and free ones on E (found by NNLS here)."""
+    E = np.zeros((0, len(p))) if E is None else E
+    value = A @ p + offset
+    active = np.abs(value) >= 1 - 1e-9
+    gradient = H @ p - g
+    directions = np.hstack([(np.sign(value[active])[:, None] * A[active]).T, E.T, -E.T])
+    scale = np.maximum(np.abs(directions).max(axis=0, initial=0.0), 1e-300)
+    _, residual = optimize.nnls(directions / scale, -gradient, maxiter=50 * directions.shape[1] + 100)
+    return (np.abs(value).max() <= 1 + 1e-7 and active.any() and (not len(E) or np.allclose(E @ p, e, atol=1e-12))
+            and residual <= residual_tol * max(1.0, np.linalg.norm(g)))
+
+
+def random_window(seed, equalities):
+    """A random problem min 1/2 p'Hp - g'p s.t. |A p + offset| <= 1 (and E p = e, as in a final
+    window) whose limits bind, as the solvers see it: a window with its factorization."""
     rng = np.random.default_rng(seed)
     n, rows = 8, 30
     root = rng.standard_normal((n, n))
@@ -324,21 +334,25 @@ def test_dual_active_set_step_is_the_qp_optimum(seed, equalities):
     g = rng.standard_normal(n) * 5
     E, e = rng.standard_normal((equalities, n)), rng.uniform(-0.2, 0.2, equalities)
     kkt = np.block([[H, E.T], [E, np.zeros((equalities, equalities))]])
-    window = SimpleNamespace(_hinv_at=None, A_free=sparse.csc_matrix(A), n_free=n, E=E if equalities else None,
+    window = SimpleNamespace(_hinv_at=None, _ldp=None, A_free=sparse.csc_matrix(A), n_free=n, H=H,
+                             E=E if equalities else None,
                              _factor=linalg.lu_factor(kkt) if equalities else linalg.cho_factor(H))
-    window._gram_columns = lambda: _Stretch._gram_columns(window)
+    for name in ("_gram_columns", "_active_set", "violation"):
+        setattr(window, name, getattr(_Stretch, name).__get__(window))
     p_free = np.linalg.solve(kkt, np.concatenate([g, e]))[:n]
     assert np.abs(A @ p_free + offset).max() > 1  # the limits bind
-    ours = _Stretch._active_set(window, p_free, offset)
-    value = A @ ours + offset
-    assert np.abs(value).max() <= 1 + 1e-7
-    assert np.allclose(E @ ours, e, atol=1e-12)
-    active = np.abs(value) >= 1 - 1e-9
-    assert active.any()
-    gradient = H @ ours - g
-    directions = np.hstack([(np.sign(value[active])[:, None] * A[active]).T, E.T, -E.T])
-    multipliers, residual = optimize.nnls(directions, -gradient)
-    assert residual <= 1e-8 * max(1.0, np.linalg.norm(g))
+    return window, H, g, A, offset, E, e, p_free
+
+
+@pytest.mark.parametrize("seed", range(20))
+@pytest.mark.parametrize("solver, equalities", [("_active_set", 0), ("_active_set", 2), ("_least_distance", 0)])
+def test_dual_active_set_step_is_the_qp_optimum(seed, solver, equalities):
+    """The QP step on random problems, by either solver (Goldfarb-Idnani on the factored window,
+    DAQP on its least-distance form): its point is KKT-certified (so the optimum), and no
+    feasible point SLSQP finds is better."""
+    window, H, g, A, offset, E, e, p_free = random_window(seed, equalities)
+    ours = getattr(_Stretch, solver)(window, p_free, offset)
+    assert kkt_certified(H, g, A, offset, ours, E, e)
     objective = lambda p: 0.5 * p @ H @ p - g @ p
     rows_of = lambda p: np.concatenate([1 - (A @ p + offset), 1 + (A @ p + offset)])
     constraints = [{"type": "ineq", "fun": rows_of, "jac": lambda p: np.vstack([-A, A])}]
@@ -347,6 +361,39 @@ def test_dual_active_set_step_is_the_qp_optimum(seed, equalities):
     reference = optimize.minimize(objective, p_free, jac=lambda p: H @ p - g, method="SLSQP", constraints=constraints)
     if rows_of(reference.x).min() >= -1e-9 and np.allclose(E @ reference.x, e, atol=1e-9):
         assert objective(ours) <= objective(reference.x) + 1e-9 * abs(objective(reference.x))
+
+
+def corner_moves(period_s, moves=12, distance_mm=3.0, speed_mm_s=60.0, accel_mm_s2=3000.0):
+    """Back-and-forth moves that stop at every corner, each a trapezoid in velocity (acceleration
+    steps at its corners, as a planner writes them), by exact integration of the acceleration."""
+    ramp = int(round(speed_mm_s / accel_mm_s2 / period_s))
+    cruise = int(round((distance_mm - speed_mm_s**2 / accel_mm_s2) / speed_mm_s / period_s))
+    one = np.concatenate([np.full(ramp, accel_mm_s2), np.zeros(cruise), np.full(ramp, -accel_mm_s2)])
+    accel = np.concatenate([np.tile(np.concatenate([one, -one]), moves // 2), np.zeros(200)])
+    velocity = np.concatenate([[0.0], np.cumsum(accel)]) * period_s
+    return np.concatenate([[0.0], np.cumsum(velocity[:-1] + 0.5 * accel * period_s) * period_s])
+
+
+def test_daqp_is_the_optimum_of_the_hard_cases_corner_windows(monkeypatch):
+    """The corner windows of printer-two-mode's X axis (52 + 96 Hz) with a knot at every sample
+    (the hardest windows: 120 points, 240 limit rows, cond(H) ~ 1e12): DAQP's point is
+    KKT-certified on every window whose limits bind, and its objective is Goldfarb-Idnani's (an
+    exact method) to 1e-9."""
+    axis = load_profile("printer-two-mode").axes["X"]
+    dynamics = AxisDynamics(axis.modes, 1e-3)
+    windows = []
+    constrained = _Stretch.constrained
+    monkeypatch.setattr(_Stretch, "constrained", lambda self, target, p_fixed, offset, end_values, warm: windows.append(
+        (self, target, offset, warm)) or constrained(self, target, p_fixed, offset, end_values, warm))
+    result = AxisCompensator(dynamics, AxisLimits.from_profile(axis), FBSSettings(knot_spacing_samples=1))(corner_moves(1e-3))
+    regular = [w for w in windows if w[0].E is None]
+    assert len(regular) >= 8 and not result.warnings
+    for window, target, offset, warm in regular[:8]:
+        A, g = window.A_free.toarray(), window.gradient(target)
+        daqp_p, exact_p = window._least_distance(warm, offset), window._active_set(warm, offset)
+        assert kkt_certified(window.H, g, A, offset, daqp_p, residual_tol=1e-6)
+        objective = lambda p: 0.5 * p @ window.H @ p - g @ p
+        assert abs(objective(daqp_p) - objective(exact_p)) <= 1e-9 * abs(objective(exact_p))
 
 
 @pytest.mark.parametrize("seed", range(3))
@@ -373,3 +420,4 @@ def test_stream_in_pieces_equals_the_whole_run_bit_for_bit(seed):
     streamed = np.concatenate(pieces + [result.command_mm])
     assert np.array_equal(streamed, whole.command_mm)
     assert (result.windows, result.qp_windows) == (whole.windows, whole.qp_windows)
+
