@@ -648,6 +648,10 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
                 return
             run_index += 1
             run_breaks = run_g5 = None
+            # A run's end where the command no longer moves (a settle margin unused) is not
+            # written: the machine rests there anyway, and its time must not slow the next run's
+            # first block.
+            emitter.pending_s = 0.0
             if raise_width and accelerations and not runs_from(run_index):
                 emit(acceleration_line(options.flavor, *accelerations.final))  # as the program left it
 
