@@ -410,6 +410,14 @@ def acceleration_line(flavor: str, print_mm_s2: float, travel_mm_s2: float | Non
     return None
 
 
+def dwell_line(flavor: str, seconds: float) -> str | None:
+    """The flavor's G4 for ``seconds``, to the millisecond (None if that is none)."""
+    ms = round(seconds * 1e3)
+    if ms <= 0:
+        return None
+    return f"G4 P{ms / 1e3:g}" if flavor == "linuxcnc" else f"G4 P{ms}"
+
+
 class ProgramAccelerations:
     """The acceleration limits a program sets, noted as its blocks pass (``watch``): the highest
     (at least the profile's planner value: the least the raised limit may be) and the (print,
@@ -648,9 +656,12 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
                 return
             run_index += 1
             run_breaks = run_g5 = None
-            # A run's end where the command no longer moves (a settle margin unused) is not
-            # written: the machine rests there anyway, and its time must not slow the next run's
-            # first block.
+            # A run's end where the command no longer moves (a settle margin unused) is a dwell:
+            # its time must not slow the next run's first block, nor be lost (the lines after it
+            # run at the plan's times).
+            dwell = dwell_line(options.flavor, emitter.pending_s)
+            if dwell:
+                emit(dwell)
             emitter.pending_s = 0.0
             if raise_width and accelerations and not runs_from(run_index):
                 emit(acceleration_line(options.flavor, *accelerations.final))  # as the program left it
