@@ -210,8 +210,8 @@ def execute(path, sample_rate_hz: float = 10000.0, dwell_p_seconds: bool = False
     return run
 
 
-# What fbspost adds to a program: its header, the controller's acceleration, mode lines.
-INSERTED = (b"; fbspost", b"M204", b"SET_VELOCITY_LIMIT", b"G90", b"G91", b"M82", b"M83", b"G20", b"G21",
+# What fbspost adds to a program: its header, the controller's acceleration, dwells (a run's unused settle margin), mode lines.
+INSERTED = (b"; fbspost", b"M204", b"SET_VELOCITY_LIMIT", b"G4 P", b"G90", b"G91", b"M82", b"M83", b"G20", b"G21",
             b"G17", b"G18", b"G19")
 
 
