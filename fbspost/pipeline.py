@@ -22,7 +22,8 @@ from .optimizer import AxisCompensator, AxisLimits, FBSSettings
 from .planner import Plan, PlanStream
 from .profile import MachineProfile
 from .trajectory import InputError
-from .writer import ProgramAccelerations, SampleWindow, WriteOptions, format_refusal, write_program
+from .transparency import FirmwareSettings
+from .writer import SampleWindow, WriteOptions, format_refusal, write_program
 
 
 @dataclass(frozen=True)
@@ -93,29 +94,28 @@ def compensate_file(input_path: str | Path, output_path: str | Path, profile: Ma
     if refusal:  # before the work
         raise InputError(input_path, None, refusal)
     stages = dict.fromkeys(("read", "plan", "optimize", "write"), 0.0)
-    accelerations = ProgramAccelerations(profile.planner_acceleration_mm_s2)
     blocks = _timed(read_gcode(input_path, flavor), stages, "read")
     if progress:
         blocks = _reported(blocks, _count_lines(input_path), progress)
-    plan = PlanStream(accelerations.watch(blocks), profile)
+    plan = PlanStream(blocks, profile)
     compensators = _compensators(profile, options)
     errors = {c: (_ErrorStats(), _ErrorStats()) for c in compensators}
     follows_plan = np.array([c not in compensators for c in range(len(AXES))])
     optimizer_warnings: list[str] = []
     chunks = _timed(_compensated(plan, compensators, errors, optimizer_warnings), stages, "optimize",
                     exclude=lambda: plan.time_s)
-    ceilings = [profile.axes[AXES[c]].max_acceleration_mm_s2 for c in compensators if c < 3]  # XYZ
     write_options = WriteOptions(
         flavor=flavor, output_format=options.output_format, tolerance_mm=options.tolerance_mm,
         min_segment_time_s=options.min_segment_time_s,
         header=(f"fbspost {__version__}: filtered B-spline compensation for machine profile {profile.name}",
                 f"fbspost settings: format {options.output_format}, tolerance {options.tolerance_mm:g} mm, "
                 f"minimum segment {options.min_segment_time_s * 1e3:g} ms, flavor {flavor}, {options.lookahead} look-ahead"),
-        raise_acceleration_mm_s2=max(ceilings) if ceilings else None)
+        firmware=FirmwareSettings(profile.planner_acceleration_mm_s2,
+                                  square_corner_velocity_mm_s=profile.planner_square_corner_velocity_mm_s))
     stats = []
     clock = time.perf_counter()
     atomic_write(output_path, lambda f: stats.append(write_program(
-        plan, SampleWindow(chunks, plan, follows_plan), write_options, f, accelerations)))
+        plan, SampleWindow(chunks, plan, follows_plan), write_options, f)))
     stages["plan"] = plan.time_s - stages["read"]
     stages["write"] = time.perf_counter() - clock - plan.time_s - stages["optimize"]
     report = Report(str(input_path), str(output_path), profile.name, flavor, plan.n_blocks, stats[0].lines_out,

@@ -26,6 +26,7 @@ from scipy.ndimage import maximum_filter1d
 from .bezier import curve_lengths, fit_g5
 from .gcode import AXES, Block, Kind, Modal
 from .planner import PlanStream
+from .transparency import FirmwareSettings, Transparency
 
 _DECIMALS = {"X": 4, "Y": 4, "Z": 4, "E": 5}  # mm: 0.1 um, E: 10 nm of filament
 _FEED_DECIMALS = 3  # mm/min (in/min in G20)
@@ -44,7 +45,7 @@ class WriteOptions:
     tolerance_mm: float = 1e-3
     min_segment_time_s: float = 1e-3
     header: tuple[str, ...] = ()  # comment text, one entry per line
-    raise_acceleration_mm_s2: float | None = None  # the most the controller's limit may be raised to while the command runs
+    firmware: FirmwareSettings | None = None  # the program's settings at its start (None: no settings written)
 
 
 @dataclass
@@ -190,14 +191,6 @@ def g5_blocks(command: np.ndarray, splits: np.ndarray, tolerance_mm: float,
     return all_ends, Curves(np.isin(all_ends, ends[curve]), fit.p1_mm[block], fit.p2_mm[block])
 
 
-def _fmt(value: float, decimals: int) -> str:
-    """Shortest decimal with at most ``decimals`` places: 3000.0, 0 -> "3000"; 2.50, 2 -> "2.5"."""
-    text = f"{value:.{decimals}f}"
-    if "." in text:
-        text = text.rstrip("0").rstrip(".")
-    return "0" if text in ("-0", "") else text
-
-
 class _Emitter:
     """Formats blocks in the controller's current modes and frame.
 
@@ -212,7 +205,7 @@ class _Emitter:
         self.written = self.to_program(start_mm)
         self.feed = -1  # the last F written, in units of its last digit (none yet: feeds are >= 0)
         self.newline = newline
-        self.pending_s = 0.0  # time of blocks that rounded to no motion, not yet given to a block
+        self.residue_s = 0.0  # time the blocks so far were written short of theirs: the next block's to take
 
     @property
     def unit_mm(self) -> float:
@@ -274,20 +267,10 @@ class _Emitter:
             length[g5_rows] = curve_lengths(p0 / xy_scale, (p0 + offsets[g5_rows, :2]) / xy_scale,
                                             (p3 + offsets[g5_rows, 2:]) / xy_scale, p3 / xy_scale) * self.unit_mm
             moved[:, :2] |= curves.curve[:, None]  # G5 needs its end point, also where it closes a loop
-        # A block that rounds to no motion cannot carry time (and is not written): the next
-        # moving block takes it.
         moving = moved.any(axis=1)
-        took = durations_s  # each block's own time, whatever blocks a call gets: the text does not depend on them
-        if self.pending_s or not moving.all():
-            took, pending = [], self.pending_s
-            for duration, moves in zip(durations_s.tolist(), moving.tolist()):
-                pending += duration
-                if moves:
-                    took.append(pending)
-                    pending = 0.0
-            took, self.pending_s = np.array(took), pending
         rows = slice(None) if moving.all() else moving  # nearly always all of them: no copies
-        feed = np.rint(length[rows] / took * 60.0 / self.unit_mm * 1000.0).astype(np.int64)
+        feed, self.residue_s = _feeds(length, durations_s, moving, self.residue_s,
+                                      60.0 * 10 ** _FEED_DECIMALS / self.unit_mm)
         new_feed = feed != np.concatenate([[self.feed], feed[:-1]])  # F only where it changes
         if len(feed):
             self.feed = int(feed[-1])
@@ -306,6 +289,28 @@ class _Emitter:
         # temporaries outgrow the CPU cache).
         return b"".join(_lines(values[a:a + _LINES], shown[a:a + _LINES], digits, letters, self.newline,
                                g5[a:a + _LINES]) for a in range(0, len(feed), _LINES)), len(feed)
+
+
+def _feeds(length_mm: np.ndarray, durations_s: np.ndarray, moving: np.ndarray, residue_s: float,
+           units_per_mm_s: float) -> tuple[np.ndarray, float]:
+    """The F of each moving block (integer units of its last digit; ``units_per_mm_s`` per mm/s)
+    and the time residue left after them.
+
+    The controller times a block as its length over its F, and F is rounded: each block is
+    given its duration plus the residue (the time the blocks before it were written short of
+    theirs, and the whole time of blocks that round to no motion, which are not written), so the
+    written time never drifts from the command's by more than one block's rounding. (Where the
+    residue is more negative than half a block's duration, the block keeps half its own and
+    the rest goes on.)
+    """
+    feeds = []
+    for length, duration, moves in zip(length_mm.tolist(), durations_s.tolist(), moving.tolist()):
+        residue_s += duration
+        if moves:
+            feed = max(round(length * units_per_mm_s / max(residue_s, 0.5 * duration)), 1)
+            feeds.append(feed)
+            residue_s -= length * units_per_mm_s / feed
+    return np.array(feeds, dtype=np.int64), residue_s
 
 
 def _digits(width: int, form: str) -> np.ndarray:
@@ -397,50 +402,12 @@ def mode_lines(flavor: str, have: Modal, want: Modal) -> list[str]:
     return lines
 
 
-def acceleration_line(flavor: str, print_mm_s2: float, travel_mm_s2: float | None = None, width: int = 0) -> str | None:
-    """The flavor's command setting the controller's acceleration limit (None for LinuxCNC,
-    where it is machine configuration); values followed by spaces up to ``width`` characters (a
-    line to be overwritten in place once its value is known)."""
-    travel = print_mm_s2 if travel_mm_s2 is None else travel_mm_s2
-    accel, travel = _fmt(print_mm_s2, 0).ljust(width), _fmt(travel, 0).ljust(width)
-    if flavor == "klipper":
-        return f"SET_VELOCITY_LIMIT ACCEL={accel}"
-    if flavor in ("marlin", "reprap"):
-        return f"M204 P{accel} T{travel}"
-    return None
-
-
-class ProgramAccelerations:
-    """The acceleration limits a program sets, noted as its blocks pass (``watch``): the highest
-    (at least the profile's planner value: the least the raised limit may be) and the (print,
-    travel) pair the program leaves the controller with."""
-
-    def __init__(self, planner_mm_s2: float):
-        self.highest = self.accel = planner_mm_s2
-        self.travel = None
-
-    def watch(self, blocks: Iterable[Block]) -> Iterator[Block]:
-        for block in blocks:
-            if block.limits is not None:
-                if block.limits.acceleration_mm_s2:
-                    self.accel = block.limits.acceleration_mm_s2
-                    self.highest = max(self.highest, self.accel)
-                if block.limits.travel_acceleration_mm_s2 is not None:
-                    self.travel = block.limits.travel_acceleration_mm_s2
-            yield block
-
-    @property
-    def final(self) -> tuple[float, float]:
-        return self.accel, (self.accel if self.travel is None else self.travel)
-
-
 class SampleWindow:
     """The planned and the commanded samples (rows X Y Z E, machine mm) as an iterator of
     (planned, command) chunks produces them, in order; rows before ``release``'s index are
     dropped, so a long program's samples are never all held. ``plan`` (``PlanStream``) tells
     how many there are once it is done. ``follows_plan`` (4,) marks the columns the command
-    leaves as planned (E, axes without modes): blocks end exactly where the program puts them.
-    Keeps the largest XYZ second difference of the command (mm per sample^2)."""
+    leaves as planned (E, axes without modes): blocks end exactly where the program puts them."""
 
     def __init__(self, chunks: Iterable[tuple[np.ndarray, np.ndarray]], plan, follows_plan: np.ndarray):
         self._chunks = iter(chunks)
@@ -448,7 +415,6 @@ class SampleWindow:
         self.follows_plan = np.asarray(follows_plan, dtype=bool)
         self.base = 0  # sample index of the first row held
         self.planned = self.command = np.zeros((0, 4))
-        self.peak_bend_mm = 0.0
 
     @property
     def end(self) -> int:
@@ -471,11 +437,7 @@ class SampleWindow:
             command.append(c)
             end += len(c)
         if len(command) > 1:
-            added = end - self.end
             self.planned, self.command = np.concatenate(planned), np.concatenate(command)
-            new = self.command[max(len(self.command) - added - 2, 0):, :3]
-            if len(new) > 2:
-                self.peak_bend_mm = max(self.peak_bend_mm, float(np.linalg.norm(np.diff(new, 2, axis=0), axis=1).max()))
 
     def release(self, first: int) -> None:
         """Rows before sample ``first`` are no longer needed."""
@@ -506,13 +468,12 @@ class SampleWindow:
         return below * (1.0 - w) + above * w  # (np.take gathers rows a few times faster than indexing)
 
 
-def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions, out,
-                  accelerations: ProgramAccelerations | None = None) -> WriteStats:
-    """Write the output program to the binary stream ``out`` (seekable: the acceleration raise
-    is written before the command it depends on is known, and filled in at the end). The
-    program's blocks come from ``plan`` as it settles them; ``accelerations`` watches them (the
-    raise is at least their highest, and the program's own limits are restored after the last
-    run).
+def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions, out) -> WriteStats:
+    """Write the output program to the binary stream ``out``. The program's blocks come from
+    ``plan`` as it settles them. With ``options.firmware``, the firmware is made transparent
+    before the written blocks and given back the program's settings (as its copied lines change
+    them) before every copied line that may move the machine and after the last run
+    (``transparency``).
     """
     refusal = format_refusal(options.flavor, options.output_format)
     if refusal:
@@ -520,15 +481,13 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
     stats = WriteStats()
     fs = plan.sample_rate_hz
     comment = ("(", ")") if options.flavor == "linuxcnc" else ("; ", "")
-    raise_at, raise_width = [], 0  # offsets of the raise lines in out; the width of their value
+    settings = None if options.firmware is None else Transparency(options.flavor, options.firmware, options.tolerance_mm)
 
     def runs_from(r: int) -> bool:
         """Whether the program has a run r (or later)."""
         plan.wait(lambda: len(plan.runs) > r or plan.done)
         return len(plan.runs) > r
 
-    if options.raise_acceleration_mm_s2 and acceleration_line(options.flavor, 0.0) is not None and runs_from(0):
-        raise_width = len(_fmt(options.raise_acceleration_mm_s2, 0))
     follows_plan = samples.follows_plan
     min_samples = max(1, int(np.ceil(options.min_segment_time_s * fs - 1e-9)))
     copied_sample = -1  # of the last copied line
@@ -550,13 +509,6 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
 
     def emit(*lines: str) -> None:
         emit_text(b"".join(x.encode() + newline for x in lines), len(lines))
-
-    def emit_raise() -> None:
-        nonlocal unterminated
-        out.write(newline if unterminated else b"")
-        unterminated = False
-        raise_at.append(out.tell())
-        emit(acceleration_line(options.flavor, options.raise_acceleration_mm_s2, width=raise_width))
 
     def block_ends(first: int, start_s: float, stop_s: float, soft: bool = False):
         """The current run's block ends after ``start_s`` up to ``stop_s`` (s), and their curves, in
@@ -634,6 +586,8 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
                 # the run's first sample (planner): it takes up the difference.
                 from_s = start_s if written_until_s >= first / fs else min(written_until_s + dwelt_s, start_s)
                 for ends, curves in block_ends(first, start_s, stop_s, soft):
+                    if settings is not None:
+                        emit(*settings.apply(written_until_s <= first / fs, emitter.modal))  # (at a run's start: at rest)
                     targets = samples.at(ends, fs)
                     if ends[-1] == t_end_s and not soft:
                         exact = np.where(np.isnan(end_exact_mm), samples.at(ends[-1:], fs, planned=True)[0], end_exact_mm)
@@ -648,28 +602,29 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
                 return
             run_index += 1
             run_breaks = run_g5 = None
-            if raise_width and accelerations and not runs_from(run_index):
-                emit(acceleration_line(options.flavor, *accelerations.final))  # as the program left it
+            if settings is not None and not runs_from(run_index):
+                emit(*settings.restore())  # the program's own, as it left them
 
     header_done = False
-    previous_modal = Modal()
+    previous_modal, previous_mm = Modal(), np.full(4, np.nan)
     for block, line_time_s, is_stop in plan.blocks():
         if emitter is None:
             newline = b"\r\n" if block.raw.endswith(b"\r\n") else b"\n"  # (only the last line has no ending)
             emitter = _Emitter(samples.rows(0, 1)[0], newline)
         if not header_done and _is_code(block):
-            emit(*(f"{comment[0]}{text}{comment[1]}" for text in options.header))
-            if raise_width:
-                emit_raise()
+            notes = settings.header() if settings is not None and runs_from(0) else []
+            emit(*(f"{comment[0]}{text}{comment[1]}" for text in options.header + tuple(notes)))
             header_done = True
         if block.kind is Kind.MOVE:
-            previous_modal = block.modal
+            previous_modal, previous_mm = block.modal, block.position_mm
             # the next copied line runs at or after the sample nearest the end of this motion
             motion_until(line_time_s - 1.0 / fs, soft=True)
             continue
         copied_sample = _copied_sample(line_time_s, is_stop, fs, copied_sample)
         t = copied_sample / fs
         motion_until(t, block.position_mm)
+        if settings is not None and is_stop and _may_move(previous_mm, block.position_mm):
+            emit(*settings.restore())  # a move fbspost copies runs under the program's own settings
         reached = samples.at(np.array([t]), fs, planned=True)[0]  # where the program is: the plan where the line does not say
         reached = np.where(np.isnan(block.position_mm), reached, block.position_mm)
         commanded = samples.at(np.array([t]), fs)[0]
@@ -682,23 +637,14 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
         emitter.passthrough(block, commanded, reached)
         if is_stop:
             dwelt_s += block.dwell_s
-        previous_modal = block.modal
-        if block.limits is not None and raise_width and runs_from(run_index):
-            emit_raise()  # the program set the controller's limit: the command still needs ours
+        previous_modal, previous_mm = block.modal, block.position_mm
+        if settings is not None:
+            settings.note(block)  # the program's settings, and whether the firmware still has ours
     if emitter is None:
         emitter = _Emitter(np.zeros(4), newline)
     samples.ensure(samples.n_samples)
     motion_until(np.inf, samples.planned[-1])
     emit(*mode_lines(options.flavor, emitter.modal, previous_modal))
-    if raise_at:  # now that the whole command is known: what it needs, at least the planner's, at most the profile's
-        floor, ceiling = accelerations.highest if accelerations else 0.0, options.raise_acceleration_mm_s2
-        needed = float(np.ceil(min(max(samples.peak_bend_mm * fs * fs, floor), ceiling)))
-        line = acceleration_line(options.flavor, needed, width=raise_width).encode()
-        end = out.tell()
-        for offset in raise_at:
-            out.seek(offset)
-            out.write(line)
-        out.seek(end)
     return stats
 
 
@@ -714,6 +660,13 @@ def _copied_sample(line_time_s: float, is_stop: bool, fs: float, previous: int) 
     time rounded up (rounded to the nearest, the rest of the run would come after the line).
     Lines run in order."""
     return max(math.ceil(line_time_s * fs) if is_stop else round(line_time_s * fs), previous)
+
+
+def _may_move(before_mm: np.ndarray, after_mm: np.ndarray) -> bool:
+    """Whether a line at rest that took the machine from ``before_mm`` to ``after_mm`` (NaN:
+    unknown) may have moved X, Y or Z: a copied move, homing, a macro."""
+    before, after = before_mm[:3], after_mm[:3]
+    return bool(np.any(np.isnan(before) | np.isnan(after) | (before != after)))
 
 
 def _is_code(block: Block) -> bool:

@@ -207,9 +207,9 @@ def execute(path, sample_rate_hz: float = 10000.0, dwell_p_seconds: bool = False
     return run
 
 
-# What fbspost adds to a program: its header, the controller's acceleration, mode lines.
-INSERTED = (b"; fbspost", b"M204", b"SET_VELOCITY_LIMIT", b"G90", b"G91", b"M82", b"M83", b"G20", b"G21",
-            b"G17", b"G18", b"G19")
+# What fbspost adds to a program: its header, the firmware's settings (transparency), mode lines.
+INSERTED = (b"; fbspost", b"(fbspost", b"M201", b"M204", b"M205", b"M566", b"M593", b"SET_VELOCITY_LIMIT",
+            b"SET_INPUT_SHAPER", b"G64", b"G61", b"G90", b"G91", b"M82", b"M83", b"G20", b"G21", b"G17", b"G18", b"G19")
 
 
 def kept_lines(original: list[bytes], output: list[bytes]) -> list[int]:

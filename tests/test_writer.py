@@ -66,10 +66,11 @@ def test_lines_and_extrusion_exact(tmp_path, e_relative, xyz_relative, inches, n
     # The last motion ends exactly where the original's does.
     assert np.allclose(compensated.ends[-1][1:4], original.ends[-1][1:4], atol=1e-9)
     out = target.read_bytes()
-    # The program's last line, then only the controller's acceleration as the program left it.
+    # The program's last line, then only the firmware's settings as the program left them
+    # (Marlin's: the profile's planner acceleration and corner speed as jerk, its default 20 ms).
     tail = out[out.rindex(b"M107"):]
     assert tail in (b"M107" + (newline.encode() if final_newline else b""),
-                    b"M107" + newline.encode() + b"M204 P3000 T3000" + newline.encode())
+                    newline.encode().join([b"M107", b"M204 P3000 T3000", b"M205 B20000 X5 Y5", b""]))
     if newline == "\r\n":
         assert out.count(b"\n") == out.count(b"\r\n")
 
@@ -168,14 +169,6 @@ def test_breakpoints_keep_chords_within_tolerance():
         chord = command[a] + frac * (command[b] - command[a])
         if b - a > 2:
             assert np.linalg.norm(command[a:b + 1] - chord, axis=1).max() <= 1e-3
-
-
-def test_acceleration_lines_keep_whole_numbers():
-    from fbspost.writer import acceleration_line
-
-    assert acceleration_line("marlin", 3000.0, 1500.0) == "M204 P3000 T1500"
-    assert acceleration_line("klipper", 10000.0) == "SET_VELOCITY_LIMIT ACCEL=10000"
-    assert acceleration_line("linuxcnc", 3000.0) is None
 
 
 @pytest.mark.parametrize("digits", [(4, 4, 4, 5, 3), (5, 5, 5, 6, 3), (3,) * 5, (6,) * 5, (7,) * 5])
