@@ -32,7 +32,7 @@ import numpy as np
 from scipy import ndimage, optimize, signal
 
 from .dynamics import modal_response
-from .profile import AxisProfile, MachineProfile, Mode, format_profile, parse_profile
+from .profile import AxisProfile, FirmwareProfile, MachineProfile, Mode, format_profile, parse_profile
 from .trajectory import InputError
 
 try:
@@ -551,7 +551,7 @@ def profile_with_axes(base: MachineProfile | None, axes_modes: dict[str, tuple[M
         pick("sample_rate", base and base.sample_rate_hz),
         pick("planner_acceleration", base and base.planner_acceleration_mm_s2),
         pick("square_corner_velocity", base and base.planner_square_corner_velocity_mm_s),
-        axes)
+        axes, base.firmware if base else FirmwareProfile())
 
 
 def profile_text(profile: MachineProfile, path: str | Path) -> str:

@@ -1,8 +1,8 @@
 """Machine profiles: read and validate a TOML profile, list the bundled ones, write one.
 
 Takes a bundled profile name or a path to a ``.toml`` file; gives a ``MachineProfile`` with the
-sample rate, the planner settings and, per compensated axis, its kinematic limits and modal
-dynamics. The modal residues are rescaled so every axis has a DC gain of exactly 1 (a
+sample rate, the planner settings, the firmware's own limits (``[firmware]``, optional: Klipper's
+defaults when absent) and, per compensated axis, its kinematic limits and modal dynamics. The modal residues are rescaled so every axis has a DC gain of exactly 1 (a
 position-controlled axis holds a constant command exactly).
 
 Errors are raised as ``ProfileError`` with a one-line message naming the file and the key.
@@ -10,7 +10,7 @@ Errors are raised as ``ProfileError`` with a one-line message naming the file an
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
@@ -50,6 +50,31 @@ class AxisProfile:
 
 
 @dataclass(frozen=True)
+class FirmwareProfile:
+    """What the machine's firmware does with the blocks it is sent (``[firmware]``). Klipper's
+    names and defaults (klippy/toolhead.py, kinematics/extruder.py) where it has the setting."""
+
+    steps_per_mm: dict[str, float] = field(default_factory=dict)  # per axis; an axis not given: unknown
+    block_buffer: int = 16  # Marlin BLOCK_BUFFER_SIZE: look-ahead over this many blocks
+    max_line_rate_hz: float | None = None  # most lines per second the machine takes (None: no limit)
+    max_velocity_mm_s: float | None = None  # Klipper max_velocity (None: the slower of X and Y's max_velocity)
+    minimum_cruise_ratio: float = 0.5  # Klipper >= 2024: accel_to_decel = accel * (1 - ratio)
+    max_accel_to_decel_mm_s2: float | None = None  # klippy before 2024 (fixed, min'd with accel): replaces the ratio
+    instantaneous_corner_velocity_mm_s: float = 1.0  # the extruder's speed change allowed at a junction
+    max_extrude_only_velocity_mm_s: float | None = None  # None: Klipper's max_velocity * extrude ratio
+    max_extrude_only_accel_mm_s2: float | None = None  # None: Klipper's max_accel * extrude ratio
+    filament_diameter_mm: float = 1.75
+    nozzle_diameter_mm: float = 0.4
+    min_segment_time_s: float = 0.02  # Marlin MIN_SEGMENT_TIME (M205 B) while the buffer is under half full
+    min_steps_per_segment: int = 6  # Marlin MIN_STEPS_PER_SEGMENT: shorter blocks are merged with the next
+
+    @property
+    def extrude_ratio(self) -> float:
+        """Klipper's def_max_extrude_ratio: filament mm per mm of path at 4 nozzle^2 cross-section."""
+        return 4.0 * self.nozzle_diameter_mm**2 / (math.pi * (0.5 * self.filament_diameter_mm) ** 2)
+
+
+@dataclass(frozen=True)
 class MachineProfile:
     name: str
     description: str
@@ -58,13 +83,47 @@ class MachineProfile:
     planner_acceleration_mm_s2: float
     planner_square_corner_velocity_mm_s: float
     axes: dict[str, AxisProfile]
+    firmware: FirmwareProfile = field(default_factory=FirmwareProfile)
+
+    @property
+    def toolhead_max_velocity_mm_s(self) -> float:
+        """Klipper's max_velocity: the firmware table's, else the slower of X and Y (inf: neither)."""
+        if self.firmware.max_velocity_mm_s is not None:
+            return self.firmware.max_velocity_mm_s
+        return min((self.axes[a].max_velocity_mm_s for a in "XY" if a in self.axes), default=math.inf)
+
+    @property
+    def extrude_only_velocity_mm_s(self) -> float:
+        """max_extrude_only_velocity: the table's, else Klipper's default max_velocity * ratio."""
+        fw = self.firmware
+        if fw.max_extrude_only_velocity_mm_s is not None:
+            return fw.max_extrude_only_velocity_mm_s
+        return self.toolhead_max_velocity_mm_s * fw.extrude_ratio
+
+    @property
+    def extrude_only_accel_mm_s2(self) -> float:
+        """max_extrude_only_accel: the table's, else Klipper's default max_accel * ratio."""
+        fw = self.firmware
+        if fw.max_extrude_only_accel_mm_s2 is not None:
+            return fw.max_extrude_only_accel_mm_s2
+        return self.planner_acceleration_mm_s2 * fw.extrude_ratio
 
 
-_TOP_KEYS = {"name", "description", "motion", "planner", "axes"}
+_TOP_KEYS = {"name", "description", "motion", "planner", "firmware", "axes"}
 _MOTION_KEYS = {"sample_rate"}
 _PLANNER_KEYS = {"acceleration", "square_corner_velocity"}
 _AXIS_KEYS = {"max_velocity", "max_acceleration", "max_jerk", "modes"}
 _MODE_KEYS = {"frequency", "damping", "alpha", "beta"}
+# [firmware] key -> FirmwareProfile field, for the optional positive numbers
+_FIRMWARE_NUMBERS = {
+    "max_line_rate": "max_line_rate_hz", "max_velocity": "max_velocity_mm_s",
+    "max_accel_to_decel": "max_accel_to_decel_mm_s2",
+    "max_extrude_only_velocity": "max_extrude_only_velocity_mm_s",
+    "max_extrude_only_accel": "max_extrude_only_accel_mm_s2",
+    "filament_diameter": "filament_diameter_mm", "nozzle_diameter": "nozzle_diameter_mm",
+}
+_FIRMWARE_KEYS = {*_FIRMWARE_NUMBERS, "steps_per_mm", "block_buffer", "minimum_cruise_ratio",
+                  "instantaneous_corner_velocity", "min_segment_time", "min_steps_per_segment"}
 
 
 def bundled_profiles() -> dict[str, Path]:
@@ -179,7 +238,49 @@ def parse_profile(data: dict, source: str) -> MachineProfile:
             modes = [Mode(m.frequency_hz, m.damping, m.alpha / dc_gain, m.beta / dc_gain) for m in modes]
         axes[axis_name] = AxisProfile(axis_name, max_velocity, max_acceleration, max_jerk, tuple(modes))
 
-    return MachineProfile(name.strip(), description, source, sample_rate, acceleration, scv, axes)
+    firmware = FirmwareProfile()
+    if "firmware" in data:
+        firmware = _parse_firmware(table(data, "firmware", "firmware", _FIRMWARE_KEYS), fail, number)
+    return MachineProfile(name.strip(), description, source, sample_rate, acceleration, scv, axes, firmware)
+
+
+def _parse_firmware(raw: dict, fail, number) -> FirmwareProfile:
+    """The ``[firmware]`` table (``fail`` and ``number`` as in ``parse_profile``)."""
+
+    def integer(key: str, default: int) -> int:
+        value = raw.get(key, default)
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise fail(f"firmware.{key}", f"must be a whole number >= 1, got {value!r}")
+        return value
+
+    values = {attr: number(raw, key, f"firmware.{key}", positive=True, optional=True)
+              for key, attr in _FIRMWARE_NUMBERS.items()}
+    values = {attr: value for attr, value in values.items() if value is not None}
+    if "minimum_cruise_ratio" in raw and "max_accel_to_decel" in raw:
+        raise fail("firmware.max_accel_to_decel", "give minimum_cruise_ratio or max_accel_to_decel, not both")
+    ratio = number(raw, "minimum_cruise_ratio", "firmware.minimum_cruise_ratio", optional=True)
+    if ratio is not None and not 0 <= ratio < 1:
+        raise fail("firmware.minimum_cruise_ratio", f"must be in [0, 1), got {ratio!r}")
+    corner = number(raw, "instantaneous_corner_velocity", "firmware.instantaneous_corner_velocity", optional=True)
+    if corner is not None and corner < 0:
+        raise fail("firmware.instantaneous_corner_velocity", f"must be >= 0, got {corner!r}")
+    segment_time = number(raw, "min_segment_time", "firmware.min_segment_time", optional=True)
+    if segment_time is not None and segment_time < 0:
+        raise fail("firmware.min_segment_time", f"must be >= 0, got {segment_time!r}")
+    if values.get("filament_diameter_mm", 1.75) < values.get("nozzle_diameter_mm", 0.4):
+        raise fail("firmware.filament_diameter", "must be >= nozzle_diameter (as Klipper requires)")
+    steps = raw.get("steps_per_mm", {})
+    if not isinstance(steps, dict):
+        raise fail("firmware.steps_per_mm", "must be a table of axis = steps per mm")
+    for axis in steps:
+        if axis not in AXIS_NAMES:
+            raise fail(f"firmware.steps_per_mm.{axis}", f"unknown axis (expected one of {', '.join(AXIS_NAMES)})")
+    steps = {axis: number(steps, axis, f"firmware.steps_per_mm.{axis}", positive=True) for axis in steps}
+    optional = {"minimum_cruise_ratio": ratio, "instantaneous_corner_velocity_mm_s": corner,
+                "min_segment_time_s": segment_time}
+    values.update({attr: value for attr, value in optional.items() if value is not None})
+    return FirmwareProfile(steps_per_mm=steps, block_buffer=integer("block_buffer", 16),
+                           min_steps_per_segment=integer("min_steps_per_segment", 6), **values)
 
 
 def format_profile(profile: MachineProfile) -> str:
@@ -199,6 +300,7 @@ def format_profile(profile: MachineProfile) -> str:
              "[motion]", f"sample_rate = {number(profile.sample_rate_hz)}", "",
              "[planner]", f"acceleration = {number(profile.planner_acceleration_mm_s2)}",
              f"square_corner_velocity = {number(profile.planner_square_corner_velocity_mm_s)}"]
+    lines += _format_firmware(profile.firmware, number)
     for name, axis in profile.axes.items():
         lines += ["", f"[axes.{name}]", f"max_velocity = {number(axis.max_velocity_mm_s)}",
                   f"max_acceleration = {number(axis.max_acceleration_mm_s2)}"]
@@ -208,3 +310,21 @@ def format_profile(profile: MachineProfile) -> str:
                  f"alpha = {number(m.alpha)}, beta = {number(m.beta)} }}," for m in axis.modes]
         lines += ["modes = [", *modes, "]"] if modes else ["modes = []"]
     return "\n".join(lines) + "\n"
+
+
+def _format_firmware(firmware: FirmwareProfile, number) -> list[str]:
+    """The ``[firmware]`` lines of ``format_profile`` (none when every value is the default)."""
+    if firmware == FirmwareProfile():
+        return []
+    lines = ["", "[firmware]"]
+    if firmware.steps_per_mm:
+        steps = ", ".join(f"{axis} = {number(value)}" for axis, value in firmware.steps_per_mm.items())
+        lines.append(f"steps_per_mm = {{ {steps} }}")
+    lines += [f"block_buffer = {firmware.block_buffer}", f"min_steps_per_segment = {firmware.min_steps_per_segment}"]
+    values = {"minimum_cruise_ratio": firmware.minimum_cruise_ratio,
+              "instantaneous_corner_velocity": firmware.instantaneous_corner_velocity_mm_s,
+              "min_segment_time": firmware.min_segment_time_s,
+              **{key: getattr(firmware, attr) for key, attr in _FIRMWARE_NUMBERS.items()}}
+    if firmware.max_accel_to_decel_mm_s2 is not None:
+        del values["minimum_cruise_ratio"]
+    return lines + [f"{key} = {number(value)}" for key, value in values.items() if value is not None]

@@ -274,3 +274,82 @@ def test_bundled_name_wins_over_a_directory_of_that_name(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     (tmp_path / "patent-xy-stage").mkdir()
     assert load_profile("patent-xy-stage").name == "patent-xy-stage"
+
+
+# ---------------------------------------------------------------------------------------------
+# The [firmware] table
+
+FIRMWARE = """
+[firmware]
+steps_per_mm = { X = 80.0, Y = 80.0, E = 415.0 }
+block_buffer = 16
+max_line_rate = 300.0
+minimum_cruise_ratio = 0.5
+instantaneous_corner_velocity = 1.0
+filament_diameter = 1.75
+nozzle_diameter = 0.4
+"""
+FIRMWARE_BROKEN = [
+    ("unknown-key", "block_buffer = 16", "block_buffer = 16\nbuffer = 3", "firmware.buffer"),
+    ("buffer-zero", "block_buffer = 16", "block_buffer = 0", "firmware.block_buffer"),
+    ("buffer-float", "block_buffer = 16", "block_buffer = 16.5", "firmware.block_buffer"),
+    ("rate-negative", "max_line_rate = 300.0", "max_line_rate = -1.0", "firmware.max_line_rate"),
+    ("ratio-one", "minimum_cruise_ratio = 0.5", "minimum_cruise_ratio = 1.0", "firmware.minimum_cruise_ratio"),
+    ("ratio-and-decel", "minimum_cruise_ratio = 0.5", "minimum_cruise_ratio = 0.5\nmax_accel_to_decel = 1500.0",
+     "firmware.max_accel_to_decel"),
+    ("steps-axis", "E = 415.0", "Q = 415.0", "firmware.steps_per_mm.Q"),
+    ("steps-zero", "E = 415.0", "E = 0.0", "firmware.steps_per_mm.E"),
+    ("steps-not-table", "steps_per_mm = { X = 80.0, Y = 80.0, E = 415.0 }", "steps_per_mm = 80.0",
+     "firmware.steps_per_mm"),
+    ("icv-negative", "instantaneous_corner_velocity = 1.0", "instantaneous_corner_velocity = -1.0",
+     "firmware.instantaneous_corner_velocity"),
+    ("filament-below-nozzle", "filament_diameter = 1.75", "filament_diameter = 0.3", "firmware.filament_diameter"),
+]
+
+
+@pytest.mark.parametrize("name", BUNDLED)
+def test_bundled_firmware_matches_toml_text(name):
+    """Every [firmware] value of a bundled profile is the number in its file."""
+    raw = raw_toml(name)["firmware"]
+    fw = load_profile(name).firmware
+    assert fw.steps_per_mm == raw["steps_per_mm"]
+    assert fw.block_buffer == raw["block_buffer"]
+    assert fw.max_line_rate_hz == raw["max_line_rate"]
+    assert fw.minimum_cruise_ratio == raw.get("minimum_cruise_ratio", 0.5)
+
+
+def test_firmware_defaults_are_klippers(tmp_path):
+    """Without [firmware]: Klipper's defaults (minimum_cruise_ratio 0.5, instantaneous_corner_velocity
+    1, 1.75 mm filament, 0.4 mm nozzle) and its derived extrude-only limits, in closed form:
+    max_accel * 4 nozzle^2 / (pi (filament / 2)^2) = 3000 * 0.64 / (pi 0.875^2) = 798.24 mm/s^2
+    (the figure issue 14 read from klippy), max_velocity the slower of X (300) and Y (200)."""
+    profile = load_profile(write(tmp_path, BASE))
+    fw = profile.firmware
+    assert (fw.minimum_cruise_ratio, fw.instantaneous_corner_velocity_mm_s, fw.block_buffer) == (0.5, 1.0, 16)
+    assert fw.max_line_rate_hz is None and fw.steps_per_mm == {}
+    ratio = 0.64 / (math.pi * 0.875**2)
+    assert profile.extrude_only_accel_mm_s2 == pytest.approx(3000.0 * ratio, rel=1e-15)
+    assert round(profile.extrude_only_accel_mm_s2, 2) == 798.24
+    assert profile.toolhead_max_velocity_mm_s == 200.0
+    assert profile.extrude_only_velocity_mm_s == pytest.approx(200.0 * ratio, rel=1e-15)
+
+
+def test_firmware_explicit_limits(tmp_path):
+    """Given extrude-only limits and max_velocity are used as written; max_accel_to_decel replaces the ratio."""
+    text = BASE + FIRMWARE.replace("minimum_cruise_ratio = 0.5", "max_accel_to_decel = 1500.0") + (
+        "max_velocity = 250.0\nmax_extrude_only_velocity = 40.0\nmax_extrude_only_accel = 1200.0\n")
+    profile = load_profile(write(tmp_path, text))
+    assert profile.firmware.max_accel_to_decel_mm_s2 == 1500.0
+    assert profile.toolhead_max_velocity_mm_s == 250.0
+    assert (profile.extrude_only_velocity_mm_s, profile.extrude_only_accel_mm_s2) == (40.0, 1200.0)
+    assert profile.firmware.steps_per_mm == {"X": 80.0, "Y": 80.0, "E": 415.0}
+
+
+@pytest.mark.parametrize("old,new,key", [c[1:] for c in FIRMWARE_BROKEN], ids=[c[0] for c in FIRMWARE_BROKEN])
+def test_broken_firmware_raises_profile_error(tmp_path, old, new, key):
+    """Each broken [firmware] variant raises ProfileError, one line, naming the file and the key."""
+    assert FIRMWARE.count(old) == 1
+    path = write(tmp_path, BASE + FIRMWARE.replace(old, new))
+    with pytest.raises(ProfileError) as info:
+        load_profile(path)
+    assert_one_line_naming(str(info.value), path, key)
