@@ -110,8 +110,7 @@ def compensate_file(input_path: str | Path, output_path: str | Path, profile: Ma
         header=(f"fbspost {__version__}: filtered B-spline compensation for machine profile {profile.name}",
                 f"fbspost settings: format {options.output_format}, tolerance {options.tolerance_mm:g} mm, "
                 f"minimum segment {options.min_segment_time_s * 1e3:g} ms, flavor {flavor}, {options.lookahead} look-ahead"),
-        firmware=FirmwareSettings(profile.planner_acceleration_mm_s2,
-                                  square_corner_velocity_mm_s=profile.planner_square_corner_velocity_mm_s))
+        firmware=FirmwareSettings.from_profile(profile))
     stats = []
     clock = time.perf_counter()
     atomic_write(output_path, lambda f: stats.append(write_program(

@@ -27,6 +27,7 @@ import re
 from dataclasses import dataclass, field, replace
 
 from .gcode import Block, Modal, PlannerLimits
+from .profile import MachineProfile
 
 KLIPPER_ACCEL_MM_S2 = 1e7
 KLIPPER_SCV_MM_S = 1e4
@@ -45,11 +46,21 @@ class FirmwareSettings:
     travel_acceleration_mm_s2: float | None = None  # Marlin, RRF: M204 T
     square_corner_velocity_mm_s: float | None = None  # Klipper; classic jerk (M205 X Y, M566)
     minimum_cruise_ratio: float | None = None  # Klipper
+    max_accel_to_decel_mm_s2: float | None = None  # klippy before 2024, where the profile says so
     junction_deviation_mm: float | None = None  # Marlin M205 J
     min_segment_time_us: float | None = None  # Marlin M205 B
     axis_max_acceleration_mm_s2: dict[str, float] = field(default_factory=dict)  # M201
     shaper_frequency_hz: dict[str, float] = field(default_factory=dict)  # input shaping per axis
     blend_words: str = "G64"  # LinuxCNC: the program's blending mode, as it wrote it
+
+    @classmethod
+    def from_profile(cls, profile: MachineProfile) -> FirmwareSettings:
+        """What the firmware is configured with, as far as the profile tells."""
+        fw = profile.firmware
+        return cls(profile.planner_acceleration_mm_s2,
+                   square_corner_velocity_mm_s=profile.planner_square_corner_velocity_mm_s,
+                   minimum_cruise_ratio=fw.minimum_cruise_ratio, max_accel_to_decel_mm_s2=fw.max_accel_to_decel_mm_s2,
+                   min_segment_time_us=fw.min_segment_time_s * 1e6, shaper_frequency_hz=dict(fw.shaper_frequency_hz))
 
     def changed(self, limits: PlannerLimits) -> FirmwareSettings:
         """These settings after a program line that changes ``limits``."""
@@ -131,8 +142,8 @@ class Transparency:
 
 def _transparent_limits(flavor: str, tolerance: float) -> list[str]:
     if flavor == "klipper":
-        return [f"SET_VELOCITY_LIMIT ACCEL={_num(KLIPPER_ACCEL_MM_S2)} MINIMUM_CRUISE_RATIO=0 "
-                f"SQUARE_CORNER_VELOCITY={_num(KLIPPER_SCV_MM_S)}"]
+        return [f"SET_VELOCITY_LIMIT ACCEL={_num(KLIPPER_ACCEL_MM_S2)} ACCEL_TO_DECEL={_num(KLIPPER_ACCEL_MM_S2)} "
+                f"MINIMUM_CRUISE_RATIO=0 SQUARE_CORNER_VELOCITY={_num(KLIPPER_SCV_MM_S)}"]
     accel = _num(STEPPED_ACCEL_MM_S2)
     if flavor == "marlin":
         return [f"M201 X{accel} Y{accel}", f"M204 P{accel} T{accel}",
@@ -154,7 +165,15 @@ def _program_limits(flavor: str, program: FirmwareSettings) -> list[str]:
     m201 = " ".join(f"{a}{_num(axes[a])}" for a in "XY" if a in axes)
     lines = [f"M201 {m201}"] if m201 and flavor in ("marlin", "reprap") else []
     if flavor == "klipper":
-        words = [f"ACCEL={accel}", f"MINIMUM_CRUISE_RATIO={_num(_first(program.minimum_cruise_ratio, 0.5), 3)}"]
+        # Klipper >= 2024 reads MINIMUM_CRUISE_RATIO (and ignores ACCEL_TO_DECEL then), klippy before reads
+        # ACCEL_TO_DECEL only: both, each as the profile's firmware has it
+        to_decel = program.max_accel_to_decel_mm_s2
+        if to_decel is None:
+            ratio = _first(program.minimum_cruise_ratio, 0.5)
+            to_decel = program.acceleration_mm_s2 * (1.0 - ratio)
+        else:
+            ratio = 1.0 - min(1.0, to_decel / program.acceleration_mm_s2)
+        words = [f"ACCEL={accel}", f"ACCEL_TO_DECEL={_num(to_decel, 3)}", f"MINIMUM_CRUISE_RATIO={_num(ratio, 3)}"]
         if scv is not None:
             words.append(f"SQUARE_CORNER_VELOCITY={_num(scv, 3)}")
         return [f"SET_VELOCITY_LIMIT {' '.join(words)}"]

@@ -16,7 +16,8 @@ from fbspost.writer import _Emitter
 PRINTER = load_profile("printer-two-mode")
 
 TRANSPARENT = {
-    "klipper": ["SET_VELOCITY_LIMIT ACCEL=10000000 MINIMUM_CRUISE_RATIO=0 SQUARE_CORNER_VELOCITY=10000"],
+    "klipper": ["SET_VELOCITY_LIMIT ACCEL=10000000 ACCEL_TO_DECEL=10000000 MINIMUM_CRUISE_RATIO=0 "
+                "SQUARE_CORNER_VELOCITY=10000"],
     "marlin": ["M201 X1000000 Y1000000", "M204 P1000000 T1000000", "M205 B0 J0.3 X1000 Y1000"],
     "reprap": ["M201 X1000000 Y1000000", "M204 P1000000 T1000000", "M566 X60000 Y60000"],
     "linuxcnc": ["G64 P0.001 Q0"],
@@ -43,7 +44,7 @@ def test_lines_per_flavor(flavor):
                                      axis_max_acceleration_mm_s2={"X": 4000.0}), b"G61\n"))
     assert t.apply(False, Modal()) == TRANSPARENT[flavor]
     restored = {
-        "klipper": ["SET_VELOCITY_LIMIT ACCEL=1500 MINIMUM_CRUISE_RATIO=0.4 SQUARE_CORNER_VELOCITY=5",
+        "klipper": ["SET_VELOCITY_LIMIT ACCEL=1500 ACCEL_TO_DECEL=900 MINIMUM_CRUISE_RATIO=0.4 SQUARE_CORNER_VELOCITY=5",
                     "SET_INPUT_SHAPER SHAPER_FREQ_X=52 SHAPER_FREQ_Y=34.5"],
         "marlin": ["M201 X4000", "M204 P1500 T2500", "M205 B20000 J0.02 X5 Y5", "M593 X F52", "M593 Y F34.5"],
         "reprap": ["M201 X4000", "M204 P1500 T2500", "M566 X300 Y300"],  # (its shaper type is not known)
