@@ -37,7 +37,8 @@ the first 2000 and last 300 lines. How lines are read:
   M201 and M203 per axis (M203 in mm/min in RRF); M205 J; classic jerk M205 X/Y (and RRF M566,
   mm/min) becomes square_corner_velocity = min(X, Y): at a 90 degree corner each axis changes
   speed by the corner speed, so a jerk limit J allows a corner speed J, the meaning of Klipper's
-  square corner velocity; SET_VELOCITY_LIMIT VELOCITY ACCEL SQUARE_CORNER_VELOCITY.
+  square corner velocity; SET_VELOCITY_LIMIT VELOCITY ACCEL SQUARE_CORNER_VELOCITY
+  MINIMUM_CRUISE_RATIO ACCEL_TO_DECEL.
 - Errors: cutter compensation, rotation, scaling, canned cycles, inverse-time or per-revolution
   feed, A B C U V W moves, O-word subroutines and control flow, missing or non-numeric values,
   arcs without a radius or with R shorter than half the chord, feeds <= 0.
@@ -74,6 +75,8 @@ class PlannerLimits:
     max_velocity_mm_s: float | None = None  # Klipper VELOCITY
     square_corner_velocity_mm_s: float | None = None  # Klipper SQUARE_CORNER_VELOCITY
     junction_deviation_mm: float | None = None  # Marlin M205 J
+    minimum_cruise_ratio: float | None = None  # Klipper SET_VELOCITY_LIMIT MINIMUM_CRUISE_RATIO
+    accel_to_decel_mm_s2: float | None = None  # Klipper SET_VELOCITY_LIMIT ACCEL_TO_DECEL (before 2024)
     axis_max_velocity_mm_s: dict[str, float] = field(default_factory=dict)  # M203
     axis_max_acceleration_mm_s2: dict[str, float] = field(default_factory=dict)  # M201
 
@@ -399,11 +402,13 @@ class _Reader:
             values = {}
             for key, value in _EXT_PARAM.findall(code[len(name):]):
                 key = key.upper()
-                if key in ("VELOCITY", "ACCEL", "SQUARE_CORNER_VELOCITY"):
+                if key in ("VELOCITY", "ACCEL", "SQUARE_CORNER_VELOCITY", "MINIMUM_CRUISE_RATIO", "ACCEL_TO_DECEL"):
                     values[key] = self.number(n, key + "=", value.strip('"'))
             for key, value in values.items():
-                if value < 0 or (value == 0 and key != "SQUARE_CORNER_VELOCITY"):
+                if value < 0 or (value == 0 and key not in ("SQUARE_CORNER_VELOCITY", "MINIMUM_CRUISE_RATIO")):
                     raise self.error(n, f"{key}={value:g} must be positive")
+            if values.get("MINIMUM_CRUISE_RATIO", 0.0) >= 1.0:
+                raise self.error(n, f"MINIMUM_CRUISE_RATIO={values['MINIMUM_CRUISE_RATIO']:g} must be below 1")
             limits = None
             if values:
                 limits = PlannerLimits(
@@ -411,6 +416,8 @@ class _Reader:
                     travel_acceleration_mm_s2=values.get("ACCEL"),
                     max_velocity_mm_s=values.get("VELOCITY"),
                     square_corner_velocity_mm_s=values.get("SQUARE_CORNER_VELOCITY"),
+                    minimum_cruise_ratio=values.get("MINIMUM_CRUISE_RATIO"),
+                    accel_to_decel_mm_s2=values.get("ACCEL_TO_DECEL"),
                 )
             return self.block(n, raw, Kind.PASS, limits=limits)
         if name in _KLIPPER_PASS:

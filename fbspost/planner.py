@@ -61,6 +61,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .gcode import AXES, Block, Kind
+from . import klipper_rules
 from .profile import MachineProfile
 
 EXTRUDE_ONLY_MM = 1e-9  # Klipper: an XYZ length below this makes an extrude-only move
@@ -186,12 +187,20 @@ class Plan:
 class _LimitState:
     """The planner settings as the blocks change them; ``row()`` is one row of the state table:
     accel, travel accel (NaN: none), planner max velocity, junction deviation, axis max velocity
-    (4), axis max acceleration (4)."""
+    (4), axis max acceleration (4), accel_to_decel (Klipper's smoothing; accel elsewhere).
 
-    def __init__(self, profile: MachineProfile):
+    Klipper: max_velocity starts at the profile's toolhead max_velocity; accel_to_decel is
+    accel * (1 - minimum_cruise_ratio), or, with the profile's max_accel_to_decel (klippy before
+    2024), min(that, accel), SET_VELOCITY_LIMIT ACCEL_TO_DECEL changing it (MINIMUM_CRUISE_RATIO
+    unknown there); in the newer Klipper, ACCEL_TO_DECEL sets the ratio 1 - min(1, it / accel)."""
+
+    def __init__(self, profile: MachineProfile, klipper: bool = False):
         self.accel = float(profile.planner_acceleration_mm_s2)
         self.travel_accel = math.nan
-        self.max_velocity = math.inf
+        self.max_velocity = profile.toolhead_max_velocity_mm_s if klipper else math.inf
+        self.klipper = klipper
+        self.cruise_ratio = profile.firmware.minimum_cruise_ratio
+        self.accel_to_decel = profile.firmware.max_accel_to_decel_mm_s2  # None: the ratio rules
         self.scv = float(profile.planner_square_corner_velocity_mm_s)
         self.direct_jd: float | None = None  # Marlin M205 J, until a square corner velocity is set
         self.axis_v = np.full(_NA, math.inf)
@@ -216,8 +225,11 @@ class _LimitState:
         if limits.square_corner_velocity_mm_s is not None:
             self.scv = positive(limits.square_corner_velocity_mm_s, "square corner velocity", zero_ok=True)
             self.direct_jd = None
-        if limits.junction_deviation_mm is not None:
+        if limits.junction_deviation_mm is not None and not self.klipper:
             self.direct_jd = positive(limits.junction_deviation_mm, "junction deviation", zero_ok=True)
+        self._apply_smoothing(limits)
+        if self.klipper:  # Klipper knows no M201 / M203 / M205 J
+            return
         for name, value in limits.axis_max_velocity_mm_s.items():
             if name in AXES:
                 self.axis_v[AXES.index(name)] = positive(value, f"{name} max velocity")
@@ -225,11 +237,26 @@ class _LimitState:
             if name in AXES:
                 self.axis_a[AXES.index(name)] = positive(value, f"{name} max acceleration")
 
+    def _apply_smoothing(self, limits) -> None:
+        ratio, to_decel = limits.minimum_cruise_ratio, limits.accel_to_decel_mm_s2
+        if self.accel_to_decel is not None:  # klippy before 2024
+            self.accel_to_decel = to_decel if to_decel is not None else self.accel_to_decel
+        elif ratio is not None:
+            self.cruise_ratio = ratio
+        elif to_decel is not None:
+            self.cruise_ratio = 1.0 - min(1.0, to_decel / self.accel)
+
     def row(self) -> list[float]:
         jd = self.direct_jd
         if jd is None:  # Klipper's _calc_junction_deviation, with the accel in force
             jd = self.scv**2 * (math.sqrt(2.0) - 1.0) / self.accel
-        return [self.accel, self.travel_accel, self.max_velocity, jd, *self.axis_v, *self.axis_a]
+        if not self.klipper:
+            to_decel = self.accel
+        elif self.accel_to_decel is None:
+            to_decel = self.accel * (1.0 - self.cruise_ratio)
+        else:
+            to_decel = min(self.accel_to_decel, self.accel)
+        return [self.accel, self.travel_accel, self.max_velocity, jd, *self.axis_v, *self.axis_a, to_decel]
 
 
 # ---- the min-plus scans ----------------------------------------------------------------------
@@ -323,15 +350,17 @@ def fill_unknown(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return filled, never
 
 
-def plan_blocks(blocks: Iterable[Block], profile: MachineProfile, batch_blocks: int | None = None) -> Plan:
+def plan_blocks(blocks: Iterable[Block], profile: MachineProfile, batch_blocks: int | None = None,
+                firmware: str | None = None) -> Plan:
     """The whole plan of ``blocks`` on ``profile`` (see the module docstring), held in memory."""
-    stream = PlanStream(blocks, profile, batch_blocks, keep=True)
+    stream = PlanStream(blocks, profile, batch_blocks, keep=True, firmware=firmware)
     while stream.advance():
         pass
     return stream.whole()
 
 
-_PIECE_FIELDS = ("block", "run", "start", "end", "length", "extrude_only", "accel", "max_v", "delta_v2", "limit_v2")
+_PIECE_FIELDS = ("block", "run", "start", "end", "length", "extrude_only", "accel", "max_v", "delta_v2", "limit_v2",
+                 "smooth_delta_v2")
 
 
 class PlanStream:
@@ -341,15 +370,18 @@ class PlanStream:
     ([first, last] sample indices, last None while the run goes on), the samples below
     ``frontier`` (``samples``; ``release`` drops what is behind), the blocks with their times
     (``blocks``), and at the end (``done``) ``n_samples``, ``duration_s``, ``notes`` and
-    ``warnings``. ``keep`` holds everything for ``whole`` (``plan_blocks``)."""
+    ``warnings``. ``keep`` holds everything for ``whole`` (``plan_blocks``). ``firmware``
+    "klipper" plans with Klipper's rules (``klipper_rules``), anything else as above."""
 
     def __init__(self, blocks: Iterable[Block], profile: MachineProfile, batch_blocks: int | None = None,
-                 keep: bool = False):
+                 keep: bool = False, firmware: str | None = None):
         self.sample_rate_hz = self._fs = float(profile.sample_rate_hz)
         self._blocks_in = iter(blocks)
         self._batch = batch_blocks or BATCH_BLOCKS
         self._keep = keep
-        self._limits = _LimitState(profile)
+        self._klipper = firmware == "klipper"
+        self._rules = klipper_rules.constants(profile) if self._klipper else None
+        self._limits = _LimitState(profile, self._klipper)
         self._state_row = self._limits.row()
         # settled, for the consumers
         self.runs: list[list] = []
@@ -380,10 +412,14 @@ class PlanStream:
         self._stops = 0  # STOP blocks turned into waypoints
         self._pending = {name: None for name in _PIECE_FIELDS}  # pieces from _p0 on
         self._m = self._p0 = 0  # pieces made; settled
-        self._prev = None  # the last piece made (for the junction after it)
+        self._prev = None  # the last piece made: extrude-only, run (for the junction after it)
+        self._junction_prev = None  # its columns for the junction limits
         self._scan_s0 = 0  # the scans' first junction (a chunk start) ...
         self._scan_limit, self._scan_delta = np.zeros(0), np.zeros(0)  # ... its limits and deltas on
         self._scan_carry = math.inf  # the forward pass arriving at _scan_s0
+        self._scan_smooth = np.zeros(0)  # Klipper: the smoothed pass' deltas from _scan_s0 on ...
+        self._scan_smooth_carry = math.inf  # ... and its forward pass arriving at _scan_s0
+        self._peak_carry = 0.0  # Klipper: the cruise a decelerating run carries past the last settled piece
         # carried over settled pieces and blocks
         self._cum_dur = 0.0
         self._t0_max = -math.inf
@@ -551,7 +587,37 @@ class PlanStream:
         table = np.asarray([r[4] for r in moving])[group]
         feed = np.asarray([r[3] for r in moving])[group]
         accel_print, accel_travel, planner_v, jd = table[:, 0], table[:, 1], table[:, 2], table[:, 3]
-        axis_v, axis_a = table[:, 4:4 + _NA], table[:, 4 + _NA:]
+        axis_v, axis_a, to_decel = table[:, 4:4 + _NA], table[:, 4 + _NA:4 + 2 * _NA], table[:, -1]
+        if self._klipper:
+            limits = self._klipper_pieces(delta, length, extrude_only, feed, planner_v, accel_print, jd, to_decel)
+        else:
+            limits = self._axis_pieces(delta, length, extrude_only, feed, planner_v, accel_print, accel_travel, jd,
+                                       axis_v, axis_a)
+        max_v, accel, delta_v2, smooth_delta_v2, inner, clamped = limits
+        self._count_clamped(clamped, feed, max_v, piece_block, piece_line)
+
+        # junction limits: limit_v2[i] is the junction before piece i (the first after the last
+        # piece made before: _prev), 0 between runs and at extrude-only pieces
+        prev = self._prev or (np.ones(1, bool), np.full(1, -1))
+        eo, key = (np.concatenate([p, q]) for p, q in zip(prev, (extrude_only, run_key)))
+        together = (key[1:] == key[:-1]) & ~eo[1:] & ~eo[:-1]
+        limit_v2 = np.where(together, inner, 0.0)
+        self._prev = (extrude_only[-1:], run_key[-1:])
+        new = dict(block=piece_block, run=run_key, start=start, end=start + delta, length=length,
+                   extrude_only=extrude_only, accel=accel, max_v=max_v, delta_v2=delta_v2, limit_v2=limit_v2,
+                   smooth_delta_v2=smooth_delta_v2)
+        for name, value in new.items():
+            held = self._pending[name]
+            self._pending[name] = value if held is None else np.concatenate([held, value])
+        self._scan_limit = np.concatenate([self._scan_limit, limit_v2])
+        self._scan_delta = np.concatenate([self._scan_delta, delta_v2])
+        self._scan_smooth = np.concatenate([self._scan_smooth, smooth_delta_v2])
+        self._m += m
+
+    def _axis_pieces(self, delta, length, extrude_only, feed, planner_v, accel_print, accel_travel, jd, axis_v, axis_a):
+        """Per piece: cruise limit, accel, 2 a d, the same for the smoothing (none here), the
+        junction limit before each (with the last piece made before) and whether its feed is
+        clamped by the machine's limits."""
         unit = delta / length[:, None]
         unit[extrude_only, :_E] = 0.0  # |dE| / length is exactly 1 already
         abs_unit = np.abs(unit)
@@ -559,40 +625,46 @@ class PlanStream:
             axis_v_limit = np.where(abs_unit > 0, axis_v / abs_unit, np.inf).min(axis=1, initial=np.inf)
             axis_a_limit = np.where(abs_unit > 0, axis_a / abs_unit, np.inf).min(axis=1, initial=np.inf)
         max_v = np.minimum(np.minimum(feed, planner_v), axis_v_limit)
-        clamped = np.flatnonzero(np.isfinite(feed) & (axis_v_limit < feed))  # as the controller does (a G0 means it)
+        clamped = np.isfinite(feed) & (axis_v_limit < feed)  # as the controller does (a G0 means it)
+        extrudes = delta[:, _E] > 0
+        accel = np.where(extrudes | np.isnan(accel_travel), accel_print, accel_travel)
+        accel = np.minimum(accel, axis_a_limit)
+        cruise_v2 = max_v * max_v
+        delta_v2 = 2.0 * accel * length
+        xyz_unit = unit[:, :3]
+        carried = self._junction_carry((xyz_unit, jd, accel, delta_v2, cruise_v2))
+        u, jd_, acc, dv2, cv2 = carried
+        inner = junction_limits(u[:-1], u[1:], jd_[:-1], jd_[1:], acc[:-1], acc[1:], dv2[:-1], dv2[1:], cv2[:-1], cv2[1:])
+        return max_v, accel, delta_v2, delta_v2, inner, clamped
+
+    def _klipper_pieces(self, delta, length, extrude_only, feed, planner_v, accel_print, jd, to_decel):
+        """As ``_axis_pieces``, with Klipper's rules (``klipper_rules``)."""
+        z_limits, e_limits, corner_v = self._rules
+        unit, max_v, accel = klipper_rules.piece_limits(delta, length, extrude_only, feed, planner_v, accel_print,
+                                                        z_limits, e_limits)
+        cruise_v2 = max_v * max_v
+        delta_v2 = 2.0 * length * accel
+        smooth_delta_v2 = np.minimum(2.0 * length * to_decel, delta_v2)
+        u, jd_, acc, d, cv2 = self._junction_carry((unit, jd, accel, length, cruise_v2))
+        inner = klipper_rules.junction_limits(u[:-1], u[1:], jd_[:-1], jd_[1:], acc[:-1], acc[1:], d[:-1], d[1:],
+                                              cv2[:-1], cv2[1:], corner_v)
+        return max_v, accel, delta_v2, smooth_delta_v2, inner, np.isfinite(feed) & (max_v < feed) & ~extrude_only
+
+    def _count_clamped(self, clamped: np.ndarray, feed, max_v, piece_block, piece_line) -> None:
+        clamped = np.flatnonzero(clamped)
         clamped = clamped[np.unique(piece_block[clamped], return_index=True)[1]]  # the first piece of each block
         if clamped.size and not self._clamped:
             i = clamped[0]
             self._clamped_first = (f"{CLAMPED}: line {piece_line[i]} (feed {feed[i] * 60:.6g} mm/min, runs at "
                                    f"{max_v[i] * 60:.6g} mm/min)")
         self._clamped += clamped.size
-        extrudes = delta[:, _E] > 0
-        accel = np.where(extrudes | np.isnan(accel_travel), accel_print, accel_travel)
-        accel = np.minimum(accel, axis_a_limit)
-        cruise_v2 = max_v * max_v
-        delta_v2 = 2.0 * accel * length
 
-        # junction limits: limit_v2[i] is the junction before piece i (the first after the last
-        # piece made before: _prev)
-        xyz_unit = unit[:, :3]
-        if self._prev is None:
-            prev = (np.zeros((1, 3)), jd[:1], accel[:1], delta_v2[:1], cruise_v2[:1], np.ones(1, bool), np.full(1, -1))
-        else:
-            prev = self._prev
-        cat = [np.concatenate([p, q]) for p, q in zip(prev, (xyz_unit, jd, accel, delta_v2, cruise_v2, extrude_only, run_key))]
-        u, jd_, acc, dv2, cv2, eo, key = cat
-        inner = junction_limits(u[:-1], u[1:], jd_[:-1], jd_[1:], acc[:-1], acc[1:], dv2[:-1], dv2[1:], cv2[:-1], cv2[1:])
-        together = (key[1:] == key[:-1]) & ~eo[1:] & ~eo[:-1]
-        limit_v2 = np.where(together, inner, 0.0)
-        self._prev = tuple(x[-1:] for x in (xyz_unit, jd, accel, delta_v2, cruise_v2, extrude_only, run_key))
-        new = dict(block=piece_block, run=run_key, start=start, end=start + delta, length=length,
-                   extrude_only=extrude_only, accel=accel, max_v=max_v, delta_v2=delta_v2, limit_v2=limit_v2)
-        for name, value in new.items():
-            held = self._pending[name]
-            self._pending[name] = value if held is None else np.concatenate([held, value])
-        self._scan_limit = np.concatenate([self._scan_limit, limit_v2])
-        self._scan_delta = np.concatenate([self._scan_delta, delta_v2])
-        self._m += m
+    def _junction_carry(self, columns: tuple) -> list[np.ndarray]:
+        """``columns`` of the new pieces after those of the last piece made before (its own copy the
+        first time: a junction with itself, made 0 as the start of a run)."""
+        held = self._junction_prev or tuple(c[:1] for c in columns)
+        self._junction_prev = tuple(c[-1:] for c in columns)
+        return [np.concatenate([p, q]) for p, q in zip(held, columns)]
 
     # ---- settling ----
 
@@ -605,17 +677,26 @@ class PlanStream:
             reach = forward_pass(limit, self._scan_delta, SCAN_CHUNK, self._scan_carry)
             v2 = backward_pass(reach, self._scan_delta, SCAN_CHUNK)
             n = m - p0
-            if not ends_at_rest:  # settle the pieces whose both junctions are decided
+            if self._klipper:
+                n, speeds, reach_smooth = self._klipper_speeds(reach, v2, ends_at_rest)
+            elif not ends_at_rest:  # settle the pieces whose both junctions are decided
                 reach[-1] = 0.0
                 differ = np.flatnonzero(backward_pass(reach, self._scan_delta, SCAN_CHUNK)[p0 - s0:] != v2[p0 - s0:])
                 n = max(int(differ[0]) - 1, 0) if differ.size else n
             if n:
-                self._settle_pieces(n, v2[p0 - s0:p0 - s0 + n + 1])
+                if self._klipper:
+                    self._peak_carry = float(speeds[4][n - 1])
+                    self._settle_pieces(n, speeds=[x[:n] for x in speeds[:3]])
+                else:
+                    self._settle_pieces(n, v2[p0 - s0:p0 - s0 + n + 1])
                 # the scans restart at the chunk of the first piece not settled
                 s1 = (self._p0 // SCAN_CHUNK) * SCAN_CHUNK
                 if s1 > s0:
                     self._scan_carry = reach[s1 - 1 - s0] + self._scan_delta[s1 - 1 - s0]
                     self._scan_limit, self._scan_delta = self._scan_limit[s1 - s0:], self._scan_delta[s1 - s0:]
+                    if self._klipper:
+                        self._scan_smooth_carry = reach_smooth[s1 - 1 - s0] + self._scan_smooth[s1 - 1 - s0]
+                    self._scan_smooth = self._scan_smooth[s1 - s0:]
                     self._scan_s0 = s1
         over = self._stops > self._run_key or self._eof and not self._rows
         if self._open and over and (self._m == self._p0 or self._pending["run"][0] != self._run_key):
@@ -626,7 +707,31 @@ class PlanStream:
         elif self.runs:
             self.frontier = self.runs[-1][1] + 1
 
-    def _settle_pieces(self, n: int, v2: np.ndarray) -> None:
+    def _klipper_speeds(self, reach: np.ndarray, v2: np.ndarray, ends_at_rest: bool) -> tuple:
+        """Klipper's smoothed look-ahead over the pending pieces (``klipper_rules.cruise_speeds``):
+        how many are settled and their speeds. ``reach`` and ``v2`` are the forward and backward
+        passes from the scans' start; a piece is settled when its speeds are the same however
+        the program goes on: the junction speeds it and the next piece depend on are decided
+        (as in ``_settle``, for both passes) and so is the piece that sets its peak."""
+        p0, s0, pending = self._p0, self._scan_s0, self._pending
+        smooth = self._scan_smooth
+        reach_smooth = forward_pass(reach, smooth, SCAN_CHUNK, self._scan_smooth_carry)
+        smoothed = backward_pass(reach_smooth, smooth, SCAN_CHUNK)
+        speeds = klipper_rules.cruise_speeds(v2[p0 - s0:], smoothed[p0 - s0:], pending["delta_v2"],
+                                             pending["smooth_delta_v2"], pending["max_v"] ** 2, self._peak_carry)
+        n = self._m - p0
+        if not ends_at_rest:
+            low, low_smooth = reach.copy(), reach_smooth.copy()
+            low[-1] = low_smooth[-1] = 0.0
+            differ = np.flatnonzero((backward_pass(low, self._scan_delta, SCAN_CHUNK)[p0 - s0:] != v2[p0 - s0:])
+                                    | (backward_pass(low_smooth, smooth, SCAN_CHUNK)[p0 - s0:] != smoothed[p0 - s0:]))
+            decided = speeds[3][:max(int(differ[0]) - 2, 0)] if differ.size else speeds[3]
+            n = int(np.flatnonzero(decided)[-1]) + 1 if decided.any() else 0
+        return n, speeds, reach_smooth
+
+    def _settle_pieces(self, n: int, v2: np.ndarray | None = None, speeds: list | None = None) -> None:
+        """Settle the next ``n`` pieces, their squared junction speeds ``v2`` (n + 1) given, or
+        their (start, cruise, end) squared speeds ``speeds`` (Klipper's)."""
         pending = self._pending
         taken = {name: value[:n] for name, value in pending.items()}
         self._pending = {name: value[n:] for name, value in pending.items()}
@@ -634,9 +739,11 @@ class PlanStream:
         self._p0 += n
         block, key, start, end, length = taken["block"], taken["run"], taken["start"], taken["end"], taken["length"]
         accel, max_v, delta_v2 = taken["accel"], taken["max_v"], taken["delta_v2"]
-        cruise_v2 = max_v * max_v
-        v0_2, v1_2 = v2[:-1], v2[1:]
-        peak2 = np.maximum(np.minimum(cruise_v2, 0.5 * (v0_2 + v1_2 + delta_v2)), np.maximum(v0_2, v1_2))
+        if speeds is None:
+            v0_2, v1_2 = v2[:-1], v2[1:]
+            peak2 = np.maximum(np.minimum(max_v * max_v, 0.5 * (v0_2 + v1_2 + delta_v2)), np.maximum(v0_2, v1_2))
+        else:
+            v0_2, peak2, v1_2 = speeds
         v0, vp, v1 = np.sqrt(v0_2), np.sqrt(peak2), np.sqrt(v1_2)
         d_accel = (peak2 - v0_2) / (2.0 * accel)
         d_decel = (peak2 - v1_2) / (2.0 * accel)

@@ -17,9 +17,14 @@ planner assumes); a STOP flushes the look-ahead (``move_queue.flush()``, as M400
 do), takes its dwell and sets the position; M204 and SET_VELOCITY_LIMIT lines go to klippy's
 ``cmd_M204`` / ``cmd_SET_VELOCITY_LIMIT`` with klippy's own ``GCodeCommand`` parameter checks.
 
-This klippy has ``max_accel_to_decel`` (default max_accel / 2; SET_VELOCITY_LIMIT ACCEL_TO_DECEL),
-what Klipper 2024 replaced by ``minimum_cruise_ratio``: the config gets the profile's
-``max_accel_to_decel``, or ``max_accel * (1 - minimum_cruise_ratio)``.
+This klippy has ``max_accel_to_decel`` (default max_accel / 2; SET_VELOCITY_LIMIT ACCEL_TO_DECEL,
+a fixed acceleration capped at max_accel), what Klipper 2024 replaced by ``minimum_cruise_ratio``
+(accel_to_decel = max_accel * (1 - ratio), following every change of max_accel). With the
+profile's ``max_accel_to_decel`` the config gets it and klippy runs as it is. Otherwise the
+config gets ``max_accel * (1 - minimum_cruise_ratio)`` and, after every M204 /
+SET_VELOCITY_LIMIT, the harness sets klippy's requested accel_to_decel to what the ratio gives
+for the new max_accel (MINIMUM_CRUISE_RATIO=, or ACCEL_TO_DECEL= turned into a ratio as the
+newer Klipper does): the newer Klipper's rule, on this klippy's planner.
 """
 from __future__ import annotations
 
@@ -237,6 +242,8 @@ class KlippyPlanner:
         head._process_moves = self._record
         self.moves: list[KlippyMove] = []
         self.dwell_s = 0.0
+        fw = profile.firmware
+        self.cruise_ratio = None if fw.max_accel_to_decel_mm_s2 is not None else fw.minimum_cruise_ratio
 
     def _record(self, moves) -> None:
         self.moves.extend(KlippyMove(m.start_pos, m.end_pos, m.is_kinematic_move, m.accel, m.start_v, m.cruise_v,
@@ -256,6 +263,13 @@ class KlippyPlanner:
         else:
             return
         handler(self.klippy.gcode.GCodeCommand(mock.MagicMock(), text.split()[0].upper(), text, params, False))
+        if self.cruise_ratio is not None:  # the newer Klipper's minimum_cruise_ratio
+            if "MINIMUM_CRUISE_RATIO" in params:
+                self.cruise_ratio = float(params["MINIMUM_CRUISE_RATIO"])
+            elif "ACCEL_TO_DECEL" in params:
+                self.cruise_ratio = 1.0 - min(1.0, float(params["ACCEL_TO_DECEL"]) / head.max_accel)
+            head.requested_accel_to_decel = head.max_accel * (1.0 - self.cruise_ratio)
+            head._calc_junction_deviation()
 
     def run(self, blocks: list[Block]) -> list[KlippyMove]:
         """Every move of ``blocks`` as klippy plans it, in order."""

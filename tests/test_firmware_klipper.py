@@ -1,0 +1,113 @@
+"""fbspost's planner with Klipper's rules (``plan_blocks(..., firmware="klipper")``) against
+Klipper's own planner: klippy's toolhead.py of the registry's sdist, driven by
+tests/klippy_planner.py over the same program.
+
+Truth: the speeds and times klippy's MoveQueue gives every move (start, cruise, end speed; accel,
+cruise, decel time), on the sliced prints of tests/data, both butterflies and fbspost's own dense
+compensated output of a sliced print; with Klipper's defaults (this klippy's max_accel_to_decel =
+accel / 2, and the newer minimum_cruise_ratio 0.5 as the harness applies it on this klippy) and
+with the transparency settings the writer emits (ACCEL=1000000, no smoothing, SQUARE_CORNER_VELOCITY
+50). Equal to floating-point precision: fbspost's passes are vectorized, klippy's sequential.
+"""
+from __future__ import annotations
+
+import dataclasses
+import itertools
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fbspost.gcode import detect_flavor, read_gcode
+from fbspost.pipeline import CompensateOptions, compensate_file
+from fbspost.planner import plan_blocks
+from fbspost.profile import load_profile
+from klippy_planner import KlippyPlanner, klippy_or_skip
+
+ROOT = Path(__file__).resolve().parents[1]
+PROGRAMS = [("tests/data/gear-marlin2.gcode", "printer-two-mode", 3000),
+            ("tests/data/tube-marlin2.gcode", "printer-two-mode", 3000),
+            ("tests/data/pocket-klipper.gcode", "printer-two-mode", 3000),
+            ("tests/data/blob-reprap-relative-e.gcode", "printer-two-mode", 3000),
+            ("tests/data/bracket-reprapfirmware-relative-e.gcode", "printer-two-mode", 3000),
+            ("samples/butterfly-polyline.gcode", "patent-xy-stage", 3400),
+            ("samples/butterfly-dense.gcode", "patent-xy-stage", 3000)]
+TRANSPARENT = {"ratio": "SET_VELOCITY_LIMIT ACCEL=1000000 MINIMUM_CRUISE_RATIO=0 SQUARE_CORNER_VELOCITY=50\n",
+               "fixed": "SET_VELOCITY_LIMIT ACCEL=1000000 ACCEL_TO_DECEL=1000000 SQUARE_CORNER_VELOCITY=50\n"}
+
+
+@pytest.fixture(scope="module")
+def klippy():
+    return klippy_or_skip()
+
+
+def with_smoothing(profile, smoothing: str):
+    """``fixed``: this klippy's default max_accel_to_decel = max_accel / 2; ``ratio``: the
+    profile's minimum_cruise_ratio (0.5, Klipper's default now)."""
+    if smoothing == "ratio":
+        return profile
+    firmware = dataclasses.replace(profile.firmware, max_accel_to_decel_mm_s2=profile.planner_acceleration_mm_s2 / 2)
+    return dataclasses.replace(profile, firmware=firmware)
+
+
+def assert_same_motion(blocks, profile, klippy) -> None:
+    """Every piece fbspost plans is the move klippy plans, to floating-point precision."""
+    moves = KlippyPlanner(profile, klippy).run(blocks)
+    pieces = plan_blocks(blocks, profile, firmware="klipper").pieces
+    assert len(moves) == pieces.length_mm.size
+    assert np.array_equal([not m.is_kinematic for m in moves], pieces.extrude_only)
+    column = {name: np.array([getattr(m, name) for m in moves]) for name in
+              ("start_v", "cruise_v", "end_v", "accel_t", "cruise_t", "decel_t", "accel_mm_s2")}
+    np.testing.assert_allclose(pieces.accel_mm_s2, column["accel_mm_s2"], rtol=1e-15)
+    for mine, name in ((pieces.start_v_mm_s, "start_v"), (pieces.peak_v_mm_s, "cruise_v"), (pieces.end_v_mm_s, "end_v")):
+        np.testing.assert_allclose(mine, column[name], rtol=1e-9, atol=1e-9, err_msg=name)
+    accel_t = (pieces.peak_v_mm_s - pieces.start_v_mm_s) / pieces.accel_mm_s2  # a trapezoid's phases
+    decel_t = (pieces.peak_v_mm_s - pieces.end_v_mm_s) / pieces.accel_mm_s2
+    np.testing.assert_allclose(accel_t, column["accel_t"], rtol=1e-6, atol=1e-10)
+    np.testing.assert_allclose(decel_t, column["decel_t"], rtol=1e-6, atol=1e-10)
+    klippy_s = column["accel_t"] + column["cruise_t"] + column["decel_t"]
+    np.testing.assert_allclose(pieces.duration_s, klippy_s, rtol=1e-9, atol=1e-12)
+    assert pieces.duration_s.sum() == pytest.approx(klippy_s.sum(), rel=1e-12)
+
+
+def program(tmp_path, name: str, lines: int, prefix: str = "") -> Path:
+    path = tmp_path / Path(name).name
+    with open(ROOT / name, encoding="utf-8", errors="surrogateescape") as f:
+        path.write_text(prefix + "".join(itertools.islice(f, lines)), encoding="utf-8", errors="surrogateescape")
+    return path
+
+
+@pytest.mark.parametrize("smoothing", ["fixed", "ratio"])
+@pytest.mark.parametrize("name,profile,lines", PROGRAMS, ids=[Path(p[0]).stem for p in PROGRAMS])
+def test_plan_is_klippys(tmp_path, klippy, name, profile, lines, smoothing):
+    """Sliced prints and the butterflies, Klipper's defaults: fbspost's plan is klippy's."""
+    path = program(tmp_path, name, lines)
+    blocks = list(read_gcode(path, detect_flavor(ROOT / name)))
+    assert_same_motion(blocks, with_smoothing(load_profile(profile), smoothing), klippy)
+
+
+@pytest.mark.parametrize("smoothing", ["fixed", "ratio"])
+@pytest.mark.parametrize("name,profile,lines", PROGRAMS[::3], ids=[Path(p[0]).stem for p in PROGRAMS[::3]])
+def test_plan_is_klippys_with_transparency_settings(tmp_path, klippy, name, profile, lines, smoothing):
+    """The same with the writer's transparency settings in force from the first line."""
+    path = program(tmp_path, name, lines, TRANSPARENT[smoothing])
+    blocks = list(read_gcode(path, "klipper"))
+    assert_same_motion(blocks, with_smoothing(load_profile(profile), smoothing), klippy)
+
+
+@pytest.fixture(scope="module")
+def compensated(tmp_path_factory) -> Path:
+    """fbspost's dense output of a sliced print's first 120 lines (about 25000 short blocks)."""
+    directory = tmp_path_factory.mktemp("compensated")
+    source = program(directory, "tests/data/pocket-klipper.gcode", 120)
+    target = directory / "out.gcode"
+    compensate_file(source, target, load_profile("printer-two-mode"), CompensateOptions())
+    return target
+
+
+@pytest.mark.parametrize("smoothing", ["fixed", "ratio"])
+def test_plan_of_dense_output_is_klippys(klippy, compensated, smoothing):
+    """fbspost's own dense output (its SET_VELOCITY_LIMIT lines included): klippy's plan."""
+    blocks = list(read_gcode(compensated, "klipper"))
+    assert len(blocks) > 10000
+    assert_same_motion(blocks, with_smoothing(load_profile("printer-two-mode"), smoothing), klippy)
