@@ -110,7 +110,8 @@ def compensate_file(input_path: str | Path, output_path: str | Path, profile: Ma
         header=(f"fbspost {__version__}: filtered B-spline compensation for machine profile {profile.name}",
                 f"fbspost settings: format {options.output_format}, tolerance {options.tolerance_mm:g} mm, "
                 f"minimum segment {options.min_segment_time_s * 1e3:g} ms, flavor {flavor}, {options.lookahead} look-ahead"),
-        firmware=FirmwareSettings.from_profile(profile))
+        firmware=FirmwareSettings.from_profile(profile), max_line_rate_hz=profile.firmware.max_line_rate_hz,
+        **_marlin_steps(profile, flavor))
     stats = []
     clock = time.perf_counter()
     atomic_write(output_path, lambda f: stats.append(write_program(
@@ -134,6 +135,16 @@ def compensated_samples(plan: Plan, profile: MachineProfile, options: Compensate
     errors = {c: (_ErrorStats(), _ErrorStats()) for c in compensators}
     chunks = _compensated(plan, compensators, errors, [] if warnings is None else warnings)
     return np.concatenate([command for _, command in chunks] or [np.zeros((0, len(AXES)))])
+
+
+def _marlin_steps(profile: MachineProfile, flavor: str) -> dict:
+    """The writer's options for Marlin's merge of short blocks (steps per mm X Y Z E, 0 where the
+    profile does not give them), none for other flavors or without steps."""
+    steps = profile.firmware.steps_per_mm
+    if flavor != "marlin" or not steps:
+        return {}
+    return {"steps_per_mm": tuple(steps.get(a, 0.0) for a in AXES),
+            "min_steps_per_segment": profile.firmware.min_steps_per_segment}
 
 
 def _compensators(profile: MachineProfile, options: CompensateOptions) -> dict[int, AxisCompensator]:

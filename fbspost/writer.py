@@ -46,6 +46,9 @@ class WriteOptions:
     min_segment_time_s: float = 1e-3
     header: tuple[str, ...] = ()  # comment text, one entry per line
     firmware: FirmwareSettings | None = None  # the program's settings at its start (None: no settings written)
+    max_line_rate_hz: float | None = None  # the most lines the machine takes per second
+    steps_per_mm: tuple[float, ...] | None = None  # X Y Z E (0: not known): blocks Marlin would merge are merged here
+    min_steps_per_segment: int = 0
 
 
 @dataclass
@@ -53,6 +56,10 @@ class WriteStats:
     lines_out: int = 0
     motion_blocks: int = 0
     passthrough_lines: int = 0
+    max_line_rate_hz: float = 0.0  # the most lines sent in any second of the program's time (no comments)
+    max_deviation_mm: float = 0.0  # the largest distance of the written blocks from the command (XYZ, same time)
+    max_deviation_s: float = 0.0  # where
+    loosened_s: float = 0.0  # time in blocks beyond the tolerance (merged, or stretched for the line rate)
 
 
 def format_refusal(flavor: str, output_format: str) -> str | None:
@@ -199,8 +206,12 @@ class _Emitter:
     unit changes.
     """
 
-    def __init__(self, start_mm: np.ndarray, newline: bytes):
+    def __init__(self, start_mm: np.ndarray, newline: bytes, steps_per_mm: np.ndarray | None = None,
+                 min_steps: int = 0):
         self.modal = Modal()  # the controller starts in its defaults
+        # Marlin merges a block of fewer than min_steps steps on every axis with the next (steps_per_mm per
+        # axis, 0 where not known): such blocks are merged here, where their time can go with them
+        self.steps_per_mm, self.min_steps = steps_per_mm, min_steps
         self.shift_mm = np.zeros(4)  # controller frame minus program frame, per axis (G92 mid-motion)
         self.written = self.to_program(start_mm)
         self.feed = -1  # the last F written, in units of its last digit (none yet: feeds are >= 0)
@@ -233,10 +244,11 @@ class _Emitter:
             self.written[changed] = self.to_program(command_mm)[changed]
 
     def blocks(self, targets_mm: np.ndarray, durations_s: np.ndarray,
-               curves: Curves | None = None) -> tuple[bytes, int]:
+               curves: Curves | None = None, exact_last: bool = True) -> tuple[bytes, int]:
         """G1 lines (G5 where ``curves`` says so) reaching each target (machine mm) in its
         duration, in the controller's modes: their text (each line ended by the newline) and how
-        many there are.
+        many there are. ``written_rows``: which targets got a line. Without ``exact_last``, the
+        last target may be left to the next call (Marlin's minimum steps).
 
         Values are rounded in integer units of the last written digit: a relative value is the
         difference of two rounded positions, so rounding residues never accumulate.
@@ -246,6 +258,8 @@ class _Emitter:
         relative = np.array([not (self.modal.absolute_e if a == "E" else self.modal.absolute_xyz) for a in AXES])
         start = np.rint(self.written * scale).astype(np.int64)
         ints = np.rint(self.to_program(targets_mm) * scale).astype(np.int64)
+        if self.min_steps and curves is None:
+            ints = _merged(start, ints, self.steps_per_mm * self.unit_mm / scale, self.min_steps, exact_last)
         steps = np.diff(np.vstack([start, ints]), axis=0)
         moved = steps != 0
         delta_mm = steps / scale * self.unit_mm
@@ -267,7 +281,7 @@ class _Emitter:
             length[g5_rows] = curve_lengths(p0 / xy_scale, (p0 + offsets[g5_rows, :2]) / xy_scale,
                                             (p3 + offsets[g5_rows, 2:]) / xy_scale, p3 / xy_scale) * self.unit_mm
             moved[:, :2] |= curves.curve[:, None]  # G5 needs its end point, also where it closes a loop
-        moving = moved.any(axis=1)
+        moving = self.written_rows = moved.any(axis=1)
         rows = slice(None) if moving.all() else moving  # nearly always all of them: no copies
         feed, self.residue_s = _feeds(length, durations_s, moving, self.residue_s,
                                       60.0 * 10 ** _FEED_DECIMALS / self.unit_mm)
@@ -289,6 +303,28 @@ class _Emitter:
         # temporaries outgrow the CPU cache).
         return b"".join(_lines(values[a:a + _LINES], shown[a:a + _LINES], digits, letters, self.newline,
                                g5[a:a + _LINES]) for a in range(0, len(feed), _LINES)), len(feed)
+
+
+def _merged(start: np.ndarray, ints: np.ndarray, steps_per_unit: np.ndarray, min_steps: int,
+            exact_last: bool) -> np.ndarray:
+    """Block ends (rows of written units; ``start``: where the controller is) with every block
+    that Marlin would merge (fewer than ``min_steps`` steps on every axis from the last block
+    kept, steps as Marlin rounds the positions) moved back onto that block's end: a block of no
+    motion, whose time the next block takes. With ``exact_last`` the last end is kept, merging
+    the last kept block before it instead."""
+    ends = np.vstack([start, ints])
+    at_steps = np.rint(ends * steps_per_unit)
+    if (np.abs(np.diff(at_steps, axis=0)).max(axis=1) >= min_steps).all():
+        return ints
+    kept, last = [0], at_steps[0].tolist()
+    for k, row in enumerate(at_steps[1:].tolist(), 1):
+        if max(abs(a - b) for a, b in zip(row, last)) >= min_steps:
+            kept.append(k)
+            last = row
+    if exact_last and kept[-1] != len(ints):
+        kept[-1 if len(kept) > 1 else len(kept):] = [len(ints)]
+    source = np.repeat(kept, np.diff(np.append(kept, len(ends))))  # each row: the last kept at or before it
+    return ends[source[1:]]
 
 
 def _feeds(length_mm: np.ndarray, durations_s: np.ndarray, moving: np.ndarray, residue_s: float,
@@ -468,6 +504,51 @@ class SampleWindow:
         return below * (1.0 - w) + above * w  # (np.take gathers rows a few times faster than indexing)
 
 
+class _LineRate:
+    """The most lines in any second, from the lines' times as they come (non-decreasing)."""
+
+    def __init__(self):
+        self.recent = np.zeros(0)  # the times within a second of the last
+        self.max_per_s = 0
+
+    def add(self, times_s) -> None:
+        times = np.concatenate([self.recent, np.atleast_1d(np.asarray(times_s, dtype=float))])
+        if len(times) > len(self.recent):
+            new = np.arange(len(self.recent), len(times))
+            inside = new + 1 - np.searchsorted(times, times[new] - 1.0, "right")  # in (t - 1 s, t]
+            self.max_per_s = max(self.max_per_s, int(inside.max()))
+            self.recent = times[np.searchsorted(times, times[-1] - 1.0, "right"):]
+
+
+class _Deviation:
+    """How far the written blocks, each run at constant speed, are from the command at the same
+    time, over the samples inside them (XYZ): the largest, where, and the time in blocks beyond
+    the tolerance (rounding aside)."""
+
+    def __init__(self, samples: SampleWindow, fs: float, tolerance_mm: float):
+        self.samples, self.fs, self.tolerance_mm = samples, fs, tolerance_mm
+        self.last_s = 0.0  # the last written block's end
+        self.max_mm = self.at_s = self.loosened_s = 0.0
+
+    def add(self, start_s: float | None, ends_s: np.ndarray, targets_mm: np.ndarray) -> None:
+        """Blocks from ``start_s`` (None: the last block's end) to each of ``ends_s``."""
+        if not len(ends_s):
+            return
+        start_s = self.last_s if start_s is None else start_s
+        knots_s = np.append(start_s, ends_s)
+        knots_mm = np.vstack([self.samples.at(knots_s[:1], self.fs), targets_mm])[:, :3]
+        grid_s = np.arange(math.ceil(start_s * self.fs), math.floor(ends_s[-1] * self.fs) + 1) / self.fs
+        chord = np.column_stack([np.interp(grid_s, knots_s, knots_mm[:, c]) for c in range(3)])
+        off_mm = np.linalg.norm(chord - self.samples.at(grid_s, self.fs)[:, :3], axis=1)
+        if len(off_mm) and off_mm.max() > self.max_mm:
+            self.max_mm, self.at_s = float(off_mm.max()), float(grid_s[off_mm.argmax()])
+        block = np.searchsorted(ends_s, grid_s, "left")
+        worst = np.zeros(len(ends_s))
+        np.maximum.at(worst, block, off_mm)
+        self.loosened_s += float(np.diff(knots_s)[worst > self.tolerance_mm + 1e-4].sum())  # (rounding: 0.1 um per axis)
+        self.last_s = float(ends_s[-1])
+
+
 def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions, out) -> WriteStats:
     """Write the output program to the binary stream ``out``. The program's blocks come from
     ``plan`` as it settles them. With ``options.firmware``, the firmware is made transparent
@@ -489,7 +570,10 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
         return len(plan.runs) > r
 
     follows_plan = samples.follows_plan
-    min_samples = max(1, int(np.ceil(options.min_segment_time_s * fs - 1e-9)))
+    # The line rate: blocks no shorter than a line's share of it, a tenth of it left to the copied lines
+    min_segment_s = max(options.min_segment_time_s, 1.0 / (0.9 * (options.max_line_rate_hz or math.inf)))
+    min_samples = max(1, int(np.ceil(min_segment_s * fs - 1e-9)))
+    rate, deviation = _LineRate(), _Deviation(samples, fs, options.tolerance_mm)
     copied_sample = -1  # of the last copied line
     newline = b"\n"
     emitter = None
@@ -509,6 +593,7 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
 
     def emit(*lines: str) -> None:
         emit_text(b"".join(x.encode() + newline for x in lines), len(lines))
+        rate.add([written_until_s] * len(lines))
 
     def block_ends(first: int, start_s: float, stop_s: float, soft: bool = False):
         """The current run's block ends after ``start_s`` up to ``stop_s`` (s), and their curves, in
@@ -586,18 +671,22 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
                 # the run's first sample (planner): it takes up the difference.
                 from_s = start_s if written_until_s >= first / fs else min(written_until_s + dwelt_s, start_s)
                 for ends, curves in block_ends(first, start_s, stop_s, soft):
+                    run_start = written_until_s <= first / fs
                     if settings is not None:
-                        emit(*settings.apply(written_until_s <= first / fs, emitter.modal))  # (at a run's start: at rest)
+                        emit(*settings.apply(run_start, emitter.modal))  # (at a run's start: at rest)
                     targets = samples.at(ends, fs)
                     if ends[-1] == t_end_s and not soft:
                         exact = np.where(np.isnan(end_exact_mm), samples.at(ends[-1:], fs, planned=True)[0], end_exact_mm)
                         targets[-1, follows_plan] = exact[follows_plan]
-                    text, count = emitter.blocks(targets, np.diff(np.append(from_s, ends)), curves)
+                    text, count = emitter.blocks(targets, np.diff(np.append(from_s, ends)), curves, ends[-1] >= stop_s)
                     emit_text(text, count)
+                    written = emitter.written_rows
+                    deviation.add(from_s if run_start else None, ends[written], targets[written])
+                    rate.add(ends[written])
                     stats.motion_blocks += count
                     from_s = start_s = written_until_s = float(ends[-1])
                     dwelt_s = 0.0
-                    samples.release(int(start_s * fs) - 1)
+                    samples.release(int(min(start_s, deviation.last_s) * fs) - 1)
             if soft or t_end_s < run_end_s:
                 return
             run_index += 1
@@ -610,10 +699,12 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
     for block, line_time_s, is_stop in plan.blocks():
         if emitter is None:
             newline = b"\r\n" if block.raw.endswith(b"\r\n") else b"\n"  # (only the last line has no ending)
-            emitter = _Emitter(samples.rows(0, 1)[0], newline)
+            emitter = _Emitter(samples.rows(0, 1)[0], newline, None if options.steps_per_mm is None
+                               else np.asarray(options.steps_per_mm), options.min_steps_per_segment)
         if not header_done and _is_code(block):
             notes = settings.header() if settings is not None and runs_from(0) else []
-            emit(*(f"{comment[0]}{text}{comment[1]}" for text in options.header + tuple(notes)))
+            header = [f"{comment[0]}{text}{comment[1]}" for text in options.header + tuple(notes)]
+            emit_text(b"".join(x.encode() + newline for x in header), len(header))  # (comments: not sent)
             header_done = True
         if block.kind is Kind.MOVE:
             previous_modal, previous_mm = block.modal, block.position_mm
@@ -629,6 +720,8 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
         reached = np.where(np.isnan(block.position_mm), reached, block.position_mm)
         commanded = samples.at(np.array([t]), fs)[0]
         emit(*mode_lines(options.flavor, emitter.modal, previous_modal))
+        if _is_code(block):
+            rate.add(t)
         out.write(block.raw)
         unterminated = not block.raw.endswith((b"\n", b"\r"))
         stats.lines_out += 1
@@ -645,6 +738,8 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
     samples.ensure(samples.n_samples)
     motion_until(np.inf, samples.planned[-1])
     emit(*mode_lines(options.flavor, emitter.modal, previous_modal))
+    stats.max_line_rate_hz = float(rate.max_per_s)
+    stats.max_deviation_mm, stats.max_deviation_s, stats.loosened_s = deviation.max_mm, deviation.at_s, deviation.loosened_s
     return stats
 
 

@@ -17,35 +17,29 @@ from klippy_planner import KlippyPlanner
 
 @dataclass
 class Executed:
-    start_s: np.ndarray  # (n,) each move's start
-    moves: list
+    """Moves as klippy planned them (arrays, one row per move) and when each starts."""
+
+    start_s: np.ndarray  # (n,) the moves before it and the dwells of the lines at rest before it
     start_mm: np.ndarray  # (n, 4)
     end_mm: np.ndarray  # (n, 4)
+    speeds_mm_s: np.ndarray  # (n, 3) start, cruise, end
+    phases_s: np.ndarray  # (n, 3) accelerate, cruise, decelerate
+    accel_mm_s2: np.ndarray  # (n,)
     duration_s: float  # the last move's end, with the dwells
 
     def at(self, t_s: np.ndarray) -> np.ndarray:
         """Positions (rows X Y Z E, mm) at the times ``t_s``: within a move along its trapezoid, at
         rest between moves where the last one ended (before the first: its start)."""
-        k = np.searchsorted(self.start_s, t_s, "right") - 1
-        first = k < 0
-        k = np.maximum(k, 0)
-        m = [self.moves[i] for i in range(len(self.moves))]
-        start_v, cruise_v = np.array([x.start_v for x in m]), np.array([x.cruise_v for x in m])
-        accel_t, cruise_t, decel_t = (np.array([getattr(x, a) for x in m]) for a in ("accel_t", "cruise_t", "decel_t"))
-        accel = np.array([x.accel_mm_s2 for x in m])
-        tau = np.clip(t_s - self.start_s[k], 0.0, (accel_t + cruise_t + decel_t)[k])
-        ta = np.minimum(tau, accel_t[k])
-        tc = np.clip(tau - accel_t[k], 0.0, cruise_t[k])
-        td = np.clip(tau - accel_t[k] - cruise_t[k], 0.0, decel_t[k])
-        # distance: the ramp up from start_v, cruise, the ramp down from cruise_v (klippy's trapq)
-        s = (start_v[k] * ta + 0.5 * accel[k] * ta**2 + cruise_v[k] * tc + cruise_v[k] * td - 0.5 * accel[k] * td**2)
+        k = np.maximum(np.searchsorted(self.start_s, t_s, "right") - 1, 0)
+        (v0, vc, _), (ta, tc, td), a = self.speeds_mm_s[k].T, self.phases_s[k].T, self.accel_mm_s2[k]
+        tau = np.clip(t_s - self.start_s[k], 0.0, ta + tc + td)
+        up, cruise, down = np.minimum(tau, ta), np.clip(tau - ta, 0.0, tc), np.clip(tau - ta - tc, 0.0, td)
+        s = v0 * up + 0.5 * a * up**2 + vc * (cruise + down) - 0.5 * a * down**2
         delta = self.end_mm - self.start_mm
         length = np.linalg.norm(delta[:, :3], axis=1)
-        length = np.where(length > 0, length, np.abs(delta[:, 3]))
-        direction = delta / np.where(length > 0, length, 1.0)[:, None]
-        out = self.start_mm[k] + direction[k] * s[:, None]
-        out[first] = self.start_mm[0]
-        return out
+        length = np.where(length > 0, length, np.abs(delta[:, 3]))  # klippy's move_d
+        direction = (delta / np.where(length > 0, length, 1.0)[:, None])[k]
+        return self.start_mm[k] + direction * s[:, None]
 
 
 def executed(path, profile, flavor: str = "klipper") -> Executed:
@@ -60,7 +54,9 @@ def executed(path, profile, flavor: str = "klipper") -> Executed:
 
     planner.toolhead._process_moves = timed
     moves = planner.run(list(read_gcode(path, flavor)))
-    durations = np.array([m.duration_s for m in moves])
+    phases = np.array([(m.accel_t, m.cruise_t, m.decel_t) for m in moves]).reshape(-1, 3)
+    durations = phases.sum(axis=1)
     start = np.concatenate([[0.0], np.cumsum(durations)[:-1]]) + np.array(dwells)
-    return Executed(start, moves, np.array([m.start_pos[:4] for m in moves]), np.array([m.end_pos[:4] for m in moves]),
-                    float(start[-1] + durations[-1]) if moves else planner.dwell_s)
+    return Executed(start, np.array([m.start_pos[:4] for m in moves]), np.array([m.end_pos[:4] for m in moves]),
+                    np.array([(m.start_v, m.cruise_v, m.end_v) for m in moves]), phases,
+                    np.array([m.accel_mm_s2 for m in moves]), float(start[-1] + durations[-1]) if moves else 0.0)

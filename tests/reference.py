@@ -1,6 +1,8 @@
 """Independent truths for the tests: nothing here calls fbspost's dynamics or optimizer."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 from scipy import linalg, signal
 
@@ -205,6 +207,13 @@ def execute(path, sample_rate_hz: float = 10000.0, dwell_p_seconds: bool = False
         run.at_lines.append(tuple(np.nan if pos[a] is None else pos[a] for a in "XYZE"))
     run.duration_s = t
     return run
+
+
+def unbudgeted(profile):
+    """``profile`` without the firmware's line rate and steps: the writer's blocks then keep to
+    the tolerance everywhere (the budget's cost is tested apart)."""
+    firmware = dataclasses.replace(profile.firmware, max_line_rate_hz=None, steps_per_mm={})
+    return dataclasses.replace(profile, firmware=firmware)
 
 
 # What fbspost adds to a program: its header, the firmware's settings (transparency), mode lines.

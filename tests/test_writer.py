@@ -11,9 +11,9 @@ import pytest
 from fbspost.pipeline import CompensateOptions, compensate_file
 from fbspost.profile import load_profile
 from fbspost.writer import _Emitter, _lines, breakpoints
-from reference import execute, positions_at
+from reference import execute, positions_at, unbudgeted
 
-PRINTER = load_profile("bedslinger-example")
+PRINTER = unbudgeted(load_profile("bedslinger-example"))
 
 
 def square(e_relative: bool, xyz_relative: bool = False, inches: bool = False) -> list[str]:
@@ -132,7 +132,7 @@ def test_g5_on_linuxcnc_only_in_the_xy_plane_and_without_z(tmp_path):
         "G21 G90 G17", "G0 X0 Y0 Z1", "G1 X20 Y0 F3000", "G1 X20 Y20", "G1 X25 Y25 Z0", "G1 X0 Y20 Z1",
         "G18", "G1 X0 Y0 Z0", "G1 X10 Z2", "G1 X20 Z0", "M8", "G17 G1 X30 Y10", "G1 X0 Y0", "M9",
         "G1 X10 Y20", "G1 X0 Y0", "M2", ""])
-    stage = load_profile("patent-xy-stage")
+    stage = unbudgeted(load_profile("patent-xy-stage"))
     original, dense, g5, text = outputs(tmp_path, program, stage, "linuxcnc")
     assert not any(line.startswith("G5") and ("Z" in line or "E" in line) for line in text)
     assert text.index("G18") < text.index("M8") < text.index("G17") < text.index("M9")

@@ -1,0 +1,42 @@
+"""The written program run by Klipper's own planner (klippy's toolhead.py, tests/klippy_planner.py),
+Klipper's defaults otherwise (minimum_cruise_ratio 0.5 as accel_to_decel, extruder limits): it
+lasts as long as fbspost's plan of the original, and its motion on the compensated axes, the
+trapezoids klippy plans sampled on the command's grid, stays within the tolerance + 2 um of the
+compensated command everywhere (the firmware settings fbspost writes make it run the blocks as
+written)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fbspost.gcode import read_gcode
+from fbspost.pipeline import CompensateOptions, compensate_file, compensated_samples
+from fbspost.planner import plan_blocks
+from fbspost.profile import load_profile
+from klippy_motion import executed
+from klippy_planner import klippy_or_skip
+
+TOLERANCE_MM = 1e-3
+
+
+@pytest.fixture(scope="module")
+def klippy():
+    return klippy_or_skip()
+
+
+def run_by_klipper(tmp_path, source, profile_name: str):
+    """(plan of the original, compensated command, the written program as klippy runs it)."""
+    profile = load_profile(profile_name)
+    target = tmp_path / "out.gcode"
+    compensate_file(source, target, profile, CompensateOptions(flavor="klipper", tolerance_mm=TOLERANCE_MM))
+    plan = plan_blocks(read_gcode(source, "klipper"), profile)
+    return plan, compensated_samples(plan, profile), executed(target, profile)
+
+
+def test_butterfly_runs_as_written(tmp_path, klippy):
+    """The CAM butterfly (0.05 mm chords at F6000) on the patent's stage at 10 kHz."""
+    plan, command, run = run_by_klipper(tmp_path, "samples/butterfly-polyline.gcode", "patent-xy-stage")
+    assert run.duration_s == pytest.approx(plan.duration_s, rel=2e-3)
+    t = np.arange(len(command)) / plan.sample_rate_hz
+    off_mm = np.linalg.norm(run.at(t)[:, :2] - command[:, :2], axis=1)
+    assert off_mm.max() <= TOLERANCE_MM + 2e-3
