@@ -71,6 +71,12 @@ class Report:
     compute_time_s: float
     axes: dict[str, AxisReport] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
+    max_line_rate_hz: float = 0.0  # the most lines sent in any second (comments not counted)
+    line_rate_budget_hz: float | None = None  # the profile's
+    tolerance_used_mm: float = 0.0  # the largest distance of the written blocks from the command
+    tolerance_used_at_s: float = 0.0  # where
+    rms_deviation_mm: float = 0.0  # of the written blocks from the command, over the samples inside them
+    loosened_s: float = 0.0  # time in blocks beyond the tolerance (for the line rate, Marlin's merge)
     stage_time_s: dict[str, float] = field(default_factory=dict)  # read, plan, optimize, write
 
     def as_dict(self) -> dict:
@@ -118,8 +124,12 @@ def compensate_file(input_path: str | Path, output_path: str | Path, profile: Ma
         plan, SampleWindow(chunks, plan, follows_plan), write_options, f)))
     stages["plan"] = plan.time_s - stages["read"]
     stages["write"] = time.perf_counter() - clock - plan.time_s - stages["optimize"]
-    report = Report(str(input_path), str(output_path), profile.name, flavor, plan.n_blocks, stats[0].lines_out,
-                    plan.duration_s, 0.0, warnings=plan.warnings + optimizer_warnings, stage_time_s=stages)
+    written = stats[0]
+    report = Report(str(input_path), str(output_path), profile.name, flavor, plan.n_blocks, written.lines_out,
+                    plan.duration_s, 0.0, warnings=plan.warnings + optimizer_warnings, stage_time_s=stages,
+                    max_line_rate_hz=written.max_line_rate_hz, line_rate_budget_hz=profile.firmware.max_line_rate_hz,
+                    tolerance_used_mm=written.max_deviation_mm, tolerance_used_at_s=written.max_deviation_s,
+                    loosened_s=written.loosened_s, rms_deviation_mm=written.rms_deviation_mm)
     for c, (before, after) in errors.items():
         if before.count:
             report.axes[AXES[c]] = AxisReport.from_stats(before, after)

@@ -59,6 +59,7 @@ class WriteStats:
     max_line_rate_hz: float = 0.0  # the most lines sent in any second of the program's time (no comments)
     max_deviation_mm: float = 0.0  # the largest distance of the written blocks from the command (XYZ, same time)
     max_deviation_s: float = 0.0  # where
+    rms_deviation_mm: float = 0.0  # over the samples inside the blocks
     loosened_s: float = 0.0  # time in blocks beyond the tolerance (merged, or stretched for the line rate)
 
 
@@ -528,7 +529,8 @@ class _Deviation:
     def __init__(self, samples: SampleWindow, fs: float, tolerance_mm: float):
         self.samples, self.fs, self.tolerance_mm = samples, fs, tolerance_mm
         self.last_s = 0.0  # the last written block's end
-        self.max_mm = self.at_s = self.loosened_s = 0.0
+        self.max_mm = self.at_s = self.loosened_s = self.sum_squares_mm2 = 0.0
+        self.count = 0
 
     def add(self, start_s: float | None, ends_s: np.ndarray, targets_mm: np.ndarray) -> None:
         """Blocks from ``start_s`` (None: the last block's end) to each of ``ends_s``."""
@@ -540,6 +542,8 @@ class _Deviation:
         grid_s = np.arange(math.ceil(start_s * self.fs), math.floor(ends_s[-1] * self.fs) + 1) / self.fs
         chord = np.column_stack([np.interp(grid_s, knots_s, knots_mm[:, c]) for c in range(3)])
         off_mm = np.linalg.norm(chord - self.samples.at(grid_s, self.fs)[:, :3], axis=1)
+        self.sum_squares_mm2 += float(off_mm @ off_mm)
+        self.count += len(off_mm)
         if len(off_mm) and off_mm.max() > self.max_mm:
             self.max_mm, self.at_s = float(off_mm.max()), float(grid_s[off_mm.argmax()])
         block = np.searchsorted(ends_s, grid_s, "left")
@@ -740,6 +744,7 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
     emit(*mode_lines(options.flavor, emitter.modal, previous_modal))
     stats.max_line_rate_hz = float(rate.max_per_s)
     stats.max_deviation_mm, stats.max_deviation_s, stats.loosened_s = deviation.max_mm, deviation.at_s, deviation.loosened_s
+    stats.rms_deviation_mm = math.sqrt(deviation.sum_squares_mm2 / max(deviation.count, 1))
     return stats
 
 

@@ -91,6 +91,7 @@ class Executed:
         self.e_at_lines = []  # E (program coordinate) at every line that is not a motion line
         self.at_lines = []  # (x, y, z, e) there, machine coordinates (NaN: not yet known)
         self.nonmotion = []  # those lines' bytes, in order
+        self.nonmotion_s = []  # when each runs
         self.extruded = 0.0  # sum of positive and negative E moves
         self.dwells = []  # when each G4 ends
         self.duration_s = 0.0  # when the last line ends
@@ -203,6 +204,7 @@ def execute(path, sample_rate_hz: float = 10000.0, dwell_p_seconds: bool = False
             if k == b"F" and not codes:
                 feed = v * scale / 60.0
         run.nonmotion.append(raw)
+        run.nonmotion_s.append(t)
         run.e_at_lines.append(pos["E"] - offset["E"])
         run.at_lines.append(tuple(np.nan if pos[a] is None else pos[a] for a in "XYZE"))
     run.duration_s = t
