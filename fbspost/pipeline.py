@@ -103,7 +103,7 @@ def compensate_file(input_path: str | Path, output_path: str | Path, profile: Ma
     blocks = _timed(read_gcode(input_path, flavor), stages, "read")
     if progress:
         blocks = _reported(blocks, _count_lines(input_path), progress)
-    plan = PlanStream(blocks, profile)
+    plan = PlanStream(blocks, profile, firmware=flavor)
     compensators = _compensators(profile, options)
     errors = {c: (_ErrorStats(), _ErrorStats()) for c in compensators}
     follows_plan = np.array([c not in compensators for c in range(len(AXES))])

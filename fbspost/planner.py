@@ -4,8 +4,11 @@ Takes the blocks of a program (``gcode.Block``) and a machine profile; gives the
 machine's own controller would execute, sampled on the profile's time grid: the X Y Z E machine
 positions at every sample, when each block happens, and the runs of motion between rests.
 
-The controller is Klipper's look-ahead planner (klippy/toolhead.py) with its accel_to_decel /
-minimum_cruise_ratio smoothing switched off:
+The controller is Klipper's look-ahead planner (klippy/toolhead.py). With ``firmware="klipper"``
+it is Klipper's exactly (``klipper_rules``: minimum_cruise_ratio / accel_to_decel smoothing,
+max_velocity, the Z and extruder limits, the extruder's junction limit; equal to klippy's own
+code, tests/test_firmware_klipper.py); otherwise, for the other flavors, with the smoothing
+switched off and the profile's per-axis limits, as follows:
 
 - Every linear piece of a MOVE block is one move: its distance is the XYZ length, or |dE| when
   XYZ moves less than 1e-9 mm (extrude-only); its cruise speed is the feed, limited by the

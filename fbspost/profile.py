@@ -96,18 +96,15 @@ class MachineProfile:
     @property
     def extrude_only_velocity_mm_s(self) -> float:
         """max_extrude_only_velocity: the table's, else Klipper's default max_velocity * ratio."""
-        fw = self.firmware
-        if fw.max_extrude_only_velocity_mm_s is not None:
-            return fw.max_extrude_only_velocity_mm_s
-        return self.toolhead_max_velocity_mm_s * fw.extrude_ratio
+        return self._extrude_only(self.firmware.max_extrude_only_velocity_mm_s, self.toolhead_max_velocity_mm_s)
 
     @property
     def extrude_only_accel_mm_s2(self) -> float:
         """max_extrude_only_accel: the table's, else Klipper's default max_accel * ratio."""
-        fw = self.firmware
-        if fw.max_extrude_only_accel_mm_s2 is not None:
-            return fw.max_extrude_only_accel_mm_s2
-        return self.planner_acceleration_mm_s2 * fw.extrude_ratio
+        return self._extrude_only(self.firmware.max_extrude_only_accel_mm_s2, self.planner_acceleration_mm_s2)
+
+    def _extrude_only(self, given: float | None, toolhead_limit: float) -> float:
+        return given if given is not None else toolhead_limit * self.firmware.extrude_ratio
 
 
 _TOP_KEYS = {"name", "description", "motion", "planner", "firmware", "axes"}

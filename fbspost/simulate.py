@@ -156,7 +156,7 @@ def simulate_program(program: str | Path, profile: MachineProfile, shapers: tupl
         raise ProfileError(f"{profile.source}: no axis has modes: nothing to simulate")
     flavor = flavor or detect_flavor(program)
     blocks = list(read_gcode(program, flavor))
-    plan = plan_blocks(blocks, profile)
+    plan = plan_blocks(blocks, profile, firmware=flavor)
     if not plan.runs:
         raise InputError(program, None, "no motion to simulate")
     settings = settings or shaper_settings(profile)

@@ -189,8 +189,10 @@ class _Printer:
 class KlippyMove:
     """One move as klippy planned it (toolhead.Move after set_junction)."""
 
+    start_s: float  # print time at its start (moves back to back, dwells between)
     start_pos: tuple
     end_pos: tuple
+    axes_r: tuple  # displacement per mm of the move (E alone for an extrude-only move)
     is_kinematic: bool
     accel_mm_s2: float
     start_v: float
@@ -242,12 +244,15 @@ class KlippyPlanner:
         head._process_moves = self._record
         self.moves: list[KlippyMove] = []
         self.dwell_s = 0.0
+        self.clock_s = 0.0  # print time of the end of what is planned
         fw = profile.firmware
         self.cruise_ratio = None if fw.max_accel_to_decel_mm_s2 is not None else fw.minimum_cruise_ratio
 
     def _record(self, moves) -> None:
-        self.moves.extend(KlippyMove(m.start_pos, m.end_pos, m.is_kinematic_move, m.accel, m.start_v, m.cruise_v,
-                                     m.end_v, m.accel_t, m.cruise_t, m.decel_t) for m in moves)
+        for m in moves:
+            self.moves.append(KlippyMove(self.clock_s, m.start_pos, m.end_pos, tuple(m.axes_r), m.is_kinematic_move,
+                                         m.accel, m.start_v, m.cruise_v, m.end_v, m.accel_t, m.cruise_t, m.decel_t))
+            self.clock_s += m.accel_t + m.cruise_t + m.decel_t
 
     def command(self, block: Block) -> None:
         """A M204 / SET_VELOCITY_LIMIT line, to klippy's own handler."""
@@ -285,6 +290,7 @@ class KlippyPlanner:
             elif block.kind is Kind.STOP:
                 head.move_queue.flush()
                 self.dwell_s += block.dwell_s
+                self.clock_s += block.dwell_s
                 known = ~np.isnan(block.position_mm)
                 head.commanded_pos[:] = np.where(known, block.position_mm, head.commanded_pos).tolist()
         head.move_queue.flush()
@@ -303,3 +309,27 @@ def _first_known(blocks: list[Block]) -> list[float]:
         if not np.isnan(first).any():
             break
     return np.nan_to_num(first).tolist()
+
+
+def sample_moves(moves: list[KlippyMove], sample_rate_hz: float, end_s: float | None = None) -> np.ndarray:
+    """(n, 4) X Y Z E of klippy's planned moves at t = k / sample_rate_hz, k = 0 .. up to ``end_s``
+    (default: the last move's end): each move the trapezoid of its accel, cruise and decel times
+    along axes_r; before the first move at its start, between moves (dwells) at the last end."""
+    start = np.array([m.start_s for m in moves])
+    t = np.arange(math.floor((end_s if end_s is not None else start[-1] + moves[-1].duration_s) * sample_rate_hz) + 1)
+    t = t / sample_rate_hz
+    index = np.maximum(np.searchsorted(start, t, side="right") - 1, 0)
+    column = {name: np.array([getattr(m, name) for m in moves])[index] for name in
+              ("accel_t", "cruise_t", "decel_t", "start_v", "cruise_v", "end_v", "accel_mm_s2")}
+    a, t1, t2 = column["accel_mm_s2"], column["accel_t"], column["cruise_t"]
+    tau = np.clip(t - start[index], 0.0, t1 + t2 + column["decel_t"])
+    accel_d = 0.5 * (column["start_v"] + column["cruise_v"]) * t1
+    in_accel = np.minimum(tau, t1)
+    in_cruise = np.clip(tau - t1, 0.0, t2)
+    in_decel = np.maximum(tau - t1 - t2, 0.0)
+    distance = np.where(tau <= t1, column["start_v"] * in_accel + 0.5 * a * in_accel**2,
+                        accel_d + column["cruise_v"] * in_cruise
+                        + column["cruise_v"] * in_decel - 0.5 * a * in_decel**2)
+    first = np.array([m.start_pos for m in moves])[index]
+    axes_r = np.array([m.axes_r for m in moves])[index]
+    return first + axes_r * distance[:, None]

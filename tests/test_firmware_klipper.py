@@ -111,3 +111,16 @@ def test_plan_of_dense_output_is_klippys(klippy, compensated, smoothing):
     blocks = list(read_gcode(compensated, "klipper"))
     assert len(blocks) > 10000
     assert_same_motion(blocks, with_smoothing(load_profile("printer-two-mode"), smoothing), klippy)
+
+
+@pytest.mark.parametrize("batch", [13, 211])
+def test_klipper_plan_streams_exactly(tmp_path, batch):
+    """The plan with Klipper's rules is bit for bit the same however the program is cut."""
+    path = program(tmp_path, "tests/data/gear-marlin2.gcode", 2500, TRANSPARENT["ratio"].replace("ACCEL=1000000", "ACCEL=2500"))
+    blocks = list(read_gcode(path, "klipper"))
+    whole = plan_blocks(blocks, load_profile("printer-two-mode"), firmware="klipper")
+    cut = plan_blocks(blocks, load_profile("printer-two-mode"), batch_blocks=batch, firmware="klipper")
+    for name in ("start_v_mm_s", "peak_v_mm_s", "end_v_mm_s", "duration_s", "start_s"):
+        assert np.array_equal(getattr(whole.pieces, name), getattr(cut.pieces, name)), name
+    assert np.array_equal(whole.line_time_s, cut.line_time_s)
+    assert np.array_equal(whole.positions_mm, cut.positions_mm)

@@ -497,8 +497,8 @@ def test_planner_limits(tmp_path):
         PlannerLimits(junction_deviation_mm=0.02),
         PlannerLimits(square_corner_velocity_mm_s=8.0),  # classic jerk: min of X and Y
         PlannerLimits(acceleration_mm_s2=3000.0, travel_acceleration_mm_s2=3000.0, max_velocity_mm_s=200.0,
-                      square_corner_velocity_mm_s=5.0),
-        None,
+                      square_corner_velocity_mm_s=5.0, minimum_cruise_ratio=0.5, accel_to_decel_mm_s2=1500.0),
+        PlannerLimits(accel_to_decel_mm_s2=100.0),
     ]
     rrf = read(tmp_path, "M203 X18000 Y12000 Z600\nM566 X600 Y900\nM204 P1200 T3000\n", "reprap")
     assert rrf[0].limits == PlannerLimits(axis_max_velocity_mm_s={"X": 300.0, "Y": 200.0, "Z": 10.0})  # mm/min

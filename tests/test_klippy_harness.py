@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 import pytest
 
 from fbspost.gcode import read_gcode
@@ -56,3 +58,15 @@ def test_set_velocity_limit_reaches_klippy(tmp_path, klippy):
     (move,) = klippy_moves(tmp_path, "G1 X0 Y0 F6000\nSET_VELOCITY_LIMIT ACCEL=1000 ACCEL_TO_DECEL=1000\n"
                                      "G1 X100 F6000\n", klippy)
     assert move.duration_s == pytest.approx(1.0 + 100.0 / 1000.0, rel=1e-14)
+
+
+def test_samples_of_klippys_moves(tmp_path, klippy):
+    """sample_moves: 0.5 a t^2 while accelerating, d / v + v / a to the end, the end held."""
+    from klippy_planner import sample_moves
+    moves = klippy_moves(tmp_path, "G1 X0 Y0 F6000\nG1 X100 F6000\n", klippy)
+    samples = sample_moves(moves, 1000.0, 1.2)
+    assert samples.shape == (1201, 4)
+    np.testing.assert_allclose(samples[:34, 0], 0.5 * 3000.0 * (np.arange(34) / 1000.0) ** 2, rtol=1e-12, atol=1e-12)
+    t = np.arange(34, 1000) / 1000.0  # cruising until 1 s: 100 / 3000 s behind the ideal
+    np.testing.assert_allclose(samples[34:1000, 0], 100.0 * (t - 0.5 * 100.0 / 3000.0), rtol=1e-12)
+    assert samples[1034:, 0] == pytest.approx(100.0, abs=1e-12) and samples[1034:, 1:].max() == 0.0
