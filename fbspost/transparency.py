@@ -23,6 +23,7 @@ blocks: 0. Input shaping on top of the compensation would correct twice: off.
 """
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import dataclass, field, replace
 
@@ -88,6 +89,9 @@ class Transparency:
     def __init__(self, flavor: str, program: FirmwareSettings, tolerance_mm: float):
         self.flavor, self.program, self.tolerance_mm = flavor, program, tolerance_mm
         self.limits_set = self.shaping_off = False
+        # the acceleration the firmware then ramps between the blocks' speeds at (LinuxCNC: its own)
+        self.ramp_mm_s2 = {"klipper": KLIPPER_ACCEL_MM_S2, "marlin": STEPPED_ACCEL_MM_S2,
+                           "reprap": STEPPED_ACCEL_MM_S2}.get(flavor, math.inf)
 
     def note(self, block: Block) -> None:
         """A copied program line: the program's settings (planner limits, LinuxCNC's blending mode

@@ -208,11 +208,14 @@ class _Emitter:
     """
 
     def __init__(self, start_mm: np.ndarray, newline: bytes, steps_per_mm: np.ndarray | None = None,
-                 min_steps: int = 0):
+                 min_steps: int = 0, ramp_mm_s2: float = math.inf):
         self.modal = Modal()  # the controller starts in its defaults
+        # the firmware ramps each speed step at this acceleration, losing time the next blocks make up
+        self.ramp_mm_s2, self.speed_mm_s = ramp_mm_s2, 0.0
         # Marlin merges a block of fewer than min_steps steps on every axis with the next (steps_per_mm per
         # axis, 0 where not known): such blocks are merged here, where their time can go with them
         self.steps_per_mm, self.min_steps = steps_per_mm, min_steps
+        self.held = None  # (targets, durations, ends) of blocks that wait for the next call
         self.shift_mm = np.zeros(4)  # controller frame minus program frame, per axis (G92 mid-motion)
         self.written = self.to_program(start_mm)
         self.feed = -1  # the last F written, in units of its last digit (none yet: feeds are >= 0)
@@ -234,6 +237,8 @@ class _Emitter:
         old_offsets, old_unit = np.asarray(self.modal.offsets_mm), self.unit_mm
         self.modal = block.modal
         if block.kind is Kind.STOP:
+            self.residue_s -= self.speed_mm_s / (2.0 * self.ramp_mm_s2)  # the last block's ramp down to rest
+            self.speed_mm_s = 0.0
             self.shift_mm[:] = 0.0
             self.written = self.to_program(planned_mm)
             return
@@ -244,16 +249,21 @@ class _Emitter:
             self.shift_mm[changed] = (command_mm - planned_mm)[changed]
             self.written[changed] = self.to_program(command_mm)[changed]
 
-    def blocks(self, targets_mm: np.ndarray, durations_s: np.ndarray,
+    def blocks(self, targets_mm: np.ndarray, durations_s: np.ndarray, ends_s: np.ndarray | None = None,
                curves: Curves | None = None, exact_last: bool = True) -> tuple[bytes, int]:
         """G1 lines (G5 where ``curves`` says so) reaching each target (machine mm) in its
         duration, in the controller's modes: their text (each line ended by the newline) and how
-        many there are. ``written_rows``: which targets got a line. Without ``exact_last``, the
-        last target may be left to the next call (Marlin's minimum steps).
+        many there are. ``written_s`` and ``written_mm``: the ends (of ``ends_s``) and targets of
+        the blocks written. Without ``exact_last`` (Marlin's merge), the last block kept waits for
+        the next call, where a later block may yet merge it.
 
         Values are rounded in integer units of the last written digit: a relative value is the
         difference of two rounded positions, so rounding residues never accumulate.
         """
+        ends_s = np.zeros(len(targets_mm)) if ends_s is None else ends_s
+        if self.held is not None:
+            targets_mm, durations_s, ends_s = (np.concatenate(pair) for pair in zip(self.held, (targets_mm, durations_s, ends_s)))
+            self.held = None
         digits = np.array([_DECIMALS[a] for a in AXES]) + (1 if self.modal.inches else 0)
         scale = 10.0 ** digits
         relative = np.array([not (self.modal.absolute_e if a == "E" else self.modal.absolute_xyz) for a in AXES])
@@ -261,13 +271,24 @@ class _Emitter:
         ints = np.rint(self.to_program(targets_mm) * scale).astype(np.int64)
         if self.min_steps and curves is None:
             ints = _merged(start, ints, self.steps_per_mm * self.unit_mm / scale, self.min_steps, exact_last)
+            if not exact_last:
+                kept = np.flatnonzero((np.diff(np.vstack([start, ints]), axis=0) != 0).any(axis=1))
+                last = kept[-1] if len(kept) else 0
+                self.held = (targets_mm[last:], durations_s[last:], ends_s[last:])
+                targets_mm, durations_s, ends_s, ints = targets_mm[:last], durations_s[:last], ends_s[:last], ints[:last]
         steps = np.diff(np.vstack([start, ints]), axis=0)
         moved = steps != 0
         delta_mm = steps / scale * self.unit_mm
         # The controller times a block by its XYZ length, or its E length when XYZ do not move; a
-        # G5 block by its curve's length.
-        length = np.linalg.norm(delta_mm[:, :3], axis=1)
-        length = np.where(length > 0, length, np.abs(delta_mm[:, _E]))
+        # G5 block by its curve's length. Marlin (planner.cpp, _populate_block): by the whole steps
+        # it moves, and by E's when no XYZ axis moves its minimum steps.
+        xyz_moves = np.linalg.norm(delta_mm[:, :3], axis=1) > 0
+        if self.min_steps and curves is None:
+            spm = self.steps_per_mm
+            step_counts = np.diff(np.rint(np.vstack([start, ints]) * (spm * self.unit_mm / scale)), axis=0)
+            delta_mm = np.where(spm > 0, step_counts / np.where(spm > 0, spm, 1.0), delta_mm)
+            xyz_moves = (np.abs(step_counts[:, :3]) >= self.min_steps).any(axis=1)
+        length = np.where(xyz_moves, np.linalg.norm(delta_mm[:, :3], axis=1), np.abs(delta_mm[:, _E]))
         if curves is not None:
             # Control points rounded as written: I J (P Q) are the rounded point minus the rounded
             # start (end), as the controller adds them to the positions it has. The rounded curve
@@ -282,10 +303,12 @@ class _Emitter:
             length[g5_rows] = curve_lengths(p0 / xy_scale, (p0 + offsets[g5_rows, :2]) / xy_scale,
                                             (p3 + offsets[g5_rows, 2:]) / xy_scale, p3 / xy_scale) * self.unit_mm
             moved[:, :2] |= curves.curve[:, None]  # G5 needs its end point, also where it closes a loop
-        moving = self.written_rows = moved.any(axis=1)
+        moving = moved.any(axis=1)
+        self.written_s, self.written_mm = ends_s[moving], targets_mm[moving]
         rows = slice(None) if moving.all() else moving  # nearly always all of them: no copies
-        feed, self.residue_s = _feeds(length, durations_s, moving, self.residue_s,
-                                      60.0 * 10 ** _FEED_DECIMALS / self.unit_mm)
+        feed, self.residue_s, self.speed_mm_s = _feeds(length, durations_s, moving, self.residue_s,
+                                                       60.0 * 10 ** _FEED_DECIMALS / self.unit_mm,
+                                                       self.speed_mm_s, self.ramp_mm_s2)
         new_feed = feed != np.concatenate([[self.feed], feed[:-1]])  # F only where it changes
         if len(feed):
             self.feed = int(feed[-1])
@@ -329,16 +352,17 @@ def _merged(start: np.ndarray, ints: np.ndarray, steps_per_unit: np.ndarray, min
 
 
 def _feeds(length_mm: np.ndarray, durations_s: np.ndarray, moving: np.ndarray, residue_s: float,
-           units_per_mm_s: float) -> tuple[np.ndarray, float]:
-    """The F of each moving block (integer units of its last digit; ``units_per_mm_s`` per mm/s)
-    and the time residue left after them.
+           units_per_mm_s: float, speed_mm_s: float = 0.0, ramp_mm_s2: float = math.inf) -> tuple[np.ndarray, float, float]:
+    """The F of each moving block (integer units of its last digit; ``units_per_mm_s`` per mm/s),
+    the time residue left after them and the last block's speed (``speed_mm_s``: the one's before).
 
     The controller times a block as its length over its F, and F is rounded: each block is
     given its duration plus the residue (the time the blocks before it were written short of
     theirs, and the whole time of blocks that round to no motion, which are not written), so the
-    written time never drifts from the command's by more than one block's rounding. (Where the
-    residue is more negative than half a block's duration, the block keeps half its own and
-    the rest goes on.)
+    written time never drifts from the command's by more than one block's rounding. The firmware
+    ramps from one block's speed to the next at ``ramp_mm_s2``, inside the faster one, and arrives
+    (dv)^2 / (2 ramp max(v)) late: the next block makes that up too. (Where the residue is more
+    negative than half a block's duration, the block keeps half its own and the rest goes on.)
     """
     feeds = []
     for length, duration, moves in zip(length_mm.tolist(), durations_s.tolist(), moving.tolist()):
@@ -347,7 +371,10 @@ def _feeds(length_mm: np.ndarray, durations_s: np.ndarray, moving: np.ndarray, r
             feed = max(round(length * units_per_mm_s / max(residue_s, 0.5 * duration)), 1)
             feeds.append(feed)
             residue_s -= length * units_per_mm_s / feed
-    return np.array(feeds, dtype=np.int64), residue_s
+            speed = feed / units_per_mm_s
+            residue_s -= (speed - speed_mm_s) ** 2 / (2.0 * ramp_mm_s2 * max(speed, speed_mm_s))
+            speed_mm_s = speed
+    return np.array(feeds, dtype=np.int64), residue_s, speed_mm_s
 
 
 def _digits(width: int, form: str) -> np.ndarray:
@@ -682,11 +709,11 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
                     if ends[-1] == t_end_s and not soft:
                         exact = np.where(np.isnan(end_exact_mm), samples.at(ends[-1:], fs, planned=True)[0], end_exact_mm)
                         targets[-1, follows_plan] = exact[follows_plan]
-                    text, count = emitter.blocks(targets, np.diff(np.append(from_s, ends)), curves, ends[-1] >= stop_s)
+                    text, count = emitter.blocks(targets, np.diff(np.append(from_s, ends)), ends, curves,
+                                                 exact_last=ends[-1] >= stop_s)
                     emit_text(text, count)
-                    written = emitter.written_rows
-                    deviation.add(from_s if run_start else None, ends[written], targets[written])
-                    rate.add(ends[written])
+                    deviation.add(from_s if run_start else None, emitter.written_s, emitter.written_mm)
+                    rate.add(emitter.written_s)
                     stats.motion_blocks += count
                     from_s = start_s = written_until_s = float(ends[-1])
                     dwelt_s = 0.0
@@ -704,7 +731,8 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
         if emitter is None:
             newline = b"\r\n" if block.raw.endswith(b"\r\n") else b"\n"  # (only the last line has no ending)
             emitter = _Emitter(samples.rows(0, 1)[0], newline, None if options.steps_per_mm is None
-                               else np.asarray(options.steps_per_mm), options.min_steps_per_segment)
+                               else np.asarray(options.steps_per_mm), options.min_steps_per_segment,
+                               math.inf if settings is None else settings.ramp_mm_s2)
         if not header_done and _is_code(block):
             notes = settings.header() if settings is not None and runs_from(0) else []
             header = [f"{comment[0]}{text}{comment[1]}" for text in options.header + tuple(notes)]

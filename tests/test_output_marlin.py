@@ -12,10 +12,10 @@ from fbspost.gcode import read_gcode
 from fbspost.pipeline import CompensateOptions, compensate_file, compensated_samples
 from fbspost.planner import plan_blocks
 from fbspost.profile import load_profile
-from reference import execute, positions_at
 
 PROFILE = load_profile("printer-two-mode")  # 80 steps/mm on X Y, 400 Z, 415 E; 300 lines/s
 MIN_STEPS = 6
+_SYNCHRONIZE = {"G4", "G28", "M400", "M109", "M190"}  # Marlin waits for the moves to finish
 
 
 @pytest.fixture(scope="module")
@@ -30,12 +30,15 @@ def marlin_output(tmp_path_factory):
 
 def blocks(path):
     """Every line that is sent (not blank, not a comment), read as Marlin would: (its time, at the
-    end of its motion; the step_event_count of a G0/G1 that moves, else None). Program positions
-    (G90, M82/M83, G92), rounded to steps per axis; a block takes its XYZ length (E's without XYZ)
-    over F; G4 P waits; homing makes XYZ unknown and a move from an unknown place is instant (an
+    end of its motion; the step_event_count of a G0/G1 that moves, else None; X Y Z there). Program positions
+    (G90, M82/M83, G92), rounded to steps per axis; a block takes the length of its whole steps
+    over F, XYZ's, or E's where no XYZ axis moves the minimum steps (planner.cpp), plus the time
+    its trapezoid loses ramping from the last block's speed at M204 P (dv^2 / (2 a max v); to rest
+    at the lines Marlin synchronizes at: v / 2a); G4 P waits; homing makes XYZ unknown and a move from an unknown place is instant (an
     axis it does not name may be unknown)."""
     spm = np.array([PROFILE.firmware.steps_per_mm[a] for a in "XYZE"])
     position, feed, t, relative_e, out = np.full(4, np.nan), np.nan, 0.0, False, []
+    accel, speed = np.inf, 0.0  # M204 P; the last block's speed
     position[3] = 0.0
     for line in path.read_text().splitlines():
         words = line.split(";")[0].split()
@@ -46,6 +49,11 @@ def blocks(path):
         steps = None
         if relative_e and "E" in values:
             target[3] = position[3] + values["E"]
+        if words[0] in _SYNCHRONIZE:  # the machine comes to rest: the last block ramps down
+            t += speed / (2.0 * accel)
+            speed = 0.0
+        if words[0] == "M204" and "P" in values:
+            accel = values["P"]
         if words[0] == "G92":
             position = target
         elif words[0] == "G28":
@@ -59,41 +67,51 @@ def blocks(path):
             named = np.array([a in values for a in "XYZE"])
             delta = np.where(named, target - position, 0.0)  # (an axis not named may be unknown)
             if not np.isnan(delta).any() and named.any():  # (G1 F1800 alone moves nothing)
-                steps = np.nanmax(np.abs(np.rint(target * spm) - np.rint(position * spm)))
-                length = np.linalg.norm(delta[:3]) or abs(delta[3])
-                t += length / feed
+                counts = np.where(named, np.rint(target * spm) - np.rint(position * spm), 0.0)
+                steps = np.abs(counts).max()
+                step_mm = counts / spm
+                xyz = (np.abs(counts[:3]) >= MIN_STEPS).any()
+                t += (np.linalg.norm(step_mm[:3]) if xyz else abs(step_mm[3])) / feed
+                # a speed step ramps at the acceleration inside the faster block: it ends this much later
+                t += (feed - speed) ** 2 / (2.0 * accel * max(feed, speed))
+                speed = feed
+            else:  # a move from an unknown place: at rest after it
+                speed = 0.0
             position = target
-        out.append((t, steps))
+        out.append((t, steps, position[:3].copy()))
     return out
 
 
 def test_no_block_marlin_would_merge(marlin_output):
     _, target, _ = marlin_output
-    counts = np.array([steps for _, steps in blocks(target) if steps is not None])
+    counts = np.array([steps for _, steps, _ in blocks(target) if steps is not None])
     assert len(counts) > 1000
     assert counts.min() >= MIN_STEPS
 
 
 def test_line_rate_within_budget(marlin_output):
     """Every line but comments, at its time: motion blocks when they end, the others when they run;
-    the report's rate is the same count (on the plan's times)."""
+    the report's rate is the same count on the plan's times."""
     _, target, report = marlin_output
-    times = np.array([t for t, _ in blocks(target)])
+    times = np.array([t for t, _, _ in blocks(target)])
     in_second = np.arange(len(times)) + 1 - np.searchsorted(times, times - 1.0, "right")
     assert in_second.max() <= 300
-    assert report.max_line_rate_hz == in_second.max()
+    assert abs(report.max_line_rate_hz - in_second.max()) <= 2  # (its times: the plan's, a line may cross a second's edge)
 
 
 def test_accuracy_cost_reported(marlin_output):
-    """The written blocks at constant speed against the command, at every sample: the report's
-    largest and RMS distance (what the budget and the merge cost), the rounding aside."""
+    """The written blocks, each at constant speed from its start to its end as Marlin times them,
+    against the command at every sample inside them: the report's largest and RMS distance (what
+    the budget and the merge cost), the rounding aside."""
     source, target, report = marlin_output
-    plan = plan_blocks(read_gcode(source, "marlin"), PROFILE)
+    plan = plan_blocks(read_gcode(source, "marlin"), PROFILE, firmware="marlin")
     command = compensated_samples(plan, PROFILE)
-    run = execute(target, PROFILE.sample_rate_hz)
-    t = np.arange(len(command)) / PROFILE.sample_rate_hz
-    inside = (t > run.ends[0][0]) & (t < run.ends[-1][0])
-    off_mm = np.linalg.norm(positions_at(run.path, t[inside])[:, :3] - command[inside, :3], axis=1)
+    lines = [(t, xyz) for t, steps, xyz in blocks(target) if steps is not None and not np.isnan(xyz).any()]
+    times, ends = np.array([t for t, _ in lines]), np.array([xyz for _, xyz in lines])
+    grid = np.arange(len(command)) / PROFILE.sample_rate_hz
+    inside = (grid > times[0]) & (grid < times[-1])
+    written = np.column_stack([np.interp(grid[inside], times, ends[:, c]) for c in range(3)])
+    off_mm = np.linalg.norm(written - command[inside, :3], axis=1)
     print(f"blocks vs command: max {off_mm.max() * 1e3:.2f} um, RMS {np.sqrt(np.mean(off_mm**2)) * 1e3:.3f} um; "
           f"report {report.tolerance_used_mm * 1e3:.2f}, {report.rms_deviation_mm * 1e3:.3f} um")
     assert report.tolerance_used_mm == pytest.approx(off_mm.max(), abs=2e-4)
