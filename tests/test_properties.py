@@ -29,9 +29,9 @@ from fbspost.gcode import read_gcode
 from fbspost.pipeline import CompensateOptions, compensate_file, compensated_samples
 from fbspost.planner import CLAMPED, plan_blocks
 from fbspost.profile import load_profile
-from reference import execute, kept_lines, rms, sample_blocks, simulate_lsim
+from reference import execute, kept_lines, rms, sample_blocks, simulate_lsim, unbudgeted
 
-PRINTER = load_profile("bedslinger-example")
+PRINTER = unbudgeted(load_profile("bedslinger-example"))
 OPTIONS = CompensateOptions(flavor="marlin")
 PASSTHROUGH = [b"M106 S128", b"M107", b"M104 S205", b"M140 S60", b"M117 Layer 2", b"; LAYER_CHANGE",
                b"(a CNC comment)", b"", b"M204 S2500", b"M221 S95"]
