@@ -308,7 +308,7 @@ def _summary(source: Path, target: Path, profile: MachineProfile, report: Report
              f"{report.lines_in} lines in, {report.lines_out} out; print time {report.print_time_s:.1f} s, "
              f"computed in {report.compute_time_s:.2f} s"]
     budget = "" if report.line_rate_budget_hz is None else f" (budget {report.line_rate_budget_hz:g})"
-    lines.append(f"output: at most {report.max_line_rate_hz:g} lines/s{budget}; blocks at most "
+    lines.append(f"fbspost output: at most {report.max_line_rate_hz:g} lines/s{budget}; blocks at most "
                  f"{report.tolerance_used_mm * 1e3:.3g} um from the command (at {report.tolerance_used_at_s:.3f} s; "
                  f"RMS {report.rms_deviation_mm * 1e3:.3g} um), "
                  f"{report.loosened_s:.3f} s of them beyond the tolerance")
