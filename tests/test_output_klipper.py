@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from fbspost.firmware import replan
 from fbspost.gcode import read_gcode
 from fbspost.pipeline import CompensateOptions, compensate_file, compensated_samples
 from fbspost.planner import plan_blocks
@@ -29,14 +30,19 @@ def run_by_klipper(tmp_path, source, profile_name: str):
     profile = load_profile(profile_name)
     target = tmp_path / "out.gcode"
     compensate_file(source, target, profile, CompensateOptions(flavor="klipper", tolerance_mm=TOLERANCE_MM))
-    plan = plan_blocks(read_gcode(source, "klipper"), profile)
+    plan = plan_blocks(read_gcode(source, "klipper"), profile, firmware="klipper")
     return plan, compensated_samples(plan, profile), executed(target, profile)
 
 
 def test_butterfly_runs_as_written(tmp_path, klippy):
-    """The CAM butterfly (0.05 mm chords at F6000) on the patent's stage at 10 kHz."""
+    """The CAM butterfly (0.05 mm chords at F6000) on the patent's stage at 10 kHz; the same
+    through fbspost's own model of Klipper (fbspost.firmware, Klipper's rules)."""
     plan, command, run = run_by_klipper(tmp_path, "samples/butterfly-polyline.gcode", "patent-xy-stage")
     assert run.duration_s == pytest.approx(plan.duration_s, rel=2e-3)
     t = np.arange(len(command)) / plan.sample_rate_hz
     off_mm = np.linalg.norm(run.at(t)[:, :2] - command[:, :2], axis=1)
     assert off_mm.max() <= TOLERANCE_MM + 2e-3
+    model = replan(list(read_gcode(tmp_path / "out.gcode", "klipper")), load_profile("patent-xy-stage"), "klipper")
+    assert model.duration_s == pytest.approx(plan.duration_s, rel=2e-3)
+    n = min(len(command), len(model.positions_mm))
+    assert np.linalg.norm(model.positions_mm[:n, :2] - command[:n, :2], axis=1).max() <= TOLERANCE_MM + 2e-3
