@@ -66,8 +66,14 @@ class FirmwareSettings:
     def changed(self, limits: PlannerLimits) -> FirmwareSettings:
         """These settings after a program line that changes ``limits``."""
         accel = limits.acceleration_mm_s2 or self.acceleration_mm_s2
+        ratio, to_decel = limits.minimum_cruise_ratio, limits.accel_to_decel_mm_s2
+        if to_decel is not None and self.max_accel_to_decel_mm_s2 is None and ratio is None:
+            ratio = 1.0 - min(1.0, to_decel / accel)  # Klipper 2024 reads ACCEL_TO_DECEL so (as the planner)
         return replace(
             self, acceleration_mm_s2=accel,
+            minimum_cruise_ratio=_first(ratio, self.minimum_cruise_ratio),
+            max_accel_to_decel_mm_s2=self.max_accel_to_decel_mm_s2 if self.max_accel_to_decel_mm_s2 is None
+            else _first(to_decel, self.max_accel_to_decel_mm_s2),
             travel_acceleration_mm_s2=_first(limits.travel_acceleration_mm_s2, self.travel_acceleration_mm_s2),
             square_corner_velocity_mm_s=_first(limits.square_corner_velocity_mm_s, self.square_corner_velocity_mm_s),
             junction_deviation_mm=_first(limits.junction_deviation_mm, self.junction_deviation_mm),

@@ -52,6 +52,15 @@ def test_lines_per_flavor(flavor):
     }[flavor]
     assert t.restore() == restored
     assert t.restore() == []  # restored already
+    t = Transparency("klipper", program, 1e-3)
+    t.apply(True, Modal())
+    t.note(limits_line(PlannerLimits(2000.0, 2000.0, accel_to_decel_mm_s2=500.0)))  # (Klipper 2024 reads it as a ratio)
+    t.apply(False, Modal())
+    assert t.restore()[0] == ("SET_VELOCITY_LIMIT ACCEL=2000 ACCEL_TO_DECEL=500 MINIMUM_CRUISE_RATIO=0.75 "
+                              "SQUARE_CORNER_VELOCITY=5")
+    old_klippy = Transparency("klipper", FirmwareSettings(3000.0, max_accel_to_decel_mm_s2=1500.0), 1e-3)
+    old_klippy.apply(True, Modal())
+    assert old_klippy.restore()[0] == "SET_VELOCITY_LIMIT ACCEL=3000 ACCEL_TO_DECEL=1500 MINIMUM_CRUISE_RATIO=0.5"
     inches = Modal(inches=True)
     assert Transparency("linuxcnc", program, 0.0254).apply(True, inches) == ["G64 P0.001 Q0"]
 
