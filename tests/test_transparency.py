@@ -1,6 +1,7 @@
 """The firmware settings around the compensated motion, line by line per flavor; copied moves run
 under the program's own settings (read back from the output by a small interpreter of the lines);
 the written time of the blocks against the exact sum of their durations."""
+import dataclasses
 import re
 from fractions import Fraction
 
@@ -9,7 +10,7 @@ import pytest
 
 from fbspost.gcode import Block, Kind, Modal, PlannerLimits
 from fbspost.pipeline import CompensateOptions, compensate_file
-from fbspost.profile import load_profile
+from fbspost.profile import ProfileError, format_profile, load_profile, parse_profile, tomllib
 from fbspost.transparency import FirmwareSettings, Transparency
 from fbspost.writer import _Emitter
 
@@ -170,3 +171,16 @@ def test_written_time_carries_the_feed_rounding():
     owed_s = np.diff(np.array([0.0] + [float(e) for e in exact]))
     alone_s = lengths * 60000 / np.maximum(np.rint(lengths * 60000 / owed_s), 1)
     assert abs(np.sum(alone_s - owed_s)) > 100 * abs(drift_s[-1])
+
+
+def test_profile_shaper_frequencies_reach_the_restore(tmp_path):
+    """[firmware] shaper_frequency: read, written back by format_profile, restored after the motion."""
+    text = format_profile(PRINTER).replace("[firmware]", "[firmware]\nshaper_frequency = { X = 51.5, Y = 33.0 }")
+    profile = parse_profile(tomllib.loads(text), "p.toml")
+    assert profile.firmware.shaper_frequency_hz == {"X": 51.5, "Y": 33.0}
+    assert parse_profile(tomllib.loads(format_profile(profile)), "q.toml") == dataclasses.replace(profile, source="q.toml")
+    t = Transparency("klipper", FirmwareSettings.from_profile(profile), 1e-3)
+    t.apply(True, Modal())
+    assert t.restore()[-1] == "SET_INPUT_SHAPER SHAPER_FREQ_X=51.5 SHAPER_FREQ_Y=33"
+    with pytest.raises(ProfileError, match="firmware.shaper_frequency.Q"):
+        parse_profile(tomllib.loads(text.replace("X = 51.5", "Q = 51.5")), "p.toml")
