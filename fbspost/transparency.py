@@ -11,7 +11,8 @@ the speed steps by at most a_cmd / fs (10 mm/s at 10 m/s^2 and 1 kHz). The firmw
 step at its acceleration A, inside the block, and so arrives (dv)^2 / (2 A v) late (v the higher
 of the two speeds; at most dv / (2 A)) and at most (dv)^2 / (2 A) behind within the block.
 Klipper (ACCEL = 1e7 mm/s^2): at most 0.5 us and 5 nm per junction, typically 0.05 us (dv 10,
-v 100). Marlin and RepRapFirmware keep block accelerations in 32-bit steps/s^2 (times
+v 100); the writer makes that time up in the next block (on the butterfly, Klipper's own
+planner: 0.92 -> 0.39 um RMS from the command). Marlin and RepRapFirmware keep block accelerations in 32-bit steps/s^2 (times
 2^24 / timer rate in Marlin): 1e6 mm/s^2 fits at up to 250 steps/mm, at most 5 us and 50 nm per
 junction. Junctions: Klipper's limit R * scv^2 (sqrt2 - 1) (R = sin(t/2) / (1 - sin(t/2)), t the
 angle between the blocks) does not depend on ACCEL; SQUARE_CORNER_VELOCITY 10000 mm/s lets every
@@ -95,9 +96,10 @@ class Transparency:
     def __init__(self, flavor: str, program: FirmwareSettings, tolerance_mm: float):
         self.flavor, self.program, self.tolerance_mm = flavor, program, tolerance_mm
         self.limits_set = self.shaping_off = False
-        # the acceleration the firmware then ramps between the blocks' speeds at (LinuxCNC: its own)
-        self.ramp_mm_s2 = {"klipper": KLIPPER_ACCEL_MM_S2, "marlin": STEPPED_ACCEL_MM_S2,
-                           "reprap": STEPPED_ACCEL_MM_S2}.get(flavor, math.inf)
+        # the acceleration the firmware then ramps between the blocks' speeds at, where the time
+        # that loses is made up (Klipper: verified on its own planner; Marlin's and RRF's junctions
+        # lose more than their ramps, not modelled: none)
+        self.ramp_mm_s2 = KLIPPER_ACCEL_MM_S2 if flavor == "klipper" else math.inf
 
     def note(self, block: Block) -> None:
         """A copied program line: the program's settings (planner limits, LinuxCNC's blending mode

@@ -249,6 +249,15 @@ class _Emitter:
             self.shift_mm[changed] = (command_mm - planned_mm)[changed]
             self.written[changed] = self.to_program(command_mm)[changed]
 
+    def _marlin_lengths(self, start: np.ndarray, ints: np.ndarray, scale: np.ndarray) -> np.ndarray:
+        """The lengths Marlin times the blocks by (planner.cpp, _populate_block): of the whole
+        steps they move, E's where no XYZ axis moves its minimum steps."""
+        spm = self.steps_per_mm
+        step_counts = np.diff(np.rint(np.vstack([start, ints]) * (spm * self.unit_mm / scale)), axis=0)
+        delta_mm = np.where(spm > 0, step_counts / np.where(spm > 0, spm, 1.0),
+                            np.diff(np.vstack([start, ints]), axis=0) / scale * self.unit_mm)
+        return _lengths(delta_mm, (np.abs(step_counts[:, :3]) >= self.min_steps).any(axis=1))
+
     def blocks(self, targets_mm: np.ndarray, durations_s: np.ndarray, ends_s: np.ndarray | None = None,
                curves: Curves | None = None, exact_last: bool = True) -> tuple[bytes, int]:
         """G1 lines (G5 where ``curves`` says so) reaching each target (machine mm) in its
@@ -269,7 +278,8 @@ class _Emitter:
         relative = np.array([not (self.modal.absolute_e if a == "E" else self.modal.absolute_xyz) for a in AXES])
         start = np.rint(self.written * scale).astype(np.int64)
         ints = np.rint(self.to_program(targets_mm) * scale).astype(np.int64)
-        if self.min_steps and curves is None:
+        marlin = self.min_steps and curves is None
+        if marlin:
             ints = _merged(start, ints, self.steps_per_mm * self.unit_mm / scale, self.min_steps, exact_last)
             if not exact_last:
                 kept = np.flatnonzero((np.diff(np.vstack([start, ints]), axis=0) != 0).any(axis=1))
@@ -278,17 +288,7 @@ class _Emitter:
                 targets_mm, durations_s, ends_s, ints = targets_mm[:last], durations_s[:last], ends_s[:last], ints[:last]
         steps = np.diff(np.vstack([start, ints]), axis=0)
         moved = steps != 0
-        delta_mm = steps / scale * self.unit_mm
-        # The controller times a block by its XYZ length, or its E length when XYZ do not move; a
-        # G5 block by its curve's length. Marlin (planner.cpp, _populate_block): by the whole steps
-        # it moves, and by E's when no XYZ axis moves its minimum steps.
-        xyz_moves = np.linalg.norm(delta_mm[:, :3], axis=1) > 0
-        if self.min_steps and curves is None:
-            spm = self.steps_per_mm
-            step_counts = np.diff(np.rint(np.vstack([start, ints]) * (spm * self.unit_mm / scale)), axis=0)
-            delta_mm = np.where(spm > 0, step_counts / np.where(spm > 0, spm, 1.0), delta_mm)
-            xyz_moves = (np.abs(step_counts[:, :3]) >= self.min_steps).any(axis=1)
-        length = np.where(xyz_moves, np.linalg.norm(delta_mm[:, :3], axis=1), np.abs(delta_mm[:, _E]))
+        length = self._marlin_lengths(start, ints, scale) if marlin else _lengths(steps / scale * self.unit_mm)
         if curves is not None:
             # Control points rounded as written: I J (P Q) are the rounded point minus the rounded
             # start (end), as the controller adds them to the positions it has. The rounded curve
@@ -327,6 +327,13 @@ class _Emitter:
         # temporaries outgrow the CPU cache).
         return b"".join(_lines(values[a:a + _LINES], shown[a:a + _LINES], digits, letters, self.newline,
                                g5[a:a + _LINES]) for a in range(0, len(feed), _LINES)), len(feed)
+
+
+def _lengths(delta_mm: np.ndarray, xyz_moves: np.ndarray | None = None) -> np.ndarray:
+    """What a controller times each block by: its XYZ length where XYZ move (``xyz_moves``, by
+    default where they move at all), else its E length."""
+    xyz = np.linalg.norm(delta_mm[:, :3], axis=1)
+    return np.where(xyz > 0 if xyz_moves is None else xyz_moves, xyz, np.abs(delta_mm[:, _E]))
 
 
 def _merged(start: np.ndarray, ints: np.ndarray, steps_per_unit: np.ndarray, min_steps: int,

@@ -15,7 +15,6 @@ from fbspost.profile import load_profile
 
 PROFILE = load_profile("printer-two-mode")  # 80 steps/mm on X Y, 400 Z, 415 E; 300 lines/s
 MIN_STEPS = 6
-_SYNCHRONIZE = {"G4", "G28", "M400", "M109", "M190"}  # Marlin waits for the moves to finish
 
 
 @pytest.fixture(scope="module")
@@ -32,13 +31,10 @@ def blocks(path):
     """Every line that is sent (not blank, not a comment), read as Marlin would: (its time, at the
     end of its motion; the step_event_count of a G0/G1 that moves, else None; X Y Z there). Program positions
     (G90, M82/M83, G92), rounded to steps per axis; a block takes the length of its whole steps
-    over F, XYZ's, or E's where no XYZ axis moves the minimum steps (planner.cpp), plus the time
-    its trapezoid loses ramping from the last block's speed at M204 P (dv^2 / (2 a max v); to rest
-    at the lines Marlin synchronizes at: v / 2a); G4 P waits; homing makes XYZ unknown and a move from an unknown place is instant (an
+    over F, XYZ's, or E's where no XYZ axis moves the minimum steps (planner.cpp); G4 P waits; homing makes XYZ unknown and a move from an unknown place is instant (an
     axis it does not name may be unknown)."""
     spm = np.array([PROFILE.firmware.steps_per_mm[a] for a in "XYZE"])
     position, feed, t, relative_e, out = np.full(4, np.nan), np.nan, 0.0, False, []
-    accel, speed = np.inf, 0.0  # M204 P; the last block's speed
     position[3] = 0.0
     for line in path.read_text().splitlines():
         words = line.split(";")[0].split()
@@ -49,11 +45,6 @@ def blocks(path):
         steps = None
         if relative_e and "E" in values:
             target[3] = position[3] + values["E"]
-        if words[0] in _SYNCHRONIZE:  # the machine comes to rest: the last block ramps down
-            t += speed / (2.0 * accel)
-            speed = 0.0
-        if words[0] == "M204" and "P" in values:
-            accel = values["P"]
         if words[0] == "G92":
             position = target
         elif words[0] == "G28":
@@ -72,11 +63,6 @@ def blocks(path):
                 step_mm = counts / spm
                 xyz = (np.abs(counts[:3]) >= MIN_STEPS).any()
                 t += (np.linalg.norm(step_mm[:3]) if xyz else abs(step_mm[3])) / feed
-                # a speed step ramps at the acceleration inside the faster block: it ends this much later
-                t += (feed - speed) ** 2 / (2.0 * accel * max(feed, speed))
-                speed = feed
-            else:  # a move from an unknown place: at rest after it
-                speed = 0.0
             position = target
         out.append((t, steps, position[:3].copy()))
     return out
