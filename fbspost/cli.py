@@ -336,6 +336,11 @@ def _summary(source: Path, target: Path, profile: MachineProfile, report: Report
              f"{report.lines_in} lines in, {report.lines_out} out; print time {report.print_time_s:.1f} s "
              f"({report.added_time_s:.2f} s of it lead and settle margins: {report.lead_time_s * 1e3:.3g} + "
              f"{report.settle_time_s * 1e3:.3g} ms per run of motion), computed in {report.compute_time_s:.2f} s"]
+    budget = "" if report.line_rate_budget_hz is None else f" (budget {report.line_rate_budget_hz:g})"
+    lines.append(f"fbspost output: at most {report.max_line_rate_hz:g} lines/s{budget}; blocks at most "
+                 f"{report.tolerance_used_mm * 1e3:.3g} um from the command (at {report.tolerance_used_at_s:.3f} s; "
+                 f"RMS {report.rms_deviation_mm * 1e3:.3g} um), "
+                 f"{report.loosened_s:.3f} s of them beyond the tolerance")
     for name, axis in report.axes.items():
         lines.append(f"axis {name}: predicted RMS error {axis.rms_error_before_um:.4g} -> {axis.rms_error_after_um:.4g} um, "
                      f"max {axis.max_error_before_um:.4g} -> {axis.max_error_after_um:.4g} um")

@@ -184,7 +184,7 @@ _LINUXCNC_INTERPRETED_G = {  # path-changing LinuxCNC codes that only its interp
 _PASS_M = {3.0, 4.0, 5.0, 7.0, 8.0, 9.0, 18.0, 73.0, 84.0, 104.0, 105.0, 106.0, 107.0, 114.0,
            115.0, 117.0, 118.0, 140.0, 141.0, 221.0, 486.0, 900.0}
 # M codes after which the machine is at rest where it was
-_STOP_M = {0.0, 1.0, 2.0, 6.0, 30.0, 60.0, 109.0, 116.0, 190.0, 191.0, 400.0, 600.0}
+_STOP_M = {0.0, 1.0, 2.0, 6.0, 30.0, 60.0, 109.0, 116.0, 190.0, 191.0, 400.0, 593.0, 600.0}  # (M593: input shaping)
 _LIMIT_M = {201.0, 203.0, 204.0, 205.0, 566.0}
 _KLIPPER_PASS = {"SET_FAN_SPEED", "SET_PRESSURE_ADVANCE", "SET_HEATER_TEMPERATURE",
                  "EXCLUDE_OBJECT_START", "EXCLUDE_OBJECT_END", "EXCLUDE_OBJECT_DEFINE"}
@@ -483,6 +483,8 @@ class _Reader:
             return self.block(n, raw, Kind.PASS, limits=limits)
         if name in _KLIPPER_PASS:
             return self.block(n, raw, Kind.PASS)
+        if name == "SET_INPUT_SHAPER":  # Klipper flushes its look-ahead to change shaping: at rest
+            return self.block(n, raw, Kind.STOP)
         # a macro or an unknown command: it may move anything
         self.forget((0, 1, 2), e_too=True)
         return self.block(n, raw, Kind.STOP)

@@ -30,7 +30,8 @@ from .optimizer import AxisCompensator, AxisLimits, FBSSettings
 from .planner import Plan, PlanStream, RunMargins
 from .profile import MachineProfile
 from .trajectory import InputError
-from .writer import ProgramAccelerations, SampleWindow, WriteOptions, format_refusal, write_program
+from .transparency import FirmwareSettings
+from .writer import SampleWindow, WriteOptions, format_refusal, write_program
 
 
 @dataclass(frozen=True)
@@ -93,6 +94,12 @@ class Report:
     settle_time_s: float = 0.0
     axes: dict[str, AxisReport] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
+    max_line_rate_hz: float = 0.0  # the most lines sent in any second (comments not counted)
+    line_rate_budget_hz: float | None = None  # the profile's
+    tolerance_used_mm: float = 0.0  # the largest distance of the written blocks from the command
+    tolerance_used_at_s: float = 0.0  # where
+    rms_deviation_mm: float = 0.0  # of the written blocks from the command, over the samples inside them
+    loosened_s: float = 0.0  # time in blocks beyond the tolerance (for the line rate, Marlin's merge)
     stage_time_s: dict[str, float] = field(default_factory=dict)  # read, plan, optimize, fallback, write
 
     def as_dict(self) -> dict:
@@ -146,12 +153,11 @@ def _compensate_expanded(input_path, output_path, profile, options, reason, prog
 def _compensate(read_path, input_path, output_path, profile, options, flavor, progress, started) -> Report:
     """Compensates the program at ``read_path`` (``input_path`` itself or its expansion)."""
     stages = dict.fromkeys(("read", "plan", "optimize", "fallback", "write"), 0.0)
-    accelerations = ProgramAccelerations(profile.planner_acceleration_mm_s2)
     blocks = _timed(read_gcode(read_path, flavor, profile.home_mm), stages, "read")
     if progress:
         blocks = _reported(blocks, _count_lines(read_path), progress)
     margins = RunMargins.for_profile(profile, options.lead_time_s, options.settle_time_s)
-    plan = PlanStream(accelerations.watch(blocks), profile, margins=margins, firmware=flavor)
+    plan = PlanStream(blocks, profile, margins=margins, firmware=flavor)
     compensators = _compensators(profile, options)
     errors = {c: (_ErrorStats(), _ErrorStats()) for c in compensators}
     follows_plan = np.array([c not in compensators for c in range(len(AXES))])
@@ -161,19 +167,19 @@ def _compensate(read_path, input_path, output_path, profile, options, flavor, pr
     chunks = _timed(_compensated(plan, compensators, errors, optimizer_warnings, options.fallback, lanes, tally),
                     stages, "optimize",
                     exclude=lambda: plan.time_s)
-    ceilings = [profile.axes[AXES[c]].max_acceleration_mm_s2 for c in compensators if c < 3]  # XYZ
     write_options = WriteOptions(
         flavor=flavor, output_format=options.output_format, tolerance_mm=options.tolerance_mm,
         min_segment_time_s=options.min_segment_time_s,
         header=(f"fbspost {__version__}: filtered B-spline compensation for machine profile {profile.name}",
                 f"fbspost settings: format {options.output_format}, tolerance {options.tolerance_mm:g} mm, "
                 f"minimum segment {options.min_segment_time_s * 1e3:g} ms, flavor {flavor}, {options.lookahead} look-ahead"),
-        raise_acceleration_mm_s2=max(ceilings) if ceilings else None)
+        firmware=FirmwareSettings.from_profile(profile), max_line_rate_hz=profile.firmware.max_line_rate_hz,
+        **_marlin_steps(profile, flavor))
     stats = []
     clock = time.perf_counter()
     try:
         atomic_write(output_path, lambda f: stats.append(write_program(
-            plan, SampleWindow(chunks, plan, follows_plan), write_options, f, accelerations)))
+            plan, SampleWindow(chunks, plan, follows_plan), write_options, f)))
     finally:
         if lanes:
             lanes.shutdown()
@@ -181,9 +187,13 @@ def _compensate(read_path, input_path, output_path, profile, options, flavor, pr
     stages["write"] = time.perf_counter() - clock - plan.time_s - stages["optimize"]
     stages["optimize"] -= tally.fallback_s
     stages["fallback"] = tally.fallback_s
-    report = Report(str(input_path), str(output_path), profile.name, flavor, plan.n_blocks, stats[0].lines_out,
+    written = stats[0]
+    report = Report(str(input_path), str(output_path), profile.name, flavor, plan.n_blocks, written.lines_out,
                     plan.duration_s, 0.0, plan.added_s, margins.lead_s, margins.settle_s,
-                    warnings=plan.warnings + optimizer_warnings, stage_time_s=stages)
+                    warnings=plan.warnings + optimizer_warnings, stage_time_s=stages,
+                    max_line_rate_hz=written.max_line_rate_hz, line_rate_budget_hz=profile.firmware.max_line_rate_hz,
+                    tolerance_used_mm=written.max_deviation_mm, tolerance_used_at_s=written.max_deviation_s,
+                    loosened_s=written.loosened_s, rms_deviation_mm=written.rms_deviation_mm)
     for c, (before, after) in errors.items():
         if before.count:
             report.axes[AXES[c]] = AxisReport.from_stats(before, after, *tally.windows[c])
@@ -200,6 +210,16 @@ def compensated_samples(plan: Plan, profile: MachineProfile, options: Compensate
     chunks = _compensated(plan, compensators, errors, [] if warnings is None else warnings, options.fallback,
                           None, _Tally())
     return np.concatenate([command for _, command in chunks] or [np.zeros((0, len(AXES)))])
+
+
+def _marlin_steps(profile: MachineProfile, flavor: str) -> dict:
+    """The writer's options for Marlin's merge of short blocks (steps per mm X Y Z E, 0 where the
+    profile does not give them), none for other flavors or without steps."""
+    steps = profile.firmware.steps_per_mm
+    if flavor != "marlin" or not steps:
+        return {}
+    return {"steps_per_mm": tuple(steps.get(a, 0.0) for a in AXES),
+            "min_steps_per_segment": profile.firmware.min_steps_per_segment}
 
 
 def _compensators(profile: MachineProfile, options: CompensateOptions) -> dict[int, AxisCompensator]:

@@ -55,6 +55,7 @@ class FirmwareProfile:
     names and defaults (klippy/toolhead.py, kinematics/extruder.py) where it has the setting."""
 
     steps_per_mm: dict[str, float] = field(default_factory=dict)  # per axis; an axis not given: unknown
+    shaper_frequency_hz: dict[str, float] = field(default_factory=dict)  # the user's input shaping (restored after the compensated motion)
     block_buffer: int = 16  # Marlin BLOCK_BUFFER_SIZE: look-ahead over this many blocks
     max_line_rate_hz: float | None = None  # most lines per second the machine takes (None: no limit)
     max_velocity_mm_s: float | None = None  # Klipper max_velocity (None: the slower of X and Y's max_velocity)
@@ -121,7 +122,7 @@ _FIRMWARE_NUMBERS = {
     "max_extrude_only_accel": "max_extrude_only_accel_mm_s2",
     "filament_diameter": "filament_diameter_mm", "nozzle_diameter": "nozzle_diameter_mm",
 }
-_FIRMWARE_KEYS = {*_FIRMWARE_NUMBERS, "steps_per_mm", "block_buffer", "minimum_cruise_ratio",
+_FIRMWARE_KEYS = {*_FIRMWARE_NUMBERS, "steps_per_mm", "shaper_frequency", "block_buffer", "minimum_cruise_ratio",
                   "instantaneous_corner_velocity", "min_segment_time", "min_steps_per_segment"}
 
 
@@ -272,18 +273,24 @@ def _parse_firmware(raw: dict, fail, number) -> FirmwareProfile:
         raise fail("firmware.min_segment_time", f"must be >= 0, got {segment_time!r}")
     if values.get("filament_diameter_mm", 1.75) < values.get("nozzle_diameter_mm", 0.4):
         raise fail("firmware.filament_diameter", "must be >= nozzle_diameter (as Klipper requires)")
-    steps = raw.get("steps_per_mm", {})
-    if not isinstance(steps, dict):
-        raise fail("firmware.steps_per_mm", "must be a table of axis = steps per mm")
-    for axis in steps:
-        if axis not in AXIS_NAMES:
-            raise fail(f"firmware.steps_per_mm.{axis}", f"unknown axis (expected one of {', '.join(AXIS_NAMES)})")
-    steps = {axis: number(steps, axis, f"firmware.steps_per_mm.{axis}", positive=True) for axis in steps}
+    steps, shaper = (_axis_table(raw, key, what, fail, number) for key, what in
+                     (("steps_per_mm", "steps per mm"), ("shaper_frequency", "input shaper frequency (Hz)")))
     optional = {"minimum_cruise_ratio": ratio, "instantaneous_corner_velocity_mm_s": corner,
                 "min_segment_time_s": segment_time}
     values.update({attr: value for attr, value in optional.items() if value is not None})
-    return FirmwareProfile(steps_per_mm=steps, block_buffer=integer("block_buffer", 16),
+    return FirmwareProfile(steps_per_mm=steps, shaper_frequency_hz=shaper, block_buffer=integer("block_buffer", 16),
                            min_steps_per_segment=integer("min_steps_per_segment", 6), **values)
+
+
+def _axis_table(raw: dict, key: str, what: str, fail, number) -> dict[str, float]:
+    """The ``[firmware]`` table ``key`` of positive numbers per axis."""
+    values = raw.get(key, {})
+    if not isinstance(values, dict):
+        raise fail(f"firmware.{key}", f"must be a table of axis = {what}")
+    for axis in values:
+        if axis not in AXIS_NAMES:
+            raise fail(f"firmware.{key}.{axis}", f"unknown axis (expected one of {', '.join(AXIS_NAMES)})")
+    return {axis: number(values, axis, f"firmware.{key}.{axis}", positive=True) for axis in values}
 
 
 def format_profile(profile: MachineProfile) -> str:
@@ -322,9 +329,9 @@ def _format_firmware(firmware: FirmwareProfile, number) -> list[str]:
     if firmware == FirmwareProfile():
         return []
     lines = ["", "[firmware]"]
-    if firmware.steps_per_mm:
-        steps = ", ".join(f"{axis} = {number(value)}" for axis, value in firmware.steps_per_mm.items())
-        lines.append(f"steps_per_mm = {{ {steps} }}")
+    for key, table in (("steps_per_mm", firmware.steps_per_mm), ("shaper_frequency", firmware.shaper_frequency_hz)):
+        if table:
+            lines.append(f"{key} = {{ {', '.join(f'{axis} = {number(value)}' for axis, value in table.items())} }}")
     lines += [f"block_buffer = {firmware.block_buffer}", f"min_steps_per_segment = {firmware.min_steps_per_segment}"]
     values = {"minimum_cruise_ratio": firmware.minimum_cruise_ratio,
               "instantaneous_corner_velocity": firmware.instantaneous_corner_velocity_mm_s,

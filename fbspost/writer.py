@@ -26,6 +26,7 @@ from scipy.ndimage import maximum_filter1d
 from .bezier import curve_lengths, fit_g5
 from .gcode import AXES, Block, Kind, Modal
 from .planner import PlanStream
+from .transparency import FirmwareSettings, Transparency
 
 _DECIMALS = {"X": 4, "Y": 4, "Z": 4, "E": 5}  # mm: 0.1 um, E: 10 nm of filament
 _FEED_DECIMALS = 3  # mm/min (in/min in G20)
@@ -44,7 +45,10 @@ class WriteOptions:
     tolerance_mm: float = 1e-3
     min_segment_time_s: float = 1e-3
     header: tuple[str, ...] = ()  # comment text, one entry per line
-    raise_acceleration_mm_s2: float | None = None  # the most the controller's limit may be raised to while the command runs
+    firmware: FirmwareSettings | None = None  # the program's settings at its start (None: no settings written)
+    max_line_rate_hz: float | None = None  # the most lines the machine takes per second
+    steps_per_mm: tuple[float, ...] | None = None  # X Y Z E (0: not known): blocks Marlin would merge are merged here
+    min_steps_per_segment: int = 0
 
 
 @dataclass
@@ -52,6 +56,11 @@ class WriteStats:
     lines_out: int = 0
     motion_blocks: int = 0
     passthrough_lines: int = 0
+    max_line_rate_hz: float = 0.0  # the most lines sent in any second of the program's time (no comments)
+    max_deviation_mm: float = 0.0  # the largest distance of the written blocks from the command (XYZ, same time)
+    max_deviation_s: float = 0.0  # where
+    rms_deviation_mm: float = 0.0  # over the samples inside the blocks
+    loosened_s: float = 0.0  # time in blocks beyond the tolerance (merged, or stretched for the line rate)
 
 
 def format_refusal(flavor: str, output_format: str) -> str | None:
@@ -190,14 +199,6 @@ def g5_blocks(command: np.ndarray, splits: np.ndarray, tolerance_mm: float,
     return all_ends, Curves(np.isin(all_ends, ends[curve]), fit.p1_mm[block], fit.p2_mm[block])
 
 
-def _fmt(value: float, decimals: int) -> str:
-    """Shortest decimal with at most ``decimals`` places: 3000.0, 0 -> "3000"; 2.50, 2 -> "2.5"."""
-    text = f"{value:.{decimals}f}"
-    if "." in text:
-        text = text.rstrip("0").rstrip(".")
-    return "0" if text in ("-0", "") else text
-
-
 class _Emitter:
     """Formats blocks in the controller's current modes and frame.
 
@@ -206,13 +207,20 @@ class _Emitter:
     unit changes.
     """
 
-    def __init__(self, start_mm: np.ndarray, newline: bytes):
+    def __init__(self, start_mm: np.ndarray, newline: bytes, steps_per_mm: np.ndarray | None = None,
+                 min_steps: int = 0, ramp_mm_s2: float = math.inf):
         self.modal = Modal()  # the controller starts in its defaults
+        # the firmware ramps each speed step at this acceleration, losing time the next blocks make up
+        self.ramp_mm_s2, self.speed_mm_s = ramp_mm_s2, 0.0
+        # Marlin merges a block of fewer than min_steps steps on every axis with the next (steps_per_mm per
+        # axis, 0 where not known): such blocks are merged here, where their time can go with them
+        self.steps_per_mm, self.min_steps = steps_per_mm, min_steps
+        self.held = None  # (targets, durations, ends) of blocks that wait for the next call
         self.shift_mm = np.zeros(4)  # controller frame minus program frame, per axis (G92 mid-motion)
         self.written = self.to_program(start_mm)
         self.feed = -1  # the last F written, in units of its last digit (none yet: feeds are >= 0)
         self.newline = newline
-        self.pending_s = 0.0  # time of blocks that rounded to no motion, not yet given to a block
+        self.residue_s = 0.0  # time the blocks so far were written short of theirs: the next block's to take
 
     @property
     def unit_mm(self) -> float:
@@ -229,6 +237,8 @@ class _Emitter:
         old_offsets, old_unit = np.asarray(self.modal.offsets_mm), self.unit_mm
         self.modal = block.modal
         if block.kind is Kind.STOP:
+            self.residue_s -= self.speed_mm_s / (2.0 * self.ramp_mm_s2)  # the last block's ramp down to rest
+            self.speed_mm_s = 0.0
             self.shift_mm[:] = 0.0
             self.written = self.to_program(planned_mm)
             return
@@ -239,27 +249,46 @@ class _Emitter:
             self.shift_mm[changed] = (command_mm - planned_mm)[changed]
             self.written[changed] = self.to_program(command_mm)[changed]
 
-    def blocks(self, targets_mm: np.ndarray, durations_s: np.ndarray,
-               curves: Curves | None = None) -> tuple[bytes, int]:
+    def _marlin_lengths(self, start: np.ndarray, ints: np.ndarray, scale: np.ndarray) -> np.ndarray:
+        """The lengths Marlin times the blocks by (planner.cpp, _populate_block): of the whole
+        steps they move, E's where no XYZ axis moves its minimum steps."""
+        spm = self.steps_per_mm
+        step_counts = np.diff(np.rint(np.vstack([start, ints]) * (spm * self.unit_mm / scale)), axis=0)
+        delta_mm = np.where(spm > 0, step_counts / np.where(spm > 0, spm, 1.0),
+                            np.diff(np.vstack([start, ints]), axis=0) / scale * self.unit_mm)
+        return _lengths(delta_mm, (np.abs(step_counts[:, :3]) >= self.min_steps).any(axis=1))
+
+    def blocks(self, targets_mm: np.ndarray, durations_s: np.ndarray, ends_s: np.ndarray | None = None,
+               curves: Curves | None = None, exact_last: bool = True) -> tuple[bytes, int]:
         """G1 lines (G5 where ``curves`` says so) reaching each target (machine mm) in its
         duration, in the controller's modes: their text (each line ended by the newline) and how
-        many there are.
+        many there are. ``written_s`` and ``written_mm``: the ends (of ``ends_s``) and targets of
+        the blocks written. Without ``exact_last`` (Marlin's merge), the last block kept waits for
+        the next call, where a later block may yet merge it.
 
         Values are rounded in integer units of the last written digit: a relative value is the
         difference of two rounded positions, so rounding residues never accumulate.
         """
+        ends_s = np.zeros(len(targets_mm)) if ends_s is None else ends_s
+        if self.held is not None:
+            targets_mm, durations_s, ends_s = (np.concatenate(pair) for pair in zip(self.held, (targets_mm, durations_s, ends_s)))
+            self.held = None
         digits = np.array([_DECIMALS[a] for a in AXES]) + (1 if self.modal.inches else 0)
         scale = 10.0 ** digits
         relative = np.array([not (self.modal.absolute_e if a == "E" else self.modal.absolute_xyz) for a in AXES])
         start = np.rint(self.written * scale).astype(np.int64)
         ints = np.rint(self.to_program(targets_mm) * scale).astype(np.int64)
+        marlin = self.min_steps and curves is None
+        if marlin:
+            ints = _merged(start, ints, self.steps_per_mm * self.unit_mm / scale, self.min_steps, exact_last)
+            if not exact_last:
+                kept = np.flatnonzero((np.diff(np.vstack([start, ints]), axis=0) != 0).any(axis=1))
+                last = kept[-1] if len(kept) else 0
+                self.held = (targets_mm[last:], durations_s[last:], ends_s[last:])
+                targets_mm, durations_s, ends_s, ints = targets_mm[:last], durations_s[:last], ends_s[:last], ints[:last]
         steps = np.diff(np.vstack([start, ints]), axis=0)
         moved = steps != 0
-        delta_mm = steps / scale * self.unit_mm
-        # The controller times a block by its XYZ length, or its E length when XYZ do not move; a
-        # G5 block by its curve's length.
-        length = np.linalg.norm(delta_mm[:, :3], axis=1)
-        length = np.where(length > 0, length, np.abs(delta_mm[:, _E]))
+        length = self._marlin_lengths(start, ints, scale) if marlin else _lengths(steps / scale * self.unit_mm)
         if curves is not None:
             # Control points rounded as written: I J (P Q) are the rounded point minus the rounded
             # start (end), as the controller adds them to the positions it has. The rounded curve
@@ -274,20 +303,12 @@ class _Emitter:
             length[g5_rows] = curve_lengths(p0 / xy_scale, (p0 + offsets[g5_rows, :2]) / xy_scale,
                                             (p3 + offsets[g5_rows, 2:]) / xy_scale, p3 / xy_scale) * self.unit_mm
             moved[:, :2] |= curves.curve[:, None]  # G5 needs its end point, also where it closes a loop
-        # A block that rounds to no motion cannot carry time (and is not written): the next
-        # moving block takes it.
         moving = moved.any(axis=1)
-        took = durations_s  # each block's own time, whatever blocks a call gets: the text does not depend on them
-        if self.pending_s or not moving.all():
-            took, pending = [], self.pending_s
-            for duration, moves in zip(durations_s.tolist(), moving.tolist()):
-                pending += duration
-                if moves:
-                    took.append(pending)
-                    pending = 0.0
-            took, self.pending_s = np.array(took), pending
+        self.written_s, self.written_mm = ends_s[moving], targets_mm[moving]
         rows = slice(None) if moving.all() else moving  # nearly always all of them: no copies
-        feed = np.rint(length[rows] / took * 60.0 / self.unit_mm * 1000.0).astype(np.int64)
+        feed, self.residue_s, self.speed_mm_s = _feeds(length, durations_s, moving, self.residue_s,
+                                                       60.0 * 10 ** _FEED_DECIMALS / self.unit_mm,
+                                                       self.speed_mm_s, self.ramp_mm_s2)
         new_feed = feed != np.concatenate([[self.feed], feed[:-1]])  # F only where it changes
         if len(feed):
             self.feed = int(feed[-1])
@@ -306,6 +327,61 @@ class _Emitter:
         # temporaries outgrow the CPU cache).
         return b"".join(_lines(values[a:a + _LINES], shown[a:a + _LINES], digits, letters, self.newline,
                                g5[a:a + _LINES]) for a in range(0, len(feed), _LINES)), len(feed)
+
+
+def _lengths(delta_mm: np.ndarray, xyz_moves: np.ndarray | None = None) -> np.ndarray:
+    """What a controller times each block by: its XYZ length where XYZ move (``xyz_moves``, by
+    default where they move at all), else its E length."""
+    xyz = np.linalg.norm(delta_mm[:, :3], axis=1)
+    return np.where(xyz > 0 if xyz_moves is None else xyz_moves, xyz, np.abs(delta_mm[:, _E]))
+
+
+def _merged(start: np.ndarray, ints: np.ndarray, steps_per_unit: np.ndarray, min_steps: int,
+            exact_last: bool) -> np.ndarray:
+    """Block ends (rows of written units; ``start``: where the controller is) with every block
+    that Marlin would merge (fewer than ``min_steps`` steps on every axis from the last block
+    kept, steps as Marlin rounds the positions) moved back onto that block's end: a block of no
+    motion, whose time the next block takes. With ``exact_last`` the last end is kept, merging
+    the last kept block before it instead."""
+    ends = np.vstack([start, ints])
+    at_steps = np.rint(ends * steps_per_unit)
+    if (np.abs(np.diff(at_steps, axis=0)).max(axis=1) >= min_steps).all():
+        return ints
+    kept, last = [0], at_steps[0].tolist()
+    for k, row in enumerate(at_steps[1:].tolist(), 1):
+        if max(abs(a - b) for a, b in zip(row, last)) >= min_steps:
+            kept.append(k)
+            last = row
+    if exact_last and kept[-1] != len(ints):
+        kept[-1 if len(kept) > 1 else len(kept):] = [len(ints)]
+    source = np.repeat(kept, np.diff(np.append(kept, len(ends))))  # each row: the last kept at or before it
+    return ends[source[1:]]
+
+
+def _feeds(length_mm: np.ndarray, durations_s: np.ndarray, moving: np.ndarray, residue_s: float,
+           units_per_mm_s: float, speed_mm_s: float = 0.0, ramp_mm_s2: float = math.inf) -> tuple[np.ndarray, float, float]:
+    """The F of each moving block (integer units of its last digit; ``units_per_mm_s`` per mm/s),
+    the time residue left after them and the last block's speed (``speed_mm_s``: the one's before).
+
+    The controller times a block as its length over its F, and F is rounded: each block is
+    given its duration plus the residue (the time the blocks before it were written short of
+    theirs, and the whole time of blocks that round to no motion, which are not written), so the
+    written time never drifts from the command's by more than one block's rounding. The firmware
+    ramps from one block's speed to the next at ``ramp_mm_s2``, inside the faster one, and arrives
+    (dv)^2 / (2 ramp max(v)) late: the next block makes that up too. (Where the residue is more
+    negative than half a block's duration, the block keeps half its own and the rest goes on.)
+    """
+    feeds = []
+    for length, duration, moves in zip(length_mm.tolist(), durations_s.tolist(), moving.tolist()):
+        residue_s += duration
+        if moves:
+            feed = max(round(length * units_per_mm_s / max(residue_s, 0.5 * duration)), 1)
+            feeds.append(feed)
+            residue_s -= length * units_per_mm_s / feed
+            speed = feed / units_per_mm_s
+            residue_s -= (speed - speed_mm_s) ** 2 / (2.0 * ramp_mm_s2 * max(speed, speed_mm_s))
+            speed_mm_s = speed
+    return np.array(feeds, dtype=np.int64), residue_s, speed_mm_s
 
 
 def _digits(width: int, form: str) -> np.ndarray:
@@ -397,49 +473,9 @@ def mode_lines(flavor: str, have: Modal, want: Modal) -> list[str]:
     return lines
 
 
-def acceleration_line(flavor: str, print_mm_s2: float, travel_mm_s2: float | None = None, width: int = 0) -> str | None:
-    """The flavor's command setting the controller's acceleration limit (None for LinuxCNC,
-    where it is machine configuration); values followed by spaces up to ``width`` characters (a
-    line to be overwritten in place once its value is known)."""
-    travel = print_mm_s2 if travel_mm_s2 is None else travel_mm_s2
-    accel, travel = _fmt(print_mm_s2, 0).ljust(width), _fmt(travel, 0).ljust(width)
-    if flavor == "klipper":
-        return f"SET_VELOCITY_LIMIT ACCEL={accel}"
-    if flavor in ("marlin", "reprap"):
-        return f"M204 P{accel} T{travel}"
-    return None
-
-
-def dwell_line(flavor: str, seconds: float) -> str | None:
-    """The flavor's G4 for ``seconds``, to the millisecond (None if that is none)."""
-    ms = round(seconds * 1e3)
-    if ms <= 0:
-        return None
+def dwell_line(flavor: str, ms: int) -> str:
+    """The flavor's G4 for ``ms`` milliseconds."""
     return f"G4 P{ms / 1e3:g}" if flavor == "linuxcnc" else f"G4 P{ms}"
-
-
-class ProgramAccelerations:
-    """The acceleration limits a program sets, noted as its blocks pass (``watch``): the highest
-    (at least the profile's planner value: the least the raised limit may be) and the (print,
-    travel) pair the program leaves the controller with."""
-
-    def __init__(self, planner_mm_s2: float):
-        self.highest = self.accel = planner_mm_s2
-        self.travel = None
-
-    def watch(self, blocks: Iterable[Block]) -> Iterator[Block]:
-        for block in blocks:
-            if block.limits is not None:
-                if block.limits.acceleration_mm_s2:
-                    self.accel = block.limits.acceleration_mm_s2
-                    self.highest = max(self.highest, self.accel)
-                if block.limits.travel_acceleration_mm_s2 is not None:
-                    self.travel = block.limits.travel_acceleration_mm_s2
-            yield block
-
-    @property
-    def final(self) -> tuple[float, float]:
-        return self.accel, (self.accel if self.travel is None else self.travel)
 
 
 class SampleWindow:
@@ -447,8 +483,7 @@ class SampleWindow:
     (planned, command) chunks produces them, in order; rows before ``release``'s index are
     dropped, so a long program's samples are never all held. ``plan`` (``PlanStream``) tells
     how many there are once it is done. ``follows_plan`` (4,) marks the columns the command
-    leaves as planned (E, axes without modes): blocks end exactly where the program puts them.
-    Keeps the largest XYZ second difference of the command (mm per sample^2)."""
+    leaves as planned (E, axes without modes): blocks end exactly where the program puts them."""
 
     def __init__(self, chunks: Iterable[tuple[np.ndarray, np.ndarray]], plan, follows_plan: np.ndarray):
         self._chunks = iter(chunks)
@@ -456,7 +491,6 @@ class SampleWindow:
         self.follows_plan = np.asarray(follows_plan, dtype=bool)
         self.base = 0  # sample index of the first row held
         self.planned = self.command = np.zeros((0, 4))
-        self.peak_bend_mm = 0.0
 
     @property
     def end(self) -> int:
@@ -479,11 +513,7 @@ class SampleWindow:
             command.append(c)
             end += len(c)
         if len(command) > 1:
-            added = end - self.end
             self.planned, self.command = np.concatenate(planned), np.concatenate(command)
-            new = self.command[max(len(self.command) - added - 2, 0):, :3]
-            if len(new) > 2:
-                self.peak_bend_mm = max(self.peak_bend_mm, float(np.linalg.norm(np.diff(new, 2, axis=0), axis=1).max()))
 
     def release(self, first: int) -> None:
         """Rows before sample ``first`` are no longer needed."""
@@ -514,13 +544,60 @@ class SampleWindow:
         return below * (1.0 - w) + above * w  # (np.take gathers rows a few times faster than indexing)
 
 
-def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions, out,
-                  accelerations: ProgramAccelerations | None = None) -> WriteStats:
-    """Write the output program to the binary stream ``out`` (seekable: the acceleration raise
-    is written before the command it depends on is known, and filled in at the end). The
-    program's blocks come from ``plan`` as it settles them; ``accelerations`` watches them (the
-    raise is at least their highest, and the program's own limits are restored after the last
-    run).
+class _LineRate:
+    """The most lines in any second, from the lines' times as they come (non-decreasing)."""
+
+    def __init__(self):
+        self.recent = np.zeros(0)  # the times within a second of the last
+        self.max_per_s = 0
+
+    def add(self, times_s) -> None:
+        times = np.concatenate([self.recent, np.atleast_1d(np.asarray(times_s, dtype=float))])
+        if len(times) > len(self.recent):
+            new = np.arange(len(self.recent), len(times))
+            inside = new + 1 - np.searchsorted(times, times[new] - 1.0, "right")  # in (t - 1 s, t]
+            self.max_per_s = max(self.max_per_s, int(inside.max()))
+            self.recent = times[np.searchsorted(times, times[-1] - 1.0, "right"):]
+
+
+class _Deviation:
+    """How far the written blocks, each run at constant speed, are from the command at the same
+    time, over the samples inside them (XYZ): the largest, where, and the time in blocks beyond
+    the tolerance (rounding aside)."""
+
+    def __init__(self, samples: SampleWindow, fs: float, tolerance_mm: float):
+        self.samples, self.fs, self.tolerance_mm = samples, fs, tolerance_mm
+        self.last_s = 0.0  # the last written block's end
+        self.max_mm = self.at_s = self.loosened_s = self.sum_squares_mm2 = 0.0
+        self.count = 0
+
+    def add(self, start_s: float | None, ends_s: np.ndarray, targets_mm: np.ndarray) -> None:
+        """Blocks from ``start_s`` (None: the last block's end) to each of ``ends_s``."""
+        if not len(ends_s):
+            return
+        start_s = self.last_s if start_s is None else start_s
+        knots_s = np.append(start_s, ends_s)
+        knots_mm = np.vstack([self.samples.at(knots_s[:1], self.fs), targets_mm])[:, :3]
+        grid_s = np.arange(math.ceil(start_s * self.fs), math.floor(ends_s[-1] * self.fs) + 1) / self.fs
+        chord = np.column_stack([np.interp(grid_s, knots_s, knots_mm[:, c]) for c in range(3)])
+        off_mm = np.linalg.norm(chord - self.samples.at(grid_s, self.fs)[:, :3], axis=1)
+        self.sum_squares_mm2 += float(off_mm @ off_mm)
+        self.count += len(off_mm)
+        if len(off_mm) and off_mm.max() > self.max_mm:
+            self.max_mm, self.at_s = float(off_mm.max()), float(grid_s[off_mm.argmax()])
+        block = np.searchsorted(ends_s, grid_s, "left")
+        worst = np.zeros(len(ends_s))
+        np.maximum.at(worst, block, off_mm)
+        self.loosened_s += float(np.diff(knots_s)[worst > self.tolerance_mm + 1e-4].sum())  # (rounding: 0.1 um per axis)
+        self.last_s = float(ends_s[-1])
+
+
+def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions, out) -> WriteStats:
+    """Write the output program to the binary stream ``out``. The program's blocks come from
+    ``plan`` as it settles them. With ``options.firmware``, the firmware is made transparent
+    before the written blocks and given back the program's settings (as its copied lines change
+    them) before every copied line that may move the machine and after the last run
+    (``transparency``).
     """
     refusal = format_refusal(options.flavor, options.output_format)
     if refusal:
@@ -528,17 +605,18 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
     stats = WriteStats()
     fs = plan.sample_rate_hz
     comment = ("(", ")") if options.flavor == "linuxcnc" else ("; ", "")
-    raise_at, raise_width = [], 0  # offsets of the raise lines in out; the width of their value
+    settings = None if options.firmware is None else Transparency(options.flavor, options.firmware, options.tolerance_mm)
 
     def runs_from(r: int) -> bool:
         """Whether the program has a run r (or later)."""
         plan.wait(lambda: len(plan.runs) > r or plan.done)
         return len(plan.runs) > r
 
-    if options.raise_acceleration_mm_s2 and acceleration_line(options.flavor, 0.0) is not None and runs_from(0):
-        raise_width = len(_fmt(options.raise_acceleration_mm_s2, 0))
     follows_plan = samples.follows_plan
-    min_samples = max(1, int(np.ceil(options.min_segment_time_s * fs - 1e-9)))
+    # The line rate: blocks no shorter than a line's share of it, a tenth of it left to the copied lines
+    min_segment_s = max(options.min_segment_time_s, 1.0 / (0.9 * (options.max_line_rate_hz or math.inf)))
+    min_samples = max(1, int(np.ceil(min_segment_s * fs - 1e-9)))
+    rate, deviation = _LineRate(), _Deviation(samples, fs, options.tolerance_mm)
     copied_sample = -1  # of the last copied line
     newline = b"\n"
     emitter = None
@@ -558,13 +636,7 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
 
     def emit(*lines: str) -> None:
         emit_text(b"".join(x.encode() + newline for x in lines), len(lines))
-
-    def emit_raise() -> None:
-        nonlocal unterminated
-        out.write(newline if unterminated else b"")
-        unterminated = False
-        raise_at.append(out.tell())
-        emit(acceleration_line(options.flavor, options.raise_acceleration_mm_s2, width=raise_width))
+        rate.add([written_until_s] * len(lines))
 
     def block_ends(first: int, start_s: float, stop_s: float, soft: bool = False):
         """The current run's block ends after ``start_s`` up to ``stop_s`` (s), and their curves, in
@@ -642,16 +714,22 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
                 # the run's first sample (planner): it takes up the difference.
                 from_s = start_s if written_until_s >= first / fs else min(written_until_s + dwelt_s, start_s)
                 for ends, curves in block_ends(first, start_s, stop_s, soft):
+                    run_start = written_until_s <= first / fs
+                    if settings is not None:
+                        emit(*settings.apply(run_start, emitter.modal))  # (at a run's start: at rest)
                     targets = samples.at(ends, fs)
                     if ends[-1] == t_end_s and not soft:
                         exact = np.where(np.isnan(end_exact_mm), samples.at(ends[-1:], fs, planned=True)[0], end_exact_mm)
                         targets[-1, follows_plan] = exact[follows_plan]
-                    text, count = emitter.blocks(targets, np.diff(np.append(from_s, ends)), curves)
+                    text, count = emitter.blocks(targets, np.diff(np.append(from_s, ends)), ends, curves,
+                                                 exact_last=ends[-1] >= stop_s)
                     emit_text(text, count)
+                    deviation.add(from_s if run_start else None, emitter.written_s, emitter.written_mm)
+                    rate.add(emitter.written_s)
                     stats.motion_blocks += count
                     from_s = start_s = written_until_s = float(ends[-1])
                     dwelt_s = 0.0
-                    samples.release(int(start_s * fs) - 1)
+                    samples.release(int(min(start_s, deviation.last_s) * fs) - 1)
             if soft or t_end_s < run_end_s:
                 return
             run_index += 1
@@ -659,27 +737,29 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
             # A run's end where the command no longer moves (a settle margin unused) is a dwell:
             # its time must not slow the next run's first block, nor be lost (the lines after it
             # run at the plan's times).
-            dwell = dwell_line(options.flavor, emitter.pending_s)
-            if dwell:
-                emit(dwell)
-            emitter.pending_s = 0.0
-            if raise_width and accelerations and not runs_from(run_index):
-                emit(acceleration_line(options.flavor, *accelerations.final))  # as the program left it
+            dwell_ms = round(emitter.residue_s * 1e3)
+            if dwell_ms > 0:
+                emit(dwell_line(options.flavor, dwell_ms))
+                emitter.residue_s -= dwell_ms / 1e3
+            if settings is not None and not runs_from(run_index):
+                emit(*settings.restore())  # the program's own, as it left them
 
     header_done = False
-    previous_modal = Modal()
+    previous_modal, previous_mm = Modal(), np.full(4, np.nan)
     last_line = None
     for block, line_time_s, is_stop in plan.blocks():
         if emitter is None:
             newline = b"\r\n" if block.raw.endswith(b"\r\n") else b"\n"  # (only the last line has no ending)
-            emitter = _Emitter(samples.rows(0, 1)[0], newline)
+            emitter = _Emitter(samples.rows(0, 1)[0], newline, None if options.steps_per_mm is None
+                               else np.asarray(options.steps_per_mm), options.min_steps_per_segment,
+                               math.inf if settings is None else settings.ramp_mm_s2)
         if not header_done and _is_code(block):
-            emit(*(f"{comment[0]}{text}{comment[1]}" for text in options.header))
-            if raise_width:
-                emit_raise()
+            notes = settings.header() if settings is not None and runs_from(0) else []
+            header = [f"{comment[0]}{text}{comment[1]}" for text in options.header + tuple(notes)]
+            emit_text(b"".join(x.encode() + newline for x in header), len(header))  # (comments: not sent)
             header_done = True
         if block.kind is Kind.MOVE:
-            previous_modal = block.modal
+            previous_modal, previous_mm = block.modal, block.position_mm
             # the next copied line runs at or after the sample nearest the end of this motion
             motion_until(line_time_s - 1.0 / fs, soft=True)
             continue
@@ -689,10 +769,14 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
         copied_sample = _copied_sample(line_time_s, is_stop, fs, copied_sample)
         t = copied_sample / fs
         motion_until(t, block.position_mm)
+        if settings is not None and is_stop and _may_move(previous_mm, block.position_mm):
+            emit(*settings.restore())  # a move fbspost copies runs under the program's own settings
         reached = samples.at(np.array([t]), fs, planned=True)[0]  # where the program is: the plan where the line does not say
         reached = np.where(np.isnan(block.position_mm), reached, block.position_mm)
         commanded = samples.at(np.array([t]), fs)[0]
         emit(*mode_lines(options.flavor, emitter.modal, previous_modal))
+        if _is_code(block):
+            rate.add(t)
         out.write(block.raw)
         unterminated = not block.raw.endswith((b"\n", b"\r"))
         stats.lines_out += 1
@@ -701,9 +785,9 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
         emitter.passthrough(block, commanded, reached)
         if is_stop:
             dwelt_s += block.dwell_s
-        previous_modal = block.modal
-        if block.limits is not None and raise_width and runs_from(run_index):
-            emit_raise()  # the program set the controller's limit: the command still needs ours
+        previous_modal, previous_mm = block.modal, block.position_mm
+        if settings is not None:
+            settings.note(block)  # the program's settings, and whether the firmware still has ours
     if emitter is None:
         emitter = _Emitter(np.zeros(4), newline)
     samples.ensure(samples.n_samples)
@@ -713,15 +797,9 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
         out.write(last_line.raw)
         stats.lines_out += 1
         stats.passthrough_lines += 1
-    if raise_at:  # now that the whole command is known: what it needs, at least the planner's, at most the profile's
-        floor, ceiling = accelerations.highest if accelerations else 0.0, options.raise_acceleration_mm_s2
-        needed = float(np.ceil(min(max(samples.peak_bend_mm * fs * fs, floor), ceiling)))
-        line = acceleration_line(options.flavor, needed, width=raise_width).encode()
-        end = out.tell()
-        for offset in raise_at:
-            out.seek(offset)
-            out.write(line)
-        out.seek(end)
+    stats.max_line_rate_hz = float(rate.max_per_s)
+    stats.max_deviation_mm, stats.max_deviation_s, stats.loosened_s = deviation.max_mm, deviation.at_s, deviation.loosened_s
+    stats.rms_deviation_mm = math.sqrt(deviation.sum_squares_mm2 / max(deviation.count, 1))
     return stats
 
 
@@ -737,6 +815,13 @@ def _copied_sample(line_time_s: float, is_stop: bool, fs: float, previous: int) 
     time rounded up (rounded to the nearest, the rest of the run would come after the line).
     Lines run in order."""
     return max(math.ceil(line_time_s * fs) if is_stop else round(line_time_s * fs), previous)
+
+
+def _may_move(before_mm: np.ndarray, after_mm: np.ndarray) -> bool:
+    """Whether a line at rest that took the machine from ``before_mm`` to ``after_mm`` (NaN:
+    unknown) may have moved X, Y or Z: a copied move, homing, a macro."""
+    before, after = before_mm[:3], after_mm[:3]
+    return bool(np.any(np.isnan(before) | np.isnan(after) | (before != after)))
 
 
 def _is_code(block: Block) -> bool:

@@ -1,6 +1,8 @@
 """Independent truths for the tests: nothing here calls fbspost's dynamics or optimizer."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 from scipy import linalg, signal
 
@@ -89,6 +91,7 @@ class Executed:
         self.e_at_lines = []  # E (program coordinate) at every line that is not a motion line
         self.at_lines = []  # (x, y, z, e) there, machine coordinates (NaN: not yet known)
         self.nonmotion = []  # those lines' bytes, in order
+        self.nonmotion_s = []  # when each runs
         self.extruded = 0.0  # sum of positive and negative E moves
         self.dwells = []  # when each G4 ends
         self.duration_s = 0.0  # when the last line ends
@@ -204,15 +207,24 @@ def execute(path, sample_rate_hz: float = 10000.0, dwell_p_seconds: bool = False
             if k == b"F" and not codes:
                 feed = v * scale / 60.0
         run.nonmotion.append(raw)
+        run.nonmotion_s.append(t)
         run.e_at_lines.append(pos["E"] - offset["E"])
         run.at_lines.append(tuple(np.nan if pos[a] is None else pos[a] for a in "XYZE"))
     run.duration_s = t
     return run
 
 
-# What fbspost adds to a program: its header, the controller's acceleration, dwells (a run's unused settle margin), mode lines.
-INSERTED = (b"; fbspost", b"M204", b"SET_VELOCITY_LIMIT", b"G4 P", b"G90", b"G91", b"M82", b"M83", b"G20", b"G21",
-            b"G17", b"G18", b"G19")
+def unbudgeted(profile):
+    """``profile`` without the firmware's line rate and steps: the writer's blocks then keep to
+    the tolerance everywhere (the budget's cost is tested apart)."""
+    firmware = dataclasses.replace(profile.firmware, max_line_rate_hz=None, steps_per_mm={})
+    return dataclasses.replace(profile, firmware=firmware)
+
+
+# What fbspost adds to a program: its header, the firmware's settings (transparency), dwells (a run's
+# unused settle margin), mode lines.
+INSERTED = (b"; fbspost", b"(fbspost", b"M201", b"M204", b"M205", b"M566", b"M593", b"SET_VELOCITY_LIMIT",
+            b"SET_INPUT_SHAPER", b"G4 P", b"G64", b"G61", b"G90", b"G91", b"M82", b"M83", b"G20", b"G21", b"G17", b"G18", b"G19")
 
 
 def kept_lines(original: list[bytes], output: list[bytes]) -> list[int]:

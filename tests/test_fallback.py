@@ -13,9 +13,9 @@ from fbspost.optimizer import AxisCompensator, AxisLimits
 from fbspost.pipeline import CompensateOptions, compensate_file
 from fbspost.planner import plan_blocks
 from fbspost.profile import load_profile
-from reference import execute, rms, sample_blocks, simulate_lsim
+from reference import execute, rms, sample_blocks, simulate_lsim, unbudgeted
 
-PRINTER = load_profile("bedslinger-example")
+PRINTER = unbudgeted(load_profile("bedslinger-example"))
 X = PRINTER.axes["X"]
 PERIOD_S = 1.0 / PRINTER.sample_rate_hz
 

@@ -33,9 +33,9 @@ from fbspost.fallback import AxisGuard
 from fbspost.optimizer import AxisCompensator, AxisLimits
 from fbspost.planner import CLAMPED, RunMargins, plan_blocks
 from fbspost.profile import load_profile
-from reference import execute, kept_lines, rms, sample_blocks, simulate_lsim
+from reference import execute, kept_lines, rms, sample_blocks, simulate_lsim, unbudgeted
 
-PRINTER = load_profile("bedslinger-example")
+PRINTER = unbudgeted(load_profile("bedslinger-example"))
 OPTIONS = CompensateOptions(flavor="marlin")
 MARGINS = RunMargins.for_profile(PRINTER)
 PASSTHROUGH = [b"M106 S128", b"M107", b"M104 S205", b"M140 S60", b"M117 Layer 2", b"; LAYER_CHANGE",

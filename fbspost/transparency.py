@@ -1,0 +1,225 @@
+"""Firmware settings around the compensated motion: what makes the firmware run the written blocks
+as written, and what gives it back the program's own settings.
+
+Takes the flavor, the settings the program starts with (the profile's planner and firmware
+values) and the program's changes to them as its lines pass (``note``); gives the lines that
+make the firmware transparent (``apply``) and those that restore the program's settings
+(``restore``), in the flavor's syntax, and header notes on what cannot be restored.
+
+Why these values. The dense blocks already carry the command's speed changes: block to block
+the speed steps by at most a_cmd / fs (10 mm/s at 10 m/s^2 and 1 kHz). The firmware ramps each
+step at its acceleration A, inside the block, and so arrives (dv)^2 / (2 A v) late (v the higher
+of the two speeds; at most dv / (2 A)) and at most (dv)^2 / (2 A) behind within the block.
+Klipper (ACCEL = 1e7 mm/s^2): at most 0.5 us and 5 nm per junction, typically 0.05 us (dv 10,
+v 100); the writer makes that time up in the next block (on the butterfly, Klipper's own
+planner: 0.92 -> 0.39 um RMS from the command). Marlin and RepRapFirmware keep block accelerations in 32-bit steps/s^2 (times
+2^24 / timer rate in Marlin): 1e6 mm/s^2 fits at up to 250 steps/mm, at most 5 us and 50 nm per
+junction. Junctions: Klipper's limit R * scv^2 (sqrt2 - 1) (R = sin(t/2) / (1 - sin(t/2)), t the
+angle between the blocks) does not depend on ACCEL; SQUARE_CORNER_VELOCITY 10000 mm/s lets every
+junction turning less than 179 degrees pass at 500 mm/s, and its centripetal limit
+move_d tan(t/2) A / 2 passes a turn of d at speed v once A > v d / block time, the command's own
+normal acceleration. Marlin: J 0.3 mm (the most M205 J accepts) and jerk 1000 mm/s.
+Klipper's minimum cruise ratio and Marlin's minimum segment time (M205 B) would slow short
+blocks: 0. Input shaping on top of the compensation would correct twice: off.
+"""
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field, replace
+
+from .gcode import Block, Modal, PlannerLimits
+from .profile import MachineProfile
+
+KLIPPER_ACCEL_MM_S2 = 1e7
+KLIPPER_SCV_MM_S = 1e4
+STEPPED_ACCEL_MM_S2 = 1e6  # Marlin, RepRapFirmware
+MARLIN_JUNCTION_DEVIATION_MM = 0.3
+JERK_MM_S = 1000.0  # Marlin M205 X Y, RepRapFirmware M566 (mm/min there)
+_SHAPED_AXES = "XY"
+_BLEND = re.compile(rb"[Gg]\s*0*6\s*(?:4(?:\s*[PpQq]\s*[-+]?[\d.]+)*|1(?:\s*\.\s*1)?)(?![\d.])")
+
+
+@dataclass(frozen=True)
+class FirmwareSettings:
+    """The settings the program has the firmware at (``None``: not known to fbspost)."""
+
+    acceleration_mm_s2: float
+    travel_acceleration_mm_s2: float | None = None  # Marlin, RRF: M204 T
+    square_corner_velocity_mm_s: float | None = None  # Klipper; classic jerk (M205 X Y, M566)
+    minimum_cruise_ratio: float | None = None  # Klipper
+    max_accel_to_decel_mm_s2: float | None = None  # klippy before 2024, where the profile says so
+    junction_deviation_mm: float | None = None  # Marlin M205 J
+    min_segment_time_us: float | None = None  # Marlin M205 B
+    axis_max_acceleration_mm_s2: dict[str, float] = field(default_factory=dict)  # M201
+    shaper_frequency_hz: dict[str, float] = field(default_factory=dict)  # input shaping per axis
+    blend_words: str = "G64"  # LinuxCNC: the program's blending mode, as it wrote it
+
+    @classmethod
+    def from_profile(cls, profile: MachineProfile) -> FirmwareSettings:
+        """What the firmware is configured with, as far as the profile tells."""
+        fw = profile.firmware
+        return cls(profile.planner_acceleration_mm_s2,
+                   square_corner_velocity_mm_s=profile.planner_square_corner_velocity_mm_s,
+                   minimum_cruise_ratio=fw.minimum_cruise_ratio, max_accel_to_decel_mm_s2=fw.max_accel_to_decel_mm_s2,
+                   min_segment_time_us=fw.min_segment_time_s * 1e6, shaper_frequency_hz=dict(fw.shaper_frequency_hz))
+
+    def changed(self, limits: PlannerLimits) -> FirmwareSettings:
+        """These settings after a program line that changes ``limits``."""
+        accel = limits.acceleration_mm_s2 or self.acceleration_mm_s2
+        ratio, to_decel = limits.minimum_cruise_ratio, limits.accel_to_decel_mm_s2
+        if to_decel is not None and self.max_accel_to_decel_mm_s2 is None and ratio is None:
+            ratio = 1.0 - min(1.0, to_decel / accel)  # Klipper 2024 reads ACCEL_TO_DECEL so (as the planner)
+        return replace(
+            self, acceleration_mm_s2=accel,
+            minimum_cruise_ratio=_first(ratio, self.minimum_cruise_ratio),
+            max_accel_to_decel_mm_s2=self.max_accel_to_decel_mm_s2 if self.max_accel_to_decel_mm_s2 is None
+            else _first(to_decel, self.max_accel_to_decel_mm_s2),
+            travel_acceleration_mm_s2=_first(limits.travel_acceleration_mm_s2, self.travel_acceleration_mm_s2),
+            square_corner_velocity_mm_s=_first(limits.square_corner_velocity_mm_s, self.square_corner_velocity_mm_s),
+            junction_deviation_mm=_first(limits.junction_deviation_mm, self.junction_deviation_mm),
+            axis_max_acceleration_mm_s2={**self.axis_max_acceleration_mm_s2, **limits.axis_max_acceleration_mm_s2})
+
+
+def _first(*values):
+    return next((v for v in values if v is not None), None)
+
+
+class Transparency:
+    """Which settings are in force, and the lines that change them.
+
+    Two parts are kept apart: the planner's limits (a program line that sets a limit undoes them,
+    mid-motion too, and they are set again before the next compensated block) and input shaping
+    (Klipper flushes its look-ahead to change it: it is switched only where the machine is at
+    rest, before a run and before a copied move)."""
+
+    def __init__(self, flavor: str, program: FirmwareSettings, tolerance_mm: float):
+        self.flavor, self.program, self.tolerance_mm = flavor, program, tolerance_mm
+        self.limits_set = self.shaping_off = False
+        # the acceleration the firmware then ramps between the blocks' speeds at, where the time
+        # that loses is made up (Klipper: verified on its own planner; Marlin's and RRF's junctions
+        # lose more than their ramps, not modelled: none)
+        self.ramp_mm_s2 = KLIPPER_ACCEL_MM_S2 if flavor == "klipper" else math.inf
+
+    def note(self, block: Block) -> None:
+        """A copied program line: the program's settings (planner limits, LinuxCNC's blending mode
+        G61, G61.1, G64 P Q) and the firmware's change with it."""
+        if block.limits is not None:
+            self.program = self.program.changed(block.limits)
+            self.limits_set = False
+        blend = _BLEND.search(block.raw) if self.flavor == "linuxcnc" else None
+        if blend:
+            self.program = replace(self.program, blend_words=" ".join(blend.group().decode().upper().split()))
+            self.limits_set = False
+
+    def header(self) -> list[str]:
+        """Comments for the output's header: what the output sets, and what it cannot restore."""
+        if self.flavor == "linuxcnc":
+            return ["fbspost firmware settings: the compensated motion runs in G64 with the tolerance as P; "
+                    "acceleration is the machine's INI setting"]
+        notes = ["fbspost firmware settings: limits raised around the compensated motion (to run its blocks as "
+                 "written), the program's own restored before every move copied unchanged and at the end"]
+        program = self.program
+        kept = [f"input shaping on {a}" for a in _SHAPED_AXES
+                if self.flavor == "reprap" or a not in program.shaper_frequency_hz]
+        if self.flavor in ("marlin", "reprap"):
+            kept += [f"M201 {a}" for a in "XY" if a not in program.axis_max_acceleration_mm_s2]
+        if self.flavor == "marlin" and program.junction_deviation_mm is None:
+            kept.append("M205 J")
+        if kept:
+            notes.append(f"fbspost firmware settings not known, so left as the output sets them after the compensated motion: "
+                         f"{', '.join(kept)} (give them in the profile's [firmware] table or the program)")
+        return notes
+
+    def apply(self, at_rest: bool, modal: Modal) -> list[str]:
+        """Lines that make the firmware transparent before a compensated block (empty: it is);
+        ``at_rest``: the machine is at rest there (shaping may be switched)."""
+        lines = []
+        if not self.limits_set:
+            lines += _transparent_limits(self.flavor, self.tolerance_mm / (25.4 if modal.inches else 1.0))
+            self.limits_set = True
+        if at_rest and not self.shaping_off:
+            lines += _shaping_lines(self.flavor, {a: 0.0 for a in _SHAPED_AXES})
+            self.shaping_off = True
+        return lines
+
+    def restore(self) -> list[str]:
+        """Lines that give the firmware back the program's settings (empty: it has them)."""
+        lines = _program_limits(self.flavor, self.program) if self.limits_set else []
+        if self.shaping_off:
+            lines += _shaping_lines(self.flavor, self.program.shaper_frequency_hz)
+        self.limits_set = self.shaping_off = False
+        return lines
+
+
+def _transparent_limits(flavor: str, tolerance: float) -> list[str]:
+    if flavor == "klipper":
+        return [f"SET_VELOCITY_LIMIT ACCEL={_num(KLIPPER_ACCEL_MM_S2)} ACCEL_TO_DECEL={_num(KLIPPER_ACCEL_MM_S2)} "
+                f"MINIMUM_CRUISE_RATIO=0 SQUARE_CORNER_VELOCITY={_num(KLIPPER_SCV_MM_S)}"]
+    accel = _num(STEPPED_ACCEL_MM_S2)
+    if flavor == "marlin":
+        return [f"M201 X{accel} Y{accel}", f"M204 P{accel} T{accel}",
+                f"M205 B0 J{_num(MARLIN_JUNCTION_DEVIATION_MM, 3)} X{_num(JERK_MM_S)} Y{_num(JERK_MM_S)}"]
+    if flavor == "reprap":
+        return [f"M201 X{accel} Y{accel}", f"M204 P{accel} T{accel}",
+                f"M566 X{_num(JERK_MM_S * 60)} Y{_num(JERK_MM_S * 60)}"]
+    # LinuxCNC: blend within the tolerance, never stop; Q0: no naive-CAM merging of the blocks
+    # (Q is P when not given, and merged blocks would lose their speeds)
+    return [f"G64 P{_num(tolerance, 6)} Q0"]
+
+
+def _program_limits(flavor: str, program: FirmwareSettings) -> list[str]:
+    accel = _num(program.acceleration_mm_s2)
+    travel = _num(_first(program.travel_acceleration_mm_s2, program.acceleration_mm_s2))
+    scv = program.square_corner_velocity_mm_s
+    axes = program.axis_max_acceleration_mm_s2
+    # Marlin and RRF: M201 for X and Y, as the program or the profile gave them (else they stay raised)
+    m201 = " ".join(f"{a}{_num(axes[a])}" for a in "XY" if a in axes)
+    lines = [f"M201 {m201}"] if m201 and flavor in ("marlin", "reprap") else []
+    if flavor == "klipper":
+        # Klipper >= 2024 reads MINIMUM_CRUISE_RATIO (and ignores ACCEL_TO_DECEL then), klippy before reads
+        # ACCEL_TO_DECEL only: both, each as the profile's firmware has it
+        to_decel = program.max_accel_to_decel_mm_s2
+        if to_decel is None:
+            ratio = _first(program.minimum_cruise_ratio, 0.5)
+            to_decel = program.acceleration_mm_s2 * (1.0 - ratio)
+        else:
+            ratio = 1.0 - min(1.0, to_decel / program.acceleration_mm_s2)
+        words = [f"ACCEL={accel}", f"ACCEL_TO_DECEL={_num(to_decel, 3)}", f"MINIMUM_CRUISE_RATIO={_num(ratio, 3)}"]
+        if scv is not None:
+            words.append(f"SQUARE_CORNER_VELOCITY={_num(scv, 3)}")
+        return [f"SET_VELOCITY_LIMIT {' '.join(words)}"]
+    if flavor == "marlin":
+        words = [f"B{_num(_first(program.min_segment_time_us, 20000.0))}"]  # Marlin's default 20 ms
+        if program.junction_deviation_mm is not None:
+            words.append(f"J{_num(program.junction_deviation_mm, 4)}")
+        if scv is not None:
+            words += [f"X{_num(scv, 3)}", f"Y{_num(scv, 3)}"]
+        return lines + [f"M204 P{accel} T{travel}", f"M205 {' '.join(words)}"]
+    if flavor == "reprap":
+        jerk = [f"M566 X{_num(scv * 60, 3)} Y{_num(scv * 60, 3)}"] if scv is not None else []
+        return lines + [f"M204 P{accel} T{travel}"] + jerk
+    return [program.blend_words]
+
+
+def _shaping_lines(flavor: str, frequency_hz: dict[str, float]) -> list[str]:
+    """The flavor's input shaping set to ``frequency_hz`` per axis (0: off; axes not given: none)."""
+    axes = [a for a in _SHAPED_AXES if a in frequency_hz]
+    if not axes or flavor == "linuxcnc":
+        return []
+    if flavor == "klipper":
+        return ["SET_INPUT_SHAPER " + " ".join(f"SHAPER_FREQ_{a}={_num(frequency_hz[a], 3)}" for a in axes)]
+    if flavor == "marlin":
+        if all(frequency_hz[a] == 0.0 for a in axes):
+            return ["M593 F0"]
+        return [f"M593 {a} F{_num(frequency_hz[a], 3)}" for a in axes]
+    # RepRapFirmware: restoring needs the shaper's type, not known to fbspost
+    return ['M593 P"none"'] if all(frequency_hz[a] == 0.0 for a in axes) else []
+
+
+def _num(value: float, decimals: int = 0) -> str:
+    """Shortest decimal with at most ``decimals`` places: 1e7 -> "10000000"; 0.30, 4 -> "0.3"."""
+    text = f"{value:.{decimals}f}"
+    if "." in text:
+        text = text.rstrip("0").rstrip(".")
+    return "0" if text in ("-0", "") else text

@@ -1,0 +1,103 @@
+"""Marlin output within a serial line budget (300 lines/s, the printer profile's) and Marlin's
+MIN_STEPS_PER_SEGMENT: read back from the written text by an interpreter of its own. Truths:
+Marlin's planner drops a block whose step_event_count (the most steps of any axis, positions
+rounded to steps) is under 6, so none may be; the lines in any second of the program's time;
+the written blocks, run at their feeds, against the compensated command on its grid."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from fbspost.gcode import read_gcode
+from fbspost.pipeline import CompensateOptions, compensate_file, compensated_samples
+from fbspost.planner import plan_blocks
+from fbspost.profile import load_profile
+
+PROFILE = load_profile("printer-two-mode")  # 80 steps/mm on X Y, 400 Z, 415 E; 300 lines/s
+MIN_STEPS = 6
+
+
+@pytest.fixture(scope="module")
+def marlin_output(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("marlin")
+    source, target = folder / "gear.gcode", folder / "out.gcode"
+    with open("tests/data/gear-marlin2.gcode", "rb") as f:
+        source.write_bytes(b"".join(f.readlines()[:700]))
+    report = compensate_file(source, target, PROFILE, CompensateOptions(flavor="marlin"))
+    return source, target, report
+
+
+def blocks(path):
+    """Every line that is sent (not blank, not a comment), read as Marlin would: (its time, at the
+    end of its motion; the step_event_count of a G0/G1 that moves, else None; X Y Z there). Program positions
+    (G90, M82/M83, G92), rounded to steps per axis; a block takes the length of its whole steps
+    over F, XYZ's, or E's where no XYZ axis moves the minimum steps (planner.cpp); G4 P waits; homing makes XYZ unknown and a move from an unknown place is instant (an
+    axis it does not name may be unknown)."""
+    spm = np.array([PROFILE.firmware.steps_per_mm[a] for a in "XYZE"])
+    position, feed, t, relative_e, out = np.full(4, np.nan), np.nan, 0.0, False, []
+    position[3] = 0.0
+    for line in path.read_text().splitlines():
+        words = line.split(";")[0].split()
+        if not words:
+            continue
+        values = {w[0]: float(w[1:]) for w in words[1:] if w[0] in "XYZEFPS"}
+        target = np.array([values.get(a, p) for a, p in zip("XYZE", position)])
+        steps = None
+        if relative_e and "E" in values:
+            target[3] = position[3] + values["E"]
+        if words[0] == "G92":
+            position = target
+        elif words[0] == "G28":
+            position[:3] = np.nan
+        elif words[0] in ("M82", "M83"):
+            relative_e = words[0] == "M83"
+        elif words[0] == "G4":
+            t += values.get("S", values.get("P", 0.0) / 1000.0)
+        elif words[0] in ("G1", "G0"):
+            feed = values.get("F", feed * 60.0) / 60.0
+            named = np.array([a in values for a in "XYZE"])
+            delta = np.where(named, target - position, 0.0)  # (an axis not named may be unknown)
+            if not np.isnan(delta).any() and named.any():  # (G1 F1800 alone moves nothing)
+                counts = np.where(named, np.rint(target * spm) - np.rint(position * spm), 0.0)
+                steps = np.abs(counts).max()
+                step_mm = counts / spm
+                xyz = (np.abs(counts[:3]) >= MIN_STEPS).any()
+                t += (np.linalg.norm(step_mm[:3]) if xyz else abs(step_mm[3])) / feed
+            position = target
+        out.append((t, steps, position[:3].copy()))
+    return out
+
+
+def test_no_block_marlin_would_merge(marlin_output):
+    _, target, _ = marlin_output
+    counts = np.array([steps for _, steps, _ in blocks(target) if steps is not None])
+    assert len(counts) > 1000
+    assert counts.min() >= MIN_STEPS
+
+
+def test_line_rate_within_budget(marlin_output):
+    """Every line but comments, at its time: motion blocks when they end, the others when they run;
+    the report's rate is the same count on the plan's times."""
+    _, target, report = marlin_output
+    times = np.array([t for t, _, _ in blocks(target)])
+    in_second = np.arange(len(times)) + 1 - np.searchsorted(times, times - 1.0, "right")
+    assert in_second.max() <= 300
+    assert abs(report.max_line_rate_hz - in_second.max()) <= 2  # (its times: the plan's, a line may cross a second's edge)
+
+
+def test_accuracy_cost_reported(marlin_output):
+    """The written blocks, each at constant speed from its start to its end as Marlin times them,
+    against the command at every sample inside them: the report's largest and RMS distance (what
+    the budget and the merge cost), the rounding aside."""
+    source, target, report = marlin_output
+    plan = plan_blocks(read_gcode(source, "marlin"), PROFILE, firmware="marlin")
+    command = compensated_samples(plan, PROFILE)
+    lines = [(t, xyz) for t, steps, xyz in blocks(target) if steps is not None and not np.isnan(xyz).any()]
+    times, ends = np.array([t for t, _ in lines]), np.array([xyz for _, xyz in lines])
+    grid = np.arange(len(command)) / PROFILE.sample_rate_hz
+    inside = (grid > times[0]) & (grid < times[-1])
+    written = np.column_stack([np.interp(grid[inside], times, ends[:, c]) for c in range(3)])
+    off_mm = np.linalg.norm(written - command[inside, :3], axis=1)
+    print(f"blocks vs command: max {off_mm.max() * 1e3:.2f} um, RMS {np.sqrt(np.mean(off_mm**2)) * 1e3:.3f} um; "
+          f"report {report.tolerance_used_mm * 1e3:.2f}, {report.rms_deviation_mm * 1e3:.3f} um")
+    assert report.tolerance_used_mm == pytest.approx(off_mm.max(), abs=2e-4)

@@ -1,0 +1,186 @@
+"""The firmware settings around the compensated motion, line by line per flavor; copied moves run
+under the program's own settings (read back from the output by a small interpreter of the lines);
+the written time of the blocks against the exact sum of their durations."""
+import dataclasses
+import re
+from fractions import Fraction
+
+import numpy as np
+import pytest
+
+from fbspost.gcode import Block, Kind, Modal, PlannerLimits
+from fbspost.pipeline import CompensateOptions, compensate_file
+from fbspost.profile import ProfileError, format_profile, load_profile, parse_profile, tomllib
+from fbspost.transparency import FirmwareSettings, Transparency
+from fbspost.writer import _Emitter
+
+PRINTER = load_profile("printer-two-mode")
+
+TRANSPARENT = {
+    "klipper": ["SET_VELOCITY_LIMIT ACCEL=10000000 ACCEL_TO_DECEL=10000000 MINIMUM_CRUISE_RATIO=0 "
+                "SQUARE_CORNER_VELOCITY=10000"],
+    "marlin": ["M201 X1000000 Y1000000", "M204 P1000000 T1000000", "M205 B0 J0.3 X1000 Y1000"],
+    "reprap": ["M201 X1000000 Y1000000", "M204 P1000000 T1000000", "M566 X60000 Y60000"],
+    "linuxcnc": ["G64 P0.001 Q0"],
+}
+SHAPING_OFF = {"klipper": ["SET_INPUT_SHAPER SHAPER_FREQ_X=0 SHAPER_FREQ_Y=0"], "marlin": ["M593 F0"],
+               "reprap": ['M593 P"none"'], "linuxcnc": []}
+
+
+def limits_line(limits: PlannerLimits, raw: bytes = b"") -> Block:
+    return Block(1, raw, Kind.PASS, Modal(), np.zeros(4), limits=limits)
+
+
+@pytest.mark.parametrize("flavor", ["klipper", "marlin", "reprap", "linuxcnc"])
+def test_lines_per_flavor(flavor):
+    """Transparent limits before the first block, shaping off only at rest; a program line that
+    sets a limit undoes the limits (set again), not the shaping; restore gives the program's
+    values as they stand, the profile's where the program set none."""
+    program = FirmwareSettings(3000.0, square_corner_velocity_mm_s=5.0, minimum_cruise_ratio=0.4,
+                               shaper_frequency_hz={"X": 52.0, "Y": 34.5})
+    t = Transparency(flavor, program, 1e-3)
+    assert t.apply(True, Modal()) == TRANSPARENT[flavor] + SHAPING_OFF[flavor]
+    assert t.apply(True, Modal()) == []  # in force
+    t.note(limits_line(PlannerLimits(1500.0, 2500.0, junction_deviation_mm=0.02,
+                                     axis_max_acceleration_mm_s2={"X": 4000.0}), b"G61\n"))
+    assert t.apply(False, Modal()) == TRANSPARENT[flavor]
+    restored = {
+        "klipper": ["SET_VELOCITY_LIMIT ACCEL=1500 ACCEL_TO_DECEL=900 MINIMUM_CRUISE_RATIO=0.4 SQUARE_CORNER_VELOCITY=5",
+                    "SET_INPUT_SHAPER SHAPER_FREQ_X=52 SHAPER_FREQ_Y=34.5"],
+        "marlin": ["M201 X4000", "M204 P1500 T2500", "M205 B20000 J0.02 X5 Y5", "M593 X F52", "M593 Y F34.5"],
+        "reprap": ["M201 X4000", "M204 P1500 T2500", "M566 X300 Y300"],  # (its shaper type is not known)
+        "linuxcnc": ["G61"],
+    }[flavor]
+    assert t.restore() == restored
+    assert t.restore() == []  # restored already
+    t = Transparency("klipper", program, 1e-3)
+    t.apply(True, Modal())
+    t.note(limits_line(PlannerLimits(2000.0, 2000.0, accel_to_decel_mm_s2=500.0)))  # (Klipper 2024 reads it as a ratio)
+    t.apply(False, Modal())
+    assert t.restore()[0] == ("SET_VELOCITY_LIMIT ACCEL=2000 ACCEL_TO_DECEL=500 MINIMUM_CRUISE_RATIO=0.75 "
+                              "SQUARE_CORNER_VELOCITY=5")
+    old_klippy = Transparency("klipper", FirmwareSettings(3000.0, max_accel_to_decel_mm_s2=1500.0), 1e-3)
+    old_klippy.apply(True, Modal())
+    assert old_klippy.restore()[0] == "SET_VELOCITY_LIMIT ACCEL=3000 ACCEL_TO_DECEL=1500 MINIMUM_CRUISE_RATIO=0.5"
+    inches = Modal(inches=True)
+    assert Transparency("linuxcnc", program, 0.0254).apply(True, inches) == ["G64 P0.001 Q0"]
+
+
+def test_header_names_what_cannot_be_restored():
+    marlin = Transparency("marlin", FirmwareSettings(3000.0), 1e-3).header()[-1]
+    assert "input shaping on X, input shaping on Y, M201 X, M201 Y, M205 J" in marlin
+    known = FirmwareSettings(3000.0, shaper_frequency_hz={"X": 50.0, "Y": 40.0})
+    assert len(Transparency("klipper", known, 1e-3).header()) == 1  # nothing left unrestored
+
+
+_SETTING = re.compile(r"(SET_VELOCITY_LIMIT|SET_INPUT_SHAPER|M201|M204|M205)\b(.*)")
+
+
+def settings_at_lines(path) -> list[tuple[str, dict]]:
+    """Every line of a Klipper program with the firmware's settings when it runs (ACCEL, MINIMUM_CRUISE_RATIO,
+    SQUARE_CORNER_VELOCITY, shaper frequencies), as Klipper reads them: an interpreter of the
+    setting lines, starting at Klipper's config values given by the profile."""
+    state = {"ACCEL": 3000.0, "MINIMUM_CRUISE_RATIO": 0.5, "SQUARE_CORNER_VELOCITY": 5.0,
+             "SHAPER_FREQ_X": 52.0, "SHAPER_FREQ_Y": 34.5}
+    out = []
+    for line in path.read_text().splitlines():
+        match = _SETTING.match(line)
+        if match and match.group(1) == "M204":
+            state["ACCEL"] = float(re.search(r"S([\d.]+)", line).group(1))
+        elif match:
+            state.update({k: float(v) for k, v in re.findall(r"([A-Z_]+)=([\d.]+)", match.group(2))})
+        out.append((line, dict(state)))
+    return out
+
+
+def test_copied_moves_run_under_the_programs_own_settings(tmp_path):
+    """Homing mid-program, a move from the unknown place after it, a macro, an M204 mid-motion:
+    every copied move runs with what the program set (or Klipper's config where it set nothing),
+    every written block with the transparent settings, and the program ends with its own."""
+    source = tmp_path / "in.gcode"
+    source.write_text("\n".join([
+        "G21", "G90", "M83", "G28", "G1 X10 Y10 Z0.2 F6000", "G1 X30 Y10 E1 F3000", "G1 X30 Y30 E1",
+        "M204 S2000", "G1 X10 Y30 E1", "G1 E-0.8 F2400", "G28 X", "G1 X10 F6000", "G1 X30 Y10 E1 F3000",
+        "SET_VELOCITY_LIMIT SQUARE_CORNER_VELOCITY=8", "G1 X30 Y20 E1", "PARK_MACRO", "G1 X20 Y20 F6000",
+        "G1 X10 Y10 E1", "M107", ""]))
+    target = tmp_path / "out.gcode"
+    compensate_file(source, target, PRINTER, CompensateOptions(flavor="klipper"))
+    transparent = {"ACCEL": 1e7, "MINIMUM_CRUISE_RATIO": 0.0, "SQUARE_CORNER_VELOCITY": 1e4}
+    own = {"G28": 3000.0, "G1 X10 Y10 Z0.2 F6000": 3000.0, "G28 X": 2000.0, "G1 X10 F6000": 2000.0, "PARK_MACRO": 2000.0, "G1 X20 Y20 F6000": 2000.0}
+    lines = settings_at_lines(target)
+    copied = {line: state for line, state in lines if line in own}
+    assert len(copied) == len(own)
+    for line, state in copied.items():
+        scv = 8.0 if line in ("PARK_MACRO", "G1 X20 Y20 F6000") else 5.0
+        assert state["ACCEL"] == own[line] and state["MINIMUM_CRUISE_RATIO"] == 0.5, line
+        assert state["SQUARE_CORNER_VELOCITY"] == scv, line
+    written = [state for line, state in lines if line.startswith("G1 ") and line not in own]
+    assert len(written) > 50
+    for state in written:
+        assert {k: state[k] for k in transparent} == transparent
+        assert state["SHAPER_FREQ_X"] == state["SHAPER_FREQ_Y"] == 0.0
+    assert {k: lines[-1][1][k] for k in transparent} == {"ACCEL": 2000.0, "MINIMUM_CRUISE_RATIO": 0.5,
+                                                          "SQUARE_CORNER_VELOCITY": 8.0}
+
+
+def written_blocks(text: bytes) -> tuple[list[Fraction], list[Fraction]]:
+    """Each G1 block's time as the controller computes it, exactly (its XYZ length, E's when XYZ
+    do not move, over its F, from the decimal text; the length to double precision), and its F
+    (mm/min)."""
+    position, feed, times, feeds = [Fraction(0)] * 4, None, [], []
+    for line in text.decode().splitlines():
+        words = {w[0]: Fraction(w[1:]) for w in line.split()[1:]}
+        feed = words.get("F", feed)
+        target = [words.get(a, p) for a, p in zip("XYZE", position)]
+        d = [b - a for a, b in zip(position, target)]
+        squared = sum(x * x for x in d[:3]) or d[3] * d[3]
+        times.append(Fraction(float(np.sqrt(float(squared)))) * 60 / feed)
+        feeds.append(feed)
+        position = target
+    return times, feeds
+
+
+def test_written_time_carries_the_feed_rounding():
+    """Slow, long and tiny blocks whose F rounding alone loses up to milliseconds each: the written
+    time after every block is the exact sum of the durations up to it within that block's own
+    rounding (half a unit of F, 0.0005 mm/min), never drifting; blocks that round to no motion
+    give their time to the next. Per-block rounding without the carry drifts far more."""
+    rng = np.random.default_rng(7)
+    n = 3000
+    durations = rng.uniform(1e-3, 0.5, n)
+    speeds = 10 ** rng.uniform(-2.5, 1.5, n)  # 0.003 to 30 mm/s: F 0.2 to 1800 mm/min
+    steps = rng.normal(size=(n, 4)) * (speeds * durations)[:, None] / 2
+    steps[::97] = 0.0  # no motion
+    targets = np.cumsum(steps, axis=0)
+    emitter = _Emitter(np.zeros(4), b"\n")
+    text = b"".join(emitter.blocks(targets[a:a + 500], durations[a:a + 500])[0] for a in range(0, n, 500))
+    times, feeds = written_blocks(text)
+    units = np.rint(np.vstack([np.zeros(4), targets]) * [1e4, 1e4, 1e4, 1e5])
+    moving = np.flatnonzero(np.abs(np.diff(units, axis=0)).sum(axis=1) > 0)
+    assert len(times) == len(moving) > 0.95 * n
+    exact = np.cumsum([Fraction(float(d)) for d in durations])[moving]  # up to each written block
+    drift_s = np.array([float(w - e) for w, e in zip(np.cumsum(times), exact)])
+    # |L/F - L/F*| <= (L/F) (half a unit) / F*, F* >= F - half a unit: the ideal F
+    half = Fraction(1, 2000)
+    own_rounding_s = np.array([float(t * half / (f - half)) for t, f in zip(times, feeds)]) * (1 + 1e-9) + 1e-15
+    assert np.all(np.abs(drift_s) <= own_rounding_s)
+    assert np.abs(drift_s[own_rounding_s < 1e-6]).max() < 1e-6  # (F rounds to 0.001 mm/min: a block of
+    # 0.1 um in 0.3 s at F0.02 is off by 7 ms, given on to the next)
+    # each block's F rounded on its own, no carry: the drift adds up
+    lengths = np.array([float(t * f / 60) for t, f in zip(times, feeds)])  # mm
+    owed_s = np.diff(np.array([0.0] + [float(e) for e in exact]))
+    alone_s = lengths * 60000 / np.maximum(np.rint(lengths * 60000 / owed_s), 1)
+    assert abs(np.sum(alone_s - owed_s)) > 100 * abs(drift_s[-1])
+
+
+def test_profile_shaper_frequencies_reach_the_restore(tmp_path):
+    """[firmware] shaper_frequency: read, written back by format_profile, restored after the motion."""
+    text = format_profile(PRINTER).replace("[firmware]", "[firmware]\nshaper_frequency = { X = 51.5, Y = 33.0 }")
+    profile = parse_profile(tomllib.loads(text), "p.toml")
+    assert profile.firmware.shaper_frequency_hz == {"X": 51.5, "Y": 33.0}
+    assert parse_profile(tomllib.loads(format_profile(profile)), "q.toml") == dataclasses.replace(profile, source="q.toml")
+    t = Transparency("klipper", FirmwareSettings.from_profile(profile), 1e-3)
+    t.apply(True, Modal())
+    assert t.restore()[-1] == "SET_INPUT_SHAPER SHAPER_FREQ_X=51.5 SHAPER_FREQ_Y=33"
+    with pytest.raises(ProfileError, match="firmware.shaper_frequency.Q"):
+        parse_profile(tomllib.loads(text.replace("X = 51.5", "Q = 51.5")), "p.toml")
