@@ -12,6 +12,7 @@ of a firmware's planner.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import tempfile
 import time
 from pathlib import Path
@@ -41,6 +42,13 @@ def programs(folder: Path, lines: int | None):
         yield source.stem, path, "printer-two-mode"
 
 
+def unbudgeted(profile):
+    """Without the firmware's line budget and steps: blocks within the tolerance, timed by their
+    XYZ length as ``simulate --compensated`` times them (Marlin times creeping blocks by E)."""
+    return dataclasses.replace(profile, firmware=dataclasses.replace(profile.firmware, max_line_rate_hz=None,
+                                                                     steps_per_mm={}))
+
+
 def measure(path: Path, profile, fallback: bool, folder: Path) -> dict:
     out = folder / f"{path.stem}-{'fb' if fallback else 'nofb'}.gcode"
     report = compensate_file(path, out, profile, CompensateOptions(fallback=fallback))
@@ -66,7 +74,7 @@ def main() -> None:
             if only and name not in only:
                 continue
             clock = time.perf_counter()
-            profile = load_profile(profile_name)
+            profile = unbudgeted(load_profile(profile_name))
             on, off = measure(path, profile, True, Path(tmp)), measure(path, profile, False, Path(tmp))
             print(f"{name:34} {on['orig_rms']:9.3f} {on['gain']:8.2f}x {off['gain']:8.2f}x {on['gain'] / off['gain']:6.3f} "
                   f"{on['max']:8.2f} {on['orig_max']:8.2f} {on['stretches']:9d} {on['added_s']:8.3f} "

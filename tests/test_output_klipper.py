@@ -12,7 +12,7 @@ import pytest
 from fbspost.firmware import replan
 from fbspost.gcode import read_gcode
 from fbspost.pipeline import CompensateOptions, compensate_file, compensated_samples
-from fbspost.planner import plan_blocks
+from fbspost.planner import RunMargins, plan_blocks
 from fbspost.profile import load_profile
 from klippy_motion import executed
 from klippy_planner import klippy_or_skip
@@ -30,7 +30,8 @@ def run_by_klipper(tmp_path, source, profile):
     """(plan of the original, compensated command, the written program as klippy runs it)."""
     target = tmp_path / "out.gcode"
     compensate_file(source, target, profile, CompensateOptions(flavor="klipper", tolerance_mm=TOLERANCE_MM))
-    plan = plan_blocks(read_gcode(source, "klipper"), profile, firmware="klipper")
+    plan = plan_blocks(read_gcode(source, "klipper", profile.home_mm), profile, firmware="klipper",
+                       margins=RunMargins.for_profile(profile))
     return plan, compensated_samples(plan, profile), executed(target, profile)
 
 

@@ -10,7 +10,7 @@ import pytest
 
 from fbspost.gcode import read_gcode
 from fbspost.pipeline import CompensateOptions, compensate_file, compensated_samples
-from fbspost.planner import plan_blocks
+from fbspost.planner import RunMargins, plan_blocks
 from fbspost.profile import load_profile
 
 PROFILE = load_profile("printer-two-mode")  # 80 steps/mm on X Y, 400 Z, 415 E; 300 lines/s
@@ -31,7 +31,7 @@ def blocks(path):
     """Every line that is sent (not blank, not a comment), read as Marlin would: (its time, at the
     end of its motion; the step_event_count of a G0/G1 that moves, else None; X Y Z there). Program positions
     (G90, M82/M83, G92), rounded to steps per axis; a block takes the length of its whole steps
-    over F, XYZ's, or E's where no XYZ axis moves the minimum steps (planner.cpp); G4 P waits; homing makes XYZ unknown and a move from an unknown place is instant (an
+    over F, XYZ's, or E's where no XYZ axis moves the minimum steps (planner.cpp); G4 P waits; homing puts the axes it homes at 0 and a move from an unknown place is instant (an
     axis it does not name may be unknown)."""
     spm = np.array([PROFILE.firmware.steps_per_mm[a] for a in "XYZE"])
     position, feed, t, relative_e, out = np.full(4, np.nan), np.nan, 0.0, False, []
@@ -47,8 +47,8 @@ def blocks(path):
             target[3] = position[3] + values["E"]
         if words[0] == "G92":
             position = target
-        elif words[0] == "G28":
-            position[:3] = np.nan
+        elif words[0] == "G28":  # at the profile's home (0) on the axes it homes
+            position[[i for i, a in enumerate("XYZ") if a in values] or [0, 1, 2]] = 0.0
         elif words[0] in ("M82", "M83"):
             relative_e = words[0] == "M83"
         elif words[0] == "G4":
@@ -90,7 +90,8 @@ def test_accuracy_cost_reported(marlin_output):
     against the command at every sample inside them: the report's largest and RMS distance (what
     the budget and the merge cost), the rounding aside."""
     source, target, report = marlin_output
-    plan = plan_blocks(read_gcode(source, "marlin"), PROFILE, firmware="marlin")
+    plan = plan_blocks(read_gcode(source, "marlin", PROFILE.home_mm), PROFILE, firmware="marlin",
+                       margins=RunMargins.for_profile(PROFILE))
     command = compensated_samples(plan, PROFILE)
     lines = [(t, xyz) for t, steps, xyz in blocks(target) if steps is not None and not np.isnan(xyz).any()]
     times, ends = np.array([t for t, _ in lines]), np.array([xyz for _, xyz in lines])
