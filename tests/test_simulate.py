@@ -62,6 +62,8 @@ def resimulate(program, profile, report, compensated=None):
     shapers = {m["name"]: m["shaper"] for m in report["methods"] if m["shaper"]}
     lead = max([-s["times_s"][0] for row in shapers.values() for s in row.values()], default=0.0)
     lag = max([s["times_s"][-1] for row in shapers.values() for s in row.values()], default=0.0)
+    if compensated:  # (the written program may end a little after the plan: its dwells are whole ms)
+        lag = max(lag, execute(compensated, profile.sample_rate_hz).ends[-1][0] - (len(plan.positions_mm) - 1) * period_s)
     settle_s = SETTLE_PERIODS / min(m.frequency_hz for a in modelled for m in profile.axes[a].modes)
     before = math.ceil(lead / period_s - 1e-9)
     after = math.ceil(lag / period_s - 1e-9) + math.ceil(settle_s / period_s)
