@@ -130,9 +130,14 @@ def _is_number(text: str) -> bool:
 
 
 def command_problems(original: str | Path, output: str | Path, tool_table: str | Path | None = None) -> list[str]:
-    """Differences between the non-motion canonical calls of ``original`` and of ``output``."""
-    want = _normalized(canonical_calls(original, tool_table))
-    got = _normalized(canonical_calls(output, tool_table))
+    """Differences between the non-motion canonical calls of ``original`` and of ``output``.
+    The blending mode (SET_MOTION_CONTROL_MODE) is compared where the programs end: the output
+    sets its own around the compensated blocks (transparency) and gives back the program's."""
+    want, got = (_normalized(canonical_calls(path, tool_table)) for path in (original, output))
+    modes = [[c for c in calls if c[0] == "SET_MOTION_CONTROL_MODE"][-1:] for calls in (want, got)]
+    if modes[0] and modes[0] != modes[1]:
+        return [f"the program ends in {modes[0]}, the output in {modes[1]}"]
+    want, got = ([c for c in calls if c[0] != "SET_MOTION_CONTROL_MODE"] for calls in (want, got))
     for i, (w, g) in enumerate(zip(want, got)):
         if w != g:
             return [f"non-motion command {i + 1}: expected {w}, got {g}"]
