@@ -83,8 +83,10 @@ class G5Blocks:
 
 
 def fit_g5(command_mm: np.ndarray, tolerance_mm: float, min_samples: int = 1, max_samples: int = 2000,
-           min_length_mm: float = 1e-3) -> G5Blocks:
-    """G5 (and, where needed, G1) blocks for ``command_mm`` (n, d >= 2; X, Y first), see the module."""
+           min_length_mm: float = 1e-3, step_mm: float = 0.0) -> G5Blocks:
+    """G5 (and, where needed, G1) blocks for ``command_mm`` (n, d >= 2; X, Y first), see the module.
+    ``step_mm``: the written resolution of I J P Q; the curves are checked as written, rounded to
+    it (a short curve that turns back is timed by an arc length that rounding changes a lot)."""
     command = np.asarray(command_mm, dtype=float)
     n = len(command)
     if command.ndim != 2 or command.shape[1] < 2:
@@ -96,7 +98,7 @@ def fit_g5(command_mm: np.ndarray, tolerance_mm: float, min_samples: int = 1, ma
     if n < 2:
         empty = np.zeros((0, 2))
         return G5Blocks(np.zeros(0, np.int64), empty, empty, np.zeros(0, bool), np.zeros(0), np.zeros(0))
-    fitter = _Fitter(command, tolerance_mm, min_length_mm)
+    fitter = _Fitter(command, tolerance_mm, min_length_mm, step_mm)
     chunk = max(-(-(n - 1) // _CHUNKS), min(max_samples, _MIN_CHUNK))
     edges = np.append(np.arange(0, n - 1, chunk), n - 1)
     limits = (tolerance_mm, min_samples, max_samples)
@@ -267,7 +269,7 @@ def _ragged(counts):
 class _Fitter:
     """Fits and checks batches of candidate blocks [start, end] of one command."""
 
-    def __init__(self, command: np.ndarray, tolerance_mm: float, min_length_mm: float):
+    def __init__(self, command: np.ndarray, tolerance_mm: float, min_length_mm: float, step_mm: float = 0.0):
         """Points to fit and check at: the samples and the midpoints between them (half index
         2k: sample k; 2k + 1: halfway to sample k + 1), so that a curve cannot slip away from
         the command between samples. An XY midpoint may be met by cubic interpolation
@@ -291,6 +293,7 @@ class _Fitter:
         self.path = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(half[:, :2], axis=0).T))])
         self.tolerance_mm = tolerance_mm
         self.min_length_mm = min_length_mm
+        self.step_mm = step_mm
 
     def points(self, starts, ends, most):
         """Up to ``most`` + 1 points of each block, evenly spread on its half-sample grid, laid
@@ -394,6 +397,9 @@ class _Fitter:
         """
         nb = len(starts)
         p0, p3 = self.xy[:, starts], self.xy[:, ends]
+        if self.step_mm:  # as written: the offsets from the ends rounded
+            q = np.concatenate([p0 + np.rint((q[:2] - p0) / self.step_mm) * self.step_mm,
+                                p3 + np.rint((q[2:] - p3) / self.step_mm) * self.step_mm])
         d0, d1, d2 = q[:2] - p0, q[2:] - q[:2], p3 - q[2:]
         a, b, c = 3.0 * d0, 6.0 * (d1 - d0), 3.0 * (d0 - 2.0 * d1 + d2)  # B'(u) = a + u (b + u c), (2, nb)
         grid = np.arange(_GRID + 1) / _GRID

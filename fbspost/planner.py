@@ -64,7 +64,7 @@ import math
 import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -366,6 +366,21 @@ def junction_limits(unit_prev: np.ndarray, unit_next: np.ndarray, jd_prev, jd_ne
 
 # ---- the planner -----------------------------------------------------------------------------
 
+def axis_piece_limits(delta, length, extrude_only, feed, planner_v, accel_print, accel_travel, axis_v, axis_a):
+    """(unit, cruise limit, accel, feed clamped) of pieces by the per-axis rules (not Klipper's)."""
+    unit = delta / length[:, None]
+    unit[extrude_only, :_E] = 0.0  # |dE| / length is exactly 1 already
+    abs_unit = np.abs(unit)
+    with np.errstate(divide="ignore"):
+        axis_v_limit = np.where(abs_unit > 0, axis_v / abs_unit, np.inf).min(axis=1, initial=np.inf)
+        axis_a_limit = np.where(abs_unit > 0, axis_a / abs_unit, np.inf).min(axis=1, initial=np.inf)
+    max_v = np.minimum(np.minimum(feed, planner_v), axis_v_limit)
+    clamped = np.isfinite(feed) & (axis_v_limit < feed)  # as the controller does (a G0 means it)
+    extrudes = delta[:, _E] > 0
+    accel = np.where(extrudes | np.isnan(accel_travel), accel_print, accel_travel)
+    return unit, max_v, np.minimum(accel, axis_a_limit), clamped
+
+
 def fill_unknown(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Hold NaN entries at the last known value of their axis (before it: the first known value;
     never known: 0). Also returns which axes were never known."""
@@ -435,6 +450,7 @@ class PlanStream:
         # read, not yet settled
         self._eof = False
         self._pending_blocks: deque = deque()  # (block, is_move, is_stop, dwell before it in total)
+        self._read_mm = np.full(_NA, math.nan)  # where the last block read left the machine (NaN: unknown)
         self._first_pending_block = 0
         self._rows: list = []  # per block with waypoints: (block index, line, is motion, feed, state row, points)
         self._cum_dwell = 0.0  # dwells of every block read (and the settle margins)
@@ -539,23 +555,58 @@ class PlanStream:
                     feed = math.inf if block.feed_mm_s is None else float(block.feed_mm_s)
                     if not feed > 0:
                         raise ValueError(f"line {block.line_no}: feed must be > 0, got {block.feed_mm_s!r}")
-                    rows.append((j, block.line_no, True, feed, state_row, points))
-                self._moved = True
-                pending.append((block, True, False, cum_dwell))
-            elif kind is stop:
+                    rest_s = self._extrude_only_s(points, feed, state_row)
+                    if rest_s is None:
+                        rows.append((j, block.line_no, True, feed, state_row, points))
+                        self._read_mm = points[-1]
+                    else:
+                        block, kind = replace(block, kind=stop, dwell_s=rest_s), stop
+                if kind is move:
+                    self._moved = True
+                    pending.append((block, True, False, cum_dwell))
+            if kind is stop:
                 dwell = block.dwell_s
                 if not (dwell >= 0 and math.isfinite(dwell)):
                     raise ValueError(f"line {block.line_no}: dwell must be >= 0, got {dwell!r}")
                 rows.append((j, block.line_no, False, math.nan, state_row, np.reshape(block.position_mm, (1, _NA))))
+                self._read_mm = block.position_mm
                 cum_dwell = self._margin_after_run(cum_dwell)
                 pending.append((block, False, True, cum_dwell))
                 cum_dwell += dwell  # (a running sum: np.cumsum's bits)
-            else:
+            elif kind is not move:
                 pending.append((block, False, False, cum_dwell))
             j += 1
         self.n_blocks = j
         self._eof = j - j0 < self._batch
         self._cum_dwell = self._margin_after_run(cum_dwell) if self._eof else cum_dwell
+
+    def _extrude_only_s(self, points: np.ndarray, feed: float, state_row: list) -> float | None:
+        """How long a MOVE that only moves E (a retraction) takes, from rest to rest as the
+        controller plans it (None: it moves X, Y or Z, or a position is unknown). Such a move is a
+        rest of the other axes: copied as it is, like a dwell of that length, so that it stays one
+        extrude-only line and the compensated motion never mixes a creep of X Y with it."""
+        last = self._read_mm
+        if len(points) != 1 or not np.isfinite(last).all():
+            return None
+        delta = points - last
+        if (delta[0, :_E] != 0.0).any() or not (np.isfinite(delta[0, _E]) and delta[0, _E] != 0.0):
+            return None
+        length = np.abs(delta[:, _E])
+        eo, feed_ = np.ones(1, dtype=bool), np.array([feed])
+        accel_print, accel_travel, planner_v, to_decel = state_row[0], state_row[1], state_row[2], state_row[-1]
+        if self._klipper:
+            z_limits, e_limits, _ = self._rules
+            _, max_v, accel = klipper_rules.piece_limits(delta, length, eo, feed_, np.array([planner_v]),
+                                                         np.array([accel_print]), z_limits, e_limits)
+            smooth_v2 = min(2.0 * length[0] * to_decel, 2.0 * length[0] * accel[0])
+        else:
+            axis_v, axis_a = (np.array([state_row[4 + k * _NA:4 + (k + 1) * _NA]]) for k in (0, 1))
+            _, max_v, accel, _ = axis_piece_limits(delta, length, eo, feed_, planner_v, accel_print, accel_travel,
+                                                   axis_v, axis_a)
+            smooth_v2 = 2.0 * length[0] * accel[0]
+        peak_v2 = min(max_v[0] ** 2, 0.5 * smooth_v2)  # a trapezoid from rest to rest
+        peak, a = math.sqrt(peak_v2), float(accel[0])
+        return 2.0 * peak / a + (length[0] - peak_v2 / a) / peak
 
     def _margin_after_run(self, cum_dwell: float) -> float:
         """The running dwell sum with the settle margin of the run that a STOP (or the end) closes:
@@ -664,17 +715,8 @@ class PlanStream:
         """Per piece: cruise limit, accel, 2 a d, the same for the smoothing (none here), the
         junction limit before each (with the last piece made before) and whether its feed is
         clamped by the machine's limits."""
-        unit = delta / length[:, None]
-        unit[extrude_only, :_E] = 0.0  # |dE| / length is exactly 1 already
-        abs_unit = np.abs(unit)
-        with np.errstate(divide="ignore"):
-            axis_v_limit = np.where(abs_unit > 0, axis_v / abs_unit, np.inf).min(axis=1, initial=np.inf)
-            axis_a_limit = np.where(abs_unit > 0, axis_a / abs_unit, np.inf).min(axis=1, initial=np.inf)
-        max_v = np.minimum(np.minimum(feed, planner_v), axis_v_limit)
-        clamped = np.isfinite(feed) & (axis_v_limit < feed)  # as the controller does (a G0 means it)
-        extrudes = delta[:, _E] > 0
-        accel = np.where(extrudes | np.isnan(accel_travel), accel_print, accel_travel)
-        accel = np.minimum(accel, axis_a_limit)
+        unit, max_v, accel, clamped = axis_piece_limits(delta, length, extrude_only, feed, planner_v, accel_print,
+                                                        accel_travel, axis_v, axis_a)
         cruise_v2 = max_v * max_v
         delta_v2 = 2.0 * accel * length
         xyz_unit = unit[:, :3]

@@ -143,12 +143,14 @@ class Transparency:
             self.shaping_off = True
         return lines
 
-    def restore(self) -> list[str]:
-        """Lines that give the firmware back the program's settings (empty: it has them)."""
+    def restore(self, shaping: bool = True) -> list[str]:
+        """Lines that give the firmware back the program's settings (empty: it has them);
+        ``shaping`` False: its limits only (before a move of E alone, which shaping does not touch)."""
         lines = _program_limits(self.flavor, self.program) if self.limits_set else []
-        if self.shaping_off:
+        self.limits_set = False
+        if shaping and self.shaping_off:
             lines += _shaping_lines(self.flavor, self.program.shaper_frequency_hz)
-        self.limits_set = self.shaping_off = False
+            self.shaping_off = False
         return lines
 
 

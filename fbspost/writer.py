@@ -162,7 +162,7 @@ class Curves:
 
 
 def g5_blocks(command: np.ndarray, splits: np.ndarray, tolerance_mm: float,
-              min_samples: int) -> tuple[np.ndarray, Curves]:
+              min_samples: int, step_mm: float = 0.0) -> tuple[np.ndarray, Curves]:
     """Where a run's blocks end (sample indices into ``command``, the run's samples; 0 is its
     start) and which are curves, for the G5 format: every sample in ``splits`` (where copied
     lines run) ends a block.
@@ -176,7 +176,7 @@ def g5_blocks(command: np.ndarray, splits: np.ndarray, tolerance_mm: float,
     half the minimum long, and shorter than the first of them was). A curve whose control points
     lie on its chord's thirds is a straight line at constant speed: G1.
     """
-    fit = fit_g5(command[:, [0, 1, _E]], tolerance_mm, min_samples, _MAX_SAMPLES)  # (LinuxCNC: E stays 0)
+    fit = fit_g5(command[:, [0, 1, _E]], tolerance_mm, min_samples, _MAX_SAMPLES, step_mm=step_mm)  # (LinuxCNC: E stays 0)
     starts, ends = fit.starts, fit.ends
     z_steps = np.concatenate([[0], np.cumsum(np.diff(command[:, _Z]) != 0)])
     as_g1 = ((np.searchsorted(splits, starts, "right") < np.searchsorted(splits, ends, "left"))
@@ -248,6 +248,12 @@ class _Emitter:
         if changed.any():
             self.shift_mm[changed] = (command_mm - planned_mm)[changed]
             self.written[changed] = self.to_program(command_mm)[changed]
+
+    def still(self, targets_mm: np.ndarray) -> int:
+        """How many of the first ``targets_mm`` (machine mm) round to where the controller is."""
+        scale = 10.0 ** (np.array([_DECIMALS[a] for a in AXES]) + (1 if self.modal.inches else 0))
+        moves = (np.rint(self.to_program(targets_mm) * scale) != np.rint(self.written * scale)).any(axis=1)
+        return int(np.argmax(moves)) if moves.any() else len(moves)
 
     def _marlin_lengths(self, start: np.ndarray, ints: np.ndarray, scale: np.ndarray) -> np.ndarray:
         """The lengths Marlin times the blocks by (planner.cpp, _populate_block): of the whole
@@ -653,7 +659,9 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
                         ahead.append(_copied_sample(line_time_s, is_stop, fs, ahead[-1]))
                 copied = np.unique(ahead)
                 splits = copied[np.searchsorted(copied, first, "right"):np.searchsorted(copied, last, "left")] - first
-                run_ends, curves = g5_blocks(samples.rows(first, last + 1), splits, options.tolerance_mm, min_samples)
+                step_mm = 10.0 ** -(_DECIMALS["X"] + emitter.modal.inches) * emitter.unit_mm  # I J P Q as written
+                run_ends, curves = g5_blocks(samples.rows(first, last + 1), splits, options.tolerance_mm, min_samples,
+                                             step_mm)
                 run_g5 = (run_ends + first, curves)
             run_ends, run_curves = run_g5  # every copied line's sample among them
             rows = slice(*np.searchsorted(run_ends, np.rint(np.array([start_s, stop_s]) * fs), "right"))
@@ -721,6 +729,14 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
                     if ends[-1] == t_end_s and not soft:
                         exact = np.where(np.isnan(end_exact_mm), samples.at(ends[-1:], fs, planned=True)[0], end_exact_mm)
                         targets[-1, follows_plan] = exact[follows_plan]
+                    if run_start:  # blocks that round to no motion at a run's start: a dwell, not a slow first block
+                        still = emitter.still(targets[:-1])
+                        dwell_ms = round((ends[still - 1] - from_s + emitter.residue_s) * 1e3) if still else 0
+                        if dwell_ms > 0:
+                            emit(dwell_line(options.flavor, dwell_ms))
+                            emitter.residue_s += ends[still - 1] - from_s - dwell_ms / 1e3
+                            from_s, ends, targets = ends[still - 1], ends[still:], targets[still:]
+                            curves = None if curves is None else curves[still:]
                     text, count = emitter.blocks(targets, np.diff(np.append(from_s, ends)), ends, curves,
                                                  exact_last=ends[-1] >= stop_s)
                     emit_text(text, count)
@@ -768,9 +784,11 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
             break
         copied_sample = _copied_sample(line_time_s, is_stop, fs, copied_sample)
         t = copied_sample / fs
-        motion_until(t, block.position_mm)
+        motion_until(t, previous_mm)  # the motion before the line ends where the program was before it
         if settings is not None and is_stop and _may_move(previous_mm, block.position_mm):
             emit(*settings.restore())  # a move fbspost copies runs under the program's own settings
+        elif settings is not None and is_stop and previous_mm[_E] != block.position_mm[_E]:
+            emit(*settings.restore(shaping=False))  # a retraction, likewise
         reached = samples.at(np.array([t]), fs, planned=True)[0]  # where the program is: the plan where the line does not say
         reached = np.where(np.isnan(block.position_mm), reached, block.position_mm)
         commanded = samples.at(np.array([t]), fs)[0]

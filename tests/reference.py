@@ -2,7 +2,9 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 
+import math
 import numpy as np
 from scipy import linalg, signal
 
@@ -113,14 +115,16 @@ def arc_lengths(p0, p1, p2, p3):
     return grid, np.concatenate([[0.0], np.cumsum(chords)])
 
 
-def execute(path, sample_rate_hz: float = 10000.0, dwell_p_seconds: bool = False) -> Executed:
+def execute(path, sample_rate_hz: float = 10000.0, dwell_p_seconds: bool = False,
+            extrude_only_accel_mm_s2: float = math.inf) -> Executed:
     """G0/G1 with X Y Z E F, G2/G3 with I J or R in G17 (timed by their helical length; their
     end points only), G5 with I J P Q X Y Z E F (timed by the curve's XY length; Z and E
     linear in its parameter, as Marlin moves them; only in G17), G4 (P milliseconds, or seconds
     with ``dwell_p_seconds`` as in LinuxCNC; S seconds), G90/G91, M82/M83, G92, G20/G21,
     G17/G18/G19, G28 (the homed axes at 0); other lines are recorded as non-motion. ``path`` gets the points inside G5
     blocks at every multiple of 1 / ``sample_rate_hz``. The first position of an axis is where it
-    is first set (a move from an unknown place is instant)."""
+    is first set (a move from an unknown place is instant). A move of E alone runs as the
+    firmware plans it, from rest to rest at ``extrude_only_accel_mm_s2``."""
     run = Executed()
     pos = {a: None for a in "XYZE"}
     pos["E"] = 0.0
@@ -168,7 +172,11 @@ def execute(path, sample_rate_hz: float = 10000.0, dwell_p_seconds: bool = False
                 d_e = abs(target["E"] - pos["E"])
                 length = d_xyz if d_xyz > 0 else d_e
                 if not unknown and length > 0:
-                    t += length / feed
+                    ramp_mm = feed * feed / extrude_only_accel_mm_s2  # accelerating and braking at that accel
+                    if d_xyz > 0 or length >= ramp_mm:
+                        t += length / feed + (0.0 if d_xyz > 0 else feed / extrude_only_accel_mm_s2)
+                    else:
+                        t += 2.0 * math.sqrt(length / extrude_only_accel_mm_s2)
             run.extruded += target["E"] - pos["E"]
             pos = target
             if all(pos[a] is not None for a in "XY"):

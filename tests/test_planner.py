@@ -153,7 +153,7 @@ def profile_limits(profile):
 
 
 def random_program(rng, n_moves, profile=BED):
-    """A random polyline with corners, straight continuations, extrude-only moves, rapids,
+    """A random polyline with corners, straight continuations, extrude-only pieces, rapids,
     multi-piece blocks and planner-limit changes; returns the program and the reference moves."""
     prog = Program()
     axis_v, axis_a = profile_limits(profile)
@@ -174,7 +174,7 @@ def random_program(rng, n_moves, profile=BED):
         pos = prog.pos.copy()
         for _ in range(n_pieces):
             v = rng.random()
-            if v < 0.08:  # extrude-only: retract or prime
+            if v < 0.08 and n_pieces > 1:  # extrude-only within a block (a block of E alone is a rest)
                 step = np.array([0, 0, 0, rng.uniform(-3, 3)])
             else:
                 if v > 0.3:  # a new direction; otherwise straight on
@@ -349,7 +349,9 @@ def test_travel_and_print_acceleration():
     plan = plan_blocks(prog.blocks, BED)
     assert plan.line_time_s[printing] == pytest.approx(100 / 100 + 100 / 1000, rel=1e-12)
     assert plan.line_time_s[travel] - plan.move_start_s[travel] == pytest.approx(1 + 100 / 5000, rel=1e-12)
-    assert plan.line_time_s[retract] - plan.move_start_s[retract] == pytest.approx(2 / 40 + 40 / 5000, rel=1e-12)
+    # the retraction is a rest of X Y Z for its trapezoid's time, as a dwell after its line
+    assert plan.is_stop[retract] and plan.line_time_s[retract] == plan.line_time_s[travel]
+    assert plan.duration_s - plan.line_time_s[retract] == pytest.approx(2 / 40 + 40 / 5000, rel=1e-12)
 
 
 def test_limit_change_mid_program_applies_to_later_moves():
@@ -370,26 +372,29 @@ def test_limit_change_mid_program_applies_to_later_moves():
 # ---- extrude-only moves -----------------------------------------------------------------------
 
 def test_extrude_only_retract():
+    """A move of E alone is a rest of X Y Z for its trapezoid's time (copied as it is): a STOP
+    with that dwell, the position jumping there."""
     prog = Program((10, 10, 0.2, 5.0))
     i = prog.move((10, 10, 0.2, 0.0), feed=40.0)
     plan = plan_blocks(prog.blocks, BED)
     assert plan.duration_s == pytest.approx(5 / 40 + 40 / 3000, rel=1e-12)
-    e = [5.0 - rest_to_rest_distance(t, 5, 40, 3000) for t in sample_times(plan)]
-    np.testing.assert_allclose(plan.positions_mm[:, 3], e, rtol=0, atol=1e-9)
-    assert np.all(plan.positions_mm[:, :3] == [10, 10, 0.2])
-    assert plan.line_time_s[i] == plan.duration_s
+    assert plan.is_stop[i] and plan.line_time_s[i] == 0.0 and plan.runs == []
+    assert np.all(plan.positions_mm == [10, 10, 0.2, 0.0])
 
 
-def test_extrude_only_limited_by_e_axis_and_stops_at_its_junctions():
+def test_extrude_only_limited_by_e_axis_and_splits_runs():
     prog = Program()
     prog.move((20, 0, 0, 0), feed=100.0)
-    prog.move((20, 0, 0, 10), feed=200.0)  # E limit 120 mm/s
+    retract = prog.move((20, 0, 0, 10), feed=200.0)  # E limit 120 mm/s
     prog.move((40, 0, 0, 10), feed=100.0)  # collinear with the first move, but after an E-only move
     plan = plan_blocks(prog.blocks, BED)
-    assert plan.pieces.peak_v_mm_s[1] == pytest.approx(120.0, rel=1e-12)
     np.testing.assert_array_equal(plan.pieces.start_v_mm_s, 0.0)
     np.testing.assert_array_equal(plan.pieces.end_v_mm_s, 0.0)
-    assert plan.duration_s == pytest.approx(2 * rest_to_rest(20, 100, 3000) + rest_to_rest(10, 120, 3000), rel=1e-12)
+    t1, fs = rest_to_rest(20, 100, 3000), BED.sample_rate_hz
+    last = math.ceil(t1 * fs)  # the rest is timed from the first run's last sample ...
+    first = math.ceil((last / fs + rest_to_rest(10, 120, 3000)) * fs)  # ... the next run starts on a sample
+    assert plan.is_stop[retract] and plan.runs[1][0] == first
+    assert plan.duration_s == pytest.approx(first / fs + t1, rel=1e-12)
 
 
 # ---- stops, dwells, passthrough lines -------------------------------------------------------------

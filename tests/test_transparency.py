@@ -94,8 +94,8 @@ def settings_at_lines(path) -> list[tuple[str, dict]]:
 
 
 def test_copied_moves_run_under_the_programs_own_settings(tmp_path):
-    """Homing mid-program, a macro and a move from the unknown place after it, an M204 mid-motion:
-    every copied move runs with what the program set (or Klipper's config where it set nothing),
+    """Homing mid-program, a retraction, a macro and a move from the unknown place after it, an M204
+    mid-motion: every copied move runs with what the program set (or Klipper's config where it set nothing),
     every written block with the transparent settings, and the program ends with its own."""
     source = tmp_path / "in.gcode"
     source.write_text("\n".join([
@@ -107,7 +107,7 @@ def test_copied_moves_run_under_the_programs_own_settings(tmp_path):
     compensate_file(source, target, PRINTER, CompensateOptions(flavor="klipper"))
     transparent = {"ACCEL": 1e7, "MINIMUM_CRUISE_RATIO": 0.0, "SQUARE_CORNER_VELOCITY": 1e4}
     # (the moves after a G28 start from the home position: planned and written, not copied)
-    own = {"G28": 3000.0, "G28 X": 2000.0, "PARK_MACRO": 2000.0, "G1 X20 Y20 F6000": 2000.0}
+    own = {"G28": 3000.0, "G1 E-0.8 F2400": 2000.0, "G28 X": 2000.0, "PARK_MACRO": 2000.0, "G1 X20 Y20 F6000": 2000.0}
     lines = settings_at_lines(target)
     copied = {line: state for line, state in lines if line in own}
     assert len(copied) == len(own)

@@ -93,7 +93,8 @@ def outputs(tmp_path, text: str, profile, flavor: str):
         options = CompensateOptions(flavor=flavor, output_format=output_format,
                                     min_segment_time_s=1 / profile.sample_rate_hz)
         compensate_file(source, target, profile, options)
-        runs.append(execute(target, profile.sample_rate_hz))
+        runs.append(execute(target, profile.sample_rate_hz, dwell_p_seconds=flavor == "linuxcnc",
+                            extrude_only_accel_mm_s2=profile.planner_acceleration_mm_s2))
     return execute(source), *runs, (tmp_path / "g5.gcode").read_text().splitlines()
 
 
