@@ -431,6 +431,8 @@ class PlanStream:
         self._keep = keep
         self._klipper = firmware == "klipper"
         self._rules = klipper_rules.constants(profile) if self._klipper else None
+        # the axes a compensated command moves: a move of the others alone is a rest of these
+        self._compensated = np.array([name in profile.axes and bool(profile.axes[name].modes) for name in AXES])
         self._limits = _LimitState(profile, self._klipper)
         self._state_row = self._limits.row()
         # settled, for the consumers
@@ -555,7 +557,7 @@ class PlanStream:
                     feed = math.inf if block.feed_mm_s is None else float(block.feed_mm_s)
                     if not feed > 0:
                         raise ValueError(f"line {block.line_no}: feed must be > 0, got {block.feed_mm_s!r}")
-                    rest_s = self._extrude_only_s(points, feed, state_row)
+                    rest_s = self._uncompensated_s(points, feed, state_row)
                     if rest_s is None:
                         rows.append((j, block.line_no, True, feed, state_row, points))
                         self._read_mm = points[-1]
@@ -580,19 +582,21 @@ class PlanStream:
         self._eof = j - j0 < self._batch
         self._cum_dwell = self._margin_after_run(cum_dwell) if self._eof else cum_dwell
 
-    def _extrude_only_s(self, points: np.ndarray, feed: float, state_row: list) -> float | None:
-        """How long a MOVE that only moves E (a retraction) takes, from rest to rest as the
-        controller plans it (None: it moves X, Y or Z, or a position is unknown). Such a move is a
-        rest of the other axes: copied as it is, like a dwell of that length, so that it stays one
-        extrude-only line and the compensated motion never mixes a creep of X Y with it."""
+    def _uncompensated_s(self, points: np.ndarray, feed: float, state_row: list) -> float | None:
+        """How long a MOVE that moves no compensated axis (a retraction, a Z hop, a layer change)
+        takes, from rest to rest as the controller plans it (None: it moves a compensated axis,
+        or a position is unknown). Such a move is a rest of the compensated axes: copied as it is,
+        like a dwell of that length, so that the compensated motion never mixes a creep of X Y
+        with it, and the controller runs it as the program wrote it."""
         last = self._read_mm
         if len(points) != 1 or not np.isfinite(last).all():
             return None
         delta = points - last
-        if (delta[0, :_E] != 0.0).any() or not (np.isfinite(delta[0, _E]) and delta[0, _E] != 0.0):
+        if (delta[0, self._compensated] != 0.0).any() or not (np.isfinite(delta).all() and (delta != 0.0).any()):
             return None
-        length = np.abs(delta[:, _E])
-        eo, feed_ = np.ones(1, dtype=bool), np.array([feed])
+        xyz = float(np.sqrt(delta[0, :_E] @ delta[0, :_E]))
+        eo = np.array([xyz < EXTRUDE_ONLY_MM])
+        length, feed_ = np.array([xyz if xyz >= EXTRUDE_ONLY_MM else abs(delta[0, _E])]), np.array([feed])
         accel_print, accel_travel, planner_v, to_decel = state_row[0], state_row[1], state_row[2], state_row[-1]
         if self._klipper:
             z_limits, e_limits, _ = self._rules

@@ -785,10 +785,9 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
         copied_sample = _copied_sample(line_time_s, is_stop, fs, copied_sample)
         t = copied_sample / fs
         motion_until(t, previous_mm)  # the motion before the line ends where the program was before it
-        if settings is not None and is_stop and _may_move(previous_mm, block.position_mm):
-            emit(*settings.restore())  # a move fbspost copies runs under the program's own settings
-        elif settings is not None and is_stop and previous_mm[_E] != block.position_mm[_E]:
-            emit(*settings.restore(shaping=False))  # a retraction, likewise
+        if settings is not None and is_stop and _may_move(previous_mm, block.position_mm, slice(0, 4)):
+            # a move fbspost copies runs under the program's own settings (shaping: where it moves X or Y)
+            emit(*settings.restore(shaping=_may_move(previous_mm, block.position_mm, slice(0, 2))))
         reached = samples.at(np.array([t]), fs, planned=True)[0]  # where the program is: the plan where the line does not say
         reached = np.where(np.isnan(block.position_mm), reached, block.position_mm)
         commanded = samples.at(np.array([t]), fs)[0]
@@ -835,10 +834,10 @@ def _copied_sample(line_time_s: float, is_stop: bool, fs: float, previous: int) 
     return max(math.ceil(line_time_s * fs) if is_stop else round(line_time_s * fs), previous)
 
 
-def _may_move(before_mm: np.ndarray, after_mm: np.ndarray) -> bool:
+def _may_move(before_mm: np.ndarray, after_mm: np.ndarray, axes: slice) -> bool:
     """Whether a line at rest that took the machine from ``before_mm`` to ``after_mm`` (NaN:
-    unknown) may have moved X, Y or Z: a copied move, homing, a macro."""
-    before, after = before_mm[:3], after_mm[:3]
+    unknown) may have moved one of ``axes`` (of X Y Z E): a copied move, homing, a macro."""
+    before, after = before_mm[axes], after_mm[axes]
     return bool(np.any(np.isnan(before) | np.isnan(after) | (before != after)))
 
 

@@ -18,9 +18,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fbspost.gcode import detect_flavor, read_gcode
+from fbspost.gcode import Kind, detect_flavor, read_gcode
 from fbspost.pipeline import CompensateOptions, compensate_file
-from fbspost.planner import plan_blocks
+from fbspost.planner import PlanStream, plan_blocks
 from fbspost.profile import load_profile
 from klippy_planner import KlippyPlanner, klippy_or_skip
 from reference import unbudgeted
@@ -52,9 +52,31 @@ def with_smoothing(profile, smoothing: str):
 
 
 def assert_same_motion(blocks, profile, klippy) -> None:
-    """Every piece fbspost plans is the move klippy plans, to floating-point precision."""
-    moves = KlippyPlanner(profile, klippy).run(blocks)
+    """Every piece fbspost plans is the move klippy plans, to floating-point precision; every line
+    that moves no compensated axis (E or Z alone), a rest that fbspost copies, lasts as long as
+    klippy's move of it. fbspost plans those from rest to rest, as its output runs them (its own
+    blocks around them at rest): klippy is given a stop before and after each (where its
+    neighbours would let it keep some speed, a Z move after a travel, at most a few ms apart)."""
+    planned = [b for b, _, _ in PlanStream(blocks, profile, firmware="klipper").blocks()]
+    rests = {i for i, (b, given) in enumerate(zip(planned, blocks)) if b.kind is not given.kind}
+    rests_s = [planned[i].dwell_s for i in sorted(rests)]
+    stopped = []
+    for i, block in enumerate(blocks):
+        if i in rests:
+            halt = dict(kind=Kind.STOP, dwell_s=0.0, points_mm=None, limits=None)
+            stopped += [dataclasses.replace(blocks[i - 1], **halt), block, dataclasses.replace(block, **halt)]
+        else:
+            stopped.append(block)
+    moves = KlippyPlanner(profile, klippy).run(stopped)
     pieces = plan_blocks(blocks, profile, firmware="klipper").pieces
+    paired, alone = [], []  # klippy's moves that are fbspost's pieces, in order; the rest are rests
+    for m in moves:
+        j = len(paired)
+        same = j < pieces.end_mm.shape[0] and np.allclose(m.end_pos[:4], pieces.end_mm[j], rtol=0, atol=1e-9)
+        (paired if same else alone).append(m)
+    assert all(m.start_pos[:2] == m.end_pos[:2] for m in alone)  # (the profiles compensate X and Y)
+    np.testing.assert_allclose(rests_s, [m.accel_t + m.cruise_t + m.decel_t for m in alone], rtol=1e-12)
+    moves = paired
     assert len(moves) == pieces.length_mm.size
     assert np.array_equal([not m.is_kinematic for m in moves], pieces.extrude_only)
     column = {name: np.array([getattr(m, name) for m in moves]) for name in

@@ -49,9 +49,6 @@ def test_butterfly_runs_as_written(tmp_path, klippy):
     assert np.linalg.norm(model.positions_mm[:n, :2] - command[:n, :2], axis=1).max() <= TOLERANCE_MM + 2e-3
 
 
-@pytest.mark.xfail(strict=True, reason="issue 14, the lead's part: retractions are still written as dense blocks with "
-                   "XY creeping, each of which Klipper runs as a retraction (extrude-only limits, the extruder's "
-                   "corner velocity): +16% on the first 8000 lines")
 def test_sliced_print_runs_as_written(tmp_path, klippy):
     """A sliced print's first 1000 lines on the two-mode printer, without a line budget (Klipper
     takes its lines over USB)."""
