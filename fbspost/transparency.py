@@ -10,9 +10,11 @@ Why these values. The dense blocks already carry the command's speed changes: bl
 the speed steps by at most a_cmd / fs (10 mm/s at 10 m/s^2 and 1 kHz). The firmware ramps each
 step at its acceleration A, inside the block, and so arrives (dv)^2 / (2 A v) late (v the higher
 of the two speeds; at most dv / (2 A)) and at most (dv)^2 / (2 A) behind within the block.
-Klipper (ACCEL = 1e7 mm/s^2): at most 0.5 us and 5 nm per junction, typically 0.05 us (dv 10,
-v 100); the writer makes that time up in the next block (on the butterfly, Klipper's own
-planner: 0.92 -> 0.39 um RMS from the command). Marlin and RepRapFirmware keep block accelerations in 32-bit steps/s^2 (times
+Klipper (ACCEL = 1e8 mm/s^2): at most 0.05 us and 0.5 nm per junction, typically 0.005 us (dv
+10, v 100); the writer makes that time up in the next block. 1e7 was not enough: the centripetal
+limit below held a command that wiggles block to block at 130 mm/s travel back by 3-5 um, and
+the ramps' time, made up only approximately, drifted 0.6 us/s (klippy's own planner on a sliced
+print's first 1000 lines: 6.6 um largest distance from the command at 1e7, 0.7 um at 1e8). Marlin and RepRapFirmware keep block accelerations in 32-bit steps/s^2 (times
 2^24 / timer rate in Marlin): 1e6 mm/s^2 fits at up to 250 steps/mm, at most 5 us and 50 nm per
 junction. Junctions: Klipper's limit R * scv^2 (sqrt2 - 1) (R = sin(t/2) / (1 - sin(t/2)), t the
 angle between the blocks) does not depend on ACCEL; SQUARE_CORNER_VELOCITY 10000 mm/s lets every
@@ -31,7 +33,7 @@ from dataclasses import dataclass, field, replace
 from .gcode import Block, Modal, PlannerLimits
 from .profile import MachineProfile
 
-KLIPPER_ACCEL_MM_S2 = 1e7
+KLIPPER_ACCEL_MM_S2 = 1e8
 KLIPPER_SCV_MM_S = 1e4
 STEPPED_ACCEL_MM_S2 = 1e6  # Marlin, RepRapFirmware
 MARLIN_JUNCTION_DEVIATION_MM = 0.3

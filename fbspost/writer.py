@@ -479,9 +479,15 @@ def mode_lines(flavor: str, have: Modal, want: Modal) -> list[str]:
     return lines
 
 
-def dwell_line(flavor: str, ms: int) -> str:
-    """The flavor's G4 for ``ms`` milliseconds."""
-    return f"G4 P{ms / 1e3:g}" if flavor == "linuxcnc" else f"G4 P{ms}"
+def dwell_line(flavor: str, dwell_s: float) -> tuple[str, float]:
+    """The flavor's G4 for about ``dwell_s`` seconds, and how long it dwells: Klipper and LinuxCNC
+    read a fraction (to the microsecond here), Marlin and RepRapFirmware whole milliseconds."""
+    if flavor in ("klipper", "linuxcnc"):
+        us = round(dwell_s * 1e6)
+        value = us / 1e6 if flavor == "linuxcnc" else us / 1e3  # LinuxCNC: P in seconds
+        return f"G4 P{value:.6f}".rstrip("0").rstrip("."), us / 1e6
+    ms = round(dwell_s * 1e3)
+    return f"G4 P{ms}", ms / 1e3
 
 
 class SampleWindow:
@@ -731,10 +737,11 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
                         targets[-1, follows_plan] = exact[follows_plan]
                     if run_start:  # blocks that round to no motion at a run's start: a dwell, not a slow first block
                         still = emitter.still(targets[:-1])
-                        dwell_ms = round((ends[still - 1] - from_s + emitter.residue_s) * 1e3) if still else 0
-                        if dwell_ms > 0:
-                            emit(dwell_line(options.flavor, dwell_ms))
-                            emitter.residue_s += ends[still - 1] - from_s - dwell_ms / 1e3
+                        line, dwell_s = dwell_line(options.flavor, ends[still - 1] - from_s + emitter.residue_s) \
+                            if still else ("", 0.0)
+                        if dwell_s > 0:
+                            emit(line)
+                            emitter.residue_s += ends[still - 1] - from_s - dwell_s
                             from_s, ends, targets = ends[still - 1], ends[still:], targets[still:]
                             curves = None if curves is None else curves[still:]
                     text, count = emitter.blocks(targets, np.diff(np.append(from_s, ends)), ends, curves,
@@ -753,10 +760,10 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
             # A run's end where the command no longer moves (a settle margin unused) is a dwell:
             # its time must not slow the next run's first block, nor be lost (the lines after it
             # run at the plan's times).
-            dwell_ms = round(emitter.residue_s * 1e3)
-            if dwell_ms > 0:
-                emit(dwell_line(options.flavor, dwell_ms))
-                emitter.residue_s -= dwell_ms / 1e3
+            line, dwell_s = dwell_line(options.flavor, emitter.residue_s)
+            if dwell_s > 0:
+                emit(line)
+                emitter.residue_s -= dwell_s
             if settings is not None and not runs_from(run_index):
                 emit(*settings.restore())  # the program's own, as it left them
 
@@ -788,6 +795,8 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
         if settings is not None and is_stop and _may_move(previous_mm, block.position_mm, slice(0, 4)):
             # a move fbspost copies runs under the program's own settings (shaping: where it moves X or Y)
             emit(*settings.restore(shaping=_may_move(previous_mm, block.position_mm, slice(0, 2))))
+            if _may_move(previous_mm, block.position_mm, slice(0, 3)):
+                emit(dwell_line(options.flavor, 0.0)[0])  # from rest, as planned: the last block's speed would carry into it
         reached = samples.at(np.array([t]), fs, planned=True)[0]  # where the program is: the plan where the line does not say
         reached = np.where(np.isnan(block.position_mm), reached, block.position_mm)
         commanded = samples.at(np.array([t]), fs)[0]

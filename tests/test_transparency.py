@@ -17,7 +17,7 @@ from fbspost.writer import _Emitter
 PRINTER = load_profile("printer-two-mode")
 
 TRANSPARENT = {
-    "klipper": ["SET_VELOCITY_LIMIT ACCEL=10000000 ACCEL_TO_DECEL=10000000 MINIMUM_CRUISE_RATIO=0 "
+    "klipper": ["SET_VELOCITY_LIMIT ACCEL=100000000 ACCEL_TO_DECEL=100000000 MINIMUM_CRUISE_RATIO=0 "
                 "SQUARE_CORNER_VELOCITY=10000"],
     "marlin": ["M201 X1000000 Y1000000", "M204 P1000000 T1000000", "M205 B0 J0.3 X1000 Y1000"],
     "reprap": ["M201 X1000000 Y1000000", "M204 P1000000 T1000000", "M566 X60000 Y60000"],
@@ -105,7 +105,7 @@ def test_copied_moves_run_under_the_programs_own_settings(tmp_path):
         "G1 X10 Y10 E1", "M107", ""]))
     target = tmp_path / "out.gcode"
     compensate_file(source, target, PRINTER, CompensateOptions(flavor="klipper"))
-    transparent = {"ACCEL": 1e7, "MINIMUM_CRUISE_RATIO": 0.0, "SQUARE_CORNER_VELOCITY": 1e4}
+    transparent = {"ACCEL": 1e8, "MINIMUM_CRUISE_RATIO": 0.0, "SQUARE_CORNER_VELOCITY": 1e4}
     # (the moves after a G28 start from the home position: planned and written, not copied)
     own = {"G28": 3000.0, "G1 E-0.8 F2400": 2000.0, "G28 X": 2000.0, "PARK_MACRO": 2000.0, "G1 X20 Y20 F6000": 2000.0}
     lines = settings_at_lines(target)
