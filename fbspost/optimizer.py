@@ -76,7 +76,11 @@ class FBSSettings:
 
         Knots: 6 per period of the highest mode, so the spline can shape the command up to about
         three times the band it must cancel (12 per period, half the spacing, leave under 3% less
-        residual error on the patent butterfly for twice the work). Overlap: the optimal command
+        residual error on the patent butterfly for twice the work); at least 2 samples apart: with
+        a knot on every sample the command wiggles at half the sample rate (two modes at 52 and
+        96 Hz sampled at 1 kHz), which the firmware runs as a speed step at every block (a sliced
+        print's first 8000 lines through klippy's planner: 9.5 times lower RMS contour error than
+        the original with a knot every sample, 69 times with one every 2). Overlap: the optimal command
         depends on what is coming only through the inverse's anticausal part, the right-half-plane
         zeros of G; look ahead until the slowest of them has decayed by 1e-6 (at least one period
         of the lowest mode, and m + 2 spans). Final window: the end conditions reach back through
@@ -87,7 +91,7 @@ class FBSSettings:
         period_s = dynamics.sample_period_s
         f_max = max(m.frequency_hz for m in dynamics.modes)
         f_min = min(m.frequency_hz for m in dynamics.modes)
-        k = self.knot_spacing_samples or max(1, int(1.0 / (6.0 * f_max * period_s)))
+        k = self.knot_spacing_samples or max(2, int(1.0 / (6.0 * f_max * period_s)))
         span_s = k * period_s
         zeros = dynamics.zeros()
         rhp = zeros.real[zeros.real > 0]

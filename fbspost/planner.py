@@ -29,7 +29,15 @@ switched off and the profile's per-axis limits, as follows:
   passes over squared junction speeds are vectorized min-plus scans; each piece is then a
   trapezoid peaking at min(cruise^2, (v0^2 + v1^2 + 2 a d) / 2).
 
-STOP blocks are rests: the motion decelerates to 0 at them and a G4 waits dwell_s there. A STOP
+STOP blocks are rests: the motion decelerates to 0 at them and a G4 waits dwell_s there. So is
+a MOVE of one piece that moves no compensated axis (an axis with modes) from a known position: a
+retraction, a Z hop, a layer change. It becomes a STOP whose dwell is its own trapezoid from rest
+to rest under the limits in force (as the controller plans it: Klipper's rules included), and the
+output copies it as it is: one line, the compensated axes exactly still, never a creep of X Y
+mixed with a large E change (which Klipper would run at its extrude-only limits). The output
+starts and ends its neighbours at rest; where the original's neighbours let such a move keep
+some speed (a Z move after a travel), the controller runs the original a few ms faster than
+planned here. A STOP
 that moved the machine without pieces (G28, a move from an unknown position) takes no time here:
 the position jumps to the STOP's position, and the next run starts from there. Every run of
 motion starts at rest at one sample and ends at rest at another (its end rounded up), and runs do

@@ -217,3 +217,29 @@ def test_feed_is_written_only_when_it_changes_also_across_calls():
     targets[:, 0] = [6, 7, 9, 11, 13]  # 2 mm in 0.1 s from the third block on: F1200
     second, count = emitter.blocks(targets, np.full(5, 0.1))
     assert second == b"G1 X6\nG1 X7\nG1 X9 F1200\nG1 X11\nG1 X13\n"
+
+
+def test_retraction_and_z_hop_are_copied_lines_with_xy_still(tmp_path):
+    """A move of E alone and a Z hop (axes without modes) are copied as they are, one line each,
+    between runs that end and start at rest: no written block mixes a creep of X Y with them
+    (Klipper would run such a block at its extrude-only limits)."""
+    lines = square(e_relative=False)
+    hop = lines.index("M106 S128") + 2  # after the first retraction
+    lines[hop:hop] = ["G1 Z1.2 F600", "G1 X12 Y12 F6000", "G1 Z0.2 F600"]
+    source = tmp_path / "in.gcode"
+    source.write_text("\n".join(lines) + "\n")
+    target = tmp_path / "out.gcode"
+    compensate_file(source, target, PRINTER)
+    out = target.read_text().splitlines()
+    for copied in ("G1 E2.40000 F2400", "G1 Z1.2 F600", "G1 Z0.2 F600"):
+        assert out.count(copied) == lines.count(copied) > 0, copied
+    x, y, e = None, None, None
+    for line in out:  # absolute X Y E: each written block's extrusion per mm of X Y
+        if line.startswith("G92"):
+            e = 0.0
+        words = dict(re.findall(r"([XYE])(-?[\d.]+)", line)) if line.startswith("G1") else {}
+        x1, y1, e1 = (float(words[k]) if k in words else v for k, v in (("X", x), ("Y", y), ("E", e)))
+        if e is not None and e1 != e and (x1, y1) != (x, y):
+            # the square's 0.04 per mm, a few times over where the command runs ahead of or behind the plan
+            assert abs(e1 - e) <= 5 * 0.04 * math.hypot(x1 - x, y1 - y) + 1e-5, line
+        x, y, e = x1, y1, e1
