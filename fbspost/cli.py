@@ -342,7 +342,10 @@ def _summary(source: Path, target: Path, profile: MachineProfile, report: Report
                  f"RMS {report.rms_deviation_mm * 1e3:.3g} um), "
                  f"{report.loosened_s:.3f} s of them beyond the tolerance")
     for name, axis in report.axes.items():
-        lines.append(f"axis {name}: predicted RMS error {axis.rms_error_before_um:.4g} -> {axis.rms_error_after_um:.4g} um, "
+        # (after: the written blocks as the firmware runs them, straight between their ends)
+        command = "" if axis.rms_error_command_um is None else f" (the command itself: {axis.rms_error_command_um:.4g} um)"
+        lines.append(f"axis {name}: predicted RMS error {axis.rms_error_before_um:.4g} -> {axis.rms_error_after_um:.4g} um "
+                     f"as the firmware runs the output{command}, "
                      f"max {axis.max_error_before_um:.4g} -> {axis.max_error_after_um:.4g} um")
     lines.extend(f"warning: {w}" for w in report.warnings)
     return "\n".join(lines)

@@ -9,6 +9,7 @@ with the predicted tracking error of every compensated axis before and after, pe
 from __future__ import annotations
 
 import itertools
+import math
 import re
 import tempfile
 import time
@@ -57,7 +58,9 @@ class CompensateOptions:
 @dataclass
 class AxisReport:
     """Modelled tracking error (desired minus modelled actual position) of one axis, over every
-    run of motion and the settling after it, for the planned and for the compensated command."""
+    run of motion and the settling after it, for the planned original and (after) for the written
+    program as the firmware runs it (``ExecutedError``; for the command itself where the output
+    has no such axis: a Z with modes)."""
 
     rms_error_before_um: float
     max_error_before_um: float
@@ -65,6 +68,8 @@ class AxisReport:
     max_error_after_um: float
     windows: int = 0  # the optimizer's windows
     qp_windows: int = 0  # those whose optimum without the limits broke one (the QP solved)
+    rms_error_command_um: float | None = None  # the compensated command's own (a prediction; after: the written blocks)
+    max_error_command_um: float | None = None
 
     @classmethod
     def from_errors(cls, before_mm: np.ndarray, after_mm: np.ndarray) -> AxisReport:
@@ -176,10 +181,11 @@ def _compensate(read_path, input_path, output_path, profile, options, flavor, pr
         firmware=FirmwareSettings.from_profile(profile), max_line_rate_hz=profile.firmware.max_line_rate_hz,
         **_marlin_steps(profile, flavor))
     stats = []
+    executed = ExecutedError(compensators, plan.runs)
     clock = time.perf_counter()
     try:
         atomic_write(output_path, lambda f: stats.append(write_program(
-            plan, SampleWindow(chunks, plan, follows_plan), write_options, f)))
+            plan, SampleWindow(chunks, plan, follows_plan), write_options, f, executed)))
     finally:
         if lanes:
             lanes.shutdown()
@@ -195,7 +201,9 @@ def _compensate(read_path, input_path, output_path, profile, options, flavor, pr
                     tolerance_used_mm=written.max_deviation_mm, tolerance_used_at_s=written.max_deviation_s,
                     loosened_s=written.loosened_s, rms_deviation_mm=written.rms_deviation_mm)
     for c, (before, after) in errors.items():
-        if before.count:
+        if before.count and c in executed.stats:
+            report.axes[AXES[c]] = executed.report(c, *tally.windows[c], after)
+        elif before.count:
             report.axes[AXES[c]] = AxisReport.from_stats(before, after, *tally.windows[c])
     report.compute_time_s = time.perf_counter() - started
     return report
@@ -451,6 +459,68 @@ class _ErrorStats:
     @property
     def peak_um(self) -> float:
         return self.peak_mm * 1e3
+
+
+class ExecutedError:
+    """The modelled tracking error of the written program as the firmware runs it: its blocks
+    straight at constant speed between their ends (what the firmware plans with the settings the
+    writer emits: tests/test_output_klipper.py against klippy), the plan where the program rests,
+    through each compensated axis' modes; and of the planned original, on the same samples: every
+    run's and the settling after it (``settle_samples``), as the optimizer's report counts them.
+
+    The writer gives it the executed positions (X Y Z) sample by sample in order (``add``), and
+    the rest to the program's end (``finish``)."""
+
+    def __init__(self, compensators: dict[int, AxisCompensator], runs: list):
+        self.axes = [c for c in compensators if c < 3]
+        self.runs = runs
+        self.models = {c: compensators[c].dynamics for c in self.axes}
+        self.settle = {c: compensators[c].settings.settle_samples for c in self.axes}
+        self.stats = {c: (_ErrorStats(), _ErrorStats()) for c in self.axes}
+        self.steps: dict | None = None  # per axis: the modelled original's and the executed program's
+        self.next = 0  # the next sample
+        self.run = 0  # the first run whose settling may include it
+
+    def add(self, first: int, executed_mm: np.ndarray, planned_mm: np.ndarray) -> None:
+        """Samples ``first`` on: the executed and the planned positions (rows X Y Z ...)."""
+        if first != self.next:
+            raise ValueError(f"samples from {first} given, {self.next} expected")
+        n = len(planned_mm)
+        if not n:
+            return
+        if self.steps is None:
+            self.steps = {c: (m.response(planned_mm[0, c]), m.response(executed_mm[0, c])) for c, m in self.models.items()}
+        for c in self.axes:
+            counted = self._counted(first, n, self.settle[c])
+            original, written = self.steps[c]
+            before, after = self.stats[c]
+            before.add((planned_mm[:, c] - original(planned_mm[:, c]))[counted])
+            after.add((planned_mm[:, c] - written(executed_mm[:, c]))[counted])
+        self.next = first + n
+        longest = max(self.settle.values(), default=0)
+        while self.run < len(self.runs) and self.runs[self.run][1] is not None and \
+                self.runs[self.run][1] + longest < self.next:
+            self.run += 1  # its settling is over on every axis
+
+    def finish(self, end_mm: np.ndarray) -> None:
+        """The settling after the program's end (``end_mm``, X Y Z), at rest there."""
+        rest = np.repeat(end_mm[None, :3], max(self.settle.values(), default=0), axis=0)
+        self.add(self.next, rest, rest)
+
+    def _counted(self, first: int, n: int, settle: int) -> np.ndarray:
+        """Which of samples first .. first + n - 1 lie in a run or ``settle`` samples after it."""
+        k = np.arange(first, first + n)
+        counted = np.zeros(n, dtype=bool)
+        for start, last in itertools.islice(self.runs, self.run, None):
+            if start >= first + n:
+                break
+            counted |= (k >= start) & (k <= (math.inf if last is None else last + settle))
+        return counted
+
+    def report(self, c: int, windows: int, qp_windows: int, command_after: _ErrorStats) -> AxisReport:
+        before, after = self.stats[c]
+        return AxisReport(before.rms_um, before.peak_um, after.rms_um, after.peak_um, windows, qp_windows,
+                          command_after.rms_um, command_after.peak_um)
 
 
 def _count_lines(path: str | Path) -> int:

@@ -577,8 +577,8 @@ class _Deviation:
     time, over the samples inside them (XYZ): the largest, where, and the time in blocks beyond
     the tolerance (rounding aside)."""
 
-    def __init__(self, samples: SampleWindow, fs: float, tolerance_mm: float):
-        self.samples, self.fs, self.tolerance_mm = samples, fs, tolerance_mm
+    def __init__(self, samples: SampleWindow, fs: float, tolerance_mm: float, executed=None):
+        self.samples, self.fs, self.tolerance_mm, self.executed = samples, fs, tolerance_mm, executed
         self.last_s = 0.0  # the last written block's end
         self.max_mm = self.at_s = self.loosened_s = self.sum_squares_mm2 = 0.0
         self.count = 0
@@ -602,14 +602,26 @@ class _Deviation:
         np.maximum.at(worst, block, off_mm)
         self.loosened_s += float(np.diff(knots_s)[worst > self.tolerance_mm + 1e-4].sum())  # (rounding: 0.1 um per axis)
         self.last_s = float(ends_s[-1])
+        if self.executed is not None and len(grid_s):
+            first = round(grid_s[0] * self.fs)
+            self.rest_until(first)
+            skip = max(self.executed.next - first, 0)  # (a block's start is the last one's end)
+            self.executed.add(first + skip, chord[skip:], self.samples.at(grid_s[skip:], self.fs, planned=True)[:, :3])
+
+    def rest_until(self, stop: int) -> None:
+        """The executed program where the plan has it, from the last sample given up to ``stop``."""
+        if self.executed is not None and stop > self.executed.next:
+            rest = self.samples.at(np.arange(self.executed.next, stop) / self.fs, self.fs, planned=True)[:, :3]
+            self.executed.add(self.executed.next, rest, rest)
 
 
-def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions, out) -> WriteStats:
+def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions, out, executed=None) -> WriteStats:
     """Write the output program to the binary stream ``out``. The program's blocks come from
     ``plan`` as it settles them. With ``options.firmware``, the firmware is made transparent
     before the written blocks and given back the program's settings (as its copied lines change
     them) before every copied line that may move the machine and after the last run
-    (``transparency``).
+    (``transparency``). ``executed`` (``pipeline.ExecutedError``) is given the written program's
+    motion as the firmware runs it, sample by sample.
     """
     refusal = format_refusal(options.flavor, options.output_format)
     if refusal:
@@ -628,7 +640,7 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
     # The line rate: blocks no shorter than a line's share of it, a tenth of it left to the copied lines
     min_segment_s = max(options.min_segment_time_s, 1.0 / (0.9 * (options.max_line_rate_hz or math.inf)))
     min_samples = max(1, int(np.ceil(min_segment_s * fs - 1e-9)))
-    rate, deviation = _LineRate(), _Deviation(samples, fs, options.tolerance_mm)
+    rate, deviation = _LineRate(), _Deviation(samples, fs, options.tolerance_mm, executed)
     copied_sample = -1  # of the last copied line
     newline = b"\n"
     emitter = None
@@ -818,6 +830,9 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
         emitter = _Emitter(np.zeros(4), newline)
     samples.ensure(samples.n_samples)
     motion_until(np.inf, samples.planned[-1])
+    deviation.rest_until(samples.n_samples)
+    if executed is not None:
+        executed.finish(samples.planned[-1])
     emit(*mode_lines(options.flavor, emitter.modal, previous_modal))
     if last_line is not None:
         out.write(last_line.raw)

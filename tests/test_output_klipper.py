@@ -6,6 +6,8 @@ compensated command everywhere (the firmware settings fbspost writes make it run
 written)."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -16,7 +18,7 @@ from fbspost.planner import RunMargins, plan_blocks
 from fbspost.profile import load_profile
 from klippy_motion import executed
 from klippy_planner import klippy_or_skip
-from reference import unbudgeted
+from reference import rms, simulate_lsim, unbudgeted
 
 TOLERANCE_MM = 1e-3
 
@@ -59,3 +61,32 @@ def test_sliced_print_runs_as_written(tmp_path, klippy):
     assert run.duration_s == pytest.approx(plan.duration_s, rel=2e-3)
     t = np.arange(len(command)) / plan.sample_rate_hz
     assert np.linalg.norm(run.at(t)[:, :2] - command[:, :2], axis=1).max() <= TOLERANCE_MM + 2e-3
+
+
+def test_report_is_the_written_program_as_klipper_runs_it(tmp_path, klippy):
+    """compensate's summary (after) is the tracking error of the written program as klippy runs
+    it, through the modes (reference.simulate_lsim), over the runs and two periods of the
+    lowest mode after each; before: the plan's. With the profile's 300 lines/s, blocks span
+    several samples, so the written program is not the command."""
+    source, target = tmp_path / "gear.gcode", tmp_path / "out.gcode"
+    with open("tests/data/gear-marlin2.gcode", "rb") as f:
+        source.write_bytes(b"".join(f.readlines()[:1000]))
+    profile = load_profile("printer-two-mode")
+    report = compensate_file(source, target, profile, CompensateOptions(flavor="klipper"))
+    plan = plan_blocks(read_gcode(source, "klipper", profile.home_mm), profile, firmware="klipper",
+                       margins=RunMargins.for_profile(profile))
+    period_s = 1.0 / profile.sample_rate_hz
+    n = len(plan.positions_mm)
+    run = executed(target, profile).at(np.arange(n) * period_s)
+    for c, axis in enumerate("XY"):
+        modes = profile.axes[axis].modes
+        settle = math.ceil(2.0 / (min(m.frequency_hz for m in modes) * period_s))
+        counted = np.zeros(n, dtype=bool)
+        for first, last in plan.runs:
+            counted[first:last + settle + 1] = True
+        desired = plan.positions_mm[:, c]
+        before = desired - simulate_lsim(modes, period_s, desired)
+        after = desired - simulate_lsim(modes, period_s, run[:, c])
+        assert report.axes[axis].rms_error_before_um == pytest.approx(rms(before[counted]) * 1e3, rel=1e-3)
+        assert report.axes[axis].rms_error_after_um == pytest.approx(rms(after[counted]) * 1e3, rel=0.05)
+        assert report.axes[axis].rms_error_after_um > 1.02 * report.axes[axis].rms_error_command_um  # the chords show
