@@ -593,14 +593,15 @@ class PlanStream:
     def _uncompensated_s(self, points: np.ndarray, feed: float, state_row: list) -> float | None:
         """How long a MOVE that moves no compensated axis (a retraction, a Z hop, a layer change)
         takes, from rest to rest as the controller plans it (None: it moves a compensated axis,
-        or a position is unknown). Such a move is a rest of the compensated axes: copied as it is,
+        or an axis it moves is not known before or after). Such a move is a rest of the compensated axes: copied as it is,
         like a dwell of that length, so that the compensated motion never mixes a creep of X Y
         with it, and the controller runs it as the program wrote it."""
-        last = self._read_mm
-        if len(points) != 1 or not np.isfinite(last).all():
+        if len(points) != 1:
             return None
-        delta = points - last
-        if (delta[0, self._compensated] != 0.0).any() or not (np.isfinite(delta).all() and (delta != 0.0).any()):
+        # an axis unknown before and after it did not move (a line of E alone after a macro)
+        still = (points == self._read_mm) | np.isnan(points) & np.isnan(self._read_mm)
+        delta = np.where(still, 0.0, points - self._read_mm)
+        if still.all() or not still[0, self._compensated].all() or not np.isfinite(delta).all():
             return None
         xyz = float(np.sqrt(delta[0, :_E] @ delta[0, :_E]))
         eo = np.array([xyz < EXTRUDE_ONLY_MM])

@@ -236,6 +236,7 @@ class _Emitter:
         controller where the plan says (the command is at rest there)."""
         old_offsets, old_unit = np.asarray(self.modal.offsets_mm), self.unit_mm
         self.modal = block.modal
+        self.feed = -1  # a copied line may set F (a retraction, "G1 F1800"): the next block says its own
         if block.kind is Kind.STOP:
             self.residue_s -= self.speed_mm_s / (2.0 * self.ramp_mm_s2)  # the last block's ramp down to rest
             self.speed_mm_s = 0.0
@@ -807,7 +808,7 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
         if settings is not None and is_stop and _may_move(previous_mm, block.position_mm, slice(0, 4)):
             # a move fbspost copies runs under the program's own settings (shaping: where it moves X or Y)
             emit(*settings.restore(shaping=_may_move(previous_mm, block.position_mm, slice(0, 2))))
-            if _may_move(previous_mm, block.position_mm, slice(0, 3)):
+            if emitter.speed_mm_s > 0 and _may_move(previous_mm, block.position_mm, slice(0, 3)):
                 emit(dwell_line(options.flavor, 0.0)[0])  # from rest, as planned: the last block's speed would carry into it
         reached = samples.at(np.array([t]), fs, planned=True)[0]  # where the program is: the plan where the line does not say
         reached = np.where(np.isnan(block.position_mm), reached, block.position_mm)

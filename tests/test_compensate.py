@@ -51,8 +51,8 @@ def test_butterfly_programs_on_patent_stage(butterfly_runs, name, duration_toler
     plan = plan_blocks(list(read_gcode(source, "linuxcnc")), PATENT, margins=RunMargins.for_profile(PATENT))
     planned = plan.positions_mm[:, :2]
     before = contour_error(path, modelled_xy(PATENT, planned, period_s))
-    # The compensated program, run block by block at its feed, through the model.
-    compensated = execute(target)
+    # The compensated program, run block by block at its feed, through the model (G4 P in seconds, LinuxCNC's).
+    compensated = execute(target, dwell_p_seconds=True)
     _, command = sample_blocks(compensated.ends, PATENT.sample_rate_hz)
     after = contour_error(path, modelled_xy(PATENT, command[:, :2], period_s))
     assert rms(after) * 20 <= rms(before), f"{rms(before) * 1e3:.3f} -> {rms(after) * 1e3:.3f} um"
