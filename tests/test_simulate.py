@@ -26,7 +26,7 @@ ROOT = Path(__file__).resolve().parent.parent
 BUTTERFLY = ROOT / "samples" / "butterfly-dense.gcode"
 TUBE = Path(__file__).resolve().parent / "data" / "tube-marlin2.gcode"
 TUBE_LINES = 1068  # its first two layers (49 s of motion): the whole 274 s print takes minutes here
-SETTLE_PERIODS = 5  # README: residual vibration over 5 periods of the lowest mode
+SETTLE_PERIODS = 5  # docs/simulate.md: residual vibration over 5 periods of the lowest mode
 
 
 def run(*args):
