@@ -611,7 +611,7 @@ def _per_axis(low: float, high: float | None):
               help="Shaper damping ratio per axis, e.g. X=0.1,Y=0.1 (default: the dominant mode's).")
 @click.option("--flavor", type=click.Choice(FLAVORS), help="Firmware dialect (default: detected from INPUT).")
 @_margin_options
-@click.option("--json", "as_json", is_flag=True, help="Print the figures as JSON (keys in the README) instead of tables.")
+@click.option("--json", "as_json", is_flag=True, help="Print the figures as JSON (keys in docs/simulate.md) instead of tables.")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False, path_type=Path), metavar="FILE",
               help="Also write plots: FILE.png (one page) or FILE.pdf (one panel per page).")
 def simulate(input_path, machine, compensated, shapers, shaper_freq, shaper_damping, flavor, lead_time_s, settle_time_s,

@@ -101,7 +101,7 @@ class Simulation:
     warnings: list[str] = field(default_factory=list)
 
     def as_dict(self) -> dict:
-        """The ``--json`` document (keys documented in the README)."""
+        """The ``--json`` document (keys documented in docs/simulate.md)."""
         return {
             "program": self.program,
             "profile": self.profile.name,

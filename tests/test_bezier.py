@@ -89,6 +89,7 @@ def assert_contiguous(blocks, n: int) -> None:
     [[0.0, 0.0], [4.0, 3.0], [2.0, -3.0], [6.0, 0.5]],  # an inflection
     [[1.0, 1.0], [1.5, 1.2], [2.2, 1.1], [3.0, 1.4]],  # short and flat
 ])
+@pytest.mark.slow
 def test_exact_bezier_is_one_block(control):
     """A cubic Bézier traversed at constant speed comes back as one block: its control points
     (to 1e-6 mm) and its length."""
@@ -174,6 +175,7 @@ def smooth_path(seed: int, samples: int, period_s: float = 1e-3) -> np.ndarray:
 
 
 @pytest.mark.parametrize("seed", [1, 2])
+@pytest.mark.slow
 def test_smooth_path_with_varying_speed(seed):
     """Every sample of every block within the tolerance, judged independently; the blocks
     contiguous, from the first sample to the last; fewer blocks than samples by far."""

@@ -88,6 +88,7 @@ def butterfly_g5_runs(tmp_path_factory):
 
 
 @pytest.mark.parametrize("name, duration_tolerance", [("butterfly-dense", 0.005), ("butterfly-polyline", 0.03)])
+@pytest.mark.slow
 def test_butterfly_g5_follows_the_command_in_fewer_blocks(butterfly_g5_runs, name, duration_tolerance):
     """Run through the executor (each G5 at constant speed along its exact curve), the G5 output is
     where the dense output is, which is on the compensated command at its block ends: within the
@@ -126,6 +127,7 @@ def sliced(request, tmp_path_factory):
     return source, target, compensate_file(source, target, PRINTER)
 
 
+@pytest.mark.slow
 def test_sliced_nonmotion_lines_and_extrusion_exact(sliced):
     source, target, report = sliced
     original, compensated = execute(source), execute(target)
@@ -140,6 +142,7 @@ def test_sliced_nonmotion_lines_and_extrusion_exact(sliced):
     assert abs(compensated.extruded - original.extruded) <= 1e-4
 
 
+@pytest.mark.slow
 def test_sliced_output_within_axis_limits(sliced):
     """Run block by block, the output never asks an axis for more than the profile allows:
     velocity per block, and acceleration from block to block (5% for the chords' approximation
@@ -158,6 +161,7 @@ def test_sliced_output_within_axis_limits(sliced):
         assert np.abs(np.diff(velocity) / mid_dt).max() <= axis.max_acceleration_mm_s2 * 1.05, name
 
 
+@pytest.mark.slow
 def test_sliced_contour_error_time_and_speed(sliced):
     source, target, report = sliced
     period_s = 1.0 / PRINTER.sample_rate_hz

@@ -234,6 +234,7 @@ def exact_zoh_impulse(mode: Mode, T: float, n: int) -> np.ndarray:
     return np.concatenate([[0.0], C @ phis @ gamma])
 
 
+@pytest.mark.slow
 @settings(max_examples=30, deadline=None)
 @given(freq=st.floats(5.0, 200.0), damping=st.floats(0.01, 0.9), dc=st.floats(0.1, 3.0),
        beta=st.floats(-50.0, 50.0))

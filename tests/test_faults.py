@@ -232,6 +232,7 @@ def temporary_files(folder):
 @pytest.mark.skipif(not Path("/proc/self/fd").is_dir(), reason="needs /proc to see the run start")
 @pytest.mark.parametrize("signum, status", [(signal.SIGINT, 130), (signal.SIGTERM, 143)],
                          ids=["SIGINT", "SIGTERM"])
+@pytest.mark.slow
 def test_signal_while_computing(tmp_path, signum, status):
     program = tmp_path / "part.gcode"
     program.write_bytes(TUBE.read_bytes())

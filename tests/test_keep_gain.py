@@ -53,6 +53,7 @@ def keeps_the_gain(program: Path, profile, tmp_path: Path):
     return sim, on
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scale", [1, 2, 3])
 @pytest.mark.parametrize("make", [butterfly_dense_program, butterfly_polyline_program], ids=["dense", "polyline"])
 def test_butterflies_keep_the_gain(make, scale, tmp_path):
@@ -61,6 +62,7 @@ def test_butterflies_keep_the_gain(make, scale, tmp_path):
     keeps_the_gain(program, PATENT, tmp_path)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("source", PRINTS, ids=[p.stem for p in PRINTS])
 def test_prints_keep_the_gain_and_compensate_the_travel_after_homing(source, tmp_path):
     """On the two-mode printer: the gain kept; where the program homes (G28), its first travel is
@@ -96,6 +98,7 @@ def test_moves_after_homing_are_planned_from_the_home_position(tmp_path):
     assert np.isnan(cnc[0].position_mm[:3]).all() and cnc[2].kind.value == "stop"
 
 
+@pytest.mark.slow
 def test_butterfly_residual_vibration_below_every_shaper():
     """The dense butterfly on the patent stage, compensated now with the default margins: its
     residual vibration after the stop below every one of Klipper's shapers' (tuned to the dominant

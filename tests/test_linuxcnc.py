@@ -58,6 +58,7 @@ def test_nurbs_evaluation_matches_scipy(order):
     assert np.abs(nurbs_points(CTRL, order, u) - scipy_nurbs(CTRL, order)(u)).max() < 1e-10
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("order", [3, 4])
 def test_g52_is_planned_on_the_curve(tmp_path, order):
     """Every piece end within 0.1 um of scipy's curve, the curve within the chord tolerance of
@@ -177,6 +178,7 @@ def test_installed_examples_expand_exactly(tmp_path, name):
     assert command_problems(program, expanded, table) == []
 
 
+@pytest.mark.slow
 @needs_rs274
 def test_compensate_expands_and_says_so(tmp_path):
     program, out = tmp_path / "part.ngc", tmp_path / "out.ngc"

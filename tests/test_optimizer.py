@@ -50,6 +50,7 @@ def smooth_move(distance_mm, duration_s, rest_s, period_s):
 
 # ---- must show: the butterfly on the patent stage ---------------------------------------------
 
+@pytest.mark.slow
 @pytest.mark.parametrize("axis", ["X", "Y"])
 def test_butterfly_error_at_most_2_percent_within_limits(butterfly_xy, butterfly_results, axis):
     desired = butterfly_xy[axis]
@@ -67,6 +68,7 @@ def test_butterfly_error_at_most_2_percent_within_limits(butterfly_xy, butterfly
     assert not result.warnings
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("axis", ["X", "Y"])
 def test_limited_lookahead_matches_complete(butterfly_xy, butterfly_results, axis):
     desired = butterfly_xy[axis]
@@ -76,6 +78,7 @@ def test_limited_lookahead_matches_complete(butterfly_xy, butterfly_results, axi
     assert abs(limited - complete) <= 0.01 * complete
 
 
+@pytest.mark.slow
 def test_binding_limit_no_worse_than_best_clipped_solution(butterfly_xy, butterfly_results):
     """Y's stop needs more than 8000 mm/s^2 unconstrained. The QP meets the limit to 1e-6 and
     tracks at least as well as the best blend of the unconstrained command with the desired
@@ -101,6 +104,7 @@ def test_binding_limit_no_worse_than_best_clipped_solution(butterfly_xy, butterf
     assert tracking_rms(axis, desired, constrained) <= tracking_rms(axis, desired, clipped)
 
 
+@pytest.mark.slow
 def test_jerk_limit_binds_inside_windows(butterfly_xy):
     """A jerk limit just above the desired trajectory's own jerk binds in regular windows too
     (with knots twice as dense as the default, whose command has more jerk to limit)."""
@@ -295,6 +299,7 @@ def test_motion_too_short_to_shape_is_returned_as_planned():
     assert np.array_equal(compensate_axis(desired, dynamics, AxisLimits()).command_mm, desired)
 
 
+@pytest.mark.slow
 def test_limits_that_cannot_be_met_are_reported():
     """60 mm to cover in the 0.5 s between the start and the last sample against a 100 mm/s
     limit: no command can meet it (it starts at rest and must end there), and the result says
@@ -396,6 +401,7 @@ def test_daqp_is_the_optimum_of_the_hard_cases_corner_windows(monkeypatch):
         assert abs(objective(daqp_p) - objective(exact_p)) <= 1e-9 * abs(objective(exact_p))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("seed", range(3))
 def test_stream_in_pieces_equals_the_whole_run_bit_for_bit(seed):
     """A run pushed in random pieces (some empty, some a single sample) gives exactly the samples

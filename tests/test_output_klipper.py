@@ -20,6 +20,8 @@ from klippy_motion import executed
 from klippy_planner import klippy_or_skip
 from reference import rms, simulate_lsim, unbudgeted
 
+pytestmark = pytest.mark.slow  # whole programs through Klipper's own planner
+
 TOLERANCE_MM = 1e-3
 
 

@@ -665,6 +665,7 @@ def test_samples_continuous_and_within_limits():
     assert np.all(p[0] == [50, 50, 0.2, 0]) and np.allclose(p[-1], prog.pos, rtol=0, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_100k_piece_polyline_smoke(capsys):
     rng = np.random.default_rng(11)
     n = 100_000
@@ -683,6 +684,7 @@ def test_100k_piece_polyline_smoke(capsys):
     assert np.all(np.diff(plan.line_time_s[1:]) > 0)
 
 
+@pytest.mark.slow
 def test_real_print_samples_stay_within_axis_velocity():
     """A whole sliced print (PrusaSlicer, 37k lines): inside every run, no sample steps faster than
     the axes allow. Phase start times that round an ulp past the next piece's start once made

@@ -217,6 +217,7 @@ COMMON = dict(deadline=None, suppress_health_check=[HealthCheck.too_slow, Health
 KNOWN = settings(max_examples=5, derandomize=True, phases=[Phase.explicit, Phase.generate], **COMMON)
 
 
+@pytest.mark.slow
 @settings(max_examples=15, derandomize=True, **COMMON)
 @given(programs(stops=False))
 def test_program_kept(program):
@@ -242,6 +243,7 @@ def test_lines_at_rest_run_where_the_motion_ended(program):
 # (the last example: Y RMS 35.9 -> 36.3 um, though its command: 35.8 -> 12.5 um). Now the plan
 # times the rest from the last sample, and the output's first block of a run takes up the rest of
 # a sample (planner, writer).
+@pytest.mark.slow
 @KNOWN
 @example(b"G1 X0 Y12.028 F1151\nG1 X20 Y19.469 E-0.1302 F1475\nG4 P100\n")  # rested 9 um short (fixed)
 @example(b"G1 X19.651 Y8.295 F1125\nG3 X20.858 Y6.828 R2.479\nG4 P132\n")  # ends 3.7 um short
@@ -263,6 +265,7 @@ def test_with_stops(program):
     check_program_kept(program)
 
 
+@pytest.mark.slow
 @settings(max_examples=15, derandomize=True, **COMMON)
 @example(b"G1 X2.322 Y10.870 Z0.2 F4073\nG0 X2.902 Y18.239\nG1 X0.707 Y11.768\nG2 X-1.629 Y11.824 R-1.461\n"
          b"G4 P5\nG3 X-4.693 Y-1.533 I-2.337 J-6.494\n")
@@ -289,6 +292,7 @@ def test_with_stops_command_never_worse(program):
         assert axis.rms_error_after_um <= axis.rms_error_before_um * (1 + 1e-9)
 
 
+@pytest.mark.slow
 @settings(max_examples=15, derandomize=True, **COMMON)
 @example(b"G1 X2.789 Y0 Z0.2 F1200\nG1 X0 Y0 Z0.4\n")  # X: compensated, largest 68.6 -> 85.2 um (RMS 25.7 -> 14.8)
 @given(programs(stops=False))
@@ -302,6 +306,7 @@ def test_g92_in_mid_motion():
     check_program_kept(b"G1 X10.409 Y2.084 Z0.2 F1422\nG1 X11.911 Y0 Z0.4\nG92 X-10 Y0\nG1 X0.69 Y0 Z0.6\n")
 
 
+@pytest.mark.slow
 @settings(max_examples=60, database=None, phases=[Phase.explicit, Phase.generate], **COMMON)
 @seed(20261121)
 @given(programs(stops=False))

@@ -26,7 +26,7 @@ ROOT = Path(__file__).resolve().parent.parent
 BUTTERFLY = ROOT / "samples" / "butterfly-dense.gcode"
 TUBE = Path(__file__).resolve().parent / "data" / "tube-marlin2.gcode"
 TUBE_LINES = 1068  # its first two layers (49 s of motion): the whole 274 s print takes minutes here
-SETTLE_PERIODS = 5  # README: residual vibration over 5 periods of the lowest mode
+SETTLE_PERIODS = 5  # docs/simulate.md: residual vibration over 5 periods of the lowest mode
 
 
 def run(*args):
@@ -176,6 +176,7 @@ def shaper_timing_checks(report, desired, modelled, period_s):
     assert fbs["added_duration_s"] <= margins.lead_s + margins.settle_s + 2 * period_s
 
 
+@pytest.mark.slow
 def test_patent_stage_butterfly():
     profile = load_profile("patent-xy-stage")
     report = simulate_json(BUTTERFLY, "--machine", "patent-xy-stage")
@@ -200,6 +201,7 @@ def tube_head(tmp_path_factory):
     return path
 
 
+@pytest.mark.slow
 def test_printer_tube(tube_head):
     profile = load_profile("bedslinger-example")
     report = simulate_json(tube_head, "--machine", "bedslinger-example")
@@ -214,6 +216,7 @@ def test_printer_tube(tube_head):
     assert report["methods"][0]["path"]["max_command_contour_error_um"] < 1e-6  # the plan is on the path
 
 
+@pytest.mark.slow
 def test_executing_a_compensated_program(tube_head, tmp_path):
     """--compensated: the written program (default tolerance, 1 ms blocks: no line budget, no
     Marlin steps, whose E-timed blocks a run at the feeds cannot follow) run at its feeds."""
@@ -241,6 +244,7 @@ def test_given_shaper_frequency_and_damping(tube_head):
     assert np.diff(zv["Y"]["times_s"])[0] == pytest.approx(0.5 / (30 * math.sqrt(1 - 0.04)))
 
 
+@pytest.mark.slow
 def test_plots(tmp_path):
     program = tmp_path / "square.gcode"
     program.write_text("G21 G90\nM83\nG1 X10 Y10 F6000\nG1 X40 E1 F3000\nG1 Y40 E1\nG1 X10 E1\nG1 Y10 E1\n")

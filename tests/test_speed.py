@@ -19,6 +19,7 @@ DATA = Path(__file__).parent / "data"
     ("bracket-reprapfirmware-relative-e.gcode", 900, "printer-two-mode"),
     ("tube-marlin2.gcode", 1500, "bedslinger-example"),
 ])
+@pytest.mark.slow
 def test_axes_on_threads_write_the_serial_output_byte_for_byte(tmp_path, program, lines, machine):
     source = tmp_path / program
     with open(DATA / program, "rb") as f:

@@ -10,6 +10,8 @@ from fbspost import pipeline, planner, writer
 from fbspost.pipeline import CompensateOptions, compensate_file
 from fbspost.profile import load_profile
 
+pytestmark = pytest.mark.slow  # whole programs, streamed and whole, and a long one for memory
+
 ROOT = Path(__file__).resolve().parent.parent
 WHOLE = 10**9  # blocks or samples: more than any program here has
 

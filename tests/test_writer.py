@@ -134,6 +134,7 @@ def test_g5_in_inches_relative_xyz_and_e(tmp_path):
     assert len(g5.ends) < len(dense.ends)
 
 
+@pytest.mark.slow
 def test_g5_on_linuxcnc_only_in_the_xy_plane_and_without_z(tmp_path):
     """LinuxCNC runs G5 in G17 only and without Z (the executor refuses G5 outside G17): the
     output is G1 where Z moves, after a copied G18, and after a move line that went back to G17
