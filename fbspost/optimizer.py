@@ -31,7 +31,7 @@ import daqp
 import numpy as np
 from scipy import linalg, sparse
 
-from .dynamics import AxisDynamics
+from .dynamics import AxisDynamics, ModelSet
 from .profile import AxisProfile
 from .splines import basis_matrix, uniform_knots
 
@@ -137,16 +137,18 @@ class _Stretch:
     ``end_conditions``: rows of the command's derivatives 0..r at sample ``hold_from - 1``.
     """
 
-    def __init__(self, dynamics: AxisDynamics, settings: FBSSettings, limits: AxisLimits,
+    def __init__(self, models: ModelSet, settings: FBSSettings, limits: AxisLimits,
                  n_samples: int, n_free: int, hold_from: int | None = None, end_conditions: bool = False):
-        m, k, T = settings.degree, settings.knot_spacing_samples, dynamics.sample_period_s
+        m, k, T = settings.degree, settings.knot_spacing_samples, models.sample_period_s
         self.m, self.n_free, self.n_samples = m, n_free, n_samples
         hold_from = n_samples if hold_from is None else hold_from
         knots = uniform_knots(m + n_free, m, k * T, first_knot=-m)
         rows = np.minimum(np.arange(n_samples), hold_from - 1)
         self.N = basis_matrix(knots, m, rows * T).toarray()  # n_samples x (m + n_free)
-        self.Nt = dynamics.filter(self.N)  # filtered basis, from the zero state
-        self.Phi = dynamics.free_response_matrix(n_samples)
+        # Filtered basis from the zero state and free response, every model's stacked (the nominal's first).
+        self.Nt = models.filter(self.N)
+        self.Phi = models.free_response_matrix(n_samples)
+        self.n_models = len(models.models)
 
         # Objective ||W (x - y)||, W = [I; alpha_r D_r]; differences inside the stretch only.
         weights = np.ones(n_samples)
@@ -156,6 +158,8 @@ class _Stretch:
             if a:
                 w_rows.append(a * _difference_matrix(r, n_samples - r, T))
         self.W = sparse.vstack(w_rows, format="csr")
+        if self.n_models > 1:  # sum over the models of weight x error^2
+            self.W = sparse.block_diag([math.sqrt(w) * self.W for w in models.weights], format="csr")
         self.M = np.asarray(self.W @ self.Nt[:, m:])
         self.H = self.M.T @ self.M
         self._objective_scale = 1.0 / np.abs(self.H).max()
@@ -187,7 +191,7 @@ class _Stretch:
         r_max = limits.history
         free, fixed, prev, state, row_sample = [], [], [], [], []
         for kind, table in (("command", limits.command), ("output", limits.output)):
-            basis = self.N if kind == "command" else self.Nt
+            basis = self.N if kind == "command" else self.Nt[:n_samples]
             for r, value in sorted(table.items()):
                 D = _difference_matrix(r, n_samples, T) / value
                 rows = D[:, r:] @ basis
@@ -197,7 +201,7 @@ class _Stretch:
                 column = r_max if kind == "command" else 2 * r_max
                 before[:, column - r:column] = D[:, :r].toarray()
                 prev.append(before)
-                state.append(D[:, r:] @ self.Phi if kind == "output" else np.zeros((n_samples, self.Phi.shape[1])))
+                state.append(D[:, r:] @ self.Phi[:n_samples] if kind == "output" else np.zeros((n_samples, self.Phi.shape[1])))
                 row_sample.append(np.arange(n_samples))
         self.has_limits = bool(free)
         if self.has_limits:
@@ -209,8 +213,8 @@ class _Stretch:
 
     # ---- the pieces every solve needs -------------------------------------------------------
     def target(self, desired: np.ndarray, state: np.ndarray, p_fixed: np.ndarray) -> np.ndarray:
-        """What the free control points must make the output do: x - free response - fixed part."""
-        return desired - self.Phi @ state - self.Nt[:, :self.m] @ p_fixed
+        """What the free control points must make the outputs do: x - free response - fixed part."""
+        return np.tile(desired, self.n_models) - self.Phi @ state - self.Nt[:, :self.m] @ p_fixed
 
     def gradient(self, target: np.ndarray) -> np.ndarray:
         return self.M.T @ (self.W @ target)
@@ -419,7 +423,7 @@ class _Sweep:
     limit) A p + Az z, and the next carry z' = L [z; kept points]. Everything here is built
     once per axis."""
 
-    def __init__(self, stretch: _Stretch, dynamics: AxisDynamics, carry: _Carry, commit: int, k: int):
+    def __init__(self, stretch: _Stretch, models: ModelSet, carry: _Carry, commit: int, k: int):
         m, ns, r = stretch.m, carry.n_states, carry.r_max
         self.commit, self.commit_rows = commit, commit * k
         rows = self.commit_rows
@@ -431,8 +435,9 @@ class _Sweep:
             used = max(commit, int(check.indices.max(initial=-1)) + 1)  # points the checked rows see
             self.A = check[:, :used].toarray()
             self.Az = np.hstack([stretch.A_state, stretch.A_fixed, stretch.A_prev])[index]
-        self.Gd = stretch.G[:used]
-        self.Gz = np.hstack([self.Gd @ stretch.Phi, self.Gd @ stretch.Nt[:, :m], np.zeros((used, 2 * r))])
+        G = stretch.G[:used]  # of the stacked target; every model's desired trajectory is the same
+        self.Gd = G.reshape(used, stretch.n_models, -1).sum(axis=1) if stretch.n_models > 1 else G
+        self.Gz = np.hstack([G @ stretch.Phi, G @ stretch.Nt[:, :m], np.zeros((used, 2 * r))])
         # z' from x = [z; kept points]: the kept command is N p_all with p_all = [p_fixed; kept points].
         n_x = carry.size + commit
         p_all = np.zeros((m + commit, n_x))
@@ -440,9 +445,9 @@ class _Sweep:
         p_all[m:, carry.size:] = np.eye(commit)
         state = np.zeros((ns, n_x))
         state[:, :ns] = np.eye(ns)
-        to_state = dynamics.input_to_state_matrix(rows) @ stretch.N[:rows, :m + commit]
+        to_state = models.input_to_state_matrix(rows) @ stretch.N[:rows, :m + commit]
         tail = slice(rows - r, rows)
-        self.L = np.vstack([np.linalg.matrix_power(dynamics.A, rows) @ state + to_state @ p_all,
+        self.L = np.vstack([np.linalg.matrix_power(models.A, rows) @ state + to_state @ p_all,
                             p_all[-m:],
                             stretch.N[tail, :m + commit] @ p_all,
                             stretch.Phi[tail] @ state + stretch.Nt[tail, :m + commit] @ p_all])
@@ -456,16 +461,20 @@ class AxisCompensator:
     Everything that does not depend on the trajectory (the regular window's matrices, their
     factorization, the folded maps and the QP set-up) is built on first use and reused for
     every motion run of a program.
+
+    ``models``: the set whose mean squared error is minimized (robust compensation), the
+    nominal ``dynamics`` first; by default ``dynamics`` alone. The carry holds every model's state.
     """
 
     def __init__(self, dynamics: AxisDynamics, limits: AxisLimits, settings: FBSSettings = FBSSettings(),
-                 lookahead: str = "limited"):
+                 lookahead: str = "limited", models: ModelSet | None = None):
         if lookahead not in ("limited", "complete"):
             raise ValueError(f"lookahead must be 'limited' or 'complete', not {lookahead!r}")
         self.dynamics, self.limits, self.lookahead = dynamics, limits, lookahead
+        self.models = models or ModelSet([dynamics])
         self.settings = settings.resolve(dynamics)
-        self.carry = _Carry(dynamics.n_states, self.settings.degree, limits.history)
-        self.rest_unit = np.concatenate([dynamics.rest_state(1.0), np.ones(self.carry.size - dynamics.n_states)])
+        self.carry = _Carry(self.models.n_states, self.settings.degree, limits.history)
+        self.rest_unit = np.concatenate([self.models.rest_state(1.0), np.ones(self.carry.size - self.models.n_states)])
         self._regular: _Stretch | None = None
         self._sweep: _Sweep | None = None
 
@@ -483,8 +492,8 @@ class AxisCompensator:
         if self._sweep is None:
             k = self.settings.knot_spacing_samples
             window = self.settings.commit_spans + self.settings.overlap_spans
-            self._regular = _Stretch(self.dynamics, self.settings, self.limits, window * k, window)
-            self._sweep = _Sweep(self._regular, self.dynamics, self.carry, self.settings.commit_spans, k)
+            self._regular = _Stretch(self.models, self.settings, self.limits, window * k, window)
+            self._sweep = _Sweep(self._regular, self.models, self.carry, self.settings.commit_spans, k)
         return self._regular, self._sweep
 
 
@@ -572,7 +581,7 @@ class AxisStream:
             return desired_mm.copy()  # at rest and staying there
         n_rows = desired_mm.size
         # The spans up to the last sample; a point whose support starts at the last sample does nothing.
-        final = _Stretch(owner.dynamics, settings, owner.limits, n_rows + settings.settle_samples,
+        final = _Stretch(owner.models, settings, owner.limits, n_rows + settings.settle_samples,
                          max(1, -(-(n_rows - 1) // settings.knot_spacing_samples)), hold_from=n_rows,
                          end_conditions=True)
         desired = np.concatenate([desired_mm, np.full(settings.settle_samples, desired_mm[-1])])

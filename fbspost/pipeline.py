@@ -22,7 +22,7 @@ import numpy as np
 
 from . import __version__
 from .atomicfile import atomic_write
-from .dynamics import AxisDynamics
+from .dynamics import AxisDynamics, ModelSet
 from .expand import expand
 from .fallback import FALLBACK, AxisGuard
 from .gcode import AXES, Block, NeedsInterpreter, detect_flavor, read_gcode
@@ -227,7 +227,7 @@ def _compensators(profile: MachineProfile, options: CompensateOptions) -> dict[i
     period_s = 1.0 / profile.sample_rate_hz
     axes = {c: profile.axes[name] for c, name in enumerate(AXES) if name in profile.axes and profile.axes[name].modes}
     return {c: AxisCompensator(AxisDynamics(axis.modes, period_s), AxisLimits.from_profile(axis), options.settings,
-                               options.lookahead) for c, axis in axes.items()}
+                               options.lookahead, ModelSet.spread(axis.modes, period_s)) for c, axis in axes.items()}
 
 
 def _compensated(plan: Plan | PlanStream, compensators: dict[int, AxisCompensator], errors: dict,
