@@ -163,16 +163,18 @@ class ModelSet:
 
     @classmethod
     def spread(cls, modes, sample_period_s: float) -> ModelSet:
-        """The nominal ``modes`` and, for each mode with a tolerance, the models with that mode's
-        frequency (then damping) at both ends of its tolerance, the others nominal; all weighed
-        alike: the mean squared error over the set."""
+        """The nominal ``modes`` and the machines with every mode's frequency, then every mode's
+        damping, at the low and at the high end of its tolerance (``Mode.frequency_tolerance``,
+        ``damping_tolerance``): the modes drift together, as a load or a temperature moves them.
+        All weighed alike: the mean squared error over the set. Just the nominal without tolerances."""
         modes = tuple(modes)
         variants = [modes]
-        for i, mode in enumerate(modes):
-            for scales in ((1 - mode.frequency_tolerance, 1.0), (1 + mode.frequency_tolerance, 1.0),
-                           (1.0, 1 - mode.damping_tolerance), (1.0, 1 + mode.damping_tolerance)):
-                if scales != (1.0, 1.0):
-                    variants.append(modes[:i] + (scaled_mode(mode, *scales),) + modes[i + 1:])
+        for sign in (-1.0, 1.0):
+            for frequency in (True, False):
+                variant = tuple(scaled_mode(m, 1.0 + sign * m.frequency_tolerance) if frequency
+                                else scaled_mode(m, 1.0, 1.0 + sign * m.damping_tolerance) for m in modes)
+                if variant != modes:
+                    variants.append(variant)
         return cls([AxisDynamics(v, sample_period_s) for v in variants])
 
     def rest_state(self, position_mm: float) -> np.ndarray:
