@@ -34,6 +34,7 @@ from scipy import linalg, sparse
 from .dynamics import AxisDynamics, ModelSet
 from .profile import AxisProfile
 from .splines import basis_matrix, uniform_knots
+from .varying import LoadModes
 
 
 @dataclass(frozen=True)
@@ -464,19 +465,22 @@ class AxisCompensator:
 
     ``models``: the set whose mean squared error is minimized (robust compensation), the
     nominal ``dynamics`` first; by default ``dynamics`` alone. The carry holds every model's state.
+    ``varying``: modes that move with the filament printed (``stream().push``'s ``extruded_mm``):
+    each window uses the level in force at its start (level 0 is ``models``), the carry mapped
+    to it; every level's matrices are built on its first use.
     """
 
     def __init__(self, dynamics: AxisDynamics, limits: AxisLimits, settings: FBSSettings = FBSSettings(),
-                 lookahead: str = "limited", models: ModelSet | None = None):
+                 lookahead: str = "limited", models: ModelSet | None = None, varying: LoadModes | None = None):
         if lookahead not in ("limited", "complete"):
             raise ValueError(f"lookahead must be 'limited' or 'complete', not {lookahead!r}")
         self.dynamics, self.limits, self.lookahead = dynamics, limits, lookahead
-        self.models = models or ModelSet([dynamics])
+        self.models, self.varying = models or ModelSet([dynamics]), varying
         self.settings = settings.resolve(dynamics)
         self.carry = _Carry(self.models.n_states, self.settings.degree, limits.history)
-        self.rest_unit = np.concatenate([self.models.rest_state(1.0), np.ones(self.carry.size - self.models.n_states)])
-        self._regular: _Stretch | None = None
-        self._sweep: _Sweep | None = None
+        self.extruded_from = None  # the first filament position pushed (mm), for ``varying``
+        self._sets = {0: self.models}
+        self._rest_units, self._regulars, self._remaps = {}, {}, {}
 
     def __call__(self, desired_mm: np.ndarray) -> AxisResult:
         stream = self.stream()
@@ -488,13 +492,35 @@ class AxisCompensator:
     def stream(self) -> AxisStream:
         return AxisStream(self)
 
-    def regular(self) -> tuple[_Stretch, _Sweep]:
-        if self._sweep is None:
+    def model_set(self, level: int = 0) -> ModelSet:
+        if level not in self._sets:
+            self._sets[level] = self.varying.models(level)
+        return self._sets[level]
+
+    def rest_unit(self, level: int = 0) -> np.ndarray:
+        """The carry at rest at 1 mm (the carry at rest at x mm is x times it)."""
+        if level not in self._rest_units:
+            models = self.model_set(level)
+            self._rest_units[level] = np.concatenate([models.rest_state(1.0), np.ones(self.carry.size - models.n_states)])
+        return self._rest_units[level]
+
+    def remap(self, z: np.ndarray, old: int, new: int) -> np.ndarray:
+        """The carry ``z`` of level ``old`` as level ``new``'s (``varying.remap``)."""
+        if (old, new) not in self._remaps:
+            self._remaps[old, new] = self.varying.remap(old, new)
+        to_new, from_command = self._remaps[old, new]
+        z = z.copy()
+        z[:self.carry.n_states] = to_new @ z[:self.carry.n_states] + from_command * self.carry.previous(z)[self.carry.r_max - 1]
+        return z
+
+    def regular(self, level: int = 0) -> tuple[_Stretch, _Sweep]:
+        if level not in self._regulars:
             k = self.settings.knot_spacing_samples
             window = self.settings.commit_spans + self.settings.overlap_spans
-            self._regular = _Stretch(self.models, self.settings, self.limits, window * k, window)
-            self._sweep = _Sweep(self._regular, self.models, self.carry, self.settings.commit_spans, k)
-        return self._regular, self._sweep
+            models = self.model_set(level)
+            stretch = _Stretch(models, self.settings, self.limits, window * k, window)
+            self._regulars[level] = stretch, _Sweep(stretch, models, self.carry, self.settings.commit_spans, k)
+        return self._regulars[level]
 
 
 class AxisStream:
@@ -503,23 +529,29 @@ class AxisStream:
     same, bit for bit, however the run is cut into pieces: every window is computed alike.
 
     A window runs as a regular one once the samples after its kept spans are known to outlast
-    the final window; the buffer holds the samples from the current window's start.
+    the final window; the buffer holds the samples from the current window's start (and, with
+    varying modes, the filament extruded there).
     """
 
     def __init__(self, compensator: AxisCompensator):
         self.owner = compensator
         self.result = AxisResult(np.empty(0), compensator.settings)
-        self.buffer = np.empty(0)
+        self.buffer = self.extruded = np.empty(0)
         self.first_sample = 0  # run sample at buffer[0]
         self.z = None  # the carry, once the first sample is known
+        self.level = 0  # of the model in force (AxisCompensator.varying)
 
-    def push(self, desired_mm: np.ndarray) -> np.ndarray:
+    def push(self, desired_mm: np.ndarray, extruded_mm: np.ndarray | None = None) -> np.ndarray:
+        """``extruded_mm``: the filament position at the same samples, for varying modes (unknown: NaN)."""
         desired_mm = np.asarray(desired_mm, dtype=float)
         if desired_mm.ndim != 1 or not np.all(np.isfinite(desired_mm)):
             raise ValueError("the desired trajectory must be a 1-D array of finite positions")
         self.buffer = np.concatenate([self.buffer, desired_mm])
+        if self.owner.varying is not None:
+            self._note_extruded(desired_mm.size, extruded_mm)
         if self.z is None and self.buffer.size:
-            self.z = self.owner.rest_unit * self.buffer[0]
+            self.level = self._level_at(0)
+            self.z = self.owner.rest_unit(self.level) * self.buffer[0]
         if self.owner.lookahead == "complete":
             return np.empty(0)
         return self._regular_windows()
@@ -539,6 +571,19 @@ class AxisStream:
         result.command_mm = np.concatenate([head, tail])
         return result
 
+    def _note_extruded(self, n: int, extruded_mm: np.ndarray | None) -> None:
+        """Keep the filament extruded since the compensator's first known position (0 where unknown)."""
+        owner = self.owner
+        extruded = np.full(n, np.nan) if extruded_mm is None else np.asarray(extruded_mm, dtype=float)
+        known = extruded[np.isfinite(extruded)]
+        if owner.extruded_from is None and known.size:
+            owner.extruded_from = float(known[0])
+        self.extruded = np.concatenate([self.extruded, np.nan_to_num(extruded - (owner.extruded_from or 0.0))])
+
+    def _level_at(self, sample: int) -> int:
+        """The level in force at buffer sample ``sample``."""
+        return 0 if self.owner.varying is None else self.owner.varying.level(self.extruded[sample])
+
     def _regular_windows(self) -> np.ndarray:
         """Run every window known to be regular: followed by more than the final window needs
         in the samples known so far (so whatever comes later)."""
@@ -550,10 +595,13 @@ class AxisStream:
         rows = commit * k
         out, start = [], 0
         while start + ahead < self.buffer.size:
-            stretch, sweep = owner.regular()
+            level = self._level_at(start)
+            if level != self.level:
+                self.z, self.level = owner.remap(self.z, self.level, level), level
+            stretch, sweep = owner.regular(level)
             desired = self.buffer[start:start + window * k]
             z = self.z
-            if desired[0] == desired[-1] and np.ptp(desired) == 0.0 and np.array_equal(z, owner.rest_unit * desired[0]):
+            if desired[0] == desired[-1] and np.ptp(desired) == 0.0 and np.array_equal(z, owner.rest_unit(level) * desired[0]):
                 command = desired[:rows].copy()  # at rest and staying there: exactly the optimum
             else:
                 p = sweep.Gd @ desired - sweep.Gz @ z
@@ -569,6 +617,7 @@ class AxisStream:
             start += rows
             self.result.windows += 1
         self.buffer = self.buffer[start:]
+        self.extruded = self.extruded[start:]
         self.first_sample += start
         return np.concatenate(out) if out else np.empty(0)
 
@@ -577,11 +626,11 @@ class AxisStream:
         owner, desired_mm, z = self.owner, self.buffer, self.z
         settings, carry = owner.settings, owner.carry
         self.result.windows += 1
-        if np.ptp(desired_mm) == 0.0 and np.array_equal(z, owner.rest_unit * desired_mm[0]):
+        if np.ptp(desired_mm) == 0.0 and np.array_equal(z, owner.rest_unit(self.level) * desired_mm[0]):
             return desired_mm.copy()  # at rest and staying there
         n_rows = desired_mm.size
         # The spans up to the last sample; a point whose support starts at the last sample does nothing.
-        final = _Stretch(owner.models, settings, owner.limits, n_rows + settings.settle_samples,
+        final = _Stretch(owner.model_set(self.level), settings, owner.limits, n_rows + settings.settle_samples,
                          max(1, -(-(n_rows - 1) // settings.knot_spacing_samples)), hold_from=n_rows,
                          end_conditions=True)
         desired = np.concatenate([desired_mm, np.full(settings.settle_samples, desired_mm[-1])])

@@ -49,6 +49,8 @@ class AxisProfile:
     max_acceleration_mm_s2: float
     max_jerk_mm_s3: float | None
     modes: tuple[Mode, ...]  # DC gain normalized to 1; empty: the axis is not compensated
+    moving_mass_kg: float | None = None  # the axis carries the print: the modes' mass, the print adds to it
+    filament_density_g_cm3: float = 1.24  # of what is printed onto it (PLA)
 
 
 @dataclass(frozen=True)
@@ -115,7 +117,7 @@ _HOME_KEYS = {"X", "Y", "Z"}
 _MOTION_KEYS = {"sample_rate"}
 _PLANNER_KEYS = {"acceleration", "square_corner_velocity"}
 _TOLERANCE_KEYS = ("frequency_tolerance", "damping_tolerance")
-_AXIS_KEYS = {"max_velocity", "max_acceleration", "max_jerk", "modes", *_TOLERANCE_KEYS}
+_AXIS_KEYS = {"max_velocity", "max_acceleration", "max_jerk", "modes", "moving_mass", "filament_density", *_TOLERANCE_KEYS}
 _MODE_KEYS = {"frequency", "damping", "alpha", "beta", *_TOLERANCE_KEYS}
 # [firmware] key -> FirmwareProfile field, for the optional positive numbers
 _FIRMWARE_NUMBERS = {
@@ -245,7 +247,13 @@ def parse_profile(data: dict, source: str) -> MachineProfile:
             if not dc_gain > 0:
                 raise fail(f"{where}.modes", f"DC gain sum(alpha/w^2) = {dc_gain:g} must be > 0 for a position axis")
             modes = [replace(m, alpha=m.alpha / dc_gain, beta=m.beta / dc_gain) for m in modes]
-        axes[axis_name] = AxisProfile(axis_name, max_velocity, max_acceleration, max_jerk, tuple(modes))
+        load = {"moving_mass_kg": number(axis, "moving_mass", f"{where}.moving_mass", positive=True, optional=True),
+                "filament_density_g_cm3": number(axis, "filament_density", f"{where}.filament_density", positive=True,
+                                                 optional=True)}
+        if load["filament_density_g_cm3"] is not None and load["moving_mass_kg"] is None:
+            raise fail(f"{where}.filament_density", "needs moving_mass (the mass the modes were measured with)")
+        axes[axis_name] = AxisProfile(axis_name, max_velocity, max_acceleration, max_jerk, tuple(modes),
+                                      **{k: v for k, v in load.items() if v is not None})
 
     firmware = FirmwareProfile()
     if "firmware" in data:
@@ -334,6 +342,8 @@ def format_profile(profile: MachineProfile) -> str:
                   f"max_acceleration = {number(axis.max_acceleration_mm_s2)}"]
         if axis.max_jerk_mm_s3 is not None:
             lines.append(f"max_jerk = {number(axis.max_jerk_mm_s3)}")
+        if axis.moving_mass_kg is not None:
+            lines += [f"moving_mass = {number(axis.moving_mass_kg)}", f"filament_density = {number(axis.filament_density_g_cm3)}"]
         modes = [f"  {{ frequency = {number(m.frequency_hz)}, damping = {number(m.damping)}, "
                  f"alpha = {number(m.alpha)}, beta = {number(m.beta)}"
                  + "".join(f", {key} = {number(getattr(m, key))}" for key in _TOLERANCE_KEYS if getattr(m, key))
