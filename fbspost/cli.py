@@ -667,8 +667,8 @@ def _model_error_table(perturbed) -> str:
              "frequency damping  " + "".join(f"{n:9s}" for n in names) + ("best shaper" if shapers else "")]
     for frequency_scale, damping_scale, errors in perturbed:
         best = min(shapers, key=errors.get) if shapers else None
-        lines.append(f"x{frequency_scale:<8.3f} x{damping_scale:<7.2f} " + "".join(_g(errors[n], 8) + " " for n in names)
-                     + (f"{best} {_g(errors[best], 0)}" if best else ""))
+        lines.append((f"x{frequency_scale:<8.3f} x{damping_scale:<7.2f} " + "".join(_g(errors[n], 8) + " " for n in names)
+                      + (f"{best} {_g(errors[best], 0)}" if best else "")).rstrip())
     return "\n" + "\n".join(lines)
 
 
