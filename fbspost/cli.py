@@ -614,8 +614,11 @@ def _per_axis(low: float, high: float | None):
 @click.option("--json", "as_json", is_flag=True, help="Print the figures as JSON (keys in docs/simulate.md) instead of tables.")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False, path_type=Path), metavar="FILE",
               help="Also write plots: FILE.png (one page) or FILE.pdf (one panel per page).")
+@click.option("--model-error", "model_error", is_flag=True,
+              help="Also run every method's command on machines whose modes are off the profile's (every frequency "
+                   "x0.9 to x1.1 in steps of 2.5%, every damping x0.8 and x1.25): RMS contour error per method.")
 def simulate(input_path, machine, compensated, shapers, shaper_freq, shaper_damping, flavor, lead_time_s, settle_time_s,
-             as_json, plot_path):
+             as_json, plot_path, model_error):
     """Compare the original, FBS and Klipper's input shapers on INPUT, through the profile's model.
 
     Plans INPUT as the controller would and runs every axis with modes through its model: the
@@ -629,7 +632,7 @@ def simulate(input_path, machine, compensated, shapers, shaper_freq, shaper_damp
     mm/s, mm/s^2.
     """
     from .plots import FORMATS as PLOT_FORMATS, write_plot  # matplotlib is imported when plotting
-    from .simulate import shaper_settings, simulate_program
+    from .simulate import model_error as run_on_perturbed, shaper_settings, simulate_program
 
     if plot_path and plot_path.suffix.lower() not in PLOT_FORMATS:
         raise click.BadParameter(f"{plot_path}: expected a .png or .pdf file", param_hint="--plot")
@@ -647,10 +650,29 @@ def simulate(input_path, machine, compensated, shapers, shaper_freq, shaper_damp
     sim = simulate_program(input_path, profile, shapers, settings, compensated, flavor, margins)
     if plot_path:
         write_plot(sim, plot_path)
+    perturbed = run_on_perturbed(sim) if model_error else None
     if as_json:
-        click.echo(json.dumps(sim.as_dict(), indent=2))
+        document = sim.as_dict()
+        if perturbed:
+            document["model_error"] = [{"frequency_scale": f, "damping_scale": d, "rms_contour_error_um": errors}
+                                       for f, d, errors in perturbed]
+        click.echo(json.dumps(document, indent=2))
     else:
-        click.echo(_simulate_tables(sim))
+        click.echo(_simulate_tables(sim) + (_model_error_table(perturbed) if perturbed else ""))
+
+
+def _model_error_table(perturbed) -> str:
+    """``simulate --model-error``'s table: a row per perturbed machine, RMS contour error per method."""
+    names = list(perturbed[0][2])
+    shapers = [n for n in names if n not in ("original", "fbs")]
+    lines = ["", "model error: each command as made for the profile, run on a machine with every mode's frequency "
+                 "and damping scaled; RMS contour error, um",
+             "frequency damping  " + "".join(f"{n:9s}" for n in names) + ("best shaper" if shapers else "")]
+    for frequency_scale, damping_scale, errors in perturbed:
+        best = min(shapers, key=errors.get) if shapers else None
+        lines.append((f"x{frequency_scale:<8.3f} x{damping_scale:<7.2f} " + "".join(_g(errors[n], 8) + " " for n in names)
+                      + (f"{best} {_g(errors[best], 0)}" if best else "")).rstrip())
+    return "\n" + "\n".join(lines)
 
 
 def _simulate_tables(sim) -> str:

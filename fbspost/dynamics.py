@@ -11,6 +11,8 @@ so nothing here ever multiplies modes together in discrete time.
 """
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 from scipy import linalg, signal
 
@@ -135,6 +137,59 @@ class AxisDynamics:
         cancelled = np.abs(numerator) <= 1e-12 * np.abs(terms).sum(axis=0)
         leading = np.argmin(cancelled) if not cancelled.all() else numerator.size
         return np.roots(numerator[leading:])
+
+
+def scaled_mode(mode: Mode, frequency_scale: float = 1.0, damping_scale: float = 1.0) -> Mode:
+    """``mode`` with its frequency and damping scaled; the residues follow the frequency (alpha as
+    w^2, beta as w) so the mode keeps its DC gain and its shape in time."""
+    return replace(mode, frequency_hz=mode.frequency_hz * frequency_scale, damping=mode.damping * damping_scale,
+                   alpha=mode.alpha * frequency_scale**2, beta=mode.beta * frequency_scale)
+
+
+class ModelSet:
+    """Several models of one axis side by side, the nominal first: the states of all stacked
+    (block-diagonal A, B stacked), and every output stacked in the same order (``filter``,
+    ``free_response_matrix``). The optimizer minimizes the sum of their squared errors, each
+    times its weight; its limits and carried outputs are the nominal's."""
+
+    def __init__(self, models: list[AxisDynamics], weights: list[float] | None = None):
+        self.models = tuple(models)
+        self.nominal = self.models[0]
+        self.weights = tuple(weights) if weights is not None else (1.0,) * len(self.models)
+        self.sample_period_s = self.nominal.sample_period_s
+        self.A = linalg.block_diag(*(d.A for d in self.models))
+        self.B = np.concatenate([d.B for d in self.models])
+        self.n_states = self.A.shape[0]
+
+    @classmethod
+    def spread(cls, modes, sample_period_s: float) -> ModelSet:
+        """The nominal ``modes`` and the machines with every mode's frequency, then every mode's
+        damping, at the low and at the high end of its tolerance (``Mode.frequency_tolerance``,
+        ``damping_tolerance``): the modes drift together, as a load or a temperature moves them.
+        All weighed alike: the mean squared error over the set. Just the nominal without tolerances."""
+        modes = tuple(modes)
+        variants = [modes]
+        for sign in (-1.0, 1.0):
+            for frequency in (True, False):
+                variant = tuple(scaled_mode(m, 1.0 + sign * m.frequency_tolerance) if frequency
+                                else scaled_mode(m, 1.0, 1.0 + sign * m.damping_tolerance) for m in modes)
+                if variant != modes:
+                    variants.append(variant)
+        return cls([AxisDynamics(v, sample_period_s) for v in variants])
+
+    def rest_state(self, position_mm: float) -> np.ndarray:
+        return np.concatenate([d.rest_state(position_mm) for d in self.models])
+
+    def filter(self, u: np.ndarray) -> np.ndarray:
+        """Every model's response to ``u`` (along axis 0) from the zero state, stacked."""
+        return np.concatenate([d.filter(u) for d in self.models])
+
+    def free_response_matrix(self, n_samples: int) -> np.ndarray:
+        """Each model's rows C A^k on its own states: (models x n_samples, n_states)."""
+        return linalg.block_diag(*(d.free_response_matrix(n_samples) for d in self.models))
+
+    def input_to_state_matrix(self, n_samples: int) -> np.ndarray:
+        return np.vstack([d.input_to_state_matrix(n_samples) for d in self.models])
 
 
 def modal_response(modes, frequency_hz: np.ndarray) -> np.ndarray:

@@ -31,9 +31,10 @@ import daqp
 import numpy as np
 from scipy import linalg, sparse
 
-from .dynamics import AxisDynamics
+from .dynamics import AxisDynamics, ModelSet
 from .profile import AxisProfile
 from .splines import basis_matrix, uniform_knots
+from .varying import LoadModes
 
 
 @dataclass(frozen=True)
@@ -141,16 +142,18 @@ class _Stretch:
     ``end_conditions``: rows of the command's derivatives 0..r at sample ``hold_from - 1``.
     """
 
-    def __init__(self, dynamics: AxisDynamics, settings: FBSSettings, limits: AxisLimits,
+    def __init__(self, models: ModelSet, settings: FBSSettings, limits: AxisLimits,
                  n_samples: int, n_free: int, hold_from: int | None = None, end_conditions: bool = False):
-        m, k, T = settings.degree, settings.knot_spacing_samples, dynamics.sample_period_s
+        m, k, T = settings.degree, settings.knot_spacing_samples, models.sample_period_s
         self.m, self.n_free, self.n_samples = m, n_free, n_samples
         hold_from = n_samples if hold_from is None else hold_from
         knots = uniform_knots(m + n_free, m, k * T, first_knot=-m)
         rows = np.minimum(np.arange(n_samples), hold_from - 1)
         self.N = basis_matrix(knots, m, rows * T).toarray()  # n_samples x (m + n_free)
-        self.Nt = dynamics.filter(self.N)  # filtered basis, from the zero state
-        self.Phi = dynamics.free_response_matrix(n_samples)
+        # Filtered basis from the zero state and free response, every model's stacked (the nominal's first).
+        self.Nt = models.filter(self.N)
+        self.Phi = models.free_response_matrix(n_samples)
+        self.n_models = len(models.models)
 
         # Objective ||W (x - y)||, W = [I; alpha_r D_r]; differences inside the stretch only.
         weights = np.ones(n_samples)
@@ -160,6 +163,8 @@ class _Stretch:
             if a:
                 w_rows.append(a * _difference_matrix(r, n_samples - r, T))
         self.W = sparse.vstack(w_rows, format="csr")
+        if self.n_models > 1:  # sum over the models of weight x error^2
+            self.W = sparse.block_diag([math.sqrt(w) * self.W for w in models.weights], format="csr")
         self.M = np.asarray(self.W @ self.Nt[:, m:])
         self.H = self.M.T @ self.M
         self._objective_scale = 1.0 / np.abs(self.H).max()
@@ -191,7 +196,7 @@ class _Stretch:
         r_max = limits.history
         free, fixed, prev, state, row_sample = [], [], [], [], []
         for kind, table in (("command", limits.command), ("output", limits.output)):
-            basis = self.N if kind == "command" else self.Nt
+            basis = self.N if kind == "command" else self.Nt[:n_samples]
             for r, value in sorted(table.items()):
                 D = _difference_matrix(r, n_samples, T) / value
                 rows = D[:, r:] @ basis
@@ -201,7 +206,7 @@ class _Stretch:
                 column = r_max if kind == "command" else 2 * r_max
                 before[:, column - r:column] = D[:, :r].toarray()
                 prev.append(before)
-                state.append(D[:, r:] @ self.Phi if kind == "output" else np.zeros((n_samples, self.Phi.shape[1])))
+                state.append(D[:, r:] @ self.Phi[:n_samples] if kind == "output" else np.zeros((n_samples, self.Phi.shape[1])))
                 row_sample.append(np.arange(n_samples))
         self.has_limits = bool(free)
         if self.has_limits:
@@ -213,8 +218,8 @@ class _Stretch:
 
     # ---- the pieces every solve needs -------------------------------------------------------
     def target(self, desired: np.ndarray, state: np.ndarray, p_fixed: np.ndarray) -> np.ndarray:
-        """What the free control points must make the output do: x - free response - fixed part."""
-        return desired - self.Phi @ state - self.Nt[:, :self.m] @ p_fixed
+        """What the free control points must make the outputs do: x - free response - fixed part."""
+        return np.tile(desired, self.n_models) - self.Phi @ state - self.Nt[:, :self.m] @ p_fixed
 
     def gradient(self, target: np.ndarray) -> np.ndarray:
         return self.M.T @ (self.W @ target)
@@ -423,7 +428,7 @@ class _Sweep:
     limit) A p + Az z, and the next carry z' = L [z; kept points]. Everything here is built
     once per axis."""
 
-    def __init__(self, stretch: _Stretch, dynamics: AxisDynamics, carry: _Carry, commit: int, k: int):
+    def __init__(self, stretch: _Stretch, models: ModelSet, carry: _Carry, commit: int, k: int):
         m, ns, r = stretch.m, carry.n_states, carry.r_max
         self.commit, self.commit_rows = commit, commit * k
         rows = self.commit_rows
@@ -435,8 +440,9 @@ class _Sweep:
             used = max(commit, int(check.indices.max(initial=-1)) + 1)  # points the checked rows see
             self.A = check[:, :used].toarray()
             self.Az = np.hstack([stretch.A_state, stretch.A_fixed, stretch.A_prev])[index]
-        self.Gd = stretch.G[:used]
-        self.Gz = np.hstack([self.Gd @ stretch.Phi, self.Gd @ stretch.Nt[:, :m], np.zeros((used, 2 * r))])
+        G = stretch.G[:used]  # of the stacked target; every model's desired trajectory is the same
+        self.Gd = G.reshape(used, stretch.n_models, -1).sum(axis=1) if stretch.n_models > 1 else G
+        self.Gz = np.hstack([G @ stretch.Phi, G @ stretch.Nt[:, :m], np.zeros((used, 2 * r))])
         # z' from x = [z; kept points]: the kept command is N p_all with p_all = [p_fixed; kept points].
         n_x = carry.size + commit
         p_all = np.zeros((m + commit, n_x))
@@ -444,9 +450,9 @@ class _Sweep:
         p_all[m:, carry.size:] = np.eye(commit)
         state = np.zeros((ns, n_x))
         state[:, :ns] = np.eye(ns)
-        to_state = dynamics.input_to_state_matrix(rows) @ stretch.N[:rows, :m + commit]
+        to_state = models.input_to_state_matrix(rows) @ stretch.N[:rows, :m + commit]
         tail = slice(rows - r, rows)
-        self.L = np.vstack([np.linalg.matrix_power(dynamics.A, rows) @ state + to_state @ p_all,
+        self.L = np.vstack([np.linalg.matrix_power(models.A, rows) @ state + to_state @ p_all,
                             p_all[-m:],
                             stretch.N[tail, :m + commit] @ p_all,
                             stretch.Phi[tail] @ state + stretch.Nt[tail, :m + commit] @ p_all])
@@ -460,18 +466,25 @@ class AxisCompensator:
     Everything that does not depend on the trajectory (the regular window's matrices, their
     factorization, the folded maps and the QP set-up) is built on first use and reused for
     every motion run of a program.
+
+    ``models``: the set whose mean squared error is minimized (robust compensation), the
+    nominal ``dynamics`` first; by default ``dynamics`` alone. The carry holds every model's state.
+    ``varying``: modes that move with the filament printed (``stream().push``'s ``extruded_mm``):
+    each window uses the level in force at its start (level 0 is ``models``), the carry mapped
+    to it; every level's matrices are built on its first use.
     """
 
     def __init__(self, dynamics: AxisDynamics, limits: AxisLimits, settings: FBSSettings = FBSSettings(),
-                 lookahead: str = "limited"):
+                 lookahead: str = "limited", models: ModelSet | None = None, varying: LoadModes | None = None):
         if lookahead not in ("limited", "complete"):
             raise ValueError(f"lookahead must be 'limited' or 'complete', not {lookahead!r}")
         self.dynamics, self.limits, self.lookahead = dynamics, limits, lookahead
+        self.models, self.varying = models or ModelSet([dynamics]), varying
         self.settings = settings.resolve(dynamics)
-        self.carry = _Carry(dynamics.n_states, self.settings.degree, limits.history)
-        self.rest_unit = np.concatenate([dynamics.rest_state(1.0), np.ones(self.carry.size - dynamics.n_states)])
-        self._regular: _Stretch | None = None
-        self._sweep: _Sweep | None = None
+        self.carry = _Carry(self.models.n_states, self.settings.degree, limits.history)
+        self.extruded_from = None  # the first filament position pushed (mm), for ``varying``
+        self._sets = {0: self.models}
+        self._rest_units, self._regulars, self._remaps = {}, {}, {}
 
     def __call__(self, desired_mm: np.ndarray) -> AxisResult:
         stream = self.stream()
@@ -483,13 +496,35 @@ class AxisCompensator:
     def stream(self) -> AxisStream:
         return AxisStream(self)
 
-    def regular(self) -> tuple[_Stretch, _Sweep]:
-        if self._sweep is None:
+    def model_set(self, level: int = 0) -> ModelSet:
+        if level not in self._sets:
+            self._sets[level] = self.varying.models(level)
+        return self._sets[level]
+
+    def rest_unit(self, level: int = 0) -> np.ndarray:
+        """The carry at rest at 1 mm (the carry at rest at x mm is x times it)."""
+        if level not in self._rest_units:
+            models = self.model_set(level)
+            self._rest_units[level] = np.concatenate([models.rest_state(1.0), np.ones(self.carry.size - models.n_states)])
+        return self._rest_units[level]
+
+    def remap(self, z: np.ndarray, old: int, new: int) -> np.ndarray:
+        """The carry ``z`` of level ``old`` as level ``new``'s (``varying.remap``)."""
+        if (old, new) not in self._remaps:
+            self._remaps[old, new] = self.varying.remap(old, new)
+        to_new, from_command = self._remaps[old, new]
+        z = z.copy()
+        z[:self.carry.n_states] = to_new @ z[:self.carry.n_states] + from_command * self.carry.previous(z)[self.carry.r_max - 1]
+        return z
+
+    def regular(self, level: int = 0) -> tuple[_Stretch, _Sweep]:
+        if level not in self._regulars:
             k = self.settings.knot_spacing_samples
             window = self.settings.commit_spans + self.settings.overlap_spans
-            self._regular = _Stretch(self.dynamics, self.settings, self.limits, window * k, window)
-            self._sweep = _Sweep(self._regular, self.dynamics, self.carry, self.settings.commit_spans, k)
-        return self._regular, self._sweep
+            models = self.model_set(level)
+            stretch = _Stretch(models, self.settings, self.limits, window * k, window)
+            self._regulars[level] = stretch, _Sweep(stretch, models, self.carry, self.settings.commit_spans, k)
+        return self._regulars[level]
 
 
 class AxisStream:
@@ -498,23 +533,29 @@ class AxisStream:
     same, bit for bit, however the run is cut into pieces: every window is computed alike.
 
     A window runs as a regular one once the samples after its kept spans are known to outlast
-    the final window; the buffer holds the samples from the current window's start.
+    the final window; the buffer holds the samples from the current window's start (and, with
+    varying modes, the filament extruded there).
     """
 
     def __init__(self, compensator: AxisCompensator):
         self.owner = compensator
         self.result = AxisResult(np.empty(0), compensator.settings)
-        self.buffer = np.empty(0)
+        self.buffer = self.extruded = np.empty(0)
         self.first_sample = 0  # run sample at buffer[0]
         self.z = None  # the carry, once the first sample is known
+        self.level = 0  # of the model in force (AxisCompensator.varying)
 
-    def push(self, desired_mm: np.ndarray) -> np.ndarray:
+    def push(self, desired_mm: np.ndarray, extruded_mm: np.ndarray | None = None) -> np.ndarray:
+        """``extruded_mm``: the filament position at the same samples, for varying modes (unknown: NaN)."""
         desired_mm = np.asarray(desired_mm, dtype=float)
         if desired_mm.ndim != 1 or not np.all(np.isfinite(desired_mm)):
             raise ValueError("the desired trajectory must be a 1-D array of finite positions")
         self.buffer = np.concatenate([self.buffer, desired_mm])
+        if self.owner.varying is not None:
+            self._note_extruded(desired_mm.size, extruded_mm)
         if self.z is None and self.buffer.size:
-            self.z = self.owner.rest_unit * self.buffer[0]
+            self.level = self._level_at(0)
+            self.z = self.owner.rest_unit(self.level) * self.buffer[0]
         if self.owner.lookahead == "complete":
             return np.empty(0)
         return self._regular_windows()
@@ -534,6 +575,19 @@ class AxisStream:
         result.command_mm = np.concatenate([head, tail])
         return result
 
+    def _note_extruded(self, n: int, extruded_mm: np.ndarray | None) -> None:
+        """Keep the filament extruded since the compensator's first known position (0 where unknown)."""
+        owner = self.owner
+        extruded = np.full(n, np.nan) if extruded_mm is None else np.asarray(extruded_mm, dtype=float)
+        known = extruded[np.isfinite(extruded)]
+        if owner.extruded_from is None and known.size:
+            owner.extruded_from = float(known[0])
+        self.extruded = np.concatenate([self.extruded, np.nan_to_num(extruded - (owner.extruded_from or 0.0))])
+
+    def _level_at(self, sample: int) -> int:
+        """The level in force at buffer sample ``sample``."""
+        return 0 if self.owner.varying is None else self.owner.varying.level(self.extruded[sample])
+
     def _regular_windows(self) -> np.ndarray:
         """Run every window known to be regular: followed by more than the final window needs
         in the samples known so far (so whatever comes later)."""
@@ -545,10 +599,13 @@ class AxisStream:
         rows = commit * k
         out, start = [], 0
         while start + ahead < self.buffer.size:
-            stretch, sweep = owner.regular()
+            level = self._level_at(start)
+            if level != self.level:
+                self.z, self.level = owner.remap(self.z, self.level, level), level
+            stretch, sweep = owner.regular(level)
             desired = self.buffer[start:start + window * k]
             z = self.z
-            if desired[0] == desired[-1] and np.ptp(desired) == 0.0 and np.array_equal(z, owner.rest_unit * desired[0]):
+            if desired[0] == desired[-1] and np.ptp(desired) == 0.0 and np.array_equal(z, owner.rest_unit(level) * desired[0]):
                 command = desired[:rows].copy()  # at rest and staying there: exactly the optimum
             else:
                 p = sweep.Gd @ desired - sweep.Gz @ z
@@ -564,6 +621,7 @@ class AxisStream:
             start += rows
             self.result.windows += 1
         self.buffer = self.buffer[start:]
+        self.extruded = self.extruded[start:]
         self.first_sample += start
         return np.concatenate(out) if out else np.empty(0)
 
@@ -572,11 +630,11 @@ class AxisStream:
         owner, desired_mm, z = self.owner, self.buffer, self.z
         settings, carry = owner.settings, owner.carry
         self.result.windows += 1
-        if np.ptp(desired_mm) == 0.0 and np.array_equal(z, owner.rest_unit * desired_mm[0]):
+        if np.ptp(desired_mm) == 0.0 and np.array_equal(z, owner.rest_unit(self.level) * desired_mm[0]):
             return desired_mm.copy()  # at rest and staying there
         n_rows = desired_mm.size
         # The spans up to the last sample; a point whose support starts at the last sample does nothing.
-        final = _Stretch(owner.dynamics, settings, owner.limits, n_rows + settings.settle_samples,
+        final = _Stretch(owner.model_set(self.level), settings, owner.limits, n_rows + settings.settle_samples,
                          max(1, -(-(n_rows - 1) // settings.knot_spacing_samples)), hold_from=n_rows,
                          end_conditions=True)
         desired = np.concatenate([desired_mm, np.full(settings.settle_samples, desired_mm[-1])])

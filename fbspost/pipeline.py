@@ -23,15 +23,16 @@ import numpy as np
 
 from . import __version__
 from .atomicfile import atomic_write
-from .dynamics import AxisDynamics
+from .dynamics import AxisDynamics, ModelSet
 from .expand import expand
 from .fallback import FALLBACK, AxisGuard
 from .gcode import AXES, Block, NeedsInterpreter, detect_flavor, read_gcode
 from .optimizer import AxisCompensator, AxisLimits, FBSSettings
 from .planner import Plan, PlanStream, RunMargins
-from .profile import MachineProfile
+from .profile import AxisProfile, MachineProfile
 from .trajectory import InputError
 from .transparency import FirmwareSettings
+from .varying import LoadModes
 from .writer import SampleWindow, WriteOptions, format_refusal, write_program
 
 
@@ -112,6 +113,7 @@ class Report:
 
 
 _CHUNK = 1 << 14  # samples planned, compensated and written at once
+_E = AXES.index("E")  # the filament column, for modes that vary with the print
 
 
 def compensate_file(input_path: str | Path, output_path: str | Path, profile: MachineProfile,
@@ -235,7 +237,17 @@ def _compensators(profile: MachineProfile, options: CompensateOptions) -> dict[i
     period_s = 1.0 / profile.sample_rate_hz
     axes = {c: profile.axes[name] for c, name in enumerate(AXES) if name in profile.axes and profile.axes[name].modes}
     return {c: AxisCompensator(AxisDynamics(axis.modes, period_s), AxisLimits.from_profile(axis), options.settings,
-                               options.lookahead) for c, axis in axes.items()}
+                               options.lookahead, ModelSet.spread(axis.modes, period_s), load_modes(profile, axis))
+            for c, axis in axes.items()}
+
+
+def load_modes(profile: MachineProfile, axis: AxisProfile) -> LoadModes | None:
+    """The axis' modes against the filament printed, if it carries the print (``moving_mass``)."""
+    if axis.moving_mass_kg is None:
+        return None
+    filament_mm2 = math.pi * (0.5 * profile.firmware.filament_diameter_mm) ** 2
+    return LoadModes(axis.modes, 1.0 / profile.sample_rate_hz, axis.moving_mass_kg,
+                     filament_mm2 * axis.filament_density_g_cm3 * 1e-3)
 
 
 def _compensated(plan: Plan | PlanStream, compensators: dict[int, AxisCompensator], errors: dict,
@@ -329,7 +341,8 @@ def _optimized(plan: Plan | PlanStream, compensators: dict[int, AxisCompensator]
 
         follows, pending = False, None  # pending: the last piece and its pushes under way
         for planned in itertools.chain(pieces(first), [None]):
-            running = None if planned is None else {c: _submit(lanes, c, streams[c].push, planned[:, c]) for c in streams}
+            running = None if planned is None else {c: _submit(lanes, c, streams[c].push, planned[:, c], planned[:, _E])
+                                                    for c in streams}
             if pending is not None:
                 planned_rows = np.concatenate([planned_rows, pending[0]])
                 commands = {c: np.concatenate([commands[c], pending[1][c].result()]) for c in streams}

@@ -10,7 +10,7 @@ Errors are raised as ``ProfileError`` with a one-line message naming the file an
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
 
@@ -34,6 +34,8 @@ class Mode:
     damping: float
     alpha: float  # 1/s^2
     beta: float  # 1/s
+    frequency_tolerance: float = 0.0  # relative spread of frequency_hz the compensation must cover
+    damping_tolerance: float = 0.0  # relative spread of damping (docs/robust.md)
 
     @property
     def omega_rad_s(self) -> float:
@@ -47,6 +49,8 @@ class AxisProfile:
     max_acceleration_mm_s2: float
     max_jerk_mm_s3: float | None
     modes: tuple[Mode, ...]  # DC gain normalized to 1; empty: the axis is not compensated
+    moving_mass_kg: float | None = None  # the axis carries the print: the modes' mass, the print adds to it
+    filament_density_g_cm3: float = 1.24  # of what is printed onto it (PLA)
 
 
 @dataclass(frozen=True)
@@ -112,8 +116,9 @@ _TOP_KEYS = {"name", "description", "motion", "planner", "firmware", "axes", "ho
 _HOME_KEYS = {"X", "Y", "Z"}
 _MOTION_KEYS = {"sample_rate"}
 _PLANNER_KEYS = {"acceleration", "square_corner_velocity"}
-_AXIS_KEYS = {"max_velocity", "max_acceleration", "max_jerk", "modes"}
-_MODE_KEYS = {"frequency", "damping", "alpha", "beta"}
+_TOLERANCE_KEYS = ("frequency_tolerance", "damping_tolerance")
+_AXIS_KEYS = {"max_velocity", "max_acceleration", "max_jerk", "modes", "moving_mass", "filament_density", *_TOLERANCE_KEYS}
+_MODE_KEYS = {"frequency", "damping", "alpha", "beta", *_TOLERANCE_KEYS}
 # [firmware] key -> FirmwareProfile field, for the optional positive numbers
 _FIRMWARE_NUMBERS = {
     "max_line_rate": "max_line_rate_hz", "max_velocity": "max_velocity_mm_s",
@@ -219,6 +224,7 @@ def parse_profile(data: dict, source: str) -> MachineProfile:
         if not isinstance(raw_modes, list):
             raise fail(f"{where}.modes", "must be a list of tables")
         modes = []
+        axis_tolerances = [_tolerance(axis, key, f"{where}.{key}", 0.0, fail, number) for key in _TOLERANCE_KEYS]
         for i, raw in enumerate(raw_modes):
             mwhere = f"{where}.modes[{i}]"
             if not isinstance(raw, dict):
@@ -232,20 +238,38 @@ def parse_profile(data: dict, source: str) -> MachineProfile:
             damping = number(raw, "damping", f"{mwhere}.damping")
             if not 0 < damping < 1:
                 raise fail(f"{mwhere}.damping", f"must be in (0, 1), got {damping!r}")
+            tolerances = [_tolerance(raw, key, f"{mwhere}.{key}", default, fail, number)
+                          for key, default in zip(_TOLERANCE_KEYS, axis_tolerances)]
             modes.append(Mode(frequency, damping, number(raw, "alpha", f"{mwhere}.alpha"),
-                              number(raw, "beta", f"{mwhere}.beta")))
+                              number(raw, "beta", f"{mwhere}.beta"), *tolerances))
         if modes:
             dc_gain = sum(m.alpha / m.omega_rad_s**2 for m in modes)
             if not dc_gain > 0:
                 raise fail(f"{where}.modes", f"DC gain sum(alpha/w^2) = {dc_gain:g} must be > 0 for a position axis")
-            modes = [Mode(m.frequency_hz, m.damping, m.alpha / dc_gain, m.beta / dc_gain) for m in modes]
-        axes[axis_name] = AxisProfile(axis_name, max_velocity, max_acceleration, max_jerk, tuple(modes))
+            modes = [replace(m, alpha=m.alpha / dc_gain, beta=m.beta / dc_gain) for m in modes]
+        load = {"moving_mass_kg": number(axis, "moving_mass", f"{where}.moving_mass", positive=True, optional=True),
+                "filament_density_g_cm3": number(axis, "filament_density", f"{where}.filament_density", positive=True,
+                                                 optional=True)}
+        if load["filament_density_g_cm3"] is not None and load["moving_mass_kg"] is None:
+            raise fail(f"{where}.filament_density", "needs moving_mass (the mass the modes were measured with)")
+        axes[axis_name] = AxisProfile(axis_name, max_velocity, max_acceleration, max_jerk, tuple(modes),
+                                      **{k: v for k, v in load.items() if v is not None})
 
     firmware = FirmwareProfile()
     if "firmware" in data:
         firmware = _parse_firmware(table(data, "firmware", "firmware", _FIRMWARE_KEYS), fail, number)
     return MachineProfile(name.strip(), description, source, sample_rate, acceleration, scv, axes, firmware,
                           home_mm)
+
+
+def _tolerance(raw: dict, key: str, where: str, default: float, fail, number) -> float:
+    """A relative tolerance in [0, 0.5) (``fail`` and ``number`` as in ``parse_profile``)."""
+    value = number(raw, key, where, optional=True)
+    if value is None:
+        return default
+    if not 0 <= value < 0.5:
+        raise fail(where, f"must be in [0, 0.5), got {value!r}")
+    return value
 
 
 def _parse_firmware(raw: dict, fail, number) -> FirmwareProfile:
@@ -318,8 +342,12 @@ def format_profile(profile: MachineProfile) -> str:
                   f"max_acceleration = {number(axis.max_acceleration_mm_s2)}"]
         if axis.max_jerk_mm_s3 is not None:
             lines.append(f"max_jerk = {number(axis.max_jerk_mm_s3)}")
+        if axis.moving_mass_kg is not None:
+            lines += [f"moving_mass = {number(axis.moving_mass_kg)}", f"filament_density = {number(axis.filament_density_g_cm3)}"]
         modes = [f"  {{ frequency = {number(m.frequency_hz)}, damping = {number(m.damping)}, "
-                 f"alpha = {number(m.alpha)}, beta = {number(m.beta)} }}," for m in axis.modes]
+                 f"alpha = {number(m.alpha)}, beta = {number(m.beta)}"
+                 + "".join(f", {key} = {number(getattr(m, key))}" for key in _TOLERANCE_KEYS if getattr(m, key))
+                 + " }," for m in axis.modes]
         lines += ["modes = [", *modes, "]"] if modes else ["modes = []"]
     return "\n".join(lines) + "\n"
 

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .dynamics import AxisDynamics
+from .dynamics import AxisDynamics, scaled_mode
 from .gcode import AXES, Block, Kind, detect_flavor, read_gcode
 from .pipeline import compensated_samples
 from .planner import EXTRUDE_ONLY_MM, Plan, RunMargins, fill_unknown, plan_blocks
@@ -39,6 +39,8 @@ from .profile import AxisProfile, MachineProfile, ProfileError
 from .shapers import SHAPERS, Shaper, klipper_shaper, shape
 from .trajectory import InputError
 
+# --model-error: the machines the commands run on, (frequency scale, damping scale) of every mode
+MODEL_ERRORS = (*((1.0 + 0.025 * i, 1.0) for i in range(-4, 5)), (1.0, 0.8), (1.0, 1.25))
 SETTLE_PERIODS = 5.0  # residual vibration is watched for this many periods of the lowest mode
 MOVING_MM = 1e-9  # a command this far from its rest has left it (shaped rests round to ~1e-13)
 _PIECE_MM = 0.25  # the path is searched in straight pieces no longer than this
@@ -205,6 +207,26 @@ def simulate_program(program: str | Path, profile: MachineProfile, shapers: tupl
         sim.methods.append(Method(name, label, shaper_rows.get(name, {}), command, actual, error, nearest))
     _measure(sim, period_s, distance)
     return sim
+
+
+def model_error(sim: Simulation, points=MODEL_ERRORS) -> list[tuple[float, float, dict[str, float]]]:
+    """Every method's command, as made for the nominal profile, run on machines whose every mode
+    has its frequency and damping scaled: per (frequency scale, damping scale) of ``points``, the
+    RMS contour error (um) by method name."""
+    period_s = 1.0 / sim.profile.sample_rate_hz
+    distance = PathDistance(sim.path_start_mm, sim.path_end_mm)
+    table = []
+    for frequency_scale, damping_scale in points:
+        machine = {AXES.index(a): AxisDynamics([scaled_mode(m, frequency_scale, damping_scale)
+                                                for m in sim.profile.axes[a].modes], period_s) for a in sim.modelled}
+        errors = {}
+        for method in sim.methods:
+            actual = method.command_mm[sim.contour_mask].copy()  # the contour samples' XYZ, once simulated
+            for column, model in machine.items():
+                actual[:, column] = model.simulate(method.command_mm[:, column])[sim.contour_mask]
+            errors[method.name] = _rms_um(distance(actual[:, _XYZ])[0])
+        table.append((frequency_scale, damping_scale, errors))
+    return table
 
 
 def execute_program(blocks: list[Block]) -> tuple[np.ndarray, np.ndarray]:

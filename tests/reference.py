@@ -28,6 +28,32 @@ def simulate_lsim(modes, period_s, command):
     return np.asarray(y) + command[0]
 
 
+def simulate_varying(modes, period_s, command, scale):
+    """Actual position for a zero-order-hold command, from rest at command[0], of modes (beta = 0)
+    whose every frequency is ``scale[k]`` times its own over sample k, the DC gain kept: per mode
+    y'' + 2 z w_k y' + w_k^2 y = alpha_k u, alpha_k = alpha scale_k^2, in the coordinates a change
+    of mass leaves continuous (y, y'). Exact per sample (matrix exponential), scales rounded to 1e-9."""
+    command = np.asarray(command, dtype=float)
+    u = command - command[0]
+    rounded = np.round(np.asarray(scale, dtype=float), 9)
+    total = np.zeros(command.size)
+    for mode in modes:
+        assert mode.beta == 0.0
+        scales, index = np.unique(rounded, return_inverse=True)
+        w = 2 * np.pi * mode.frequency_hz * scales
+        augmented = np.zeros((scales.size, 3, 3))
+        augmented[:, 0, 1] = 1.0
+        augmented[:, 1, 0], augmented[:, 1, 1] = -w * w, -2 * mode.damping * w
+        augmented[:, 1, 2] = mode.alpha * scales**2
+        steps = linalg.expm(augmented * period_s)[:, :2]  # all the scales' [A_d | B_d] at once
+        x = np.zeros(2)
+        for k in range(command.size):
+            total[k] += x[0]
+            step = steps[index[k]]
+            x = step[:, :2] @ x + step[:, 2] * u[k]
+    return total + command[0]
+
+
 def rms(x):
     return float(np.sqrt(np.mean(np.square(x))))
 

@@ -1,0 +1,163 @@
+"""How fast FBS loses its gain as the machine drifts from its profile, robust or not, and with modes
+that move with the print (docs/robust.md).
+
+Run from the repository root:  python bench/robust.py [LINES]  (default: the first 8000 lines of
+tests/data/gear-marlin2.gcode, on printer-two-mode and tests/data/printer-two-mode-robust.toml).
+
+1. Predictions (fbspost's model of the machine): ``fbspost simulate --model-error`` for the
+   nominal and the robust profile; RMS contour error of FBS and of the best input shaper on every
+   perturbed machine, and the gain (RMS contour error removed) at the nominal.
+2. Firmware results: the original and both compensated programs (as Klipper programs) through
+   klippy's own planner (bench/firmware.py), then through each perturbed machine's modes; the
+   shapers applied to klippy's plan of the original.
+3. Load-dependent modes (predictions): Y carries the print and its frequency falls 15% by the
+   end of the program (the bed's mass chosen so); the machine simulated exactly per sample
+   (tests/reference.py simulate_varying). Gains: FBS on the machine it models (constant), the
+   load-dependent profile's FBS and the fixed profile's FBS on the varying machine.
+4. Speed: ``fbspost compensate`` of the program, its optimizer's time per window (--report),
+   nominal and robust.
+"""
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import json
+import math
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path[:0] = [str(ROOT), str(ROOT / "tests"), str(ROOT / "bench")]
+
+from firmware import contour_um, klippy_run, modelled  # noqa: E402
+from fbspost.dynamics import scaled_mode  # noqa: E402
+from fbspost.gcode import AXES  # noqa: E402
+from fbspost.profile import load_profile  # noqa: E402
+from fbspost.shapers import SHAPERS, klipper_shaper, shape  # noqa: E402
+from fbspost.simulate import MODEL_ERRORS, PathDistance, model_error, shaper_settings, simulate_program  # noqa: E402
+from reference import simulate_varying  # noqa: E402
+
+PROGRAM = "tests/data/gear-marlin2.gcode"
+MACHINES = {"nominal": "printer-two-mode", "robust": "tests/data/printer-two-mode-robust.toml"}
+
+
+def perturbed(profile, frequency_scale, damping_scale):
+    axes = {name: dataclasses.replace(axis, modes=tuple(scaled_mode(m, frequency_scale, damping_scale) for m in axis.modes))
+            for name, axis in profile.axes.items()}
+    return dataclasses.replace(profile, axes=axes)
+
+
+def predictions(program: Path) -> dict:
+    print(f"1. predictions (fbspost's model): {program.name}, RMS contour error um")
+    sims = {name: simulate_program(program, load_profile(machine)) for name, machine in MACHINES.items()}
+    tables = {name: model_error(sim) for name, sim in sims.items()}
+    _table([(f, d, {"original": e["original"], "fbs nominal": e["fbs"], "fbs robust": r["fbs"],
+                    **_best(e)}) for (f, d, e), (_, _, r) in zip(tables["nominal"], tables["robust"])])
+    return sims
+
+
+def firmware(program: Path) -> None:
+    print("\n2. firmware results (klippy's planner, then each perturbed machine's modes), RMS contour error um")
+    profile = load_profile(MACHINES["nominal"])
+    with tempfile.TemporaryDirectory() as tmp:
+        plans = {}
+        for name, machine in MACHINES.items():
+            output = Path(tmp) / f"{name}.gcode"
+            subprocess.run([sys.executable, "-m", "fbspost.cli", "compensate", str(program), "-m", machine, "-o",
+                            str(output), "--flavor", "klipper", "-q"], cwd=ROOT, check=True)
+            plans[f"fbs {name}"] = klippy_run(output, profile, "klipper")[2]
+        _, moves, original = klippy_run(program, profile, "klipper")
+    chosen = [m for m in moves if m.is_kinematic and m.axes_r[3] > 0]
+    path = PathDistance(np.array([m.start_pos[:3] for m in chosen]), np.array([m.end_pos[:3] for m in chosen]))
+    period = 1.0 / profile.sample_rate_hz
+    settings = shaper_settings(profile)
+    shapers = {n: {a: klipper_shaper(n, *settings[a]) for a in settings} for n in SHAPERS}
+    pad = math.ceil(max(s.lead_s + s.lag_s for row in shapers.values() for s in row.values()) / period) + 1
+    padded = np.pad(original, ((pad, pad), (0, 0)), mode="edge")
+    commands = {"original": (original, original), **{n: (p, p) for n, p in plans.items()}}
+    for name, row in shapers.items():
+        command = padded.copy()
+        for axis, shaper in row.items():
+            command[:, AXES.index(axis)] = shape(padded[:, AXES.index(axis)], period, shaper)
+        commands[name] = (command, padded)
+    rows = []
+    for f, d in MODEL_ERRORS:
+        machine = perturbed(profile, f, d)
+        errors = {n: contour_um(modelled(c, machine), ref, path, True)[0] for n, (c, ref) in commands.items()}
+        rows.append((f, d, {k: errors[k] for k in ("original", "fbs nominal", "fbs robust")} | _best(errors)))
+    _table(rows)
+
+
+def load_dependent(sim) -> None:
+    print("\n3. load-dependent modes (predictions, the machine simulated exactly per sample): Y 15% lower at the end")
+    profile = sim.profile
+    e = sim.desired_mm[:, AXES.index("E")]
+    extruded = np.maximum(e - e[np.isfinite(e)][0], 0.0)
+    g_per_mm = math.pi * (0.5 * profile.firmware.filament_diameter_mm) ** 2 * 1.24e-3
+    mass_kg = extruded.max() * g_per_mm * 1e-3 / (1 / 0.85**2 - 1)
+    scale = np.sqrt(mass_kg / (mass_kg + extruded * g_per_mm * 1e-3))
+    axes = dict(profile.axes, Y=dataclasses.replace(profile.axes["Y"], moving_mass_kg=mass_kg))
+    loaded = simulate_program(sim.program, dataclasses.replace(profile, axes=axes))
+    distance = PathDistance(sim.path_start_mm, sim.path_end_mm)
+    y = AXES.index("Y")
+
+    def rms(method, varying):
+        actual = method.actual_mm.copy()
+        if varying:
+            actual[:, y] = simulate_varying(profile.axes["Y"].modes, 1.0 / profile.sample_rate_hz,
+                                            method.command_mm[:, y], scale)
+        return float(np.sqrt(np.mean(distance(actual[sim.contour_mask, :3])[0] ** 2))) * 1e3
+
+    original, fbs = sim.methods[:2]
+    before = rms(original, True)
+    print(f"  moving mass {mass_kg * 1e3:.3g} g, {extruded.max():.0f} mm of filament; RMS contour error um, gain = removed")
+    for label, error, base in (("fbs, constant machine it models", rms(fbs, False), rms(original, False)),
+                               ("fbs load-dependent, varying machine", rms(loaded.methods[1], True), before),
+                               ("fbs fixed profile, varying machine", rms(fbs, True), before)):
+        print(f"  {label:38} {error:8.3f} of {base:8.3f}   gain {100 * (1 - error / base):5.1f}%")
+
+
+def speed(program: Path) -> None:
+    print("\n4. speed: fbspost compensate, the optimizer's time per window (--report; a loaded machine: noisy)")
+    with tempfile.TemporaryDirectory() as tmp:
+        for name, machine in MACHINES.items():
+            report = Path(tmp) / "report.json"
+            subprocess.run([sys.executable, "-m", "fbspost.cli", "compensate", str(program), "-m", machine, "-o",
+                            str(Path(tmp) / "out.gcode"), "--report", str(report), "-q"], cwd=ROOT, check=True)
+            data = json.loads(report.read_text())
+            windows = sum(a["windows"] for a in data["axes"].values())
+            optimize_s = data["stage_time_s"]["optimize"]
+            print(f"  {name:8} {windows:6d} windows  optimize {optimize_s:7.2f} s  {1e3 * optimize_s / windows:6.2f} ms/window")
+
+
+def _best(errors: dict) -> dict:
+    best = min((n for n in errors if n in SHAPERS), key=errors.get)
+    return {f"best shaper ({best})": errors[best]}
+
+
+def _table(rows) -> None:
+    print(f"  {'freq':6} {'damp':5} " + " ".join(f"{k.split(' (')[0]:>12}" for k in rows[0][2]) + "  best shaper")
+    for f, d, errors in rows:
+        best = next(k for k in errors if k.startswith("best"))
+        print(f"  x{f:<5.3f} x{d:<4.2f} " + " ".join(f"{v:12.3f}" for v in errors.values()) + f"  {best[13:-1]}"
+              + ("" if errors["fbs robust"] <= errors[best] else "  (robust fbs above the best shaper)"))
+    nominal = next(e for f, d, e in rows if (f, d) == (1.0, 1.0))
+    gains = {k: nominal["original"] - nominal[k] for k in ("fbs nominal", "fbs robust")}
+    print(f"  at the nominal, the robust FBS keeps {100 * gains['fbs robust'] / gains['fbs nominal']:.1f}% of the "
+          f"nominal FBS's gain (RMS contour error removed)")
+
+
+if __name__ == "__main__":
+    lines = int(sys.argv[1]) if len(sys.argv) > 1 else 8000
+    with tempfile.TemporaryDirectory() as folder:
+        head = Path(folder) / f"gear-{lines}.gcode"
+        with open(ROOT / PROGRAM, "rb") as f:
+            head.write_bytes(b"".join(itertools.islice(f, lines)))
+        sims = predictions(head)
+        firmware(head)
+        load_dependent(sims["nominal"])
+        speed(head)
