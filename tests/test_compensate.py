@@ -95,7 +95,7 @@ def test_butterfly_g5_follows_the_command_in_fewer_blocks(butterfly_g5_runs, nam
     tolerance (1 um) and 0.2 um of rounding there, within both outputs' tolerances at every
     sample; as long as the plan; every non-motion line; the same end; fewer blocks."""
     source = SAMPLES / f"{name}.gcode"
-    dense, g5 = (execute(path, PATENT.sample_rate_hz) for path in butterfly_g5_runs[name])
+    dense, g5 = (execute(path, PATENT.sample_rate_hz, dwell_p_seconds=True) for path in butterfly_g5_runs[name])
     original = execute(source)
     ends = np.array(dense.ends)
     assert np.hypot(*(positions_at(g5.path, ends[:, 0])[:, :2] - ends[:, 1:3]).T).max() <= 1.2e-3

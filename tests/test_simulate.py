@@ -56,6 +56,7 @@ def resimulate(program, profile, report, compensated=None):
     contour samples, the path's segments (XYZ), the modelled axes and the settle time. The FBS
     row: ``compensated`` run block by block at its feeds, or else the optimizer on every run."""
     period_s = 1.0 / profile.sample_rate_hz
+    seconds = detect_flavor(program) == "linuxcnc"  # its G4 P
     blocks = list(read_gcode(program, detect_flavor(program), profile.home_mm))
     plan = plan_blocks(blocks, profile, margins=RunMargins.for_profile(profile))
     modelled = [a for a in "XYZ" if a in profile.axes and profile.axes[a].modes]
@@ -63,7 +64,7 @@ def resimulate(program, profile, report, compensated=None):
     lead = max([-s["times_s"][0] for row in shapers.values() for s in row.values()], default=0.0)
     lag = max([s["times_s"][-1] for row in shapers.values() for s in row.values()], default=0.0)
     if compensated:  # (the written program may end a little after the plan: its dwells are whole ms)
-        lag = max(lag, execute(compensated, profile.sample_rate_hz).ends[-1][0] - (len(plan.positions_mm) - 1) * period_s)
+        lag = max(lag, execute(compensated, profile.sample_rate_hz, seconds).ends[-1][0] - (len(plan.positions_mm) - 1) * period_s)
     settle_s = SETTLE_PERIODS / min(m.frequency_hz for a in modelled for m in profile.axes[a].modes)
     before = math.ceil(lead / period_s - 1e-9)
     after = math.ceil(lag / period_s - 1e-9) + math.ceil(settle_s / period_s)
@@ -73,7 +74,7 @@ def resimulate(program, profile, report, compensated=None):
 
     fbs = desired.copy()
     if compensated:
-        ends = np.array(execute(compensated, profile.sample_rate_hz).ends)
+        ends = np.array(execute(compensated, profile.sample_rate_hz, seconds).ends)
         _, executed = sample_blocks(ends, profile.sample_rate_hz)
         fbs[before:before + len(executed)] = executed[:len(desired) - before]
         fbs[before + len(executed):] = executed[-1]
