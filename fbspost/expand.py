@@ -75,11 +75,12 @@ def canonical_calls(program: str | Path, tool_table: str | Path | None = None, i
         table = Path(tool_table).resolve() if tool_table else Path(work, "empty.tbl")
         table.touch(exist_ok=True)
         out = Path(work, "canon.txt")
-        args = [rs274, "-t", str(table), "-g", str(Path(program).resolve()), str(out)]
-        if ini:
+        args = [rs274, "-t", str(table), "-v", str(Path(work, "rs274ngc.var")), "-g", str(Path(program).resolve()),
+                str(out)]
+        if ini:  # LinuxCNC runs in the INI's directory: its relative paths (SUBROUTINE_PATH, ...) are from there
             args[1:1] = ["-i", str(Path(ini).resolve())]
         try:
-            proc = subprocess.run(args, cwd=work, stdin=subprocess.DEVNULL, capture_output=True, text=True,
+            proc = subprocess.run(args, cwd=Path(ini).resolve().parent if ini else work, stdin=subprocess.DEVNULL, capture_output=True, text=True,
                                   errors="replace", timeout=timeout_s)
         except subprocess.TimeoutExpired:
             raise InputError(program, None, f"LinuxCNC's interpreter rs274 did not finish in {timeout_s:g} s") from None
@@ -101,7 +102,9 @@ def _arguments(text: str) -> list[str]:
 
 
 def _rs274_error(program: str | Path, lines: list[str]) -> InputError:
-    """rs274 prints its message, then the block: the line is found by its text in the program."""
+    """rs274 prints its message, then the block: the line is found by its text in the program.
+    (Its note that it could not update a parameter file is not the error.)"""
+    lines = [text for text in lines if not text.startswith("link (updating variable file)")]
     message = lines[-2].strip() if len(lines) >= 2 else (lines[-1].strip() if lines else "failed")
     block = lines[-1].strip() if len(lines) >= 2 else None
     line_no = None

@@ -87,10 +87,11 @@ def _off_move(point, start, end, arc) -> float:
 
 
 def path_problems(original: str | Path, compensated_input: str | Path, expanded: bool,
-                  tool_table: str | Path | None = None, tolerance_mm: float = 1e-3) -> list[str]:
+                  tool_table: str | Path | None = None, tolerance_mm: float = 1e-3,
+                  ini: str | Path | None = None) -> list[str]:
     """Where the reader's path of ``compensated_input`` leaves rs274's path of ``original`` by more
     than ``tolerance_mm`` (plus rs274's printed rounding, 0.0001 of the program's unit)."""
-    moves, unit = canonical_moves(canonical_calls(original, tool_table), with_tool=expanded)
+    moves, unit = canonical_moves(canonical_calls(original, tool_table, ini), with_tool=expanded)
     tol = tolerance_mm + 1.5e-4 * unit
     points = reader_points(compensated_input)
     k = 0  # every point on a canonical move, in order
@@ -129,11 +130,12 @@ def _is_number(text: str) -> bool:
     return True
 
 
-def command_problems(original: str | Path, output: str | Path, tool_table: str | Path | None = None) -> list[str]:
+def command_problems(original: str | Path, output: str | Path, tool_table: str | Path | None = None,
+                     ini: str | Path | None = None) -> list[str]:
     """Differences between the non-motion canonical calls of ``original`` and of ``output``.
     The blending mode (SET_MOTION_CONTROL_MODE) is compared where the programs end: the output
     sets its own around the compensated blocks (transparency) and gives back the program's."""
-    want, got = (_normalized(canonical_calls(path, tool_table)) for path in (original, output))
+    want, got = (_normalized(canonical_calls(path, tool_table, ini)) for path in (original, output))
     modes = [[c for c in calls if c[0] == "SET_MOTION_CONTROL_MODE"][-1:] for calls in (want, got)]
     if modes[0] and modes[0] != modes[1]:
         return [f"the program ends in {modes[0]}, the output in {modes[1]}"]

@@ -18,6 +18,7 @@ from canon_check import command_problems, path_problems
 from fbspost.cli import main
 from fbspost.expand import expand
 from fbspost.gcode import CHORD_TOLERANCE_MM, Kind, nurbs_points, read_gcode
+from fbspost.trajectory import InputError
 
 needs_rs274 = pytest.mark.skipif(shutil.which("rs274") is None,
                                  reason="LinuxCNC's rs274 is not installed (apt-get install linuxcnc-uspace)")
@@ -212,3 +213,21 @@ def test_without_rs274_one_line_says_how_to_install_it(tmp_path, monkeypatch):
     assert result.exit_code == 1 and result.stderr == (
         f"error: {program}: LinuxCNC's interpreter rs274 is not installed: apt-get install linuxcnc-uspace\n")
     assert not (tmp_path / "out.ngc").exists()
+
+
+@needs_rs274
+def test_ini_subroutine_path_is_from_the_ini_directory(tmp_path):
+    """LinuxCNC runs in its INI's directory: a relative SUBROUTINE_PATH is found from there,
+    wherever fbspost runs; the expansion follows rs274's path (a 5 mm square from the subroutine)."""
+    config = tmp_path / "config"
+    (config / "subs").mkdir(parents=True)
+    (config / "machine.ini").write_text("[RS274NGC]\nSUBROUTINE_PATH = ./subs\n")
+    (config / "subs" / "square.ngc").write_text("o<square> sub\nG1 X#1\nG1 Y#1\nG1 X0\nG1 Y0\no<square> endsub\nM2\n")
+    program, expanded = tmp_path / "part.ngc", tmp_path / "x.ngc"
+    program.write_text("G21 G90 F600\nG0 X0 Y0 Z1\no<square> call [5]\nM2\n")
+    with pytest.raises(InputError, match="seeking o-word: o<square>"):
+        expand(program, expanded, "test")
+    expand(program, expanded, "test", ini=config / "machine.ini")
+    moves = [line for line in expanded.read_text().splitlines() if line.startswith("G1")]
+    assert moves == ["G1 X5 F600", "G1 Y5", "G1 X0", "G1 Y0"]
+    assert path_problems(program, expanded, True, ini=config / "machine.ini") == []
