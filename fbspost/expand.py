@@ -31,6 +31,7 @@ from .trajectory import InputError
 INSTALL_HINT = "LinuxCNC's interpreter rs274 is not installed: apt-get install linuxcnc-uspace"
 _CALL = re.compile(r"\s*\d+\s+N\S*\s+([A-Z0-9_]+)\((.*)\)\s*$")
 _NUMBER = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
+_G62 = re.compile(r"(?<![A-Za-z#<])G\s*0*6\s*\.\s*2(?!\d)", re.IGNORECASE)
 _M66 = re.compile(r"^[^;(]*?(?<![A-Za-z#<])M\s*0*66(?![\d.])", re.IGNORECASE)
 _PLANES = {"CANON_PLANE_XY": (0, 1, 2, 17), "CANON_PLANE_YZ": (1, 2, 0, 19), "CANON_PLANE_XZ": (2, 0, 1, 18)}
 _WCS = ["G54", "G55", "G56", "G57", "G58", "G59", "G59.1", "G59.2", "G59.3"]
@@ -111,6 +112,8 @@ def _rs274_error(program: str | Path, lines: list[str]) -> InputError:
     if block:
         with open(program, encoding="utf-8", errors="replace") as f:
             line_no = next((i for i, text in enumerate(f, 1) if text.strip() == block), None)
+    if block and _G62.search(block):  # LinuxCNC 2.10's; Debian's rs274 is 2.9
+        message = f"G6.2 (LinuxCNC 2.10's NURBS) is not run by this install's rs274: {message}"
     return InputError(program, line_no, f"LinuxCNC's interpreter: {message}")
 
 
@@ -327,6 +330,8 @@ class _Expander:
         yield self.move("G3" if turns > 0 else "G2", target, f" {words}{extra}" + self.feed_word(None), arc=True)
 
     def target(self, args) -> list[float]:
+        if any(float(a) != 0.0 for a in args[6:9]):
+            raise InputError(self.program, None, "U V W axes are not supported by --expand")
         values = [float(a) for a in args[:6]]
         return self.to_output(values + [0.0] * (6 - len(values)))
 

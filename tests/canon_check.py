@@ -17,53 +17,62 @@ from pathlib import Path
 import numpy as np
 
 from fbspost.expand import MOTION_CALLS, STATE_CALLS, canonical_calls
-from fbspost.gcode import Kind, read_gcode
+from fbspost.gcode import AXES, Kind, read_gcode
 
 _PLANE_AXES = {"CANON_PLANE_XY": (0, 1, 2), "CANON_PLANE_YZ": (1, 2, 0), "CANON_PLANE_XZ": (2, 0, 1)}
 
 
 def canonical_moves(calls, with_tool: bool) -> tuple[list[tuple], float]:
-    """rs274's moves as (start, end, arc) in mm, XYZ, with the G92 (and tool length) offsets
-    added; arc = (centre, first, second, axis, turns) or None. Also the largest unit (mm) seen."""
-    scale, unit, g92, tool = 1.0, 1.0, np.zeros(3), np.zeros(3)
-    plane, pos, moves = "CANON_PLANE_XY", np.zeros(3), []
+    """rs274's moves as (start, end, arc) in mm (degrees), X Y Z A B C, with the G92 (and tool
+    length) offsets added; arc = (centre, first, second, axis, turns) or None. Also the largest
+    unit (mm) seen."""
+    scale, unit, g92, tool = 1.0, 1.0, np.zeros(6), np.zeros(6)
+    plane, pos, moves = "CANON_PLANE_XY", np.zeros(6), []
+
+    def values(args):  # X Y Z in the program's unit, A B C in degrees
+        return np.array([float(a) for a in args[:6]] + [0.0] * (6 - len(args[:6]))) * ([scale] * 3 + [1.0] * 3)
+
     for name, args in calls:
         if name == "USE_LENGTH_UNITS":
             scale = 25.4 if args[0] == "CANON_UNITS_INCHES" else 1.0
             unit = max(unit, scale)
         elif name == "SET_G92_OFFSET":
-            g92 = np.array([float(a) for a in args[:3]]) * scale
+            g92 = values(args)
         elif name == "USE_TOOL_LENGTH_OFFSET" and with_tool:
-            tool = np.array([float(a) for a in args[:3]]) * scale
+            tool = values(args)
         elif name == "SET_G5X_OFFSET":
             pos = None  # a new frame: the next move's start is not compared
         elif name == "SELECT_PLANE":
             plane = args[0]
         elif name in ("STRAIGHT_TRAVERSE", "STRAIGHT_FEED"):
-            end = np.array([float(a) for a in args[:3]]) * scale + g92 + tool
+            end = values(args) + g92 + tool
             moves.append((pos, end, None))
             pos = end
         elif name == "ARC_FEED":
             a, b, c = _PLANE_AXES[plane]
             v = [float(x) for x in args]
-            end, centre = np.zeros(3), np.zeros(3)
+            end, centre = np.zeros(6), np.zeros(6)
             end[a], end[b], end[c] = v[0], v[1], v[5]
+            end[3:] = v[6:9]
             centre[a], centre[b] = v[2], v[3]
-            end, centre = end * scale + g92 + tool, centre * scale + g92 + tool
+            end, centre = end * ([scale] * 3 + [1.0] * 3) + g92 + tool, centre * scale + g92 + tool
             moves.append((pos, end, (centre, a, b, c, int(v[4]))))
             pos = end
     return moves, unit
 
 
+_XYZABC = [AXES.index(a) for a in "XYZABC"]
+
+
 def reader_points(program: str | Path) -> list[np.ndarray]:
-    """Every position fbspost's reader puts the tool at, in order (XYZ, NaN where unknown: a line
-    fbspost copies as it is, where LinuxCNC's path is its own by construction)."""
+    """Every position fbspost's reader puts the tool at, in order (X Y Z A B C, NaN where
+    unknown: a line fbspost copies as it is, where LinuxCNC's path is its own by construction)."""
     points = []
     for block in read_gcode(program, "linuxcnc"):
         if block.kind is Kind.MOVE:
-            points.extend(block.points_mm[:, :3])
+            points.extend(block.points_mm[:, _XYZABC])
         elif block.kind is Kind.STOP:
-            points.append(block.position_mm[:3])
+            points.append(block.position_mm[_XYZABC])
     return points
 
 
@@ -81,9 +90,10 @@ def _off_move(point, start, end, arc) -> float:
     r1 = math.hypot(end[a] - centre[a], end[b] - centre[b])
     r = math.hypot(point[a] - centre[a], point[b] - centre[b])
     radial = max(0.0, min(abs(r - r0), abs(r - r1)) if min(r0, r1) <= r <= max(r0, r1) else min(abs(r - r0), abs(r - r1)))
-    lo, hi = sorted((start[c], end[c]))
-    axial = max(lo - point[c], point[c] - hi, 0.0) if known[c] else 0.0
-    return math.hypot(radial if known[a] and known[b] else 0.0, axial)
+    # the arc's axis and A B C move linearly: within their ranges
+    lo, hi = np.minimum(start, end)[[c, 3, 4, 5]], np.maximum(start, end)[[c, 3, 4, 5]]
+    linear = np.nan_to_num(np.maximum(np.maximum(lo - point[[c, 3, 4, 5]], point[[c, 3, 4, 5]] - hi), 0.0))
+    return math.hypot(radial if known[a] and known[b] else 0.0, *linear)
 
 
 def path_problems(original: str | Path, compensated_input: str | Path, expanded: bool,
