@@ -322,6 +322,10 @@ class _Expander:
         center = [values[2] * self.scale + self.g92[first] + self.tool[first],
                   values[3] * self.scale + self.g92[second] + self.tool[second]]
         center = _equidistant(center, (self.pos[first], self.pos[second]), (target[first], target[second]))
+        if center == [self.pos[first], self.pos[second]] == [target[first], target[second]]:
+            # a helix narrower than rs274's printed digits (0.5e-4 of the unit): its axis' line
+            yield self.move("G1", target, self.feed_word(None))
+            return
         turns = int(values[4])
         offsets = {first: center[0] - self.pos[first], second: center[1] - self.pos[second]}
         words = " ".join(f"{'IJK'[i]}{_mm(offsets[i])}" for i in sorted(offsets))

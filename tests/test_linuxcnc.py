@@ -298,3 +298,14 @@ def test_g62_under_expand_says_this_rs274_cannot_run_it(tmp_path):
         f"error: {program}:4: LinuxCNC's interpreter: G6.2 (LinuxCNC 2.10's NURBS) is not run by this install's "
         "rs274: Unknown g code used\n")
     assert not (tmp_path / "out.ngc").exists()
+
+
+def test_helix_narrower_than_rs274s_digits_is_its_axis_line():
+    """rs274 prints a helix of radius below its 4 decimals (cutter compensation on a hole of the
+    tool's size, useful-subroutines.ngc) with its centre on its start and end: LinuxCNC runs a
+    circle within 0.5e-4 of an inch of the axis, written as the plunge along it."""
+    from fbspost.expand import _Expander
+    calls = [("USE_LENGTH_UNITS", ["CANON_UNITS_INCHES"]), ("SET_FEED_RATE", ["60.0000"]),
+             ("STRAIGHT_TRAVERSE", ["1.0000", "2.0000", "0.1000", "0", "0", "0"]),
+             ("ARC_FEED", ["1.0000", "2.0000", "1.0000", "2.0000", "1", "-0.0212", "0", "0", "0"])]
+    assert list(_Expander("p.ngc", [0]).lines(calls))[1:] == ["G1 Z-0.53848 F1524"]
