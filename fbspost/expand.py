@@ -10,11 +10,14 @@ absolute (G90, incremental arc centres G91.1); the program's G92 and tool length
 tool table given) are added into its coordinates (G92.1 G49 in its header); work coordinate
 systems are selected as the program selects them, and offsets the program sets itself (G10 L2,
 L20) are written back as G10 L2. Coordinates are rs274's: 4 decimals in the program's units
-(0.1 um in mm, 2.54 um in inches).
+(0.1 um in mm, 2.54 um in inches); a helix narrower than those digits is its axis' line. With
+the machine's INI, rs274 runs in the INI's directory, as LinuxCNC does (relative subroutine
+paths, remaps).
 
 Refused (``InputError``): what rs274 reports without its data (G5/G5.1/G5.2 curves: ``NURBS_FEED``
 gives no control points; M66 waits), probing, spindle-synchronized motion, feed per revolution,
-coordinate rotation, and rs274's own errors (with the line it names).
+coordinate rotation, U V W, and rs274's own errors (with the line it names; for G6.2, that this
+install's rs274, LinuxCNC 2.9, does not run it).
 """
 from __future__ import annotations
 
