@@ -1,9 +1,13 @@
 """LinuxCNC's example programs through fbspost: what compensates, what is refused and why, and
 no silently wrong output.
 
-Every .ngc program of Debian's linuxcnc-uspace (subroutine-only files left out) that LinuxCNC's
-interpreter rs274 runs without error (tool table: the sim configuration's sim.tbl) is
-compensated for the patent's stage (``--flavor linuxcnc``, expanded by rs274 where it needs it).
+Every .ngc program of Debian's linuxcnc-uspace (files whose code is all inside O-word
+subroutines left out) that LinuxCNC's interpreter rs274 runs without error is compensated for
+the patent's stage (``--flavor linuxcnc``, expanded by rs274 where it needs it). rs274 is tried
+as a user would run it: with the sim configuration's sim.tbl and no INI, else with each INI of
+the program's own configuration (the nearest directory above it that has one; rs274 in the INI's
+directory, the INI's tool table), for its subroutine paths and remapped codes. Programs rs274
+runs without any motion (remaps that end the program without LinuxCNC's HAL) are counted apart.
 For every compensated program: the program fbspost compensated, re-read by fbspost with
 compensation off, follows rs274's canonical path within the tolerance (1 um, plus rs274's printed
 rounding), and rs274 run on fbspost's output gives the same non-motion commands, in order.
@@ -25,26 +29,56 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
 
 from canon_check import command_problems, path_problems  # noqa: E402
-from fbspost.expand import canonical_calls, expand  # noqa: E402
+from fbspost.expand import MOTION_CALLS, canonical_calls, expand  # noqa: E402
 from fbspost.gcode import NeedsInterpreter, read_gcode  # noqa: E402
 from fbspost.pipeline import CompensateOptions, compensate_file  # noqa: E402
 from fbspost.profile import load_profile  # noqa: E402
 from fbspost.trajectory import InputError  # noqa: E402
 
 TOOL_TABLE = Path("/usr/share/doc/linuxcnc/examples/sample-configs/sim/axis/sim.tbl")
-_SUB_ONLY = re.compile(r"\s*o\s*(?:<[^>]*>|\d+)\s*sub\b", re.IGNORECASE)
+SAMPLE_CONFIGS = TOOL_TABLE.parent.parent
+_SUBROUTINE = re.compile(r"^\s*o\s*(<[^>]*>|\d+)\s*sub\b.*?^\s*o\s*\1\s*endsub[^\n]*$",
+                         re.IGNORECASE | re.MULTILINE | re.DOTALL)
+_END = re.compile(r"%|[mM]0*(?:2|30)")
 
 
 def example_programs() -> list[Path]:
-    """linuxcnc-uspace's .ngc files, subroutine-only ones (first code line ``o<name> sub``) left out."""
+    """linuxcnc-uspace's .ngc files with code outside their O-word subroutines (other than % and M2/M30)."""
     listed = subprocess.run(["dpkg", "-L", "linuxcnc-uspace"], capture_output=True, text=True).stdout.split()
     programs = []
     for name in sorted(p for p in listed if p.endswith(".ngc")):
-        with open(name, encoding="utf-8", errors="replace") as f:
-            code = next((c for c in (re.sub(r"\([^)]*\)|;.*", "", t).strip() for t in f) if c), "")
-        if not _SUB_ONLY.match(code):
+        text = _SUBROUTINE.sub("", Path(name).read_text(encoding="utf-8", errors="replace"))
+        code = (re.sub(r"\([^)]*\)|;.*", "", line).strip() for line in text.splitlines())
+        if any(c and not _END.fullmatch(c) for c in code):
             programs.append(Path(name))
     return programs
+
+
+def invocations(program: Path) -> list[tuple[Path, Path | None]]:
+    """(tool table, INI) to run ``program`` with: sim.tbl alone, then its configuration's INIs."""
+    found = []
+    for folder in program.parents:
+        found = sorted(folder.glob("*.ini"))
+        if found or folder == SAMPLE_CONFIGS or SAMPLE_CONFIGS not in folder.parents:
+            break
+    return [(TOOL_TABLE, None)] + [(_ini_tool_table(ini), ini) for ini in found]
+
+
+def _ini_tool_table(ini: Path) -> Path:
+    m = re.search(r"^\s*TOOL_TABLE\s*=\s*(\S+)", ini.read_text(encoding="utf-8", errors="replace"), re.MULTILINE)
+    table = ini.parent / m.group(1) if m else TOOL_TABLE
+    return table if table.is_file() else TOOL_TABLE
+
+
+def runnable(program: Path) -> tuple[tuple[Path, Path | None] | None, bool]:
+    """The first invocation rs274 runs ``program`` with (None: none), and whether it moves."""
+    for table, ini in invocations(program):
+        try:
+            calls = canonical_calls(program, table, ini, timeout_s=60)
+        except InputError:
+            continue
+        return (table, ini), any(name in MOTION_CALLS for name, _ in calls)
+    return None, False
 
 
 def needs_expansion(program: Path) -> bool:
@@ -58,10 +92,10 @@ def needs_expansion(program: Path) -> bool:
     return False
 
 
-def outcome(program: Path, profile, work: Path) -> str:
+def outcome(program: Path, profile, work: Path, table: Path, ini: Path | None) -> str:
     """'compensated', 'WRONG: ...' or the refusal's reason (its message without file, line, numbers)."""
     output = work / "out.ngc"
-    options = CompensateOptions(flavor="linuxcnc", tool_table=TOOL_TABLE)
+    options = CompensateOptions(flavor="linuxcnc", tool_table=table, ini=ini)
     try:
         compensate_file(program, output, profile, options)
     except InputError as exc:
@@ -74,9 +108,10 @@ def outcome(program: Path, profile, work: Path) -> str:
     read = program
     if expanded:
         read = work / "expanded.ngc"
-        expand(program, read, "check", TOOL_TABLE)
+        expand(program, read, "check", table, ini)
     try:
-        problems = path_problems(program, read, expanded, TOOL_TABLE) + command_problems(program, output, TOOL_TABLE)
+        problems = (path_problems(program, read, expanded, table, ini=ini)
+                    + command_problems(program, output, table, ini))
     except InputError as exc:
         problems = [f"rs274 or the reader refuses what fbspost wrote: {exc}"]
     return "WRONG: " + "; ".join(problems) if problems else "compensated"
@@ -89,24 +124,26 @@ def main() -> None:
     args = parser.parse_args()
     profile = load_profile("patent-xy-stage")
     programs = example_programs()[: args.limit]
-    runnable = []
+    runs, still = {}, []
     for program in programs:
-        try:
-            canonical_calls(program, TOOL_TABLE, timeout_s=60)
-            runnable.append(program)
-        except InputError:
-            pass
-    print(f"{len(programs)} example programs (subroutine-only files left out), {len(runnable)} run through rs274 "
-          "without error")
+        how, moves = runnable(program)
+        if how is not None and moves:
+            runs[program] = how
+        elif how is not None:
+            still.append((program, how))
+    with_ini = sum(ini is not None for _, ini in [*runs.values(), *(how for _, how in still)])
+    print(f"{len(programs)} example programs (subroutine-only files left out), {len(runs) + len(still)} run "
+          f"through rs274 without error ({with_ini} of them with their configuration's INI); {len(still)} of these "
+          f"make no motion in rs274 (left out below): {', '.join(p.name for p, _ in still)}")
     counts = collections.Counter()
     started = time.perf_counter()
-    for program in runnable:
+    for program, (table, ini) in runs.items():
         with tempfile.TemporaryDirectory() as work:
-            result = outcome(program, profile, Path(work))
+            result = outcome(program, profile, Path(work), table, ini)
         counts[result] += 1
         if args.verbose:
             print(f"  {program}: {result}", flush=True)
-    total = len(runnable)
+    total = len(runs)
     print(f"\n| outcome | programs | share |\n|---|---|---|")
     for result, n in sorted(counts.items(), key=lambda item: (item[0] != "compensated", -item[1], item[0])):
         print(f"| {result} | {n} | {100 * n / total:.0f}% |")

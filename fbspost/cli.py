@@ -153,7 +153,8 @@ def machines():
 @click.option("--tool-table", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="With --expand: the machine's LinuxCNC tool table (tool lengths and diameters).")
 @click.option("--ini", type=click.Path(exists=True, dir_okay=False, path_type=Path),
-              help="With --expand: the machine's LinuxCNC INI file (subroutine paths).")
+              help="With --expand: the machine's LinuxCNC INI file (subroutine paths, remaps; rs274 runs in its "
+                   "directory, as LinuxCNC does).")
 @click.option("--report", "report_path", type=click.Path(dir_okay=False, path_type=Path),
               help="Also write the summary as JSON to this file (one INPUT only).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar and no summary on stderr.")

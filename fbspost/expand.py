@@ -10,11 +10,14 @@ absolute (G90, incremental arc centres G91.1); the program's G92 and tool length
 tool table given) are added into its coordinates (G92.1 G49 in its header); work coordinate
 systems are selected as the program selects them, and offsets the program sets itself (G10 L2,
 L20) are written back as G10 L2. Coordinates are rs274's: 4 decimals in the program's units
-(0.1 um in mm, 2.54 um in inches).
+(0.1 um in mm, 2.54 um in inches); a helix narrower than those digits is its axis' line. With
+the machine's INI, rs274 runs in the INI's directory, as LinuxCNC does (relative subroutine
+paths, remaps).
 
 Refused (``InputError``): what rs274 reports without its data (G5/G5.1/G5.2 curves: ``NURBS_FEED``
 gives no control points; M66 waits), probing, spindle-synchronized motion, feed per revolution,
-coordinate rotation, and rs274's own errors (with the line it names).
+coordinate rotation, U V W, and rs274's own errors (with the line it names; for G6.2, that this
+install's rs274, LinuxCNC 2.9, does not run it).
 """
 from __future__ import annotations
 
@@ -31,6 +34,7 @@ from .trajectory import InputError
 INSTALL_HINT = "LinuxCNC's interpreter rs274 is not installed: apt-get install linuxcnc-uspace"
 _CALL = re.compile(r"\s*\d+\s+N\S*\s+([A-Z0-9_]+)\((.*)\)\s*$")
 _NUMBER = re.compile(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?")
+_G62 = re.compile(r"(?<![A-Za-z#<])G\s*0*6\s*\.\s*2(?!\d)", re.IGNORECASE)
 _M66 = re.compile(r"^[^;(]*?(?<![A-Za-z#<])M\s*0*66(?![\d.])", re.IGNORECASE)
 _PLANES = {"CANON_PLANE_XY": (0, 1, 2, 17), "CANON_PLANE_YZ": (1, 2, 0, 19), "CANON_PLANE_XZ": (2, 0, 1, 18)}
 _WCS = ["G54", "G55", "G56", "G57", "G58", "G59", "G59.1", "G59.2", "G59.3"]
@@ -75,11 +79,12 @@ def canonical_calls(program: str | Path, tool_table: str | Path | None = None, i
         table = Path(tool_table).resolve() if tool_table else Path(work, "empty.tbl")
         table.touch(exist_ok=True)
         out = Path(work, "canon.txt")
-        args = [rs274, "-t", str(table), "-g", str(Path(program).resolve()), str(out)]
-        if ini:
+        args = [rs274, "-t", str(table), "-v", str(Path(work, "rs274ngc.var")), "-g", str(Path(program).resolve()),
+                str(out)]
+        if ini:  # LinuxCNC runs in the INI's directory: its relative paths (SUBROUTINE_PATH, ...) are from there
             args[1:1] = ["-i", str(Path(ini).resolve())]
         try:
-            proc = subprocess.run(args, cwd=work, stdin=subprocess.DEVNULL, capture_output=True, text=True,
+            proc = subprocess.run(args, cwd=Path(ini).resolve().parent if ini else work, stdin=subprocess.DEVNULL, capture_output=True, text=True,
                                   errors="replace", timeout=timeout_s)
         except subprocess.TimeoutExpired:
             raise InputError(program, None, f"LinuxCNC's interpreter rs274 did not finish in {timeout_s:g} s") from None
@@ -101,13 +106,17 @@ def _arguments(text: str) -> list[str]:
 
 
 def _rs274_error(program: str | Path, lines: list[str]) -> InputError:
-    """rs274 prints its message, then the block: the line is found by its text in the program."""
+    """rs274 prints its message, then the block: the line is found by its text in the program.
+    (Its note that it could not update a parameter file is not the error.)"""
+    lines = [text for text in lines if not text.startswith("link (updating variable file)")]
     message = lines[-2].strip() if len(lines) >= 2 else (lines[-1].strip() if lines else "failed")
     block = lines[-1].strip() if len(lines) >= 2 else None
     line_no = None
     if block:
         with open(program, encoding="utf-8", errors="replace") as f:
             line_no = next((i for i, text in enumerate(f, 1) if text.strip() == block), None)
+    if block and _G62.search(block):  # LinuxCNC 2.10's; Debian's rs274 is 2.9
+        message = f"G6.2 (LinuxCNC 2.10's NURBS) is not run by this install's rs274: {message}"
     return InputError(program, line_no, f"LinuxCNC's interpreter: {message}")
 
 
@@ -316,6 +325,10 @@ class _Expander:
         center = [values[2] * self.scale + self.g92[first] + self.tool[first],
                   values[3] * self.scale + self.g92[second] + self.tool[second]]
         center = _equidistant(center, (self.pos[first], self.pos[second]), (target[first], target[second]))
+        if center == [self.pos[first], self.pos[second]] == [target[first], target[second]]:
+            # a helix narrower than rs274's printed digits (0.5e-4 of the unit): its axis' line
+            yield self.move("G1", target, self.feed_word(None))
+            return
         turns = int(values[4])
         offsets = {first: center[0] - self.pos[first], second: center[1] - self.pos[second]}
         words = " ".join(f"{'IJK'[i]}{_mm(offsets[i])}" for i in sorted(offsets))
@@ -324,6 +337,8 @@ class _Expander:
         yield self.move("G3" if turns > 0 else "G2", target, f" {words}{extra}" + self.feed_word(None), arc=True)
 
     def target(self, args) -> list[float]:
+        if any(float(a) != 0.0 for a in args[6:9]):
+            raise InputError(self.program, None, "U V W axes are not supported by --expand")
         values = [float(a) for a in args[:6]]
         return self.to_output(values + [0.0] * (6 - len(values)))
 

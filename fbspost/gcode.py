@@ -4,7 +4,8 @@ Takes a G-code file (bytes, any line endings, any encoding in comments) and a fl
 order, one ``Block`` per input line: its number and exact bytes, whether it moves the machine
 (MOVE: planned and rewritten by fbspost), passes through while the motion continues (PASS), or
 passes through with the machine at rest (STOP), the linear pieces of a move in machine
-coordinates (mm, axes X Y Z E; arcs and Beziers subdivided), planner-limit changes, and the
+coordinates (mm, the columns of AXES: X Y Z E, then LinuxCNC's A B C U V W; arcs and Beziers
+subdivided), planner-limit changes, and the
 modal state after the line. Bad input raises ``trajectory.InputError`` naming the file and line.
 
 ``read_gcode(path, flavor)`` streams the blocks; ``detect_flavor(path)`` guesses the flavor from
@@ -45,8 +46,12 @@ the first 2000 and last 300 lines. How lines are read:
   point the current position, clamped uniform integer knots, weights P) and cut into pieces
   within CHORD_TOLERANCE_MM; the G5.2 line, its control point lines and the G5.3 line each
   carry a share of the curve (one MOVE each), so that none is copied without its curve.
-- LinuxCNC A B C U V W words (axes fbspost does not plan): the line is a STOP, passed through
-  byte-exact, its XYZ end known. E, P, Q, L in M62..M68 are the I/O command's words.
+- LinuxCNC's other axes, A B C (degrees, also under G20) and U V W, are columns of AXES after E:
+  planned and written like the axes without modes (followed exactly, not compensated); a move's
+  feed is along XYZ, else U V W, else A B C (``feed_lengths``, LinuxCNC's rule). They start
+  unknown: an axis' first move is a STOP, as a move from an unknown XYZ is. (In the printers'
+  flavors they stay at 0 and their words are errors.) E, P, Q, L in M62..M68 are the I/O
+  command's words.
 - Errors: cutter compensation, rotation, scaling, canned cycles, inverse-time or per-revolution
   feed, parameters and expressions, O-word subroutines and control flow, and in LinuxCNC G7,
   G33 and the lathe cycles (``NeedsInterpreter``
@@ -67,8 +72,26 @@ import numpy as np
 
 from .trajectory import InputError
 
-AXES = ("X", "Y", "Z", "E")  # column order of every position array
+AXES = ("X", "Y", "Z", "E", "A", "B", "C", "U", "V", "W")  # column order of every position array
+_E = 3
+_EXTRA = tuple(range(4, len(AXES)))  # LinuxCNC's rotary and other axes: followed exactly (no modes)
+_DEGREES = (4, 5, 6)  # A B C: degrees, whatever G20/G21 say
 FLAVORS = ("marlin", "klipper", "reprap", "linuxcnc")
+
+
+def feed_lengths(delta_mm: np.ndarray, xyz_moves: np.ndarray | None = None,
+                 still_mm: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """The length each move's feed is along, and where XYZ do not move: the XYZ length where XYZ
+    move (``xyz_moves``; by default where the XYZ length is above ``still_mm``), else the U V W
+    length, else the A B C length (LinuxCNC's rule for its feed, docs "Feed Rate"), else |dE|
+    (the printers' extrude-only moves)."""
+    def norm(columns):
+        return np.sqrt(np.einsum("ij,ij->i", delta_mm[:, columns], delta_mm[:, columns]))
+
+    xyz, uvw, abc = norm(slice(0, 3)), norm(slice(7, 10)), norm(slice(4, 7))
+    still = ~(xyz > still_mm) if xyz_moves is None else ~xyz_moves
+    other = np.where(uvw > still_mm, uvw, np.where(abc > still_mm, abc, np.abs(delta_mm[:, _E])))
+    return np.where(still, other, xyz), still
 
 
 class NeedsInterpreter(InputError):
@@ -108,7 +131,7 @@ class Modal:
     absolute_xyz: bool = True  # G90 / G91
     absolute_e: bool = True  # M82 / M83 (G90 / G91 set it too, as Marlin and RRF do)
     inches: bool = False  # G20 / G21
-    offsets_mm: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)  # program = machine - offset (G92)
+    offsets_mm: tuple[float, ...] = (0.0,) * len(AXES)  # program = machine - offset (G92)
     plane: int = 17  # G17 / G18 / G19: the G5 writer needs G17
 
 
@@ -118,8 +141,8 @@ class Block:
     raw: bytes  # the line exactly as read, line ending included
     kind: Kind
     modal: Modal  # after this line
-    position_mm: np.ndarray  # (4,) machine position after this line; NaN where unknown
-    points_mm: np.ndarray | None = None  # MOVE: (k, 4) machine-coordinate end points of its k >= 1 linear pieces
+    position_mm: np.ndarray  # (len(AXES),) machine position after this line; NaN where unknown
+    points_mm: np.ndarray | None = None  # MOVE: (k, len(AXES)) machine-coordinate end points of its k >= 1 linear pieces
     feed_mm_s: float | None = None  # MOVE: requested feed along the path; math.inf for a rapid (G0)
     dwell_s: float = 0.0  # STOP: time at rest (G4)
     limits: PlannerLimits | None = None  # planner changes made by this line
@@ -188,7 +211,7 @@ _STOP_M = {0.0, 1.0, 2.0, 6.0, 30.0, 60.0, 109.0, 116.0, 190.0, 191.0, 400.0, 59
 _LIMIT_M = {201.0, 203.0, 204.0, 205.0, 566.0}
 _KLIPPER_PASS = {"SET_FAN_SPEED", "SET_PRESSURE_ADVANCE", "SET_HEATER_TEMPERATURE",
                  "EXCLUDE_OBJECT_START", "EXCLUDE_OBJECT_END", "EXCLUDE_OBJECT_DEFINE"}
-_OTHER_AXES = "ABCUVW"
+_OTHER_AXES = "".join(AXES[i] for i in _EXTRA)
 _EXPAND_HINT = "--expand runs it through LinuxCNC's interpreter"
 _NURBS_G = {5.1, 5.2, 5.3, 6.2}  # LinuxCNC splines; G6.2 (LinuxCNC 2.10) is not supported
 _IO_M = {62.0, 63.0, 64.0, 65.0, 66.0, 67.0, 68.0}  # LinuxCNC I/O: E P Q L are its words
@@ -235,8 +258,10 @@ class _Reader:
         self.home_mm = [float(v) for v in home_mm]
         self.flavor = flavor
         self.cnc = flavor == "linuxcnc"
-        self.pos = [_NAN, _NAN, _NAN, 0.0]  # machine position: XYZ unknown, E at 0
-        self.off = [0.0, 0.0, 0.0, 0.0]  # program = machine - off (G92)
+        # machine position: XYZ (and LinuxCNC's other axes) unknown, E at 0 (the printers' other axes never move)
+        self.pos = [_NAN, _NAN, _NAN, 0.0] + [_NAN if self.cnc else 0.0] * len(_EXTRA)
+        self.off = [0.0] * len(AXES)  # program = machine - off (G92)
+        self.frame = (0, 1, 2, *_EXTRA) if self.cnc else (0, 1, 2)  # the axes an unknown frame or command loses
         self.saved_off = None  # G92.2 keeps the offsets here for G92.3
         self.abs_xyz = True
         self.abs_e = True  # as given by M82/M83 (and G90/G91 in Marlin)
@@ -398,10 +423,10 @@ class _Reader:
                 if number in _PASS_M:
                     return self.block(n, raw, Kind.PASS)
                 if number not in _STOP_M:  # M23/M28/M32/M33/M928: files, maybe printed from here
-                    self.forget((0, 1, 2), e_too=True)
+                    self.forget(self.frame, e_too=True)
                 return self.block(n, raw, Kind.STOP)
             if "{" in code:  # an RRF/Klipper expression the firmware evaluates
-                self.forget((0, 1, 2), e_too=True)
+                self.forget(self.frame, e_too=True)
                 return self.block(n, raw, Kind.STOP)
 
         # words
@@ -486,7 +511,7 @@ class _Reader:
         if name == "SET_INPUT_SHAPER":  # Klipper flushes its look-ahead to change shaping: at rest
             return self.block(n, raw, Kind.STOP)
         # a macro or an unknown command: it may move anything
-        self.forget((0, 1, 2), e_too=True)
+        self.forget(self.frame, e_too=True)
         return self.block(n, raw, Kind.STOP)
 
     # -- a line of words -------------------------------------------------------------------------
@@ -601,7 +626,8 @@ class _Reader:
                     self.saved_off = self.off[:]
                 else:
                     self.saved_off = None
-                self.off[0] = self.off[1] = self.off[2] = 0.0
+                for i in self.frame:
+                    self.off[i] = 0.0
                 modal_changed = True
             elif g == 92.3 and self.cnc:
                 if self.saved_off is not None:
@@ -610,7 +636,7 @@ class _Reader:
                     modal_changed = True
             elif g == 28.0:
                 axis_words_used = True
-                named = [i for i, a in enumerate("XYZ") if a in params] or (0, 1, 2)
+                named = [i for i in self.frame if AXES[i] in params] or self.frame
                 if self.cnc:  # LinuxCNC: to the position stored in #5161.., not in the file
                     self.forget(named)
                 else:  # homing: the homed axes are at the machine's home position
@@ -619,7 +645,7 @@ class _Reader:
                 kind = Kind.STOP
             elif g == 29.0 or g == 30.0 or 38.0 <= g < 39.0:
                 axis_words_used = True
-                self.forget((0, 1, 2))
+                self.forget(self.frame)
                 kind = Kind.STOP
             elif g == 10.0 or g == 11.0:
                 axis_words_used = True
@@ -663,7 +689,7 @@ class _Reader:
         if unknown:  # with a motion too ("G53 G0 Z0"): it moves in a frame fbspost does not know
             if motion is not None:
                 self.motion = motion
-            self.forget((0, 1, 2), e_too=True)
+            self.forget(self.frame, e_too=True)
             kind = Kind.STOP
         return self.block(n, raw, kind, dwell_s=dwell, limits=limits, sets_position=sets_position)
 
@@ -693,10 +719,10 @@ class _Reader:
         if dups and dups & set("XYZE"):
             raise self.error(n, f"{''.join(sorted(dups))} given twice")
         values = {}
-        for i, a in enumerate(AXES):
-            v = params.get(a)
-            if v is not None:
-                values[i] = self.number(n, a, v) * scale  # E follows G20/G21 too (Marlin)
+        for i in (*self.frame, _E):
+            v = params.get(AXES[i])
+            if v is not None:  # E follows G20/G21 too (Marlin)
+                values[i] = self.number(n, AXES[i], v) * (1.0 if i in _DEGREES else scale)
         if not values:
             if self.flavor == "klipper":  # Klipper: G92 alone zeroes all axes
                 values = {0: 0.0, 1: 0.0, 2: 0.0, 3: 0.0}
@@ -765,20 +791,18 @@ class _Reader:
             raise self.error(n, junk)
         if dups:
             raise self.error(n, f"{''.join(sorted(dups))} given twice")
-        named = False
-        for a in _OTHER_AXES:
-            if a in params:
-                if not self.cnc:
+        if not self.cnc:
+            for a in _OTHER_AXES:
+                if a in params:
                     raise self.error(n, f"axis {a}: only X Y Z E are supported")
-                self.number(n, a, params[a])
-                named = stop = True  # an axis fbspost does not plan: the controller runs the line as written
+        named = False
         start = self.pos
         target = start[:]
         off = self.off
-        for i in (0, 1, 2):
+        for i in self.frame:
             v = params.get(AXES[i])
             if v is not None:
-                x = self.number(n, AXES[i], v) * scale
+                x = self.number(n, AXES[i], v) * (1.0 if i in _DEGREES else scale)
                 target[i] = x + off[i] if self.abs_xyz else target[i] + x
                 named = True
         v = params.get("E")
@@ -896,11 +920,9 @@ class _Reader:
         frac = np.arange(1, count + 1) / count
         theta = t0 + sweep * frac
         radius = r0 + (r1 - r0) * frac
-        points = np.empty((count, 4))
+        points = _along(start, target, frac)  # the helical axis, E and the other axes
         points[:, a] = cu + radius * np.cos(theta)
         points[:, b] = cv + radius * np.sin(theta)
-        points[:, lin] = start[lin] + (target[lin] - start[lin]) * frac
-        points[:, 3] = start[3] + (target[3] - start[3]) * frac
         points[-1] = target
         return points
 
@@ -943,10 +965,8 @@ class _Reader:
         lengths = (np.hypot(d1[..., 0], d1[..., 1]) * _GAUSS_W).sum(axis=1) / (2.0 * count)
         total = lengths.sum()
         frac = np.cumsum(lengths) / total if total > 0.0 else t[:, 0]
-        points = np.empty((count, 4))
+        points = _along(start, target, frac)
         points[:, :2] = xy
-        points[:, 2] = start[2] + (target[2] - start[2]) * frac
-        points[:, 3] = start[3] + (target[3] - start[3]) * frac
         points[-1] = target
         if target == start and count == 1:
             return None
@@ -1023,9 +1043,8 @@ class _Spline:
         moves = start[0] == start[0] and start[1] == start[1] and reader.feed is not None
         if moves:
             xy = _spline_pieces(ctrl, self.order, len(own))
-            points = np.empty((len(xy), 4))
+            points = np.tile(np.asarray(start, dtype=float), (len(xy), 1))
             points[:, :2] = xy
-            points[:, 2:] = start[2:]
             points[-1] = target
             shares = np.array_split(points, len(own))
         out = []
@@ -1041,6 +1060,12 @@ class _Spline:
             else:
                 out.append(Block(line[0], line[1], Kind.STOP, reader.modal, np.array(target)))
         return out[0] if len(out) == 1 else out
+
+
+def _along(start: list[float], target: list[float], frac: np.ndarray) -> np.ndarray:
+    """(len(frac), len(AXES)): every axis moved linearly from ``start`` to ``target`` by ``frac``."""
+    start = np.asarray(start)
+    return start + (np.asarray(target) - start) * np.asarray(frac)[:, None]
 
 
 def nurbs_points(ctrl: np.ndarray, order: int, u: np.ndarray) -> np.ndarray:

@@ -149,7 +149,9 @@ class _Stretch:
         hold_from = n_samples if hold_from is None else hold_from
         knots = uniform_knots(m + n_free, m, k * T, first_knot=-m)
         rows = np.minimum(np.arange(n_samples), hold_from - 1)
-        self.N = basis_matrix(knots, m, rows * T).toarray()  # n_samples x (m + n_free)
+        # Times on the knots' own scale, (r / K) (K T): a sample on a knot is that knot's time to
+        # the bit (r T can round past the spline's last knot, outside its base interval).
+        self.N = basis_matrix(knots, m, rows / k * (k * T)).toarray()  # n_samples x (m + n_free)
         # Filtered basis from the zero state and free response, every model's stacked (the nominal's first).
         self.Nt = models.filter(self.N)
         self.Phi = models.free_response_matrix(n_samples)
@@ -169,7 +171,7 @@ class _Stretch:
         self.H = self.M.T @ self.M
         self._objective_scale = 1.0 / np.abs(self.H).max()
         if end_conditions:
-            t_end = (hold_from - 1) * T
+            t_end = (hold_from - 1) / k * (k * T)
             self.E = np.vstack([basis_matrix(knots, m, [t_end], r).toarray()
                                 for r in range(settings.end_rest_order + 1)])
             n_eq = len(self.E)

@@ -10,8 +10,9 @@ max_velocity, the Z and extruder limits, the extruder's junction limit; equal to
 code, tests/test_firmware_klipper.py); otherwise, for the other flavors, with the smoothing
 switched off and the profile's per-axis limits, as follows:
 
-- Every linear piece of a MOVE block is one move: its distance is the XYZ length, or |dE| when
-  XYZ moves less than 1e-9 mm (extrude-only); its cruise speed is the feed, limited by the
+- Every linear piece of a MOVE block is one move: its distance is the XYZ length, or when XYZ
+  moves less than 1e-9 mm (extrude-only) the U V W length, else the A B C length (LinuxCNC's
+  rule: its other axes are planned like XYZ and E, followed exactly), else |dE|; its cruise speed is the feed, limited by the
   planner's VELOCITY (if set) and, for every axis A with a limit, by max_velocity_A / |u_A|
   (u the piece's direction per mm of distance, E included). G0 (infinite feed) runs as fast as
   the limits allow. Zero-length pieces are dropped, as Klipper does. Axis limits are the
@@ -76,7 +77,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .gcode import AXES, Block, Kind
+from .gcode import AXES, Block, Kind, feed_lengths
 from . import klipper_rules
 from .profile import MachineProfile
 
@@ -98,8 +99,8 @@ class Pieces:
 
     block: np.ndarray  # (m,) index of the block each piece belongs to
     run: np.ndarray  # (m,) index into Plan.runs
-    start_mm: np.ndarray  # (m, 4) X Y Z E at the start
-    end_mm: np.ndarray  # (m, 4) at the end
+    start_mm: np.ndarray  # (m, len(AXES)) machine positions at the start
+    end_mm: np.ndarray  # (m, len(AXES)) at the end
     length_mm: np.ndarray  # (m,) XYZ length; |dE| for extrude-only pieces
     extrude_only: np.ndarray  # (m,) bool
     accel_mm_s2: np.ndarray  # (m,) after the axis limits
@@ -118,12 +119,12 @@ class _Segments:
 
     t0: np.ndarray  # (s,) s
     ref: np.ndarray  # (s,) s
-    a0: np.ndarray  # (s, 4) mm
-    a1: np.ndarray  # (s, 4) mm/s
-    a2: np.ndarray  # (s, 4) mm/s^2
+    a0: np.ndarray  # (s, len(AXES)) mm
+    a1: np.ndarray  # (s, len(AXES)) mm/s
+    a2: np.ndarray  # (s, len(AXES)) mm/s^2
 
     def evaluate(self, first: int, stop: int, fs: float) -> np.ndarray:
-        """(stop - first, 4) X Y Z E at samples first .. stop - 1 (t = k / fs)."""
+        """(stop - first, len(AXES)) positions at samples first .. stop - 1 (t = k / fs)."""
         t = np.arange(first, stop) / fs
         if not t.size:
             return np.zeros((0, _NA))
@@ -168,7 +169,7 @@ class Plan:
     warnings: list[str] = field(default_factory=list)  # feeds beyond the machine's limits, clamped (CLAMPED...)
 
     def samples(self, first: int, stop: int) -> np.ndarray:
-        """(stop - first, 4) X Y Z E at samples first .. stop - 1 (mm). Each sample depends on its
+        """(stop - first, len(AXES)) positions at samples first .. stop - 1 (mm). Each sample depends on its
         time alone, so any cut into stretches gives the same values."""
         return self.segments.evaluate(first, stop, self.sample_rate_hz)
 
@@ -193,7 +194,7 @@ class Plan:
 
     @functools.cached_property
     def positions_mm(self) -> np.ndarray:
-        """(n_samples, 4) every sample at once (for programs that fit in memory)."""
+        """(n_samples, len(AXES)) every sample at once (for programs that fit in memory)."""
         return np.concatenate([self.samples(k, min(k + SAMPLE_CHUNK, self.n_samples))
                                for k in range(0, self.n_samples, SAMPLE_CHUNK)] or [np.zeros((0, _NA))])
 
@@ -377,7 +378,7 @@ def junction_limits(unit_prev: np.ndarray, unit_next: np.ndarray, jd_prev, jd_ne
 def axis_piece_limits(delta, length, extrude_only, feed, planner_v, accel_print, accel_travel, axis_v, axis_a):
     """(unit, cruise limit, accel, feed clamped) of pieces by the per-axis rules (not Klipper's)."""
     unit = delta / length[:, None]
-    unit[extrude_only, :_E] = 0.0  # |dE| / length is exactly 1 already
+    unit[extrude_only, :3] = 0.0  # along E (or LinuxCNC's other axes) alone
     abs_unit = np.abs(unit)
     with np.errstate(divide="ignore"):
         axis_v_limit = np.where(abs_unit > 0, axis_v / abs_unit, np.inf).min(axis=1, initial=np.inf)
@@ -603,9 +604,8 @@ class PlanStream:
         delta = np.where(still, 0.0, points - self._read_mm)
         if still.all() or not still[0, self._compensated].all() or not np.isfinite(delta).all():
             return None
-        xyz = float(np.sqrt(delta[0, :_E] @ delta[0, :_E]))
-        eo = np.array([xyz < EXTRUDE_ONLY_MM])
-        length, feed_ = np.array([xyz if xyz >= EXTRUDE_ONLY_MM else abs(delta[0, _E])]), np.array([feed])
+        length, eo = feed_lengths(delta, still_mm=EXTRUDE_ONLY_MM)
+        feed_ = np.array([feed])
         accel_print, accel_travel, planner_v, to_decel = state_row[0], state_row[1], state_row[2], state_row[-1]
         if self._klipper:
             z_limits, e_limits, _ = self._rules
@@ -630,12 +630,13 @@ class PlanStream:
         return cum_dwell
 
     def _prologue_over(self) -> bool:
-        """Every axis known, enough waypoints searched, or the end: the start can be filled."""
+        """Every axis known (LinuxCNC's other axes need not be: unset, they are at 0 until their
+        first move, which is at rest), enough waypoints searched, or the end: the start can be filled."""
         for row in self._rows[self._prologue_seen:]:
             self._prologue_known |= ~np.isnan(row[5]).all(axis=0)
             self._prologue_count += len(row[5])
         self._prologue_seen = len(self._rows)
-        return self._eof or bool(self._prologue_known.all()) or self._prologue_count >= PROLOGUE_ROWS
+        return self._eof or bool(self._prologue_known[:_E + 1].all()) or self._prologue_count >= PROLOGUE_ROWS
 
     # ---- waypoints to pieces ----
 
@@ -673,6 +674,7 @@ class PlanStream:
                 self.notes.append(f"line {seg_line[i]}: {axes} unknown after this line, held at the last known position")
             self._lost += 1
         found = self._zeroed & ~self._ever_known & known_before[-1]
+        found[_E + 1:] = False  # (LinuxCNC's other axes: at 0 until their first move, at rest, puts them)
         for a in np.flatnonzero(found):
             line = seg_line[np.flatnonzero(~nan[:, a])[0]]
             self.notes.append(f"{AXES[a]}: position not known in the first {PROLOGUE_ROWS} waypoints, planned at 0 mm "
@@ -682,9 +684,7 @@ class PlanStream:
         stop_blocks = seg_block[~seg_motion]
         start = np.concatenate([previous[None], filled[:-1]])
         delta = filled - start
-        xyz_len = np.sqrt(np.einsum("ij,ij->i", delta[:, :3], delta[:, :3]))
-        extrude_only = xyz_len < EXTRUDE_ONLY_MM
-        length = np.where(extrude_only, np.abs(delta[:, _E]), xyz_len)
+        length, extrude_only = feed_lengths(delta, still_mm=EXTRUDE_ONLY_MM)
         keep = seg_motion & (length > 0)
         group = np.repeat(np.cumsum([r[2] for r in rows]) - 1, counts)[keep]
         start, delta, length, extrude_only = start[keep], delta[keep], length[keep], extrude_only[keep]
@@ -952,7 +952,8 @@ class PlanStream:
         self._add_segments(segments)
         self.duration_s = float(self._latest_end + (self._cum_dwell - self._latest_dwell))
         self.n_samples = math.ceil(self.duration_s * self._fs) + 1
-        self.notes[:0] = [f"{AXES[i]}: position never known, planned at 0 mm" for i in np.flatnonzero(~self._ever_known)]
+        never = np.flatnonzero(~self._ever_known[:4])  # (LinuxCNC's other axes never known: never used)
+        self.notes[:0] = [f"{AXES[i]}: position never known, planned at 0 mm" for i in never]
         if self._lost > MAX_NOTES:
             self.notes.append(f"... and {self._lost - MAX_NOTES} more lines with unknown positions")
         if self._clamped:  # one line: slicers write Z moves at travel feeds on every layer

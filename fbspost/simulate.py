@@ -32,7 +32,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .dynamics import AxisDynamics, scaled_mode
-from .gcode import AXES, Block, Kind, detect_flavor, read_gcode
+from .gcode import AXES, Block, Kind, detect_flavor, feed_lengths, read_gcode
 from .pipeline import compensated_samples
 from .planner import EXTRUDE_ONLY_MM, Plan, RunMargins, fill_unknown, plan_blocks
 from .profile import AxisProfile, MachineProfile, ProfileError
@@ -230,7 +230,7 @@ def model_error(sim: Simulation, points=MODEL_ERRORS) -> list[tuple[float, float
 
 
 def execute_program(blocks: list[Block]) -> tuple[np.ndarray, np.ndarray]:
-    """Waypoints (times_s (m,), positions_mm (m, 4)) of ``blocks`` run one after another, every
+    """Waypoints (times_s (m,), positions_mm (m, len(AXES))) of ``blocks`` run one after another, every
     linear piece of a MOVE at its block's feed without acceleration (a G5 as its chords, a
     LinuxCNC G0 in no time); a STOP waits its dwell where it puts the machine. Unknown positions
     are held as the planner holds them."""
@@ -246,8 +246,7 @@ def execute_program(blocks: list[Block]) -> tuple[np.ndarray, np.ndarray]:
             dwells += [0.0, block.dwell_s]
     filled, _ = fill_unknown(np.concatenate(points))
     delta = np.diff(filled, axis=0)
-    xyz = np.linalg.norm(delta[:, _XYZ], axis=1)
-    length = np.where(xyz < EXTRUDE_ONLY_MM, np.abs(delta[:, 3]), xyz)
+    length = feed_lengths(delta, still_mm=EXTRUDE_ONLY_MM)[0]
     steps = length / np.asarray(feeds[1:]) + np.asarray(dwells[1:])
     return np.concatenate([[0.0], np.cumsum(steps)]), filled
 

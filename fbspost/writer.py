@@ -24,15 +24,16 @@ import numpy as np
 from scipy.ndimage import maximum_filter1d
 
 from .bezier import curve_lengths, fit_g5
-from .gcode import AXES, Block, Kind, Modal
+from .gcode import AXES, Block, Kind, Modal, feed_lengths
 from .planner import PlanStream
 from .transparency import FirmwareSettings, Transparency
 
-_DECIMALS = {"X": 4, "Y": 4, "Z": 4, "E": 5}  # mm: 0.1 um, E: 10 nm of filament
+_DECIMALS = {**dict.fromkeys(AXES, 4), "E": 5}  # mm: 0.1 um (A B C: 1e-4 degree), E: 10 nm of filament
 _FEED_DECIMALS = 3  # mm/min (in/min in G20)
 _LINES = 1024  # lines formatted at once
 _MAX_SAMPLES = 2000  # longest block, samples
-_Z, _E = AXES.index("Z"), AXES.index("E")
+_E = AXES.index("E")
+_NOT_IN_G5 = [i for i, a in enumerate(AXES) if a not in "XYE"]
 # Controllers that run G5: Marlin built with BEZIER_CURVE_SUPPORT, LinuxCNC (XY only). Klipper has
 # no G5; RepRapFirmware's is not documented as a timed cubic Bezier.
 G5_FLAVORS = ("marlin", "linuxcnc")
@@ -168,8 +169,8 @@ def g5_blocks(command: np.ndarray, splits: np.ndarray, tolerance_mm: float,
     lines run) ends a block.
 
     The run is fitted whole (fit_g5 searches its blocks in lock step: a call per stretch between
-    copied lines is many times slower). Fitted blocks that a split falls inside, in which Z
-    moves, or that miss the tolerance (fit_g5 lets the minimum length win, and a short block
+    copied lines is many times slower). Fitted blocks that a split falls inside, in which Z (or
+    a LinuxCNC axis other than X Y) moves, or that miss the tolerance (fit_g5 lets the minimum length win, and a short block
     before one of its chunk edges may miss where chords do not) become G1 blocks, between the
     splits and the other fitted blocks' ends: ``breakpoints`` of each such stretch, its last two
     blocks sharing their length where the last is shorter than the minimum (each then at least
@@ -178,7 +179,8 @@ def g5_blocks(command: np.ndarray, splits: np.ndarray, tolerance_mm: float,
     """
     fit = fit_g5(command[:, [0, 1, _E]], tolerance_mm, min_samples, _MAX_SAMPLES, step_mm=step_mm)  # (LinuxCNC: E stays 0)
     starts, ends = fit.starts, fit.ends
-    z_steps = np.concatenate([[0], np.cumsum(np.diff(command[:, _Z]) != 0)])
+    # Z and LinuxCNC's other axes move in G1 blocks only
+    z_steps = np.concatenate([[0], np.cumsum((np.diff(command[:, _NOT_IN_G5], axis=0) != 0).any(axis=1))])
     as_g1 = ((np.searchsorted(splits, starts, "right") < np.searchsorted(splits, ends, "left"))
              | (z_steps[ends] > z_steps[starts]) | (fit.error_mm > tolerance_mm))
     kept = ~as_g1
@@ -216,7 +218,7 @@ class _Emitter:
         # axis, 0 where not known): such blocks are merged here, where their time can go with them
         self.steps_per_mm, self.min_steps = steps_per_mm, min_steps
         self.held = None  # (targets, durations, ends) of blocks that wait for the next call
-        self.shift_mm = np.zeros(4)  # controller frame minus program frame, per axis (G92 mid-motion)
+        self.shift_mm = np.zeros(len(AXES))  # controller frame minus program frame, per axis (G92 mid-motion)
         self.written = self.to_program(start_mm)
         self.feed = -1  # the last F written, in units of its last digit (none yet: feeds are >= 0)
         self.newline = newline
@@ -323,7 +325,7 @@ class _Emitter:
         values = np.column_stack([np.where(relative, steps, ints)[rows], feed])
         shown = np.column_stack([moved[rows], new_feed])
         digits = np.append(digits, _FEED_DECIMALS)
-        letters, g5 = "XYZEF", np.zeros(len(feed), bool)
+        letters, g5 = "".join(AXES) + "F", np.zeros(len(feed), bool)
         if curves is not None:
             g5 = curves.curve[rows]
             values = np.column_stack([offsets[rows], values])
@@ -338,9 +340,8 @@ class _Emitter:
 
 def _lengths(delta_mm: np.ndarray, xyz_moves: np.ndarray | None = None) -> np.ndarray:
     """What a controller times each block by: its XYZ length where XYZ move (``xyz_moves``, by
-    default where they move at all), else its E length."""
-    xyz = np.linalg.norm(delta_mm[:, :3], axis=1)
-    return np.where(xyz > 0 if xyz_moves is None else xyz_moves, xyz, np.abs(delta_mm[:, _E]))
+    default where they move at all), else its U V W, A B C (LinuxCNC) or E length."""
+    return feed_lengths(delta_mm, xyz_moves)[0]
 
 
 def _merged(start: np.ndarray, ints: np.ndarray, steps_per_unit: np.ndarray, min_steps: int,
@@ -495,7 +496,7 @@ class SampleWindow:
     """The planned and the commanded samples (rows X Y Z E, machine mm) as an iterator of
     (planned, command) chunks produces them, in order; rows before ``release``'s index are
     dropped, so a long program's samples are never all held. ``plan`` (``PlanStream``) tells
-    how many there are once it is done. ``follows_plan`` (4,) marks the columns the command
+    how many there are once it is done. ``follows_plan`` (len(AXES),) marks the columns the command
     leaves as planned (E, axes without modes): blocks end exactly where the program puts them."""
 
     def __init__(self, chunks: Iterable[tuple[np.ndarray, np.ndarray]], plan, follows_plan: np.ndarray):
@@ -503,7 +504,7 @@ class SampleWindow:
         self._plan = plan
         self.follows_plan = np.asarray(follows_plan, dtype=bool)
         self.base = 0  # sample index of the first row held
-        self.planned = self.command = np.zeros((0, 4))
+        self.planned = self.command = np.zeros((0, len(AXES)))
 
     @property
     def end(self) -> int:
@@ -781,7 +782,7 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
                 emit(*settings.restore())  # the program's own, as it left them
 
     header_done = False
-    previous_modal, previous_mm = Modal(), np.full(4, np.nan)
+    previous_modal, previous_mm = Modal(), np.full(len(AXES), np.nan)
     last_line = None
     for block, line_time_s, is_stop in plan.blocks():
         if emitter is None:
@@ -805,10 +806,10 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
         copied_sample = _copied_sample(line_time_s, is_stop, fs, copied_sample)
         t = copied_sample / fs
         motion_until(t, previous_mm)  # the motion before the line ends where the program was before it
-        if settings is not None and is_stop and _may_move(previous_mm, block.position_mm, slice(0, 4)):
+        if settings is not None and is_stop and _may_move(previous_mm, block.position_mm, slice(None)):
             # a move fbspost copies runs under the program's own settings (shaping: where it moves X or Y)
             emit(*settings.restore(shaping=_may_move(previous_mm, block.position_mm, slice(0, 2))))
-            if emitter.speed_mm_s > 0 and _may_move(previous_mm, block.position_mm, slice(0, 3)):
+            if emitter.speed_mm_s > 0 and _may_move(previous_mm, block.position_mm, slice(None)):
                 emit(dwell_line(options.flavor, 0.0)[0])  # from rest, as planned: the last block's speed would carry into it
         reached = samples.at(np.array([t]), fs, planned=True)[0]  # where the program is: the plan where the line does not say
         reached = np.where(np.isnan(block.position_mm), reached, block.position_mm)
@@ -828,7 +829,7 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
         if settings is not None:
             settings.note(block)  # the program's settings, and whether the firmware still has ours
     if emitter is None:
-        emitter = _Emitter(np.zeros(4), newline)
+        emitter = _Emitter(np.zeros(len(AXES)), newline)
     samples.ensure(samples.n_samples)
     motion_until(np.inf, samples.planned[-1])
     deviation.rest_until(samples.n_samples)
@@ -861,7 +862,7 @@ def _copied_sample(line_time_s: float, is_stop: bool, fs: float, previous: int) 
 
 def _may_move(before_mm: np.ndarray, after_mm: np.ndarray, axes: slice) -> bool:
     """Whether a line at rest that took the machine from ``before_mm`` to ``after_mm`` (NaN:
-    unknown) may have moved one of ``axes`` (of X Y Z E): a copied move, homing, a macro."""
+    unknown) may have moved one of ``axes`` (columns of AXES): a copied move, homing, a macro."""
     before, after = before_mm[axes], after_mm[axes]
     return bool(np.any(np.isnan(before) | np.isnan(after) | (before != after)))
 

@@ -6,7 +6,8 @@ of the original: every point the reader gives lies on a canonical move (a line, 
 radius and its axis' travel), moving forward through them, and every canonical move's end is
 among the reader's points, in order.
 ``command_problems``: rs274 run on fbspost's output gives the same non-motion canonical calls
-(spindle, coolant, tools, dwells, I/O, messages, stops, program end), in order, as on the original.
+(spindle, coolant, tools, dwells, I/O, messages, stops, program end), in order, as on the original,
+besides the dwells fbspost adds (the unused end of a run's settle margin).
 The canonical geometry here is evaluated on its own (not with fbspost.expand's code).
 """
 from __future__ import annotations
@@ -17,53 +18,62 @@ from pathlib import Path
 import numpy as np
 
 from fbspost.expand import MOTION_CALLS, STATE_CALLS, canonical_calls
-from fbspost.gcode import Kind, read_gcode
+from fbspost.gcode import AXES, Kind, read_gcode
 
 _PLANE_AXES = {"CANON_PLANE_XY": (0, 1, 2), "CANON_PLANE_YZ": (1, 2, 0), "CANON_PLANE_XZ": (2, 0, 1)}
 
 
 def canonical_moves(calls, with_tool: bool) -> tuple[list[tuple], float]:
-    """rs274's moves as (start, end, arc) in mm, XYZ, with the G92 (and tool length) offsets
-    added; arc = (centre, first, second, axis, turns) or None. Also the largest unit (mm) seen."""
-    scale, unit, g92, tool = 1.0, 1.0, np.zeros(3), np.zeros(3)
-    plane, pos, moves = "CANON_PLANE_XY", np.zeros(3), []
+    """rs274's moves as (start, end, arc) in mm (degrees), X Y Z A B C, with the G92 (and tool
+    length) offsets added; arc = (centre, first, second, axis, turns) or None. Also the largest
+    unit (mm) seen."""
+    scale, unit, g92, tool = 1.0, 1.0, np.zeros(6), np.zeros(6)
+    plane, pos, moves = "CANON_PLANE_XY", np.zeros(6), []
+
+    def values(args):  # X Y Z in the program's unit, A B C in degrees
+        return np.array([float(a) for a in args[:6]] + [0.0] * (6 - len(args[:6]))) * ([scale] * 3 + [1.0] * 3)
+
     for name, args in calls:
         if name == "USE_LENGTH_UNITS":
             scale = 25.4 if args[0] == "CANON_UNITS_INCHES" else 1.0
             unit = max(unit, scale)
         elif name == "SET_G92_OFFSET":
-            g92 = np.array([float(a) for a in args[:3]]) * scale
+            g92 = values(args)
         elif name == "USE_TOOL_LENGTH_OFFSET" and with_tool:
-            tool = np.array([float(a) for a in args[:3]]) * scale
+            tool = values(args)
         elif name == "SET_G5X_OFFSET":
             pos = None  # a new frame: the next move's start is not compared
         elif name == "SELECT_PLANE":
             plane = args[0]
         elif name in ("STRAIGHT_TRAVERSE", "STRAIGHT_FEED"):
-            end = np.array([float(a) for a in args[:3]]) * scale + g92 + tool
+            end = values(args) + g92 + tool
             moves.append((pos, end, None))
             pos = end
         elif name == "ARC_FEED":
             a, b, c = _PLANE_AXES[plane]
             v = [float(x) for x in args]
-            end, centre = np.zeros(3), np.zeros(3)
+            end, centre = np.zeros(6), np.zeros(6)
             end[a], end[b], end[c] = v[0], v[1], v[5]
+            end[3:] = v[6:9]
             centre[a], centre[b] = v[2], v[3]
-            end, centre = end * scale + g92 + tool, centre * scale + g92 + tool
+            end, centre = end * ([scale] * 3 + [1.0] * 3) + g92 + tool, centre * scale + g92 + tool
             moves.append((pos, end, (centre, a, b, c, int(v[4]))))
             pos = end
     return moves, unit
 
 
+_XYZABC = [AXES.index(a) for a in "XYZABC"]
+
+
 def reader_points(program: str | Path) -> list[np.ndarray]:
-    """Every position fbspost's reader puts the tool at, in order (XYZ, NaN where unknown: a line
-    fbspost copies as it is, where LinuxCNC's path is its own by construction)."""
+    """Every position fbspost's reader puts the tool at, in order (X Y Z A B C, NaN where
+    unknown: a line fbspost copies as it is, where LinuxCNC's path is its own by construction)."""
     points = []
     for block in read_gcode(program, "linuxcnc"):
         if block.kind is Kind.MOVE:
-            points.extend(block.points_mm[:, :3])
+            points.extend(block.points_mm[:, _XYZABC])
         elif block.kind is Kind.STOP:
-            points.append(block.position_mm[:3])
+            points.append(block.position_mm[_XYZABC])
     return points
 
 
@@ -81,16 +91,18 @@ def _off_move(point, start, end, arc) -> float:
     r1 = math.hypot(end[a] - centre[a], end[b] - centre[b])
     r = math.hypot(point[a] - centre[a], point[b] - centre[b])
     radial = max(0.0, min(abs(r - r0), abs(r - r1)) if min(r0, r1) <= r <= max(r0, r1) else min(abs(r - r0), abs(r - r1)))
-    lo, hi = sorted((start[c], end[c]))
-    axial = max(lo - point[c], point[c] - hi, 0.0) if known[c] else 0.0
-    return math.hypot(radial if known[a] and known[b] else 0.0, axial)
+    # the arc's axis and A B C move linearly: within their ranges
+    lo, hi = np.minimum(start, end)[[c, 3, 4, 5]], np.maximum(start, end)[[c, 3, 4, 5]]
+    linear = np.nan_to_num(np.maximum(np.maximum(lo - point[[c, 3, 4, 5]], point[[c, 3, 4, 5]] - hi), 0.0))
+    return math.hypot(radial if known[a] and known[b] else 0.0, *linear)
 
 
 def path_problems(original: str | Path, compensated_input: str | Path, expanded: bool,
-                  tool_table: str | Path | None = None, tolerance_mm: float = 1e-3) -> list[str]:
+                  tool_table: str | Path | None = None, tolerance_mm: float = 1e-3,
+                  ini: str | Path | None = None) -> list[str]:
     """Where the reader's path of ``compensated_input`` leaves rs274's path of ``original`` by more
     than ``tolerance_mm`` (plus rs274's printed rounding, 0.0001 of the program's unit)."""
-    moves, unit = canonical_moves(canonical_calls(original, tool_table), with_tool=expanded)
+    moves, unit = canonical_moves(canonical_calls(original, tool_table, ini), with_tool=expanded)
     tol = tolerance_mm + 1.5e-4 * unit
     points = reader_points(compensated_input)
     k = 0  # every point on a canonical move, in order
@@ -129,15 +141,29 @@ def _is_number(text: str) -> bool:
     return True
 
 
-def command_problems(original: str | Path, output: str | Path, tool_table: str | Path | None = None) -> list[str]:
+def _without_added_dwells(want, got):
+    """``got`` without the dwells fbspost adds (the unused end of a run's settle margin, at
+    rest): a dwell of the output that is not the next of the program's calls."""
+    kept, i = [], 0
+    for call in got:
+        if call[0] == "DWELL" and (i >= len(want) or want[i] != call):
+            continue
+        kept.append(call)
+        i += 1
+    return kept
+
+
+def command_problems(original: str | Path, output: str | Path, tool_table: str | Path | None = None,
+                     ini: str | Path | None = None) -> list[str]:
     """Differences between the non-motion canonical calls of ``original`` and of ``output``.
     The blending mode (SET_MOTION_CONTROL_MODE) is compared where the programs end: the output
     sets its own around the compensated blocks (transparency) and gives back the program's."""
-    want, got = (_normalized(canonical_calls(path, tool_table)) for path in (original, output))
+    want, got = (_normalized(canonical_calls(path, tool_table, ini)) for path in (original, output))
     modes = [[c for c in calls if c[0] == "SET_MOTION_CONTROL_MODE"][-1:] for calls in (want, got)]
     if modes[0] and modes[0] != modes[1]:
         return [f"the program ends in {modes[0]}, the output in {modes[1]}"]
     want, got = ([c for c in calls if c[0] != "SET_MOTION_CONTROL_MODE"] for calls in (want, got))
+    got = _without_added_dwells(want, got)
     for i, (w, g) in enumerate(zip(want, got)):
         if w != g:
             return [f"non-motion command {i + 1}: expected {w}, got {g}"]

@@ -287,15 +287,15 @@ class KlippyPlanner:
             if block.limits is not None:
                 self.command(block)
             if block.kind is Kind.MOVE and block.points_mm is not None:
-                for point in block.points_mm:
+                for point in block.points_mm[:, :4]:  # (X Y Z E: LinuxCNC's other axes are not Klipper's)
                     target = np.where(np.isnan(point), head.commanded_pos, point)
                     head.move([float(v) for v in target], block.feed_mm_s)
             elif block.kind is Kind.STOP:
                 head.move_queue.flush()
                 self.dwell_s += block.dwell_s
                 self.clock_s += block.dwell_s
-                known = ~np.isnan(block.position_mm)
-                head.commanded_pos[:] = np.where(known, block.position_mm, head.commanded_pos).tolist()
+                known = ~np.isnan(block.position_mm[:4])
+                head.commanded_pos[:] = np.where(known, block.position_mm[:4], head.commanded_pos).tolist()
         head.move_queue.flush()
         return self.moves
 
@@ -307,7 +307,7 @@ def _first_known(blocks: list[Block]) -> list[float]:
         rows = block.points_mm if block.kind is Kind.MOVE else block.position_mm[None]
         if rows is None:
             continue
-        for row in rows:
+        for row in rows[:, :4]:
             first = np.where(np.isnan(first), row, first)
         if not np.isnan(first).any():
             break

@@ -88,12 +88,12 @@ def test_moves_after_homing_are_planned_from_the_home_position(tmp_path):
     program = tmp_path / "homed.gcode"
     program.write_text("G28\nG1 Z5 F600\nG1 X100 Y50 F6000\nG28 X\nG1 X10 F6000\n")
     blocks = list(read_gcode(program, "marlin", (0.0, 0.0, 0.0)))
-    np.testing.assert_array_equal(blocks[0].position_mm, [0, 0, 0, 0])
+    np.testing.assert_array_equal(blocks[0].position_mm[:4], [0, 0, 0, 0])
     assert [b.kind.value for b in blocks] == ["stop", "move", "move", "stop", "move"]
-    np.testing.assert_array_equal(blocks[2].points_mm, [[100, 50, 5, 0]])
-    np.testing.assert_array_equal(blocks[3].position_mm, [0, 50, 5, 0])
+    np.testing.assert_array_equal(blocks[2].points_mm[:, :4], [[100, 50, 5, 0]])
+    np.testing.assert_array_equal(blocks[3].position_mm[:4], [0, 50, 5, 0])
     elsewhere = list(read_gcode(program, "marlin", (235.0, 0.0, 0.0)))
-    np.testing.assert_array_equal(elsewhere[3].position_mm, [235, 50, 5, 0])
+    np.testing.assert_array_equal(elsewhere[3].position_mm[:4], [235, 50, 5, 0])
     cnc = list(read_gcode(program, "linuxcnc"))  # G28 goes to a position stored outside the file
     assert np.isnan(cnc[0].position_mm[:3]).all() and cnc[2].kind.value == "stop"
 

@@ -17,7 +17,10 @@ from scipy.spatial import cKDTree
 from canon_check import command_problems, path_problems
 from fbspost.cli import main
 from fbspost.expand import expand
-from fbspost.gcode import CHORD_TOLERANCE_MM, Kind, nurbs_points, read_gcode
+from fbspost.gcode import AXES, CHORD_TOLERANCE_MM, Kind, nurbs_points, read_gcode
+from fbspost.planner import RunMargins, plan_blocks
+from fbspost.profile import load_profile
+from fbspost.trajectory import InputError
 
 needs_rs274 = pytest.mark.skipif(shutil.which("rs274") is None,
                                  reason="LinuxCNC's rs274 is not installed (apt-get install linuxcnc-uspace)")
@@ -112,13 +115,17 @@ def test_without_expand_the_feature_is_named(tmp_path, line, words):
 
 
 def test_io_words_and_extra_axes(tmp_path):
-    """E in M66/M67/M68 is the I/O word before and after the first motion; A/B/C lines pass as
-    written with the machine at rest, their XYZ end known."""
-    blocks = moves(tmp_path / "io.ngc", "G21 G90\nM66 E0 L0\nM67 E1 Q2.5\nG0 X0 Y0 Z1\nG0 B0\nG1 X5 A30 F600\n"
-                                        "M68 E2 Q1\nG1 Y5\nM2\n")
-    assert [b.kind for b in blocks] == [Kind.PASS, Kind.STOP, Kind.PASS, Kind.STOP, Kind.STOP, Kind.STOP,
+    """E in M66/M67/M68 is the I/O word before and after the first motion; an extra axis' first
+    move (from where the machine happens to be) passes as written at rest, then it is planned
+    with the others: A moves with X; B, set once, stays; U V W never set, unknown (NaN); A B C
+    in degrees under G20."""
+    blocks = moves(tmp_path / "io.ngc", "G21 G90\nM66 E0 L0\nM67 E1 Q2.5\nG0 X0 Y0 Z1 A0\nG0 B0\nG1 X5 A30 F600\n"
+                                        "M68 E2 Q1\nG20 G1 Y0.5 B10\nM2\n")
+    assert [b.kind for b in blocks] == [Kind.PASS, Kind.STOP, Kind.PASS, Kind.STOP, Kind.STOP, Kind.MOVE,
                                         Kind.PASS, Kind.MOVE, Kind.STOP]
-    assert np.array_equal(blocks[7].points_mm, [[5.0, 5.0, 1.0, 0.0]])
+    nan = np.nan
+    assert np.array_equal(blocks[5].points_mm, [[5.0, 0.0, 1.0, 0.0, 30.0, 0.0, nan, nan, nan, nan]], equal_nan=True)
+    assert np.array_equal(blocks[7].points_mm, [[5.0, 12.7, 1.0, 0.0, 30.0, 10.0, nan, nan, nan, nan]], equal_nan=True)
 
 
 PROGRAM = """(a program that needs LinuxCNC's interpreter: everything --expand must get right)
@@ -214,3 +221,93 @@ def test_without_rs274_one_line_says_how_to_install_it(tmp_path, monkeypatch):
     assert result.exit_code == 1 and result.stderr == (
         f"error: {program}: LinuxCNC's interpreter rs274 is not installed: apt-get install linuxcnc-uspace\n")
     assert not (tmp_path / "out.ngc").exists()
+
+
+@needs_rs274
+def test_ini_subroutine_path_is_from_the_ini_directory(tmp_path):
+    """LinuxCNC runs in its INI's directory: a relative SUBROUTINE_PATH is found from there,
+    wherever fbspost runs; the expansion follows rs274's path (a 5 mm square from the subroutine)."""
+    config = tmp_path / "config"
+    (config / "subs").mkdir(parents=True)
+    (config / "machine.ini").write_text("[RS274NGC]\nSUBROUTINE_PATH = ./subs\n")
+    (config / "subs" / "square.ngc").write_text("o<square> sub\nG1 X#1\nG1 Y#1\nG1 X0\nG1 Y0\no<square> endsub\nM2\n")
+    program, expanded = tmp_path / "part.ngc", tmp_path / "x.ngc"
+    program.write_text("G21 G90 F600\nG0 X0 Y0 Z1\no<square> call [5]\nM2\n")
+    with pytest.raises(InputError, match="seeking o-word: o<square>"):
+        expand(program, expanded, "test")
+    expand(program, expanded, "test", ini=config / "machine.ini")
+    moves = [line for line in expanded.read_text().splitlines() if line.startswith("G1")]
+    assert moves == ["G1 X5 F600", "G1 Y5", "G1 X0", "G1 Y0"]
+    assert path_problems(program, expanded, True, ini=config / "machine.ini") == []
+
+
+def trapezoid_mm(t_s, length, v, a):
+    """Closed form: distance covered at ``t_s`` by a move of ``length`` from rest to rest at
+    cruise ``v`` and acceleration ``a`` (the cruise reached)."""
+    ramp, total = v / a, length / v + v / a
+    t = np.clip(t_s, 0.0, total)
+    return np.where(t < ramp, 0.5 * a * t * t, np.where(t < total - ramp, v * (t - 0.5 * ramp),
+                                                       length - 0.5 * a * (total - t) ** 2))
+
+
+def test_rotary_axis_is_planned_with_x(tmp_path):
+    """LinuxCNC's feed rule: G1 X10 A90 F600 is timed by its 10 mm of X (1 s at 10 mm/s, plus
+    v/a = 2 ms at the stage's 5000 mm/s^2), A moving with X (A = 9 X); G1 A180 alone by its 90
+    degrees at 10 deg/s (9.002 s). Closed forms of the trapezoids."""
+    blocks = moves(tmp_path / "a.ngc", "G21 G90\nG0 X0 Y0 Z1 A0\nG1 X10 A90 F600\nG1 A180\nM2\n")
+    plan = plan_blocks(blocks, load_profile("patent-xy-stage"), margins=RunMargins(0.0, 0.0))
+    assert np.allclose(plan.pieces.duration_s, [1.002, 9.002], rtol=0, atol=1e-9)
+    samples = plan.samples(0, plan.n_samples)
+    t = np.arange(plan.n_samples) / plan.sample_rate_hz - plan.pieces.start_s[0]
+    x, a = samples[:, AXES.index("X")], samples[:, AXES.index("A")]
+    assert np.abs(x - trapezoid_mm(t, 10.0, 10.0, 5000.0)).max() < 1e-9
+    assert np.abs(a - 9.0 * trapezoid_mm(t, 10.0, 10.0, 5000.0) - trapezoid_mm(t - 1.002, 90.0, 10.0, 5000.0)).max() < 1e-9
+
+
+def test_written_rotary_axis_moves_with_x(tmp_path):
+    """The compensated program writes A in its blocks: replayed as LinuxCNC times them (each
+    block's F along its XYZ length, along A where X Y Z stay), A is the closed-form trapezoid
+    of the plan (A = 9 X of the original) at every block's end, to the rounding of its digits
+    and F; X is compensated, A followed."""
+    program, out = tmp_path / "a.ngc", tmp_path / "out.ngc"
+    program.write_text("G21 G90\nG0 X0 Y0 Z1 A0\nG1 X10 A90 F600\nM2\n")
+    result = CliRunner().invoke(main, ["compensate", str(program), "-m", "patent-xy-stage", "--flavor", "linuxcnc",
+                                       "--no-expand", "--lead-time", "0", "--settle-time", "0", "-o", str(out), "-q"])
+    assert result.exit_code == 0, result.stderr
+    t, a_end, position, feed, ends = 0.0, [], {"X": 0.0, "Y": 0.0, "Z": 1.0, "A": 0.0}, None, []
+    for line in out.read_text().splitlines():
+        words = dict((w[0], float(w[1:])) for w in line.split() if w[0] in "XYZAF" and line.startswith("G1 "))
+        if not words or not any(k in words for k in "XYZA"):
+            continue
+        feed = words.get("F", feed)
+        new = {k: words.get(k, v) for k, v in position.items()}
+        xyz = math.dist([position[k] for k in "XYZ"], [new[k] for k in "XYZ"])
+        t += 60.0 * (xyz or abs(new["A"] - position["A"])) / feed
+        position = new
+        ends.append(t)
+        a_end.append(new["A"])
+    assert len(ends) > 100 and a_end[-1] == 90.0 and position["X"] == 10.0
+    assert np.abs(np.array(a_end) - 9.0 * trapezoid_mm(np.array(ends), 10.0, 10.0, 5000.0)).max() < 2e-3
+
+
+@needs_rs274
+def test_g62_under_expand_says_this_rs274_cannot_run_it(tmp_path):
+    program = tmp_path / "p.ngc"
+    program.write_text("G21 G90\nG0 X0 Y0 Z1\n#1 = 2\nG6.2 P1 K0 X1 Y1 L3\nM2\n")
+    result = CliRunner().invoke(main, ["compensate", str(program), "-m", "patent-xy-stage", "--flavor", "linuxcnc",
+                                       "-o", str(tmp_path / "out.ngc")])
+    assert result.exit_code == 1 and result.stderr == (
+        f"error: {program}:4: LinuxCNC's interpreter: G6.2 (LinuxCNC 2.10's NURBS) is not run by this install's "
+        "rs274: Unknown g code used\n")
+    assert not (tmp_path / "out.ngc").exists()
+
+
+def test_helix_narrower_than_rs274s_digits_is_its_axis_line():
+    """rs274 prints a helix of radius below its 4 decimals (cutter compensation on a hole of the
+    tool's size, useful-subroutines.ngc) with its centre on its start and end: LinuxCNC runs a
+    circle within 0.5e-4 of an inch of the axis, written as the plunge along it."""
+    from fbspost.expand import _Expander
+    calls = [("USE_LENGTH_UNITS", ["CANON_UNITS_INCHES"]), ("SET_FEED_RATE", ["60.0000"]),
+             ("STRAIGHT_TRAVERSE", ["1.0000", "2.0000", "0.1000", "0", "0", "0"]),
+             ("ARC_FEED", ["1.0000", "2.0000", "1.0000", "2.0000", "1", "-0.0212", "0", "0", "0"])]
+    assert list(_Expander("p.ngc", [0]).lines(calls))[1:] == ["G1 Z-0.53848 F1524"]

@@ -292,6 +292,23 @@ def test_knot_spacings_whose_products_round_badly(machine, axis_name, spacing):
     assert rms(desired - simulate_lsim(axis.modes, period_s, result.command_mm)) < before / 5
 
 
+@pytest.mark.parametrize("spans", [7, 11, 73])
+def test_run_ending_on_a_knot_whose_time_rounds_low(spans):
+    """Y of the patent stage (K = 38 samples at 10 kHz): a run whose last sample is the final
+    window's last knot, where (spans * K) * T > (K * T) * spans in floating point (the sample an
+    ulp past the spline's end; a 5-axis program's short run crashed there). Compensated, at rest
+    at both ends, better than the original (scipy's simulation)."""
+    axis = PATENT.axes["Y"]
+    dynamics = AxisDynamics(axis.modes, T)
+    k = FBSSettings().resolve(dynamics).knot_spacing_samples
+    assert k == 38 and (spans * k) * T > (k * T) * spans
+    desired = 0.5 * (1.0 - np.cos(np.pi * np.arange(spans * k + 1) / (spans * k)))
+    result = compensate_axis(desired, dynamics, AxisLimits.from_profile(axis))
+    assert result.command_mm[0] == desired[0] and result.command_mm[-1] == desired[-1]
+    before = rms(desired - simulate_lsim(axis.modes, T, desired))
+    assert rms(desired - simulate_lsim(axis.modes, T, result.command_mm)) < before
+
+
 def test_motion_too_short_to_shape_is_returned_as_planned():
     """Five samples of motion cannot satisfy the end conditions with a free point to spare."""
     dynamics = AxisDynamics(PATENT.axes["X"].modes, T)

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from fbspost.gcode import Block, Kind, Modal, PlannerLimits
+from fbspost.gcode import AXES, Block, Kind, Modal, PlannerLimits
 from fbspost import planner
 from fbspost.planner import backward_pass, forward_pass, plan_blocks
 from fbspost.profile import load_profile
@@ -25,6 +25,12 @@ ORIGIN = (0.0, 0.0, 0.0, 0.0)
 
 # ---- program builders --------------------------------------------------------------------------
 
+def xyze(points) -> np.ndarray:
+    """X Y Z E positions (rows or one) with the other axes (LinuxCNC's) at 0, where printers keep them."""
+    points = np.asarray(points, dtype=float)
+    return np.concatenate([points, np.zeros(points.shape[:-1] + (len(AXES) - 4,))], axis=-1)
+
+
 class Program:
     """Blocks built by hand, numbered from line 1, starting at rest at a known position."""
 
@@ -35,13 +41,13 @@ class Program:
 
     def _add(self, kind, **kw) -> int:
         position = kw.pop("position", self.pos)
-        self.blocks.append(Block(len(self.blocks) + 1, b"", kind, Modal(), np.asarray(position, float).copy(), **kw))
+        self.blocks.append(Block(len(self.blocks) + 1, b"", kind, Modal(), xyze(position), **kw))
         return len(self.blocks) - 1
 
     def move(self, *points, feed=100.0) -> int:
         pts = np.asarray(points, dtype=float).reshape(-1, 4)
         self.pos = pts[-1].copy()
-        return self._add(Kind.MOVE, points_mm=pts, feed_mm_s=feed)
+        return self._add(Kind.MOVE, points_mm=xyze(pts), feed_mm_s=feed)
 
     def stop(self, dwell=0.0, position=None) -> int:
         if position is not None:
@@ -214,7 +220,7 @@ def test_single_move_matches_closed_form(profile, d, feed):
     assert plan.move_start_s[i] == 0.0
     fs = profile.sample_rate_hz
     n = math.floor(expected * fs) + 1 + (0 if (expected * fs).is_integer() else 1)
-    assert plan.positions_mm.shape == (n, 4)
+    assert plan.positions_mm.shape == (n, len(AXES))
     assert plan.runs == [(0, n - 1)]
     x = [rest_to_rest_distance(t, d, feed, a) for t in sample_times(plan)]
     np.testing.assert_allclose(plan.positions_mm[:, 0], x, rtol=0, atol=1e-9)
@@ -415,7 +421,7 @@ def test_dwell_rests_exactly_and_splits_runs():
     assert plan.duration_s == pytest.approx(last / fs + 0.5 + t1, rel=1e-12)
     assert plan.runs == [(0, last), (last + 500, plan.positions_mm.shape[0] - 1)]
     rest = plan.positions_mm[last:last + 501]
-    assert np.all(rest == [10, 0, 0, 0])
+    assert np.all(rest == xyze([10, 0, 0, 0]))
 
 
 def test_margins_lead_and_settle_every_run():
@@ -441,7 +447,7 @@ def test_margins_lead_and_settle_every_run():
     assert plan.duration_s == pytest.approx((second_first + lead) / fs + t1 + settle / fs, rel=1e-12)
     positions = plan.positions_mm
     assert np.all(positions[:lead + 1] == 0.0) and positions[lead + 2, 0] > 0.0  # at rest through the lead
-    assert np.all(positions[math.ceil(end1 * fs):last + 500] == [10, 0, 0, 0])  # the settle margin and the dwell
+    assert np.all(positions[math.ceil(end1 * fs):last + 500] == xyze([10, 0, 0, 0]))  # the settle margin and the dwell
     stream = planner.PlanStream(prog.blocks, BED, margins=planner.RunMargins(lead / fs, settle / fs))
     while stream.advance():
         pass
@@ -464,7 +470,7 @@ def test_stop_without_dwell_still_separates_runs():
     (a0, b0), (a1, b1) = plan.runs
     assert a0 == 0 and b0 < a1 and b1 == plan.positions_mm.shape[0] - 1
     # both ends of every run at rest: the samples next to them hold the same position
-    assert np.all(plan.positions_mm[b0] == [10, 0, 0, 0]) and np.all(plan.positions_mm[a1] == [10, 0, 0, 0])
+    assert np.all(plan.positions_mm[b0] == xyze([10, 0, 0, 0])) and np.all(plan.positions_mm[a1] == xyze([10, 0, 0, 0]))
     # the later run starts on its sample, less than two periods after the rest began
     assert 0 <= plan.move_start_s[second] - plan.line_time_s[pause] < 2 / BED.sample_rate_hz
     assert plan.line_time_s[second] - plan.move_start_s[second] == pytest.approx(rest_to_rest(10, 50, 3000), rel=1e-12)
@@ -479,8 +485,8 @@ def test_passthrough_stop_jumps_in_no_time():
     t1 = rest_to_rest(10, 50, 3000)
     assert plan.line_time_s[home] == pytest.approx(t1, rel=1e-12)
     (_, b0), (a1, _) = plan.runs
-    assert np.all(plan.positions_mm[b0] == [10, 0, 0, 0])
-    assert np.all(plan.positions_mm[b0 + 1:a1 + 1] == [0, 0, 5, 0])
+    assert np.all(plan.positions_mm[b0] == xyze([10, 0, 0, 0]))
+    assert np.all(plan.positions_mm[b0 + 1:a1 + 1] == xyze([0, 0, 5, 0]))
     assert plan.duration_s - plan.move_start_s[second] == pytest.approx(rest_to_rest(10, 50, 3000), rel=1e-12)
 
 
@@ -492,7 +498,7 @@ def test_stop_that_loses_an_axis_holds_its_last_known_value():
     plan = plan_blocks(prog.blocks, BED)
     after = sample_times(plan) >= plan.line_time_s[first]
     assert np.all(plan.positions_mm[after, 0] == 10.0)  # X held at 10: the second move is pure Y
-    assert np.all(plan.positions_mm[-1] == [10, 10, 0, 0])
+    assert np.all(plan.positions_mm[-1] == xyze([10, 10, 0, 0]))
     for i in (first, second):
         assert plan.line_time_s[i] - plan.move_start_s[i] == pytest.approx(rest_to_rest(10, 50, 3000), rel=1e-12)
     assert any(note.startswith(f"line {lost + 1}: X") for note in plan.notes)
@@ -520,7 +526,7 @@ def test_unknown_axes_are_never_nan():
     assert np.isfinite(plan.positions_mm).all()
     assert np.all(plan.positions_mm[:, 2] == 0.0)  # Z never known: 0
     assert np.all(plan.positions_mm[:, 3] == 2.0)  # E: its first known value, so no E motion
-    assert np.all(plan.positions_mm[0] == [10, 0, 0, 2])  # X, Y: start at their first known values
+    assert np.all(plan.positions_mm[0] == xyze([10, 0, 0, 2]))  # X, Y: start at their first known values
     assert any(note.startswith("Z") for note in plan.notes)
     assert plan.duration_s == pytest.approx(rest_to_rest(10, 50, 3000), rel=1e-12)
 
@@ -587,7 +593,7 @@ def test_the_plan_is_the_same_however_the_blocks_are_batched(monkeypatch, seed):
 
 def test_empty_program():
     plan = plan_blocks([], BED)
-    assert plan.duration_s == 0.0 and plan.runs == [] and plan.positions_mm.shape == (1, 4)
+    assert plan.duration_s == 0.0 and plan.runs == [] and plan.positions_mm.shape == (1, len(AXES))
 
 
 # ---- whole programs against the scalar reference ------------------------------------------------
@@ -662,7 +668,7 @@ def test_samples_continuous_and_within_limits():
         assert np.abs(accel[:, i]).max() <= BED.axes[axis].max_acceleration_mm_s2 * (1 + 1e-6)
     # continuity: no sample moves further than the fastest axis can in one period
     assert np.abs(np.diff(p, axis=0)).max() <= 300 / fs * (1 + 1e-9)
-    assert np.all(p[0] == [50, 50, 0.2, 0]) and np.allclose(p[-1], prog.pos, rtol=0, atol=1e-12)
+    assert np.all(p[0] == xyze([50, 50, 0.2, 0])) and np.allclose(p[-1], xyze(prog.pos), rtol=0, atol=1e-12)
 
 
 @pytest.mark.slow
@@ -670,8 +676,8 @@ def test_100k_piece_polyline_smoke(capsys):
     rng = np.random.default_rng(11)
     n = 100_000
     steps = rng.normal(size=(n, 4)) * [2, 2, 0.01, 0.05]
-    points = np.cumsum(steps, axis=0)
-    blocks = [Block(1, b"", Kind.STOP, Modal(), np.zeros(4))]
+    points = xyze(np.cumsum(steps, axis=0))
+    blocks = [Block(1, b"", Kind.STOP, Modal(), np.zeros(len(AXES)))]
     blocks += [Block(i + 2, b"", Kind.MOVE, Modal(), points[i], points[i:i + 1], 120.0) for i in range(n)]
     t0 = time.perf_counter()
     plan = plan_blocks(blocks, BED)

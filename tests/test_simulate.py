@@ -76,8 +76,9 @@ def resimulate(program, profile, report, compensated=None):
     if compensated:
         ends = np.array(execute(compensated, profile.sample_rate_hz, seconds).ends)
         _, executed = sample_blocks(ends, profile.sample_rate_hz)
-        fbs[before:before + len(executed)] = executed[:len(desired) - before]
-        fbs[before + len(executed):] = executed[-1]
+        k = executed.shape[1]  # X Y Z E (LinuxCNC's other axes follow the plan)
+        fbs[before:before + len(executed), :k] = executed[:len(desired) - before]
+        fbs[before + len(executed):, :k] = executed[-1]
         # Z and E follow the plan in the compensated program; reference.execute cannot place them
         # before X and Y are first set.
         unmodelled = [i for i, a in enumerate("XYZE") if a not in modelled]

@@ -8,7 +8,7 @@ from fractions import Fraction
 import numpy as np
 import pytest
 
-from fbspost.gcode import Block, Kind, Modal, PlannerLimits
+from fbspost.gcode import AXES, Block, Kind, Modal, PlannerLimits
 from fbspost.pipeline import CompensateOptions, compensate_file
 from fbspost.profile import ProfileError, format_profile, load_profile, parse_profile, tomllib
 from fbspost.transparency import FirmwareSettings, Transparency
@@ -153,8 +153,10 @@ def test_written_time_carries_the_feed_rounding():
     steps = rng.normal(size=(n, 4)) * (speeds * durations)[:, None] / 2
     steps[::97] = 0.0  # no motion
     targets = np.cumsum(steps, axis=0)
-    emitter = _Emitter(np.zeros(4), b"\n")
-    text = b"".join(emitter.blocks(targets[a:a + 500], durations[a:a + 500])[0] for a in range(0, n, 500))
+    emitter = _Emitter(np.zeros(len(AXES)), b"\n")
+    still = np.zeros((n, len(AXES) - 4))  # LinuxCNC's other axes
+    text = b"".join(emitter.blocks(np.column_stack([targets, still])[a:a + 500], durations[a:a + 500])[0]
+                    for a in range(0, n, 500))
     times, feeds = written_blocks(text)
     units = np.rint(np.vstack([np.zeros(4), targets]) * [1e4, 1e4, 1e4, 1e5])
     moving = np.flatnonzero(np.abs(np.diff(units, axis=0)).sum(axis=1) > 0)

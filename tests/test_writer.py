@@ -8,6 +8,7 @@ from decimal import Decimal
 import numpy as np
 import pytest
 
+from fbspost.gcode import AXES
 from fbspost.pipeline import CompensateOptions, compensate_file
 from fbspost.planner import RunMargins
 from fbspost.profile import load_profile
@@ -210,8 +211,8 @@ def test_bulk_formatting_matches_decimal_text(digits, newline, letters):
 
 
 def test_feed_is_written_only_when_it_changes_also_across_calls():
-    emitter = _Emitter(np.zeros(4), b"\n")
-    targets = np.zeros((5, 4))
+    emitter = _Emitter(np.zeros(len(AXES)), b"\n")
+    targets = np.zeros((5, len(AXES)))
     targets[:, 0] = np.arange(1, 6)  # 1 mm in 0.1 s: F600
     first, count = emitter.blocks(targets, np.full(5, 0.1))
     assert count == 5 and first.split(b"\n")[:2] == [b"G1 X1 F600", b"G1 X2"]
