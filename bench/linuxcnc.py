@@ -144,7 +144,7 @@ def main() -> None:
         if args.verbose:
             print(f"  {program}: {result}", flush=True)
     total = len(runs)
-    print(f"\n| outcome | programs | share |\n|---|---|---|")
+    print("\n| outcome | programs | share |\n|---|---|---|")
     for result, n in sorted(counts.items(), key=lambda item: (item[0] != "compensated", -item[1], item[0])):
         print(f"| {result} | {n} | {100 * n / total:.0f}% |")
     wrong = sum(n for r, n in counts.items() if r.startswith("WRONG"))

@@ -28,10 +28,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path[:0] = [str(ROOT), str(ROOT / "tests" / "data")]  # this checkout's fbspost, not an installed one
 
-import numpy as np  # noqa: E402
-
 import make_sliced  # noqa: E402  (the corpus' models and slicer settings)
+import numpy as np  # noqa: E402
 from engine import butterfly_table  # noqa: E402
+
 from fbspost.pipeline import compensate_file  # noqa: E402
 from fbspost.profile import load_profile  # noqa: E402
 

@@ -34,6 +34,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "tests"), str(ROOT / "bench")]
 
 from firmware import contour_um, klippy_run, modelled  # noqa: E402
+
 from fbspost.dynamics import scaled_mode  # noqa: E402
 from fbspost.gcode import AXES  # noqa: E402
 from fbspost.profile import load_profile  # noqa: E402

@@ -132,10 +132,10 @@ class _Fit:
     def error_mm(self) -> np.ndarray:
         return np.minimum(self.curve_mm, self.line_mm)
 
-    def take(self, index) -> "_Fit":
+    def take(self, index) -> _Fit:
         return _Fit(self.q[:, index], *(getattr(self, name)[index] for name in self.ENTRIES))
 
-    def put(self, index, other: "_Fit", other_index=slice(None)) -> None:
+    def put(self, index, other: _Fit, other_index=slice(None)) -> None:
         self.q[:, index] = other.q[:, other_index]
         for name in self.ENTRIES:
             getattr(self, name)[index] = getattr(other, name)[other_index]

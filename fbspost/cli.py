@@ -632,8 +632,10 @@ def simulate(input_path, machine, compensated, shapers, shaper_freq, shaper_damp
     motion starts/ends than the plan, largest command velocity and acceleration. Units: um, s,
     mm/s, mm/s^2.
     """
-    from .plots import FORMATS as PLOT_FORMATS, write_plot  # matplotlib is imported when plotting
-    from .simulate import model_error as run_on_perturbed, shaper_settings, simulate_program
+    from .plots import FORMATS as PLOT_FORMATS  # matplotlib is imported when plotting
+    from .plots import write_plot
+    from .simulate import model_error as run_on_perturbed
+    from .simulate import shaper_settings, simulate_program
 
     if plot_path and plot_path.suffix.lower() not in PLOT_FORMATS:
         raise click.BadParameter(f"{plot_path}: expected a .png or .pdf file", param_hint="--plot")

@@ -191,7 +191,7 @@ class _Stretch:
             self.H = self.H + 1e-9 * np.trace(self.H) / n_free * (tail.T @ tail).toarray()
             # The solve for every right-hand side at once: p_free = G target.
             self._factor = linalg.cho_factor(self.H)
-            self.G = linalg.cho_solve(self._factor, np.asarray((self.W.T @ self.M)).T)
+            self.G = linalg.cho_solve(self._factor, np.asarray(self.W.T @ self.M).T)
 
         # Limits, one row per sample and limit, divided by the limit: |A_free p + offset| <= 1 with
         # offset = A_fixed p_fixed + A_prev [previous command; previous output] + A_state state.

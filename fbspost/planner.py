@@ -77,8 +77,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .gcode import AXES, Block, Kind, feed_lengths
 from . import klipper_rules
+from .gcode import AXES, Block, Kind, feed_lengths
 from .profile import MachineProfile
 
 EXTRUDE_ONLY_MM = 1e-9  # Klipper: an XYZ length below this makes an extrude-only move

@@ -15,8 +15,16 @@ from fbspost.gcode import read_gcode
 from fbspost.pipeline import CompensateOptions, compensate_file
 from fbspost.planner import CLAMPED, RunMargins, plan_blocks
 from fbspost.profile import load_profile
-from reference import (INSERTED, contour_error, execute, is_motion_line, positions_at, rms, sample_blocks, simulate_lsim,
-                       unbudgeted)
+from reference import (
+    INSERTED,
+    contour_error,
+    execute,
+    positions_at,
+    rms,
+    sample_blocks,
+    simulate_lsim,
+    unbudgeted,
+)
 
 ROOT = Path(__file__).resolve().parent.parent
 SAMPLES = ROOT / "samples"

@@ -1,7 +1,6 @@
 """The fallback to the planned original (fbspost.fallback), judged by scipy's simulation of the
 profile (reference.simulate_lsim), the profile's limits and the plan's own times."""
 import re
-from pathlib import Path
 
 import numpy as np
 import pytest

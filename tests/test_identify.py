@@ -17,9 +17,9 @@ import pytest
 from click.testing import CliRunner
 from scipy import signal
 
+from fbspost import excite as excite_module
 from fbspost.cli import main
 from fbspost.dynamics import AxisDynamics
-from fbspost import excite as excite_module
 from fbspost.examples import butterfly
 from fbspost.optimizer import AxisLimits, compensate_axis
 from fbspost.profile import Mode, load_profile
@@ -349,8 +349,10 @@ def test_excite_unknown_axis_is_one_line_error(tmp_path):
 
 def test_written_profile_reads_back_exactly(tmp_path):
     """format_profile of the bundled profiles, with a description that needs escaping."""
-    import tomllib
     from dataclasses import replace
+
+    import tomllib
+
     from fbspost.profile import format_profile
 
     for name in ("patent-xy-stage", "bedslinger-example"):

@@ -5,15 +5,16 @@ Nothing here reads the planner's output back as its own truth."""
 from __future__ import annotations
 
 import math
-from pathlib import Path
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from fbspost.gcode import AXES, Block, Kind, Modal, PlannerLimits
 from fbspost import planner
+from fbspost.gcode import AXES, Block, Kind, Modal, PlannerLimits
 from fbspost.planner import backward_pass, forward_pass, plan_blocks
 from fbspost.profile import load_profile
 

@@ -7,11 +7,12 @@ from __future__ import annotations
 
 import math
 import re
-import tomllib
 from pathlib import Path
 
 import pytest
-from hypothesis import given, settings, strategies as st
+import tomllib
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from fbspost.profile import ProfileError, load_profile
 

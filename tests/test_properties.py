@@ -23,14 +23,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, Phase, example, given, seed, settings, strategies as st
+from hypothesis import HealthCheck, Phase, example, given, seed, settings
+from hypothesis import strategies as st
 
-from fbspost.fallback import FALLBACK
-from fbspost.gcode import read_gcode
-from fbspost.pipeline import CompensateOptions, compensate_file, compensated_samples
 from fbspost.dynamics import AxisDynamics
-from fbspost.fallback import AxisGuard
+from fbspost.fallback import FALLBACK, AxisGuard
+from fbspost.gcode import read_gcode
 from fbspost.optimizer import AxisCompensator, AxisLimits
+from fbspost.pipeline import CompensateOptions, compensate_file, compensated_samples
 from fbspost.planner import CLAMPED, RunMargins, plan_blocks
 from fbspost.profile import load_profile
 from reference import execute, kept_lines, rms, sample_blocks, simulate_lsim, unbudgeted

@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import assume, given, settings, strategies as st
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
 from scipy.interpolate import BSpline
 
 from fbspost.splines import basis_matrix, clamped_uniform_knots, uniform_knots
