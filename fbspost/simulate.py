@@ -34,7 +34,7 @@ from scipy.spatial import cKDTree
 from .dynamics import AxisDynamics, scaled_mode
 from .gcode import AXES, Block, Kind, detect_flavor, feed_lengths, read_gcode
 from .pipeline import compensated_samples
-from .planner import EXTRUDE_ONLY_MM, Plan, RunMargins, fill_unknown, plan_blocks
+from .planner import EXTRUDE_ONLY_MM, Plan, PlanStream, RunMargins, fill_unknown, plan_blocks
 from .profile import AxisProfile, MachineProfile, ProfileError
 from .shapers import SHAPERS, Shaper, klipper_shaper, shape
 from .trajectory import InputError
@@ -166,7 +166,8 @@ def simulate_program(program: str | Path, profile: MachineProfile, shapers: tupl
     settings = settings or shaper_settings(profile)
     shaper_rows = {name: {a: klipper_shaper(name, *settings[a]) for a in modelled} for name in shapers}
     period_s = 1.0 / profile.sample_rate_hz
-    executed = execute_program(list(read_gcode(compensated, flavor, profile.home_mm))) if compensated else None
+    executed = execute_program(_as_planned(read_gcode(compensated, flavor, profile.home_mm), profile, flavor)) \
+        if compensated else None
 
     # The grid: rest before the earliest shaped start, after the latest end, then the settling.
     leads = [s.lead_s for row in shaper_rows.values() for s in row.values()]
@@ -183,6 +184,10 @@ def simulate_program(program: str | Path, profile: MachineProfile, shapers: tupl
                      warnings=[f"plan: {note}" for note in plan.notes])
     if executed:
         command = np.column_stack([np.interp(time_s, executed[0], executed[1][:, i]) for i in range(len(AXES))])
+        # the axes without modes follow the plan in the written program (their copied moves at rest
+        # jump here where the plan jumps at the rest's end)
+        unmodelled = [i for i, a in enumerate(AXES) if a not in modelled]
+        command[:, unmodelled] = desired[:, unmodelled]
         fbs = ("fbs", f"fbs: {compensated} run block by block at its feed", command)
     else:
         optimizer_warnings = []
@@ -227,6 +232,12 @@ def model_error(sim: Simulation, points=MODEL_ERRORS) -> list[tuple[float, float
             errors[method.name] = _rms_um(distance(actual[:, _XYZ])[0])
         table.append((frequency_scale, damping_scale, errors))
     return table
+
+
+def _as_planned(blocks, profile: MachineProfile, flavor: str) -> list[Block]:
+    """``blocks`` as the planner takes them: a line that moves no compensated axis (a retraction,
+    a Z move) is a rest as long as the controller takes for it (``planner.PlanStream``)."""
+    return [block for block, _, _ in PlanStream(blocks, profile, firmware=flavor).blocks()]
 
 
 def execute_program(blocks: list[Block]) -> tuple[np.ndarray, np.ndarray]:

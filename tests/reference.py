@@ -141,15 +141,17 @@ def arc_lengths(p0, p1, p2, p3):
 
 
 def execute(path, sample_rate_hz: float = 10000.0, dwell_p_seconds: bool = False,
-            extrude_only_accel_mm_s2: float = math.inf) -> Executed:
+            rests: dict[str, tuple[float, float]] | None = None) -> Executed:
     """G0/G1 with X Y Z E F, G2/G3 with I J or R in G17 (timed by their helical length; their
     end points only), G5 with I J P Q X Y Z E F (timed by the curve's XY length; Z and E
     linear in its parameter, as Marlin moves them; only in G17), G4 (P milliseconds, or seconds
     with ``dwell_p_seconds`` as in LinuxCNC; S seconds), G90/G91, M82/M83, G92, G20/G21,
     G17/G18/G19, G28 (the homed axes at 0); other lines are recorded as non-motion. ``path`` gets the points inside G5
     blocks at every multiple of 1 / ``sample_rate_hz``. The first position of an axis is where it
-    is first set (a move from an unknown place is instant). A move of E alone runs as the
-    firmware plans it, from rest to rest at ``extrude_only_accel_mm_s2``."""
+    is first set (a move from an unknown place is instant). With ``rests`` (axis:
+    (max velocity, acceleration)), a line that moves Z or E but not X and Y runs from rest to
+    rest at the slowest limits of the axes it moves (the controller's plan of a line fbspost
+    copies at rest) instead."""
     run = Executed()
     pos = {a: None for a in "XYZE"}
     pos["E"] = 0.0
@@ -196,12 +198,13 @@ def execute(path, sample_rate_hz: float = 10000.0, dwell_p_seconds: bool = False
                 d_xyz = np.sqrt(sum((target[a] - pos[a]) ** 2 for a in known)) if known else 0.0
                 d_e = abs(target["E"] - pos["E"])
                 length = d_xyz if d_xyz > 0 else d_e
-                if not unknown and length > 0:
-                    ramp_mm = feed * feed / extrude_only_accel_mm_s2  # accelerating and braking at that accel
-                    if d_xyz > 0 or length >= ramp_mm:
-                        t += length / feed + (0.0 if d_xyz > 0 else feed / extrude_only_accel_mm_s2)
-                    else:
-                        t += 2.0 * math.sqrt(length / extrude_only_accel_mm_s2)
+                moved = [a for a in "XYZE" if pos[a] is not None and target[a] != pos[a]]
+                if not unknown and length > 0 and rests and not {"X", "Y"} & set(moved):
+                    v = min([feed] + [rests[a][0] for a in moved])
+                    accel = min(rests[a][1] for a in moved)
+                    t += length / v + v / accel if length >= v * v / accel else 2.0 * math.sqrt(length / accel)
+                elif not unknown and length > 0:
+                    t += length / feed
             run.extruded += target["E"] - pos["E"]
             pos = target
             if all(pos[a] is not None for a in "XY"):
@@ -245,6 +248,14 @@ def execute(path, sample_rate_hz: float = 10000.0, dwell_p_seconds: bool = False
         run.at_lines.append(tuple(np.nan if pos[a] is None else pos[a] for a in "XYZE"))
     run.duration_s = t
     return run
+
+
+def rest_limits(profile) -> dict[str, tuple[float, float]]:
+    """``execute``'s ``rests``: Z's and E's max velocity and acceleration, each at most the
+    planner's acceleration (the profile's)."""
+    return {a: (profile.axes[a].max_velocity_mm_s, min(profile.axes[a].max_acceleration_mm_s2,
+                                                       profile.planner_acceleration_mm_s2))
+            for a in "ZE" if a in profile.axes}
 
 
 def unbudgeted(profile):

@@ -72,7 +72,7 @@ def assert_same_motion(blocks, profile, klippy) -> None:
     paired, alone = [], []  # klippy's moves that are fbspost's pieces, in order; the rest are rests
     for m in moves:
         j = len(paired)
-        same = j < pieces.end_mm.shape[0] and np.allclose(m.end_pos[:4], pieces.end_mm[j], rtol=0, atol=1e-9)
+        same = j < pieces.end_mm.shape[0] and np.allclose(m.end_pos[:4], pieces.end_mm[j, :4], rtol=0, atol=1e-9)
         (paired if same else alone).append(m)
     assert all(m.start_pos[:2] == m.end_pos[:2] for m in alone)  # (the profiles compensate X and Y)
     np.testing.assert_allclose(rests_s, [m.accel_t + m.cruise_t + m.decel_t for m in alone], rtol=1e-12)

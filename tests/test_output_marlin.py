@@ -31,7 +31,8 @@ def blocks(path):
     """Every line that is sent (not blank, not a comment), read as Marlin would: (its time, at the
     end of its motion; the step_event_count of a G0/G1 that moves, else None; X Y Z there). Program positions
     (G90, M82/M83, G92), rounded to steps per axis; a block takes the length of its whole steps
-    over F, XYZ's, or E's where no XYZ axis moves the minimum steps (planner.cpp); G4 P waits; homing puts the axes it homes at 0 and a move from an unknown place is instant (an
+    over F, XYZ's, or E's where no XYZ axis moves the minimum steps (planner.cpp), a line of Z or E
+    alone (copied) from rest to rest at the profile's limits; G4 P waits; homing puts the axes it homes at 0 and a move from an unknown place is instant (an
     axis it does not name may be unknown)."""
     spm = np.array([PROFILE.firmware.steps_per_mm[a] for a in "XYZE"])
     position, feed, t, relative_e, out = np.full(4, np.nan), np.nan, 0.0, False, []
@@ -62,7 +63,14 @@ def blocks(path):
                 steps = np.abs(counts).max()
                 step_mm = counts / spm
                 xyz = (np.abs(counts[:3]) >= MIN_STEPS).any()
-                t += (np.linalg.norm(step_mm[:3]) if xyz else abs(step_mm[3])) / feed
+                length = np.linalg.norm(step_mm[:3]) if xyz else abs(step_mm[3])
+                if named[0] or named[1]:
+                    t += length / feed
+                else:  # a line of Z or E alone, copied: from rest to rest, at the axis' limits (a trapezoid)
+                    axis = PROFILE.axes["Z" if named[2] else "E"]
+                    v = min(feed, axis.max_velocity_mm_s)
+                    a = min(PROFILE.planner_acceleration_mm_s2, axis.max_acceleration_mm_s2)
+                    t += length / v + v / a if length >= v * v / a else 2.0 * np.sqrt(length / a)
             position = target
         out.append((t, steps, position[:3].copy()))
     return out
@@ -97,6 +105,10 @@ def test_accuracy_cost_reported(marlin_output):
     times, ends = np.array([t for t, _ in lines]), np.array([xyz for _, xyz in lines])
     grid = np.arange(len(command)) / PROFILE.sample_rate_hz
     inside = (grid > times[0]) & (grid < times[-1])
+    in_runs = np.zeros(len(grid), dtype=bool)  # (the copied lines at rest: the plan jumps there)
+    for first, last in plan.runs:
+        in_runs[first:last + 1] = True
+    inside &= in_runs
     written = np.column_stack([np.interp(grid[inside], times, ends[:, c]) for c in range(3)])
     off_mm = np.linalg.norm(written - command[inside, :3], axis=1)
     print(f"blocks vs command: max {off_mm.max() * 1e3:.2f} um, RMS {np.sqrt(np.mean(off_mm**2)) * 1e3:.3f} um; "

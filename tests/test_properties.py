@@ -33,7 +33,7 @@ from fbspost.optimizer import AxisCompensator, AxisLimits
 from fbspost.pipeline import CompensateOptions, compensate_file, compensated_samples
 from fbspost.planner import CLAMPED, RunMargins, plan_blocks
 from fbspost.profile import load_profile
-from reference import execute, kept_lines, rms, sample_blocks, simulate_lsim, unbudgeted
+from reference import execute, kept_lines, rest_limits, rms, sample_blocks, simulate_lsim, unbudgeted
 
 PRINTER = unbudgeted(load_profile("bedslinger-example"))
 OPTIONS = CompensateOptions(flavor="marlin")
@@ -147,7 +147,7 @@ def check_program_kept(program: bytes, largest_error: bool = False):
     folder, source, target, report = compensated(program)
     with folder:
         list(read_gcode(target, "marlin"))  # fbspost reads what it wrote
-        original, output = execute(source), execute(target)
+        original, output = execute(source), execute(target, rests=rest_limits(PRINTER))
         kept = kept_lines(original.nonmotion, output.nonmotion)
         # E (program coordinates) and Z (no modes) at every non-motion line, exact to the written
         # decimals (X and Y where the machine rests: test_with_stops).

@@ -20,7 +20,7 @@ from fbspost.optimizer import AxisCompensator, AxisLimits
 from fbspost.pipeline import CompensateOptions
 from fbspost.planner import RunMargins, plan_blocks
 from fbspost.profile import format_profile, load_profile
-from reference import execute, rms, sample_blocks, segments_distance, simulate_lsim, unbudgeted
+from reference import execute, rest_limits, rms, sample_blocks, segments_distance, simulate_lsim, unbudgeted
 
 ROOT = Path(__file__).resolve().parent.parent
 BUTTERFLY = ROOT / "samples" / "butterfly-dense.gcode"
@@ -64,7 +64,7 @@ def resimulate(program, profile, report, compensated=None):
     lead = max([-s["times_s"][0] for row in shapers.values() for s in row.values()], default=0.0)
     lag = max([s["times_s"][-1] for row in shapers.values() for s in row.values()], default=0.0)
     if compensated:  # (the written program may end a little after the plan: its dwells are whole ms)
-        lag = max(lag, execute(compensated, profile.sample_rate_hz, seconds).ends[-1][0] - (len(plan.positions_mm) - 1) * period_s)
+        lag = max(lag, execute(compensated, profile.sample_rate_hz, seconds, rest_limits(profile)).ends[-1][0] - (len(plan.positions_mm) - 1) * period_s)
     settle_s = SETTLE_PERIODS / min(m.frequency_hz for a in modelled for m in profile.axes[a].modes)
     before = math.ceil(lead / period_s - 1e-9)
     after = math.ceil(lag / period_s - 1e-9) + math.ceil(settle_s / period_s)
@@ -74,7 +74,7 @@ def resimulate(program, profile, report, compensated=None):
 
     fbs = desired.copy()
     if compensated:
-        ends = np.array(execute(compensated, profile.sample_rate_hz, seconds).ends)
+        ends = np.array(execute(compensated, profile.sample_rate_hz, seconds, rest_limits(profile)).ends)
         _, executed = sample_blocks(ends, profile.sample_rate_hz)
         k = executed.shape[1]  # X Y Z E (LinuxCNC's other axes follow the plan)
         fbs[before:before + len(executed), :k] = executed[:len(desired) - before]

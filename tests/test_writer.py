@@ -13,7 +13,7 @@ from fbspost.pipeline import CompensateOptions, compensate_file
 from fbspost.planner import RunMargins
 from fbspost.profile import load_profile
 from fbspost.writer import _Emitter, _lines, breakpoints
-from reference import execute, positions_at, unbudgeted
+from reference import execute, positions_at, rest_limits, unbudgeted
 
 PRINTER = unbudgeted(load_profile("bedslinger-example"))
 
@@ -95,7 +95,7 @@ def outputs(tmp_path, text: str, profile, flavor: str):
                                     min_segment_time_s=1 / profile.sample_rate_hz)
         compensate_file(source, target, profile, options)
         runs.append(execute(target, profile.sample_rate_hz, dwell_p_seconds=flavor == "linuxcnc",
-                            extrude_only_accel_mm_s2=profile.planner_acceleration_mm_s2))
+                            rests=rest_limits(profile)))
     return execute(source), *runs, (tmp_path / "g5.gcode").read_text().splitlines()
 
 
