@@ -16,7 +16,7 @@ import time
 from collections import defaultdict
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -531,9 +531,8 @@ class ExecutedError:
         return counted
 
     def report(self, c: int, windows: int, qp_windows: int, command_after: _ErrorStats) -> AxisReport:
-        before, after = self.stats[c]
-        return AxisReport(before.rms_um, before.peak_um, after.rms_um, after.peak_um, windows, qp_windows,
-                          command_after.rms_um, command_after.peak_um)
+        return replace(AxisReport.from_stats(*self.stats[c], windows, qp_windows),
+                       rms_error_command_um=command_after.rms_um, max_error_command_um=command_after.peak_um)
 
 
 def _count_lines(path: str | Path) -> int:

@@ -594,9 +594,9 @@ class PlanStream:
     def _uncompensated_s(self, points: np.ndarray, feed: float, state_row: list) -> float | None:
         """How long a MOVE that moves no compensated axis (a retraction, a Z hop, a layer change)
         takes, from rest to rest as the controller plans it (None: it moves a compensated axis,
-        or an axis it moves is not known before or after). Such a move is a rest of the compensated axes: copied as it is,
-        like a dwell of that length, so that the compensated motion never mixes a creep of X Y
-        with it, and the controller runs it as the program wrote it."""
+        or an axis it moves is not known before or after). Such a move is a rest of the
+        compensated axes: copied as it is, like a dwell of that length, so that the compensated
+        motion never mixes a creep of X Y with it, and the controller runs it as written."""
         if len(points) != 1:
             return None
         # an axis unknown before and after it did not move (a line of E alone after a macro)
@@ -605,19 +605,8 @@ class PlanStream:
         if still.all() or not still[0, self._compensated].all() or not np.isfinite(delta).all():
             return None
         length, eo = feed_lengths(delta, still_mm=EXTRUDE_ONLY_MM)
-        feed_ = np.array([feed])
-        accel_print, accel_travel, planner_v, to_decel = state_row[0], state_row[1], state_row[2], state_row[-1]
-        if self._klipper:
-            z_limits, e_limits, _ = self._rules
-            _, max_v, accel = klipper_rules.piece_limits(delta, length, eo, feed_, np.array([planner_v]),
-                                                         np.array([accel_print]), z_limits, e_limits)
-            smooth_v2 = min(2.0 * length[0] * to_decel, 2.0 * length[0] * accel[0])
-        else:
-            axis_v, axis_a = (np.array([state_row[4 + k * _NA:4 + (k + 1) * _NA]]) for k in (0, 1))
-            _, max_v, accel, _ = axis_piece_limits(delta, length, eo, feed_, planner_v, accel_print, accel_travel,
-                                                   axis_v, axis_a)
-            smooth_v2 = 2.0 * length[0] * accel[0]
-        peak_v2 = min(max_v[0] ** 2, 0.5 * smooth_v2)  # a trapezoid from rest to rest
+        _, max_v, accel, _, smooth_v2, _ = self._piece_limits(delta, length, eo, np.array([feed]), np.array([state_row]))
+        peak_v2 = min(max_v[0] ** 2, 0.5 * smooth_v2[0])  # a trapezoid from rest to rest
         peak, a = math.sqrt(peak_v2), float(accel[0])
         return 2.0 * peak / a + (length[0] - peak_v2 / a) / peak
 
@@ -696,14 +685,9 @@ class PlanStream:
             return
         table = np.asarray([r[4] for r in moving])[group]
         feed = np.asarray([r[3] for r in moving])[group]
-        accel_print, accel_travel, planner_v, jd = table[:, 0], table[:, 1], table[:, 2], table[:, 3]
-        axis_v, axis_a, to_decel = table[:, 4:4 + _NA], table[:, 4 + _NA:4 + 2 * _NA], table[:, -1]
-        if self._klipper:
-            limits = self._klipper_pieces(delta, length, extrude_only, feed, planner_v, accel_print, jd, to_decel)
-        else:
-            limits = self._axis_pieces(delta, length, extrude_only, feed, planner_v, accel_print, accel_travel, jd,
-                                       axis_v, axis_a)
-        max_v, accel, delta_v2, smooth_delta_v2, inner, clamped = limits
+        unit, max_v, accel, delta_v2, smooth_delta_v2, clamped = self._piece_limits(delta, length, extrude_only, feed,
+                                                                                    table)
+        inner = self._junction_limits(unit, max_v, accel, length, delta_v2, table[:, 3])
         self._count_clamped(clamped, feed, max_v, piece_block, piece_line)
 
         # junction limits: limit_v2[i] is the junction before piece i (the first after the last
@@ -724,32 +708,33 @@ class PlanStream:
         self._scan_smooth = np.concatenate([self._scan_smooth, smooth_delta_v2])
         self._m += m
 
-    def _axis_pieces(self, delta, length, extrude_only, feed, planner_v, accel_print, accel_travel, jd, axis_v, axis_a):
-        """Per piece: cruise limit, accel, 2 a d, the same for the smoothing (none here), the
-        junction limit before each (with the last piece made before) and whether its feed is
-        clamped by the machine's limits."""
+    def _piece_limits(self, delta, length, extrude_only, feed, table):
+        """Per piece, from its row of the limits table (``_LimitState.row``): its direction per mm,
+        cruise limit, accel, 2 a d, the same for Klipper's smoothing (2 a d where there is none) and
+        whether its feed is clamped by the machine's limits."""
+        accel_print, accel_travel, planner_v = table[:, 0], table[:, 1], table[:, 2]
+        if self._klipper:
+            z_limits, e_limits, _ = self._rules
+            unit, max_v, accel = klipper_rules.piece_limits(delta, length, extrude_only, feed, planner_v, accel_print,
+                                                            z_limits, e_limits)
+            delta_v2 = 2.0 * length * accel
+            smooth_delta_v2 = np.minimum(2.0 * length * table[:, -1], delta_v2)
+            return unit, max_v, accel, delta_v2, smooth_delta_v2, np.isfinite(feed) & (max_v < feed) & ~extrude_only
         unit, max_v, accel, clamped = axis_piece_limits(delta, length, extrude_only, feed, planner_v, accel_print,
-                                                        accel_travel, axis_v, axis_a)
-        cruise_v2 = max_v * max_v
+                                                        accel_travel, table[:, 4:4 + _NA], table[:, 4 + _NA:4 + 2 * _NA])
         delta_v2 = 2.0 * accel * length
-        xyz_unit = unit[:, :3]
-        carried = self._junction_carry((xyz_unit, jd, accel, delta_v2, cruise_v2))
-        u, jd_, acc, dv2, cv2 = carried
-        inner = junction_limits(u[:-1], u[1:], jd_[:-1], jd_[1:], acc[:-1], acc[1:], dv2[:-1], dv2[1:], cv2[:-1], cv2[1:])
-        return max_v, accel, delta_v2, delta_v2, inner, clamped
+        return unit, max_v, accel, delta_v2, delta_v2, clamped
 
-    def _klipper_pieces(self, delta, length, extrude_only, feed, planner_v, accel_print, jd, to_decel):
-        """As ``_axis_pieces``, with Klipper's rules (``klipper_rules``)."""
-        z_limits, e_limits, corner_v = self._rules
-        unit, max_v, accel = klipper_rules.piece_limits(delta, length, extrude_only, feed, planner_v, accel_print,
-                                                        z_limits, e_limits)
+    def _junction_limits(self, unit, max_v, accel, length, delta_v2, jd) -> np.ndarray:
+        """The junction limit before each piece (with the last piece made before): Klipper's rules,
+        or the junction-deviation model of ``junction_limits``."""
         cruise_v2 = max_v * max_v
-        delta_v2 = 2.0 * length * accel
-        smooth_delta_v2 = np.minimum(2.0 * length * to_decel, delta_v2)
-        u, jd_, acc, d, cv2 = self._junction_carry((unit, jd, accel, length, cruise_v2))
-        inner = klipper_rules.junction_limits(u[:-1], u[1:], jd_[:-1], jd_[1:], acc[:-1], acc[1:], d[:-1], d[1:],
-                                              cv2[:-1], cv2[1:], corner_v)
-        return max_v, accel, delta_v2, smooth_delta_v2, inner, np.isfinite(feed) & (max_v < feed) & ~extrude_only
+        if self._klipper:
+            u, jd_, acc, d, cv2 = self._junction_carry((unit, jd, accel, length, cruise_v2))
+            return klipper_rules.junction_limits(u[:-1], u[1:], jd_[:-1], jd_[1:], acc[:-1], acc[1:], d[:-1], d[1:],
+                                                 cv2[:-1], cv2[1:], self._rules[2])
+        u, jd_, acc, dv2, cv2 = self._junction_carry((unit[:, :3], jd, accel, delta_v2, cruise_v2))
+        return junction_limits(u[:-1], u[1:], jd_[:-1], jd_[1:], acc[:-1], acc[1:], dv2[:-1], dv2[1:], cv2[:-1], cv2[1:])
 
     def _count_clamped(self, clamped: np.ndarray, feed, max_v, piece_block, piece_line) -> None:
         clamped = np.flatnonzero(clamped)

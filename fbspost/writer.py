@@ -252,9 +252,14 @@ class _Emitter:
             self.shift_mm[changed] = (command_mm - planned_mm)[changed]
             self.written[changed] = self.to_program(command_mm)[changed]
 
+    @property
+    def digits(self) -> np.ndarray:
+        """Decimals written per axis (of AXES), in the controller's units."""
+        return np.array([_DECIMALS[a] for a in AXES]) + (1 if self.modal.inches else 0)
+
     def still(self, targets_mm: np.ndarray) -> int:
         """How many of the first ``targets_mm`` (machine mm) round to where the controller is."""
-        scale = 10.0 ** (np.array([_DECIMALS[a] for a in AXES]) + (1 if self.modal.inches else 0))
+        scale = 10.0 ** self.digits
         moves = (np.rint(self.to_program(targets_mm) * scale) != np.rint(self.written * scale)).any(axis=1)
         return int(np.argmax(moves)) if moves.any() else len(moves)
 
@@ -282,7 +287,7 @@ class _Emitter:
         if self.held is not None:
             targets_mm, durations_s, ends_s = (np.concatenate(pair) for pair in zip(self.held, (targets_mm, durations_s, ends_s)))
             self.held = None
-        digits = np.array([_DECIMALS[a] for a in AXES]) + (1 if self.modal.inches else 0)
+        digits = self.digits
         scale = 10.0 ** digits
         relative = np.array([not (self.modal.absolute_e if a == "E" else self.modal.absolute_xyz) for a in AXES])
         start = np.rint(self.written * scale).astype(np.int64)
@@ -664,6 +669,13 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
         emit_text(b"".join(x.encode() + newline for x in lines), len(lines))
         rate.add([written_until_s] * len(lines))
 
+    def dwell(seconds: float) -> float:
+        """A G4 for about ``seconds`` (none where it rounds to nothing); gives how long it dwells."""
+        line, dwell_s = dwell_line(options.flavor, seconds)
+        if dwell_s > 0:
+            emit(line)
+        return dwell_s
+
     def block_ends(first: int, start_s: float, stop_s: float, soft: bool = False):
         """The current run's block ends after ``start_s`` up to ``stop_s`` (s), and their curves, in
         batches as they become known (the last one ends at stop_s; ``soft``: only those before
@@ -679,7 +691,7 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
                         ahead.append(_copied_sample(line_time_s, is_stop, fs, ahead[-1]))
                 copied = np.unique(ahead)
                 splits = copied[np.searchsorted(copied, first, "right"):np.searchsorted(copied, last, "left")] - first
-                step_mm = 10.0 ** -(_DECIMALS["X"] + emitter.modal.inches) * emitter.unit_mm  # I J P Q as written
+                step_mm = 10.0 ** -emitter.digits[0] * emitter.unit_mm  # I J P Q as written
                 run_ends, curves = g5_blocks(samples.rows(first, last + 1), splits, options.tolerance_mm, min_samples,
                                              step_mm)
                 run_g5 = (run_ends + first, curves)
@@ -749,13 +761,13 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
                     if ends[-1] == t_end_s and not soft:
                         exact = np.where(np.isnan(end_exact_mm), samples.at(ends[-1:], fs, planned=True)[0], end_exact_mm)
                         targets[-1, follows_plan] = exact[follows_plan]
-                    if run_start:  # blocks that round to no motion at a run's start: a dwell, not a slow first block
-                        still = emitter.still(targets[:-1])
-                        line, dwell_s = dwell_line(options.flavor, ends[still - 1] - from_s + emitter.residue_s) \
-                            if still else ("", 0.0)
+                    # blocks that round to no motion at a run's start: a dwell, not a slow first block
+                    still = emitter.still(targets[:-1]) if run_start else 0
+                    if still:
+                        span_s = ends[still - 1] - from_s
+                        dwell_s = dwell(span_s + emitter.residue_s)
                         if dwell_s > 0:
-                            emit(line)
-                            emitter.residue_s += ends[still - 1] - from_s - dwell_s
+                            emitter.residue_s += span_s - dwell_s
                             from_s, ends, targets = ends[still - 1], ends[still:], targets[still:]
                             curves = None if curves is None else curves[still:]
                     text, count = emitter.blocks(targets, np.diff(np.append(from_s, ends)), ends, curves,
@@ -774,10 +786,7 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
             # A run's end where the command no longer moves (a settle margin unused) is a dwell:
             # its time must not slow the next run's first block, nor be lost (the lines after it
             # run at the plan's times).
-            line, dwell_s = dwell_line(options.flavor, emitter.residue_s)
-            if dwell_s > 0:
-                emit(line)
-                emitter.residue_s -= dwell_s
+            emitter.residue_s -= dwell(emitter.residue_s)
             if settings is not None and not runs_from(run_index):
                 emit(*settings.restore())  # the program's own, as it left them
 
@@ -809,7 +818,7 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
         if settings is not None and is_stop and _may_move(previous_mm, block.position_mm, slice(None)):
             # a move fbspost copies runs under the program's own settings (shaping: where it moves X or Y)
             emit(*settings.restore(shaping=_may_move(previous_mm, block.position_mm, slice(0, 2))))
-            if emitter.speed_mm_s > 0 and _may_move(previous_mm, block.position_mm, slice(None)):
+            if emitter.speed_mm_s > 0:
                 emit(dwell_line(options.flavor, 0.0)[0])  # from rest, as planned: the last block's speed would carry into it
         reached = samples.at(np.array([t]), fs, planned=True)[0]  # where the program is: the plan where the line does not say
         reached = np.where(np.isnan(block.position_mm), reached, block.position_mm)
