@@ -6,8 +6,11 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 
+from fbspost.dynamics import AxisDynamics
+from fbspost.optimizer import AxisCompensator, AxisLimits, FBSSettings
 from fbspost.pipeline import CompensateOptions, compensate_file
 from fbspost.profile import load_profile
 
@@ -42,3 +45,28 @@ def test_help_loads_no_scipy():
     loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                             cwd=DATA.parent.parent).stdout
     assert loaded.strip() == "[]"
+
+
+def _min_jerk(distance_mm, duration_s, n_samples, period_s):
+    """A minimum-jerk move from rest to rest (closed form), then at rest: ``n_samples`` samples."""
+    s = np.clip(np.arange(n_samples) * period_s / duration_s, 0.0, 1.0)
+    return distance_mm * (10 * s**3 - 15 * s**4 + 6 * s**5)
+
+
+def test_runs_of_equal_length_share_their_final_window_and_solve_alike():
+    """Each run's final window is kept for later runs of its length (AxisCompensator.final): a
+    run solved after another of its length gives, bit for bit, what a new compensator gives,
+    also where the limits bind there (the QP solved in the final window)."""
+    profile = load_profile("printer-two-mode")
+    axis, period_s = profile.axes["X"], 1.0 / profile.sample_rate_hz
+
+    def compensator():
+        return AxisCompensator(AxisDynamics(axis.modes, period_s), AxisLimits.from_profile(axis), FBSSettings(settle_weight=5.0))
+
+    first, second = _min_jerk(5.0, 0.12, 180, period_s), _min_jerk(-8.0, 0.06, 180, period_s)
+    shared = compensator()
+    shared(first)
+    again = shared(second)
+    assert len(shared._finals) == 1 and again.qp_windows >= 1
+    alone = compensator()(second)
+    assert np.array_equal(again.command_mm, alone.command_mm)
