@@ -548,18 +548,18 @@ class AxisCompensator:
         its length is at most the samples a regular window needs ahead, so runs share them: the
         most recently used are kept, up to ``_FINAL_CACHE_BYTES`` (a few hundred per axis)."""
         key = level, n_rows
-        # The spans up to the last sample; a point whose support starts at the last sample does nothing.
         final = self._finals.pop(key, None)
         if final is None:
             settings = self.settings
+            # The spans up to the last sample; a point whose support starts at the last sample does nothing.
             final = _Stretch(self.model_set(level), settings, self.limits, n_rows + settings.settle_samples,
                              max(1, -(-(n_rows - 1) // settings.knot_spacing_samples)), hold_from=n_rows,
                              end_conditions=True)
             self._finals_bytes += final.nbytes
-            while self._finals and self._finals_bytes > _FINAL_CACHE_BYTES:
-                self._finals_bytes -= self._finals.popitem(last=False)[1].nbytes
         final.reset()
         self._finals[key] = final
+        while self._finals_bytes > _FINAL_CACHE_BYTES:
+            self._finals_bytes -= self._finals.popitem(last=False)[1].nbytes
         return final
 
 

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fbspost import optimizer
 from fbspost.dynamics import AxisDynamics
 from fbspost.optimizer import AxisCompensator, AxisLimits, FBSSettings
 from fbspost.pipeline import CompensateOptions, compensate_file
@@ -34,6 +35,21 @@ def test_axes_on_threads_write_the_serial_output_byte_for_byte(tmp_path, program
         assert len(report.axes) == 2 and report.print_time_s > 20.0
         assert 0 < sum(axis.qp_windows for axis in report.axes.values()) < sum(axis.windows for axis in report.axes.values())
     assert outputs[True].read_bytes() == outputs[False].read_bytes()
+
+
+@pytest.mark.slow
+def test_final_windows_kept_or_built_anew_write_the_same_bytes(tmp_path, monkeypatch):
+    """The gear's head (corners on every layer: hundreds of runs, most of equal final-window
+    lengths) with every final window kept for the next runs of its length, and with none kept."""
+    source = tmp_path / "gear.gcode"
+    with open(DATA / "gear-marlin2.gcode", "rb") as f:
+        source.write_bytes(b"".join(f.readline() for _ in range(1200)))
+    profile, outputs = load_profile("printer-two-mode"), []
+    for budget in (optimizer._FINAL_CACHE_BYTES, 0):
+        monkeypatch.setattr(optimizer, "_FINAL_CACHE_BYTES", budget)
+        outputs.append(tmp_path / f"kept-{budget}.gcode")
+        compensate_file(source, outputs[-1], profile, replace(CompensateOptions(), parallel_axes=False))
+    assert outputs[0].read_bytes() == outputs[1].read_bytes()
 
 
 def test_help_loads_no_scipy():
