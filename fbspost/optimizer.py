@@ -124,7 +124,7 @@ class AxisResult:
 
 _LIMIT_TOLERANCE = 1e-7  # relative excess over a limit accepted as meeting it
 _QP_ROUNDS = 4
-_FINAL_CACHE_BYTES = 192 << 20  # per axis: every final window shape of two-mode axes at 1 kHz fits in about 110 MB
+_FINAL_CACHE_BYTES = 128 << 20  # per axis; printer-two-mode's X keeps a final window for every long run's length in 63 MB
 _ACTIVE_SET_STEPS = 400
 
 
@@ -222,9 +222,10 @@ class _Stretch:
 
     @property
     def nbytes(self) -> int:
-        """Memory held by its matrices."""
+        """Memory held by its matrices (and factorizations)."""
+        held = [x for v in vars(self).values() for x in (v if isinstance(v, tuple) else (v,))]
         return sum(v.nbytes if isinstance(v, np.ndarray) else v.data.nbytes + v.indices.nbytes + v.indptr.nbytes
-                   for v in vars(self).values() if isinstance(v, np.ndarray) or sparse.issparse(v))
+                   for v in held if isinstance(v, np.ndarray) or sparse.issparse(v))
 
     def reset(self) -> None:
         """Drop OSQP's state (its duals) from earlier windows: a reused window solves as a new one."""
