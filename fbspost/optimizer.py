@@ -124,7 +124,7 @@ class AxisResult:
 
 _LIMIT_TOLERANCE = 1e-7  # relative excess over a limit accepted as meeting it
 _QP_ROUNDS = 4
-_FINAL_CACHE_BYTES = 128 << 20  # per axis; printer-two-mode's X keeps a final window for every long run's length in 63 MB
+_FINAL_CACHE_BYTES = 128 << 20  # per axis (printer-two-mode's X: the final windows of every long run's length, 63 MB)
 _ACTIVE_SET_STEPS = 400
 
 
@@ -542,7 +542,6 @@ class AxisCompensator:
             stretch = _Stretch(models, self.settings, self.limits, window * k, window)
             self._regulars[level] = stretch, _Sweep(stretch, models, self.carry, self.settings.commit_spans, k)
         return self._regulars[level]
-
 
     def final(self, n_rows: int, level: int = 0) -> _Stretch:
         """The final window of a run whose last ``n_rows`` samples it solves. Every run has one;

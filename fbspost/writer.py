@@ -370,7 +370,7 @@ def _merged(start: np.ndarray, ints: np.ndarray, steps_per_unit: np.ndarray, min
     while i < len(near):
         k = near[i]
         last = rows[k - 1]
-        while k < len(rows) and max(abs(a - b) for a, b in zip(rows[k], last)) < min_steps:
+        while k < len(rows) and max((abs(a - b) for a, b in zip(rows[k], last)), default=0.0) < min_steps:
             kept[k] = False
             k += 1
         i = bisect.bisect_right(near, k, i)
@@ -398,18 +398,20 @@ def _feeds(length_mm: np.ndarray, durations_s: np.ndarray, moving: np.ndarray, r
     add = feeds.append
     ramped = ramp_mm_s2 != math.inf
     # (One line per block, the slowest loop of the writer: max() and the ramp's term only where they count.)
-    for length, duration, moves in zip((length_mm * units_per_mm_s).tolist(), durations_s.tolist(), moving.tolist()):
+    lengths = (length_mm * units_per_mm_s).tolist()
+    for length_units_s, duration, moves in zip(lengths, durations_s.tolist(), moving.tolist()):
         residue_s += duration
         if moves:
             half = 0.5 * duration
-            feed = round(length / (residue_s if residue_s >= half else half))
+            feed = round(length_units_s / (residue_s if residue_s >= half else half))
             if feed < 1:
                 feed = 1
             add(feed)
-            residue_s -= length / feed
+            residue_s -= length_units_s / feed
             speed = feed / units_per_mm_s
             if ramped:
-                residue_s -= (speed - speed_mm_s) ** 2 / (2.0 * ramp_mm_s2 * (speed if speed >= speed_mm_s else speed_mm_s))
+                faster = speed if speed >= speed_mm_s else speed_mm_s
+                residue_s -= (speed - speed_mm_s) ** 2 / (2.0 * ramp_mm_s2 * faster)
             speed_mm_s = speed
     return np.array(feeds, dtype=np.int64), residue_s, speed_mm_s
 

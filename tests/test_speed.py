@@ -14,6 +14,7 @@ from fbspost.dynamics import AxisDynamics
 from fbspost.optimizer import AxisCompensator, AxisLimits, FBSSettings
 from fbspost.pipeline import CompensateOptions, compensate_file
 from fbspost.profile import load_profile
+from fbspost.writer import _merged
 
 DATA = Path(__file__).parent / "data"
 
@@ -77,7 +78,8 @@ def test_runs_of_equal_length_share_their_final_window_and_solve_alike():
     axis, period_s = profile.axes["X"], 1.0 / profile.sample_rate_hz
 
     def compensator():
-        return AxisCompensator(AxisDynamics(axis.modes, period_s), AxisLimits.from_profile(axis), FBSSettings(settle_weight=5.0))
+        return AxisCompensator(AxisDynamics(axis.modes, period_s), AxisLimits.from_profile(axis),
+                               FBSSettings(settle_weight=5.0))
 
     first, second = _min_jerk(5.0, 0.12, 180, period_s), _min_jerk(-8.0, 0.06, 180, period_s)
     shared = compensator()
@@ -86,3 +88,30 @@ def test_runs_of_equal_length_share_their_final_window_and_solve_alike():
     assert len(shared._finals) == 1 and again.qp_windows >= 1
     alone = compensator()(second)
     assert np.array_equal(again.command_mm, alone.command_mm)
+
+
+def _merged_row_by_row(start, ints, steps_per_unit, min_steps, exact_last):
+    """Marlin's merge as its docstring says it, one row at a time over every column."""
+    ends = np.vstack([start, ints])
+    at_steps = np.rint(ends * steps_per_unit)
+    kept = [0]
+    for k in range(1, len(ends)):
+        if np.abs(at_steps[k] - at_steps[kept[-1]]).max() >= min_steps:
+            kept.append(k)
+    if exact_last and kept[-1] != len(ints):
+        kept[-1 if len(kept) > 1 else len(kept):] = [len(ints)]
+    return np.array([ends[max(j for j in kept if j <= k)] for k in range(1, len(ends))])
+
+
+@pytest.mark.parametrize("exact_last", [True, False])
+def test_marlin_merge_as_done_row_by_row(exact_last):
+    """writer._merged (which compares a row with an earlier one only after a merged row, and only
+    the stepped columns) against the rule done naively, on blocks of 0 to 5 steps, about half of them merged."""
+    rng = np.random.default_rng(7)
+    steps_per_unit = np.zeros(10)
+    steps_per_unit[:4] = [0.08, 0.08, 0.4, 0.093]  # X Y Z E stepped, per written unit
+    ints = np.cumsum(rng.integers(-12, 13, size=(3000, 10)), axis=0)
+    start = ints[0] - 5
+    merged = _merged(start, ints, steps_per_unit, 3, exact_last)
+    assert np.array_equal(merged, _merged_row_by_row(start, ints, steps_per_unit, 3, exact_last))
+    assert 0.2 < np.mean((merged != ints).any(axis=1)) < 0.9  # many merged, many kept
