@@ -357,14 +357,24 @@ def _merged(start: np.ndarray, ints: np.ndarray, steps_per_unit: np.ndarray, min
     motion, whose time the next block takes. With ``exact_last`` the last end is kept, merging
     the last kept block before it instead."""
     ends = np.vstack([start, ints])
-    at_steps = np.rint(ends * steps_per_unit)
-    if (np.abs(np.diff(at_steps, axis=0)).max(axis=1) >= min_steps).all():
+    stepped = steps_per_unit > 0  # (the other columns never step)
+    at_steps = np.rint(ends[:, stepped] * steps_per_unit[stepped])
+    far = (np.abs(np.diff(at_steps, axis=0)) >= min_steps).any(axis=1)  # each row from the one before
+    if far.all():
         return ints
-    kept, last = [0], at_steps[0].tolist()
-    for k, row in enumerate(at_steps[1:].tolist(), 1):
-        if max(abs(a - b) for a, b in zip(row, last)) >= min_steps:
-            kept.append(k)
-            last = row
+    # After a kept row, a row far from it is kept; only after a merged one is a row compared
+    # with an earlier one (the last kept), until one is far from it.
+    kept = np.ones(len(ends), dtype=bool)
+    near, rows = (np.flatnonzero(~far) + 1).tolist(), at_steps.tolist()
+    i = 0
+    while i < len(near):
+        k = near[i]
+        last = rows[k - 1]
+        while k < len(rows) and max((abs(a - b) for a, b in zip(rows[k], last)), default=0.0) < min_steps:
+            kept[k] = False
+            k += 1
+        i = bisect.bisect_right(near, k, i)
+    kept = np.flatnonzero(kept).tolist()
     if exact_last and kept[-1] != len(ints):
         kept[-1 if len(kept) > 1 else len(kept):] = [len(ints)]
     source = np.repeat(kept, np.diff(np.append(kept, len(ends))))  # each row: the last kept at or before it
@@ -385,14 +395,23 @@ def _feeds(length_mm: np.ndarray, durations_s: np.ndarray, moving: np.ndarray, r
     negative than half a block's duration, the block keeps half its own and the rest goes on.)
     """
     feeds = []
-    for length, duration, moves in zip(length_mm.tolist(), durations_s.tolist(), moving.tolist()):
+    add = feeds.append
+    ramped = ramp_mm_s2 != math.inf
+    # (One line per block, the slowest loop of the writer: max() and the ramp's term only where they count.)
+    lengths = (length_mm * units_per_mm_s).tolist()
+    for length_units_s, duration, moves in zip(lengths, durations_s.tolist(), moving.tolist()):
         residue_s += duration
         if moves:
-            feed = max(round(length * units_per_mm_s / max(residue_s, 0.5 * duration)), 1)
-            feeds.append(feed)
-            residue_s -= length * units_per_mm_s / feed
+            half = 0.5 * duration
+            feed = round(length_units_s / (residue_s if residue_s >= half else half))
+            if feed < 1:
+                feed = 1
+            add(feed)
+            residue_s -= length_units_s / feed
             speed = feed / units_per_mm_s
-            residue_s -= (speed - speed_mm_s) ** 2 / (2.0 * ramp_mm_s2 * max(speed, speed_mm_s))
+            if ramped:
+                faster = speed if speed >= speed_mm_s else speed_mm_s
+                residue_s -= (speed - speed_mm_s) ** 2 / (2.0 * ramp_mm_s2 * faster)
             speed_mm_s = speed
     return np.array(feeds, dtype=np.int64), residue_s, speed_mm_s
 
