@@ -109,8 +109,11 @@ class MarlinRun:
     merged_lines: list[int] = field(default_factory=list)
 
     def positions_mm(self, sample_rate_hz: float) -> np.ndarray:
-        """(n, NA) positions at t = k / sample_rate_hz, k = 0 .. through the end (at rest between blocks)."""
-        t = np.arange(math.floor(self.duration_s * sample_rate_hz) + 2) / sample_rate_hz
+        """(n, NA) positions at t = k / sample_rate_hz, k = 0 .. through the end."""
+        return self.at(np.arange(math.floor(self.duration_s * sample_rate_hz) + 2) / sample_rate_hz)
+
+    def at(self, t: np.ndarray) -> np.ndarray:
+        """(len(t), NA) positions at the times ``t`` (s): along the blocks, at rest between them."""
         if not self.start_s.size:
             return np.zeros((t.size, _NA))
         k = np.maximum(np.searchsorted(self.start_s, t, side="right") - 1, 0)
