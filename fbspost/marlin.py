@@ -24,7 +24,7 @@ Modelled from MarlinFirmware/Marlin bugfix-2.1.x, Marlin/src/module/planner.cpp 
   empty buffer.
 - junction deviation (M205 J): a * J sin(t/2) / (1 - sin(t/2)) over the XYZE unit vectors, a
   limited per axis along the junction's unit vector; JD_HANDLE_SMALL_SEGMENTS: blocks under 1 mm
-  turning more than 45 degrees at most millimeters * a / theta (Marlin's polynomial acos); a
+  turning less than 45 degrees at most millimeters * a / theta (Marlin's polynomial acos); a
   reversal (cos > 0.999999): the minimum planner speed; then the lower nominal speed. Or
   ``classic_jerk`` (CLASSIC_JERK builds): M205 X Y jerk, DEFAULT_ZJERK 0.3, DEFAULT_EJERK 5.
 - the buffer: BLOCK_BUFFER_SIZE slots hold BLOCK_BUFFER_SIZE - 1 blocks (``get_next_free_block``).
@@ -35,8 +35,8 @@ Modelled from MarlinFirmware/Marlin bugfix-2.1.x, Marlin/src/module/planner.cpp 
   ending at its safe exit speed (``recalculate``: reverse pass, forward pass from the fixed
   entry). A buffer that runs dry stops the machine; the first block into an empty buffer waits
   until 3 blocks are queued or BLOCK_DELAY_FOR_1ST_MOVE (100 ms) passes (``get_current_block``).
-- lines that stop the machine (``Kind.STOP``: G4, M400, homing...) wait for the buffer to empty,
-  then their dwell; other lines cost their line time only.
+- lines that stop the machine (``Kind.STOP`` as the reader classes them: G4, M400, homing, M109,
+  M593...) wait for the buffer to empty, then their dwell; other lines cost their line time only.
 Not modelled: the stepper's step-rate quantization (ceil of the accelerate steps, nominal_rate,
 minimal_step_rate: under a step per block), S-curve acceleration and linear advance (off by
 default), input shaping and FT_MOTION, G2/G3 segmentation by Marlin (arcs come as the reader's
@@ -61,7 +61,7 @@ _E = AXES.index("E")
 _XYZ = slice(0, 3)
 _M205_B = re.compile(rb"^\s*(?:[Nn]\s*\d+\s*)?[Mm]\s*0*205\b[^;(]*?[Bb]\s*([-+]?[\d.]+)")
 _REVERSAL_COS = 0.999999  # planner.cpp: junction_cos_theta > 0.999999, a 0 degree junction
-_OCTAGON_COS = -0.7071067812  # JD_HANDLE_SMALL_SEGMENTS: turns of more than 45 degrees
+_OCTAGON_COS = -0.7071067812  # JD_HANDLE_SMALL_SEGMENTS: junctions over 135 degrees (turns under 45)
 _NO_STEPS_PER_MM = 1e6  # an axis without steps_per_mm: never merged, no minimum speed
 
 
