@@ -263,14 +263,19 @@ class _Emitter:
         moves = (np.rint(self.to_program(targets_mm) * scale) != np.rint(self.written * scale)).any(axis=1)
         return int(np.argmax(moves)) if moves.any() else len(moves)
 
-    def _marlin_lengths(self, start: np.ndarray, ints: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    def _marlin_lengths(self, start: np.ndarray, ints: np.ndarray, scale: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The lengths Marlin times the blocks by (planner.cpp, _populate_block): of the whole
-        steps they move, E's where no XYZ axis moves its minimum steps."""
+        steps they move, E's where no XYZ axis moves its minimum steps; and the speeds up to
+        which Marlin enters each block at once, without a ramp: its minimum planner speed
+        sqrt(0.5 a / steps per mm), a the ramps' (where the speed rises above it, it ramps from there)."""
         spm = self.steps_per_mm
         step_counts = np.diff(np.rint(np.vstack([start, ints]) * (spm * self.unit_mm / scale)), axis=0)
         delta_mm = np.where(spm > 0, step_counts / np.where(spm > 0, spm, 1.0),
                             np.diff(np.vstack([start, ints]), axis=0) / scale * self.unit_mm)
-        return _lengths(delta_mm, (np.abs(step_counts[:, :3]) >= self.min_steps).any(axis=1))
+        length = _lengths(delta_mm, (np.abs(step_counts[:, :3]) >= self.min_steps).any(axis=1))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            jump = np.sqrt(0.5 * self.ramp_mm_s2 * length / np.abs(step_counts).max(axis=1, initial=0))
+        return length, np.nan_to_num(jump)
 
     def blocks(self, targets_mm: np.ndarray, durations_s: np.ndarray, ends_s: np.ndarray | None = None,
                curves: Curves | None = None, exact_last: bool = True) -> tuple[bytes, int]:
@@ -302,7 +307,8 @@ class _Emitter:
                 targets_mm, durations_s, ends_s, ints = targets_mm[:last], durations_s[:last], ends_s[:last], ints[:last]
         steps = np.diff(np.vstack([start, ints]), axis=0)
         moved = steps != 0
-        length = self._marlin_lengths(start, ints, scale) if marlin else _lengths(steps / scale * self.unit_mm)
+        length, jump = (self._marlin_lengths(start, ints, scale) if marlin
+                        else (_lengths(steps / scale * self.unit_mm), np.zeros(len(steps))))
         if curves is not None:
             # Control points rounded as written: I J (P Q) are the rounded point minus the rounded
             # start (end), as the controller adds them to the positions it has. The rounded curve
@@ -322,7 +328,7 @@ class _Emitter:
         rows = slice(None) if moving.all() else moving  # nearly always all of them: no copies
         feed, self.residue_s, self.speed_mm_s = _feeds(length, durations_s, moving, self.residue_s,
                                                        60.0 * 10 ** _FEED_DECIMALS / self.unit_mm,
-                                                       self.speed_mm_s, self.ramp_mm_s2)
+                                                       self.speed_mm_s, self.ramp_mm_s2, jump)
         new_feed = feed != np.concatenate([[self.feed], feed[:-1]])  # F only where it changes
         if len(feed):
             self.feed = int(feed[-1])
@@ -382,7 +388,8 @@ def _merged(start: np.ndarray, ints: np.ndarray, steps_per_unit: np.ndarray, min
 
 
 def _feeds(length_mm: np.ndarray, durations_s: np.ndarray, moving: np.ndarray, residue_s: float,
-           units_per_mm_s: float, speed_mm_s: float = 0.0, ramp_mm_s2: float = math.inf) -> tuple[np.ndarray, float, float]:
+           units_per_mm_s: float, speed_mm_s: float = 0.0, ramp_mm_s2: float = math.inf,
+           jump_mm_s: np.ndarray | None = None) -> tuple[np.ndarray, float, float]:
     """The F of each moving block (integer units of its last digit; ``units_per_mm_s`` per mm/s),
     the time residue left after them and the last block's speed (``speed_mm_s``: the one's before).
 
@@ -393,13 +400,16 @@ def _feeds(length_mm: np.ndarray, durations_s: np.ndarray, moving: np.ndarray, r
     ramps from one block's speed to the next at ``ramp_mm_s2``, inside the faster one, and arrives
     (dv)^2 / (2 ramp max(v)) late: the next block makes that up too. (Where the residue is more
     negative than half a block's duration, the block keeps half its own and the rest goes on.)
+    Marlin enters a faster block at once up to its ``jump_mm_s`` (see ``_Emitter._marlin_lengths``).
     """
     feeds = []
     add = feeds.append
     ramped = ramp_mm_s2 != math.inf
     # (One line per block, the slowest loop of the writer: max() and the ramp's term only where they count.)
     lengths = (length_mm * units_per_mm_s).tolist()
-    for length_units_s, duration, moves in zip(lengths, durations_s.tolist(), moving.tolist()):
+    jumps = [0.0] * len(lengths) if jump_mm_s is None else jump_mm_s.tolist()
+    for length_units_s, duration, moves, jump in zip(lengths, durations_s.tolist(), moving.tolist(), jumps,
+                                                     strict=True):
         residue_s += duration
         if moves:
             half = 0.5 * duration
@@ -410,8 +420,9 @@ def _feeds(length_mm: np.ndarray, durations_s: np.ndarray, moving: np.ndarray, r
             residue_s -= length_units_s / feed
             speed = feed / units_per_mm_s
             if ramped:
-                faster = speed if speed >= speed_mm_s else speed_mm_s
-                residue_s -= (speed - speed_mm_s) ** 2 / (2.0 * ramp_mm_s2 * faster)
+                step = speed - (speed_mm_s if speed_mm_s >= jump else jump) if speed > speed_mm_s else speed_mm_s - speed
+                if step > 0.0:
+                    residue_s -= step ** 2 / (2.0 * ramp_mm_s2 * (speed if speed >= speed_mm_s else speed_mm_s))
             speed_mm_s = speed
     return np.array(feeds, dtype=np.int64), residue_s, speed_mm_s
 
@@ -673,6 +684,7 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
     run_index, written_until_s = 0, 0.0
     dwelt_s = 0.0  # the dwells of the lines at rest since the last block: the controller's time is written_until_s + dwelt_s
     run_breaks, run_g5 = None, None  # the current run's block ends (dense) or blocks and curves (g5)
+    latency_s = _marlin_start_latency_s(options)
 
     unterminated = False  # the last copied line had no line ending (the end of the file)
 
@@ -784,9 +796,9 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
                     still = emitter.still(targets[:-1]) if run_start else 0
                     if still:
                         span_s = ends[still - 1] - from_s
-                        dwell_s = dwell(span_s + emitter.residue_s)
+                        dwell_s, late_s = _start_dwell(dwell, span_s + emitter.residue_s, latency_s)
                         if dwell_s > 0:
-                            emitter.residue_s += span_s - dwell_s
+                            emitter.residue_s += span_s - dwell_s - late_s
                             from_s, ends, targets = ends[still - 1], ends[still:], targets[still:]
                             curves = None if curves is None else curves[still:]
                     text, count = emitter.blocks(targets, np.diff(np.append(from_s, ends)), ends, curves,
@@ -836,9 +848,14 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
         motion_until(t, previous_mm)  # the motion before the line ends where the program was before it
         if settings is not None and is_stop and _may_move(previous_mm, block.position_mm, slice(None)):
             # a move fbspost copies runs under the program's own settings (shaping: where it moves X or Y)
-            emit(*settings.restore(shaping=_may_move(previous_mm, block.position_mm, slice(0, 2))))
+            moves_xy = _may_move(previous_mm, block.position_mm, slice(0, 2))
+            emit(*settings.restore(shaping=moves_xy))
             if emitter.speed_mm_s > 0:
                 emit(dwell_line(options.flavor, 0.0)[0])  # from rest, as planned: the last block's speed would carry into it
+            if latency_s is not None and not moves_xy and run_index == 0:
+                # Marlin's M593 waits for the buffer to empty: at the first run, after this move, it would
+                # leave the move alone in the buffer (held 100 ms, see _start_dwell); X Y shaping does not touch it
+                emit(*settings.shaping_off_lines())
         reached = samples.at(np.array([t]), fs, planned=True)[0]  # where the program is: the plan where the line does not say
         reached = np.where(np.isnan(block.position_mm), reached, block.position_mm)
         commanded = samples.at(np.array([t]), fs)[0]
@@ -876,6 +893,23 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
 
 _FEED = 1 << 14  # samples given to the block-end search at once
 _FLUSH_S = 10.0  # motion written without waiting for a copied line, once this much is due
+
+
+def _marlin_start_latency_s(options: WriteOptions) -> float | None:
+    """Marlin: how late a run's first block starts after a G4 (None: not Marlin). Marlin's stepper
+    starts a block added to an empty buffer once 3 are queued, or after 100 ms (planner.cpp
+    ``get_current_block``): the run's third block is taken three line times after the G4."""
+    if options.flavor != "marlin":
+        return None
+    return 3.0 / options.max_line_rate_hz if options.max_line_rate_hz else 0.0
+
+
+def _start_dwell(dwell, rest_s: float, latency_s: float | None) -> tuple[float, float]:
+    """The G4 before a run's first block, for ``rest_s`` of rest: (its dwell, the latency it takes:
+    on Marlin, ``latency_s`` not None, the run starts that much after the G4, which dwells less)."""
+    if latency_s is not None and dwell_line("marlin", rest_s - latency_s)[1] > 0:
+        return dwell(rest_s - latency_s), latency_s
+    return dwell(rest_s), 0.0
 
 
 def _copied_sample(line_time_s: float, is_stop: bool, fs: float, previous: int) -> int:
