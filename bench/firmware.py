@@ -4,9 +4,10 @@ Run from the repository root:  python bench/firmware.py PROGRAM.gcode PROFILE [L
 Without arguments: the first 8000 lines of tests/data/gear-marlin2.gcode on printer-two-mode,
 then samples/butterfly-polyline.gcode on patent-xy-stage.
 FLAVOR marlin: the program compensated as a Marlin program and both run through the model of
-Marlin's planner (fbspost/marlin.py), once at the profile's max_line_rate (the host sending line
-by line) and once without a line budget (the output written without one, from a copy of the
-profile without max_line_rate); also where Marlin's buffer ran dry.
+Marlin's planner (fbspost/marlin.py), once at the profile's max_line_rate, else at a serial
+host's 300 lines/s (the host sending line by line) and once without a line budget (the output
+written from a copy of the profile with that max_line_rate, or without one); also where
+Marlin's buffer ran dry.
 
 For the program's first LINES lines (all by default) it runs (a) the original and (b) fbspost's
 output (``python -m fbspost.cli compensate``) through Klipper's own planner (klippy's
@@ -40,6 +41,7 @@ from fbspost.profile import load_profile  # noqa: E402
 from fbspost.simulate import PathDistance  # noqa: E402
 from firmware_results import contour_um, klippy_run, modelled, printed_path, shaped_plans  # noqa: E402
 
+SERIAL_LINES_PER_S = 300.0  # a serial host's budget where the profile gives none
 DEFAULT = [("tests/data/gear-marlin2.gcode", "printer-two-mode", 8000),
            ("samples/butterfly-polyline.gcode", "patent-xy-stage", None)]
 
@@ -77,14 +79,14 @@ def marlin_run(path: Path, profile, line_rate_hz: float | None) -> Run:
                PathDistance(run.start_mm[chosen, :3], run.end_mm[chosen, :3]), printer, notes)
 
 
-def compensated(original: Path, machine: str, flavor: str, budget: bool = True) -> Path:
-    """fbspost's output of ``original`` (``budget`` False: written without the profile's max_line_rate)."""
-    if not budget:
-        profile_path = Path(load_profile(machine).source)
-        text = re.sub(r"(?m)^max_line_rate\s*=.*$", "", profile_path.read_text())
-        machine = str(original.with_name("unbudgeted.toml"))
-        Path(machine).write_text(text)
-    output = original.with_name(f"compensated-{flavor}-{budget}.gcode")
+def compensated(original: Path, machine: str, flavor: str, line_rate_hz: float | None = None) -> Path:
+    """fbspost's output of ``original``, written for ``line_rate_hz`` lines/s (None: no budget)."""
+    text = re.sub(r"(?m)^max_line_rate\s*=.*$", "", Path(load_profile(machine).source).read_text())
+    if line_rate_hz:
+        text = re.sub(r"(?m)^\[firmware\]$", f"[firmware]\nmax_line_rate = {line_rate_hz!r}", text)
+    machine = str(original.with_name(f"budget-{line_rate_hz}.toml"))
+    Path(machine).write_text(text)
+    output = original.with_name(f"compensated-{flavor}-{line_rate_hz}.gcode")
     done = subprocess.run([sys.executable, "-m", "fbspost.cli", "compensate", str(original), "-m", machine,
                            "-o", str(output), "--flavor", flavor], cwd=ROOT, capture_output=True, text=True)
     if done.returncode:
@@ -96,18 +98,17 @@ def bench(program: str, machine: str, lines: int | None, output_flavor: str = "k
     profile = load_profile(machine)
     flavor = detect_flavor(ROOT / program)
     if output_flavor == "marlin":
-        rate = profile.firmware.max_line_rate_hz
-        for budget in ([rate, None] if rate else [None]):
+        for budget in (profile.firmware.max_line_rate_hz or SERIAL_LINES_PER_S, None):
             name = f"at {budget:g} lines/s" if budget else "without a line budget"
             with tempfile.TemporaryDirectory() as tmp:
                 original = excerpt(program, lines, Path(tmp))
-                output = compensated(original, machine, "marlin", budget is not None)
+                output = compensated(original, machine, "marlin", budget)
                 table(program, lines, flavor, machine, f"through the model of Marlin's planner, {name}", profile,
                       marlin_run(original, profile, budget), marlin_run(output, profile, budget))
         return
     with tempfile.TemporaryDirectory() as tmp:
         original = excerpt(program, lines, Path(tmp))
-        output = compensated(original, machine, output_flavor)
+        output = compensated(original, machine, output_flavor, profile.firmware.max_line_rate_hz)
         table(program, lines, flavor, machine, f"compensated as {output_flavor}, through klippy's own planner", profile,
               klippy_as_run(original, profile, output_flavor), klippy_as_run(output, profile, output_flavor))
 

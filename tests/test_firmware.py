@@ -16,8 +16,9 @@ from fbspost.firmware import replan
 from fbspost.gcode import read_gcode
 from fbspost.marlin import merge_short_segments
 from fbspost.profile import load_profile
+from reference import serial
 
-PRINTER = load_profile("printer-two-mode")
+PRINTER = serial(load_profile("printer-two-mode"))  # a host sending 300 lines/s
 
 
 def blocks_of(tmp_path, text: str, flavor: str):

@@ -15,8 +15,9 @@ from fbspost.marlin import run_marlin
 from fbspost.pipeline import CompensateOptions, compensate_file, compensated_samples
 from fbspost.planner import RunMargins, plan_blocks
 from fbspost.profile import load_profile
+from reference import serial
 
-PROFILE = load_profile("printer-two-mode")  # 80 steps/mm on X Y, 400 Z, 415 E; 300 lines/s
+PROFILE = serial(load_profile("printer-two-mode"), 300.0)  # 80 steps/mm on X Y, 400 Z, 415 E; 300 lines/s
 MIN_STEPS = 6
 
 
