@@ -77,14 +77,18 @@ def test_a_scaled_mode_is_the_mode_in_scaled_time_with_its_dc_gain():
     scales = [(m.modes[0].frequency_hz / PATENT_X[0].frequency_hz, m.modes[2].damping / PATENT_X[2].damping)
               for m in spread.models]
     assert np.allclose(scales, [(1, 1), (0.9, 1), (1, 0.8), (1.1, 1), (1, 1.2)])
+    assert spread.weights == (1.0, 1.5, 3.0, 1.0, 1.0)  # the low ends weigh more
     assert len(ModelSet.spread(PATENT_X, T).models) == 1
 
 
-def stacked_truth(desired, variants, settings):
-    """The mean squared error over ``variants`` (lists of modes) minimized by brute force: every
-    model's rows of the optimizer's problem (brute_force_problem, lsim) stacked, the end conditions."""
+def stacked_truth(desired, variants, settings, weights=None):
+    """The weighted mean squared error over ``variants`` (lists of modes) minimized by brute force:
+    every model's rows of the optimizer's problem (brute_force_problem, lsim) stacked, each times
+    the square root of its weight, the end conditions."""
     problems = [brute_force_problem(desired, modes, settings, T) for modes in variants]
-    a, b = np.vstack([p[0] for p in problems]), np.concatenate([p[1] for p in problems])
+    roots = np.sqrt(weights if weights is not None else np.ones(len(variants)))
+    a = np.vstack([r * p[0] for r, p in zip(roots, problems, strict=True)])
+    b = np.concatenate([r * p[1] for r, p in zip(roots, problems, strict=True)])
     c, d, command = problems[0][2:]
     particular = np.linalg.lstsq(c, d, rcond=None)[0]
     null = np.linalg.svd(c)[2][c.shape[0]:].T
@@ -99,7 +103,7 @@ def test_robust_complete_lookahead_equals_brute_force_over_the_model_set():
     ours = compensator(desired).command_mm
     variants = [PATENT_X] + [[Mode(m.frequency_hz * f, m.damping * z, m.alpha * f * f, m.beta * f) for m in PATENT_X]
                              for f, z in ((0.9, 1), (1, 0.75), (1.1, 1), (1, 1.25))]
-    truth = stacked_truth(desired, variants, compensator.settings)
+    truth = stacked_truth(desired, variants, compensator.settings, [1.0, 1.5, 3.0, 1.0, 1.0])
     assert np.abs(ours - truth).max() <= 1e-7 * np.ptp(desired)
     nominal_only = stacked_truth(desired, variants[:1], compensator.settings)
     assert np.abs(ours - nominal_only).max() > 1e-3 * np.ptp(desired)  # the set changes the command
