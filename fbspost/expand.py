@@ -68,6 +68,27 @@ _REFUSED = {
 }
 
 
+# what fbspost writes itself in a compensated program (its moves, feeds, blending, dwells)
+_WRITTEN_CODES = {"F", "G0", "G1", "G4", "G61", "G61.1", "G64"}
+
+
+def check_remaps(program: str | Path, ini: str | Path) -> None:
+    """InputError when the machine's INI remaps a code fbspost writes itself (``REMAP=F ...``):
+    each of its thousands of F words (or G1, G4, G64) would run the remap's code."""
+    with open(ini, encoding="utf-8", errors="replace") as f:
+        for text in f:
+            m = re.match(r"\s*REMAP\s*=\s*([A-Za-z][\d.]*)", text)
+            if m and _canonical_code(m.group(1)) in _WRITTEN_CODES:
+                raise InputError(program, None, f"the machine's INI remaps {m.group(1)} ({Path(ini).name}), a code "
+                                                "fbspost writes in every compensated move: not supported")
+
+
+def _canonical_code(code: str) -> str:
+    """G01 -> G1, g64 -> G64, f -> F."""
+    letter, number = code[0].upper(), code[1:]
+    return letter + (f"{float(number):g}" if number else "")
+
+
 def canonical_calls(program: str | Path, tool_table: str | Path | None = None, ini: str | Path | None = None,
                     timeout_s: float | None = None) -> list[tuple[str, list[str]]]:
     """rs274's canonical calls for ``program``: (name, arguments as text), in order. InputError

@@ -351,3 +351,18 @@ def test_helix_narrower_than_rs274s_digits_is_its_axis_line():
              ("STRAIGHT_TRAVERSE", ["1.0000", "2.0000", "0.1000", "0", "0", "0"]),
              ("ARC_FEED", ["1.0000", "2.0000", "1.0000", "2.0000", "1", "-0.0212", "0", "0", "0"])]
     assert list(_Expander("p.ngc", [0]).lines(calls))[1:] == ["G1 Z-0.53848 F1524"]
+
+
+@pytest.mark.parametrize("remap", ["F", "g01", "G64"])
+def test_remapped_code_fbspost_writes_is_refused(tmp_path, remap):
+    """A machine whose INI remaps F (LinuxCNC's extend-builtins example) would run the remap's
+    code at each of fbspost's F words: refused in one line, before any output."""
+    program, ini = tmp_path / "p.ngc", tmp_path / "machine.ini"
+    program.write_text("G21 G90\nG0 X0 Y0 Z1\nG1 X10 F600\nM2\n")
+    ini.write_text(f"[RS274NGC]\nREMAP=M6 modalgroup=6 ngc=change\nREMAP = {remap} prolog=setfeed_prolog ngc=setfeed\n")
+    result = CliRunner().invoke(main, ["compensate", str(program), "-m", "patent-xy-stage", "--flavor", "linuxcnc",
+                                       "--ini", str(ini), "-o", str(tmp_path / "out.ngc")])
+    assert result.exit_code == 1 and result.stderr == (
+        f"error: {program}: the machine's INI remaps {remap} (machine.ini), a code fbspost writes in every "
+        "compensated move: not supported\n")
+    assert not (tmp_path / "out.ngc").exists()
