@@ -366,3 +366,22 @@ def test_remapped_code_fbspost_writes_is_refused(tmp_path, remap):
         f"error: {program}: the machine's INI remaps {remap} (machine.ini), a code fbspost writes in every "
         "compensated move: not supported\n")
     assert not (tmp_path / "out.ngc").exists()
+
+
+@needs_rs274
+def test_g5_splines_expand_as_rs274_evaluates_them(tmp_path):
+    """rs274 prints G5/G5.1 without their control points: the program reports the values it
+    evaluates (rs274_splines), and the expansion writes the same splines in mm: here the words
+    by hand (inches: #3 = 0.5 in; the second G5 starts with the first's -P -Q); rs274's path
+    check accepts it and rejects a control point moved by 50 um."""
+    program, expanded = tmp_path / "s.ngc", tmp_path / "x.ngc"
+    program.write_text("G20 G90 G17 F10\n#3 = 0.5\nG0 X0 Y0 Z0.1\nG5 X[4*#3] Y0 I[#3] J[2*#3] P[-#3] Q#3 (a comment)\n"
+                       "G5 X[8*#3] Y[2*#3] P-0.25 Q0.5\nG5.1 X[12*#3] Y0 I[#3*2] J[-3*#3]\nG1 X0 Y0\nM2\n")
+    expand(program, expanded, "test")
+    lines = [line for line in expanded.read_text().splitlines() if line.startswith("G5")]
+    assert lines == ["G5 X50.8 Y0 I12.7 J25.4 P-12.7 Q12.7 F254", "G5 X101.6 Y25.4 I12.7 J-12.7 P-6.35 Q12.7",
+                     "G5.1 X152.4 Y0 I25.4 J-38.1"]
+    assert path_problems(program, expanded, True) == []
+    assert command_problems(program, expanded) == []
+    expanded.write_text(expanded.read_text().replace("I25.4 J-38.1", "I25.45 J-38.1"))
+    assert path_problems(program, expanded, True) != []
