@@ -14,14 +14,19 @@ L20) are written back as G10 L2. Coordinates are rs274's: 4 decimals in the prog
 the machine's INI, rs274 runs in the INI's directory, as LinuxCNC does (relative subroutine
 paths, remaps).
 
-Refused (``InputError``): what rs274 reports without its data (G5/G5.1/G5.2 curves: ``NURBS_FEED``
-gives no control points; M66 waits), probing, spindle-synchronized motion, feed per revolution,
+G5/G5.1 splines, which rs274 prints without their control points, are run in a copy of the
+program that reports them (``rs274_splines``) and written back as G5/G5.1 in mm.
+
+Refused (``InputError``): what rs274 reports without its data (G5.2 NURBS: ``NURBS_FEED`` gives
+no control points; M66 waits), probing, spindle-synchronized motion, feed per revolution,
 coordinate rotation, U V W, and rs274's own errors (with the line it names; for G6.2, that this
-install's rs274, LinuxCNC 2.9, does not run it).
+install's rs274, LinuxCNC 2.9, does not run it). ``check_remaps``: a machine INI that remaps a
+code fbspost writes itself.
 """
 from __future__ import annotations
 
 import math
+import os
 import re
 import shutil
 import subprocess
@@ -107,8 +112,10 @@ def canonical_calls(program: str | Path, tool_table: str | Path | None = None, i
         if ini:  # LinuxCNC runs in the INI's directory: its relative paths (SUBROUTINE_PATH, ...) are from there
             args[1:1] = ["-i", str(Path(ini).resolve())]
         try:
-            proc = subprocess.run(args, cwd=Path(ini).resolve().parent if ini else work, stdin=subprocess.DEVNULL, capture_output=True, text=True,
-                                  errors="replace", timeout=timeout_s)
+            # HOME: rs274 keeps its tool table in $HOME/.tool.mmap, which concurrent runs would share
+            proc = subprocess.run(args, cwd=Path(ini).resolve().parent if ini else work, stdin=subprocess.DEVNULL,
+                                  capture_output=True, text=True, errors="replace", timeout=timeout_s,
+                                  env={**os.environ, "HOME": work})
         except subprocess.TimeoutExpired:
             raise InputError(program, None, f"LinuxCNC's interpreter rs274 did not finish in {timeout_s:g} s") from None
         calls = []

@@ -3,7 +3,8 @@
 ``path_problems``: the program fbspost compensated (the expansion, or the original when it
 needed none), re-read by fbspost's reader with compensation off, against rs274's canonical moves
 of the original: every point the reader gives lies on a canonical move (a line, or an arc: its
-radius and its axis' travel), moving forward through them, and every canonical move's end is
+radius and its axis' travel, or a G5/G5.1 spline as rs274 evaluates it, ``rs274_splines``: its
+Bezier curve in Bernstein form), moving forward through them, and every canonical move's end is
 among the reader's points, in order.
 ``command_problems``: rs274 run on fbspost's output gives the same non-motion canonical calls
 (spindle, coolant, tools, dwells, I/O, messages, stops, program end), in order, as on the original,
@@ -103,7 +104,7 @@ def _off_polyline(point, line) -> float:
 def _off_move(point, start, end, arc) -> float:
     """Distance of ``point`` from the move (NaN coordinates left out)."""
     known = ~np.isnan(point)
-    if arc is not None and arc[0] == "bezier":  # X Y along the curve, the other axes where they are
+    if arc is not None and isinstance(arc[0], str):  # a Bezier: X Y along it, the other axes where they are
         rest = np.nan_to_num((point - end)[2:])
         return math.hypot(_off_polyline(np.nan_to_num(point[:2]), arc[1]) if known[0] and known[1] else 0.0, *rest)
     if arc is None or start is None:

@@ -101,8 +101,8 @@ def test_g62_is_planned_on_its_curve(tmp_path):
     curve within the chord tolerance of the pieces, every line of the NURBS a MOVE, the end exact."""
     blocks = moves(tmp_path / "g62.ngc", "G21 G90 G17\nG0 X10 Y0 Z1\n" + G62)
     assert [b.kind for b in blocks[3:13]] == [Kind.MOVE] * 10
-    spline = BSpline(np.array(G62_KNOTS, float), np.column_stack([G62_CTRL[:, :2] * G62_CTRL[:, 2:], G62_CTRL[:, 2]]), 2)
-    h = spline(np.linspace(0.0, 6.0, 2_000_001))
+    homogeneous = np.column_stack([G62_CTRL[:, :2] * G62_CTRL[:, 2:], G62_CTRL[:, 2]])
+    h = BSpline(np.array(G62_KNOTS, float), homogeneous, 2)(np.linspace(0.0, 6.0, 2_000_001))
     curve = h[:, :2] / h[:, 2:]
     pieces = np.concatenate([G62_CTRL[:1, :2], polyline(blocks[3:13])])
     assert cKDTree(curve).query(pieces)[0].max() < 1e-4
