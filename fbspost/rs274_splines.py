@@ -78,7 +78,7 @@ def _words(code: str) -> dict[str, str]:
 def instrumented(program: str | Path, folder: str | Path) -> Path | None:
     """A copy of ``program`` in ``folder`` that reports its G5/G5.1 lines (None: it has none).
     InputError when such a line cannot be read."""
-    lines = Path(program).read_text(encoding="utf-8", errors="replace").splitlines()
+    lines = Path(program).read_text(encoding="latin-1").split("\n")  # latin-1: every byte kept as it is
     out, found = [], False
     for line_no, text in enumerate(lines, 1):
         m = _SPLINE_LINE.search(_code(text))
@@ -102,7 +102,7 @@ def instrumented(program: str | Path, folder: str | Path) -> Path | None:
     if not found:
         return None
     copy = Path(folder) / Path(program).name
-    copy.write_text("\n".join(out) + "\n", encoding="utf-8")
+    copy.write_text("\n".join(out), encoding="latin-1")
     return copy
 
 
