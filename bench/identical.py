@@ -1,15 +1,16 @@
 """Are fbspost's outputs byte-identical at a base revision and in this working tree? (refactors)
 
-Run from the repository root:  python bench/identical.py [--base REV] [--quick] [--jobs N]
+Run from the repository root:  python bench/identical.py [--base REV] [--head REV] [--quick] [--jobs N]
 
 Compensates every program of ``tests/data``, ``samples`` and the shared corpus (``$FBSPOST_CORPUS``,
 else ``../shared/corpus`` beside the repository, skipped when absent) with the code of REV (default
-``main``; ``git archive`` of it into a temporary directory) and with the code of this working tree,
-each through ``python -m fbspost.cli compensate`` in its own tree, and compares the written programs
-and the JSON reports (less their wall-clock fields and output path) byte for byte. REV's outputs are cached under
-``bench/.identical/<commit>`` so a second run only recomputes the working tree's. ``--quick`` leaves
-out the two long prints. Exit status 0 when every output is identical, 1 otherwise (the differing
-files named, with their first differing line).
+``main``; ``git archive`` of it into a temporary directory) and with the code of this working tree
+(or of ``--head REV``), each through ``python -m fbspost.cli compensate`` in its own tree, and
+compares the written programs and the JSON reports (less their wall-clock fields and output path)
+byte for byte. A revision's outputs are cached under ``bench/.identical/<commit>``, so a second
+run only recomputes the working tree's. ``--quick`` leaves out the two long prints. Exit status
+0 when every output is identical, 1 otherwise (the differing files named, with their first
+differing line).
 """
 from __future__ import annotations
 
@@ -103,10 +104,13 @@ def first_difference(a: Path, b: Path) -> str:
     return "one is a prefix of the other"
 
 
-def base_outputs(rev: str, todo: list[Job], workers: int) -> Path:
-    """The outputs of ``rev``'s code (cached by its commit)."""
-    commit = subprocess.run(["git", "rev-parse", rev], cwd=ROOT, check=True, capture_output=True,
-                            text=True).stdout.strip()
+def commit_of(rev: str) -> str:
+    done = subprocess.run(["git", "rev-parse", rev], cwd=ROOT, check=True, capture_output=True, text=True)
+    return done.stdout.strip()
+
+
+def revision_outputs(commit: str, todo: list[Job], workers: int) -> Path:
+    """The outputs of ``commit``'s code (cached by commit)."""
     out_dir = CACHE / commit
     with tempfile.TemporaryDirectory() as tmp:
         archive = subprocess.run(["git", "archive", commit], cwd=ROOT, check=True, capture_output=True).stdout
@@ -118,20 +122,25 @@ def base_outputs(rev: str, todo: list[Job], workers: int) -> Path:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--base", default="main", help="the revision to compare with (default: main)")
+    parser.add_argument("--head", help="a revision to compare instead of the working tree (its outputs cached too)")
     parser.add_argument("--quick", action="store_true", help="leave out the two long prints")
     parser.add_argument("--jobs", type=int, default=2, help="programs compensated at once")
     args = parser.parse_args()
     todo = jobs(args.quick)
-    base = base_outputs(args.base, todo, args.jobs)
+    base = revision_outputs(commit_of(args.base), todo, args.jobs)
     with tempfile.TemporaryDirectory() as tmp:
-        run_all(ROOT, todo, Path(tmp), args.jobs)
-        verdicts = {job.name + ext: first_difference(base / (job.name + ext), Path(tmp) / (job.name + ext))
+        if args.head:
+            head = revision_outputs(commit_of(args.head), todo, args.jobs)
+        else:
+            head = Path(tmp)
+            run_all(ROOT, todo, head, args.jobs)
+        verdicts = {job.name + ext: first_difference(base / (job.name + ext), head / (job.name + ext))
                     for job in todo for ext in (".gcode", ".json")}
     for name, verdict in verdicts.items():
         print(f"{name:60} {verdict}")
     differing = [name for name, verdict in verdicts.items() if verdict != "identical"]
-    print(f"{len(verdicts) - len(differing)} of {len(verdicts)} outputs identical to {args.base}'s"
-          + (f"; differing: {' '.join(differing)}" if differing else ""))
+    print(f"{len(verdicts) - len(differing)} of {len(verdicts)} outputs of {args.head or 'the working tree'} identical "
+          f"to {args.base}'s" + (f"; differing: {' '.join(differing)}" if differing else ""))
     return 1 if differing else 0
 
 
