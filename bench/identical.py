@@ -98,7 +98,7 @@ def first_difference(a: Path, b: Path) -> str:
         return "missing in the working tree"
     if a.read_bytes() == b.read_bytes():
         return "identical"
-    for number, (left, right) in enumerate(zip(a.open("rb"), b.open("rb"), strict=False), start=1):
+    for number, (left, right) in enumerate(zip(a.open("rb"), b.open("rb"), strict=True), start=1):
         if left != right:
             return f"line {number}: {left[:80]!r} != {right[:80]!r}"
     return "one is a prefix of the other"

@@ -172,16 +172,16 @@ def _search(fitter, pos, stop, open_end, tolerance_mm, min_samples, max_samples)
         return np.where(short_tail, np.maximum(rest - min_samples, shortest), g), shortest
 
     def next_length(lane):
-        l, h, el, eh = lo[lane], hi[lane], err_lo[lane], err_hi[lane]
+        low, high, el, eh = lo[lane], hi[lane], err_lo[lane], err_hi[lane]
         with np.errstate(all="ignore"):
-            grow = l * np.clip((tolerance_mm / el) ** 0.5, 1.25, _GROW)  # no failure yet
-            shrink = h * np.clip((tolerance_mm / eh) ** 0.5, 0.25, 0.8)  # no pass yet
+            grow = low * np.clip((tolerance_mm / el) ** 0.5, 1.25, _GROW)  # no failure yet
+            shrink = high * np.clip((tolerance_mm / eh) ** 0.5, 0.25, 0.8)  # no pass yet
             # Both known: log(error) linear in log(length), solved for the tolerance.
-            p = np.maximum(np.log(eh / el) / np.log(h / l), 0.5)
-            between = l * (tolerance_mm / el) ** (1.0 / p)
-        margin = np.maximum(1, (h - l) // 8)
-        between = np.clip(np.nan_to_num(between), l + margin, h - margin)
-        g = np.where((l > 0) & (h > 0), between, np.where(h > 0, shrink, np.maximum(grow, l + 1)))
+            p = np.maximum(np.log(eh / el) / np.log(high / low), 0.5)
+            between = low * (tolerance_mm / el) ** (1.0 / p)
+        margin = np.maximum(1, (high - low) // 8)
+        between = np.clip(np.nan_to_num(between), low + margin, high - margin)
+        g = np.where((low > 0) & (high > 0), between, np.where(high > 0, shrink, np.maximum(grow, low + 1)))
         return allowed(lane, np.nan_to_num(g).astype(np.int64))[0]
 
     active = np.flatnonzero(pos < stop)
@@ -198,11 +198,11 @@ def _search(fitter, pos, stop, open_end, tolerance_mm, min_samples, max_samples)
         lo[active[passed]], err_lo[active[passed]] = c[passed], err[passed]
         hi[active[~passed]], err_hi[active[~passed]] = c[~passed], err[~passed]
 
-        l, h = lo[active], hi[active]
+        low, high = lo[active], hi[active]
         nxt = next_length(active)
         top = np.minimum(max_samples, stop[active] - pos[active])
-        done = forced | ((l > 0) & (((h > 0) & ((h - l <= 1) | (nxt >= h)))
-                                    | (l == top) | (nxt <= l)))
+        done = forced | ((low > 0) & (((high > 0) & ((high - low <= 1) | (nxt >= high)))
+                                      | (low == top) | (nxt <= low)))
         cand[active] = nxt
 
         fin = active[done]
@@ -247,7 +247,7 @@ def _search_across(fitter, starts, ends, fit, edges, n, tolerance_mm, min_sample
     window = np.searchsorted(starts[left], new_starts, side="right") - 1  # each new block's window
     fewer = np.bincount(window, minlength=len(left)) < far - left + 1
     old = np.ones(len(starts), bool)
-    for a, b in zip(left[fewer], far[fewer]):
+    for a, b in zip(left[fewer], far[fewer], strict=True):
         old[a:b + 1] = False
     new = fewer[window]
     order = np.argsort(np.concatenate([starts[old], new_starts[new]]), kind="stable")
@@ -431,7 +431,7 @@ class _Fitter:
 
         def arc(u):  # s(u), from the table's node u0
             s_u = s0.copy()
-            for x, w in zip(_GL_X, _GL_W):
+            for x, w in zip(_GL_X, _GL_W, strict=True):
                 v = u0 + x * (u - u0)
                 dx, dy = ax + v * (bx + v * c2x), ay + v * (by + v * c2y)
                 s_u += w * (u - u0) * np.sqrt(dx * dx + dy * dy)
@@ -669,7 +669,7 @@ def _arc_integrals(u, coef, first, block):
     prev[first] = u[first]  # no step before a block's first sample
     step = u - prev
     acc = np.zeros((5, len(u)))
-    for x, w in zip(_GL_X, _GL_W):
+    for x, w in zip(_GL_X, _GL_W, strict=True):
         v = prev + x * step
         dx, dy = ax + v * (bx + v * cx), ay + v * (by + v * cy)
         sigma = np.sqrt(dx * dx + dy * dy)

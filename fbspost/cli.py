@@ -183,7 +183,9 @@ def compensate(inputs, machine, output, output_dir, jobs, output_format, toleran
     if len(inputs) == 1:
         _compensate_single(inputs[0], targets[0], profile, options, report_path, quiet)
         return
-    failed = _compensate_many(list(zip(inputs, targets)), profile, options, jobs or os.cpu_count() or 1, quiet)
+    failed = _compensate_many(
+        list(zip(inputs, targets, strict=True)), profile, options, jobs or os.cpu_count() or 1, quiet
+    )
     if failed:
         click.echo(f"error: {len(failed)} of {len(inputs)} files failed: {', '.join(map(str, failed))}", err=True)
         click.get_current_context().exit(1)
@@ -201,7 +203,9 @@ def _targets(inputs: tuple[Path, ...], output: Path | None, output_dir: Path | N
     for i, target in enumerate(resolved):
         if target in resolved[:i]:
             # Two jobs writing one file would race, and an input compensated twice is wrong.
-            raise click.UsageError(f"{inputs[resolved.index(target)]} and {inputs[i]} would both be written to {target}")
+            raise click.UsageError(
+                f"{inputs[resolved.index(target)]} and {inputs[i]} would both be written to {target}"
+            )
     if output_dir:
         output_dir.mkdir(parents=True, exist_ok=True)
     return targets
@@ -344,10 +348,14 @@ def _summary(source: Path, target: Path, profile: MachineProfile, report: Report
                  f"{report.loosened_s:.3f} s of them beyond the tolerance")
     for name, axis in report.axes.items():
         # (after: the written blocks as the firmware runs them, straight between their ends)
-        command = "" if axis.rms_error_command_um is None else f" (the command itself: {axis.rms_error_command_um:.4g} um)"
-        lines.append(f"axis {name}: predicted RMS error {axis.rms_error_before_um:.4g} -> {axis.rms_error_after_um:.4g} um "
-                     f"as the firmware runs the output{command}, "
-                     f"max {axis.max_error_before_um:.4g} -> {axis.max_error_after_um:.4g} um")
+        command = (
+            "" if axis.rms_error_command_um is None else f" (the command itself: {axis.rms_error_command_um:.4g} um)"
+        )
+        lines.append(
+            f"axis {name}: predicted RMS error {axis.rms_error_before_um:.4g} -> {axis.rms_error_after_um:.4g} um "
+            f"as the firmware runs the output{command}, "
+            f"max {axis.max_error_before_um:.4g} -> {axis.max_error_after_um:.4g} um"
+        )
     lines.extend(f"warning: {w}" for w in report.warnings)
     return "\n".join(lines)
 
@@ -493,7 +501,10 @@ def identify(frf_csv, axis, n_modes, max_modes, output, merge, plot, klipper_csv
             rec = ident.frf_from_recording(times_s, accel, sweep)
             fit = ident.fit_frf(rec.frequency_hz, rec.response, n_modes, max_modes, weights=rec.coherence,
                                 fit_delay=True)
-            frequency_hz, measured = rec.frequency_hz, rec.response * np.exp(2j * np.pi * rec.frequency_hz * fit.delay_s)
+            frequency_hz, measured = (
+                rec.frequency_hz,
+                rec.response * np.exp(2j * np.pi * rec.frequency_hz * fit.delay_s),
+            )
             lines.append(f"recording: {len(times_s)} samples at {rec.sample_rate_hz:.1f} Hz; the sweep starts at "
                          f"{rec.offset_s + fit.delay_s:.6f} s of its time base"
                          + ("; accelerometer axis reversed: sign flipped" if rec.inverted else ""))
@@ -612,7 +623,8 @@ def _per_axis(low: float, high: float | None):
               help="Shaper damping ratio per axis, e.g. X=0.1,Y=0.1 (default: the dominant mode's).")
 @click.option("--flavor", type=click.Choice(FLAVORS), help="Firmware dialect (default: detected from INPUT).")
 @_margin_options
-@click.option("--json", "as_json", is_flag=True, help="Print the figures as JSON (keys in docs/simulate.md) instead of tables.")
+@click.option("--json", "as_json", is_flag=True,
+              help="Print the figures as JSON (keys in docs/simulate.md) instead of tables.")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False, path_type=Path), metavar="FILE",
               help="Also write plots: FILE.png (one page) or FILE.pdf (one panel per page).")
 @click.option("--model-error", "model_error", is_flag=True,
@@ -673,8 +685,13 @@ def _model_error_table(perturbed) -> str:
              "frequency damping  " + "".join(f"{n:9s}" for n in names) + ("best shaper" if shapers else "")]
     for frequency_scale, damping_scale, errors in perturbed:
         best = min(shapers, key=errors.get) if shapers else None
-        lines.append((f"x{frequency_scale:<8.3f} x{damping_scale:<7.2f} " + "".join(_g(errors[n], 8) + " " for n in names)
-                      + (f"{best} {_g(errors[best], 0)}" if best else "")).rstrip())
+        lines.append(
+            (
+                f"x{frequency_scale:<8.3f} x{damping_scale:<7.2f} "
+                + "".join(_g(errors[n], 8) + " " for n in names)
+                + (f"{best} {_g(errors[best], 0)}" if best else "")
+            ).rstrip()
+        )
     return "\n" + "\n".join(lines)
 
 
@@ -685,24 +702,31 @@ def _simulate_tables(sim) -> str:
     lines = [f"fbspost simulate: {sim.program} on {p.name} ({sim.flavor}, {p.sample_rate_hz:g} Hz); "
              f"contour error on {moves}; residual vibration over {sim.settle_s:.3g} s after the last motion"]
     lines += [f"  {m.label}" for m in sim.methods]
-    lines += ["", "path      contour um        tracking um       residual  command off path  duration   starts    ends     "
-                  "|v| max  |a| max",
-              "          RMS       max     RMS       max     max um    RMS um    max um  s          early s   late s   "
-              "mm/s     mm/s^2"]
+    lines += [
+        "",
+        "path      contour um        tracking um       residual  command off path  duration   starts    ends     "
+        "|v| max  |a| max",
+        "          RMS       max     RMS       max     max um    RMS um    max um  s          early s   late s   "
+        "mm/s     mm/s^2",
+    ]
     for m in sim.methods:
         q = m.path
-        lines.append(f"{m.name:9s} {_g(q.rms_contour_error_um, 9)} {_g(q.max_contour_error_um, 7)} "
-                     f"{_g(q.rms_tracking_error_um, 9)} {_g(q.max_tracking_error_um, 7)} {_g(q.residual_vibration_um, 9)} "
-                     f"{_g(q.rms_command_contour_error_um, 9)} {_g(q.max_command_contour_error_um, 7)} "
-                     f"{q.duration_s:<10.4f} {q.start_advance_s:<9.4f} {q.end_delay_s:<8.4f} "
-                     f"{_g(q.max_velocity_mm_s, 8)} {q.max_acceleration_mm_s2:.0f}")
+        lines.append(
+            f"{m.name:9s} {_g(q.rms_contour_error_um, 9)} {_g(q.max_contour_error_um, 7)} "
+            f"{_g(q.rms_tracking_error_um, 9)} {_g(q.max_tracking_error_um, 7)} {_g(q.residual_vibration_um, 9)} "
+            f"{_g(q.rms_command_contour_error_um, 9)} {_g(q.max_command_contour_error_um, 7)} "
+            f"{q.duration_s:<10.4f} {q.start_advance_s:<9.4f} {q.end_delay_s:<8.4f} "
+            f"{_g(q.max_velocity_mm_s, 8)} {q.max_acceleration_mm_s2:.0f}"
+        )
     for axis in sim.modelled:
         lines += ["", f"axis {axis}    tracking um       residual  |v| max  |a| max",
                   "          RMS       max     max um    mm/s     mm/s^2"]
         for m in sim.methods:
             q = m.axes[axis]
-            lines.append(f"{m.name:9s} {_g(q.rms_tracking_error_um, 9)} {_g(q.max_tracking_error_um, 7)} "
-                         f"{_g(q.residual_vibration_um, 9)} {_g(q.max_velocity_mm_s, 8)} {q.max_acceleration_mm_s2:.0f}")
+            lines.append(
+                f"{m.name:9s} {_g(q.rms_tracking_error_um, 9)} {_g(q.max_tracking_error_um, 7)} "
+                f"{_g(q.residual_vibration_um, 9)} {_g(q.max_velocity_mm_s, 8)} {q.max_acceleration_mm_s2:.0f}"
+            )
     lines += [f"warning: {w}" for w in sim.warnings]
     return "\n".join(lines)
 

@@ -102,7 +102,7 @@ class _ChangeModel:
             out = self._forced(change, n)
             return out if x is None else out + self.free[:n] @ x
         out = np.empty(n)
-        for a, b in zip([0, *cuts], [*cuts, n]):
+        for a, b in zip([0, *cuts], [*cuts, n], strict=True):
             out[a:b] = self._forced(change[a:b], b - a)
         if x is not None and cuts[0] > 0:
             out[:cuts[0]] += self.free[:cuts[0]] @ x
@@ -246,7 +246,9 @@ class AxisGuard:
             windows, peaks = windows[1:], peaks[:1]
         planned_error = self.error[:horizon] - self.model.moved(np.empty(0), horizon)  # the original from n on
         safe_error = planned_error - self.model.moved(self.weights * difference[:len(self.weights)], horizon, False)
-        allowed = [max(peak, np.abs(self.error[:horizon][w]).max(initial=0.0)) for w, peak in zip(windows, peaks)]
+        allowed = [
+            max(peak, np.abs(self.error[:horizon][w]).max(initial=0.0)) for w, peak in zip(windows, peaks, strict=True)
+        ]
         budget = [safe_error[w] @ safe_error[w] for w in windows]
         # A change of level steps the command unless the compensated command is the planned one
         # just before n (at rest): blend from the level before to the new one.
@@ -369,16 +371,16 @@ def _highest_level(base: np.ndarray, response: np.ndarray, windows, peak_windows
     one of ``windows`` (boolean masks; None if there is none), and what a = 1 breaks. The bounds
     on a are found ``margin`` (relative) inside, so that rounding keeps it within."""
     def breaks(error):
-        return ({WORSE for w, b in zip(windows, budget)
+        return ({WORSE for w, b in zip(windows, budget, strict=True)
                  if error[w] @ error[w] > b * (1.0 + _TIE) + _TIE_MM**2 * np.count_nonzero(w)}
-                | {LARGEST for w, peak in zip(peak_windows, allowed)
+                | {LARGEST for w, peak in zip(peak_windows, allowed, strict=True)
                    if np.abs(error[w]).max(initial=0.0) > peak * (1.0 + _TIE) + _TIE_MM})
 
     failed = breaks(base - response)
     if not failed:
         return 1.0, failed
     low, high = 0.0, 1.0
-    for w, peak, b, pw in zip(windows, allowed, budget, peak_windows):
+    for w, peak, b, pw in zip(windows, allowed, budget, peak_windows, strict=True):
         e, r = base[pw], response[pw]
         peak *= 1.0 - margin
         flat = r == 0.0  # |e - a r| <= peak, sample by sample

@@ -38,7 +38,8 @@ class FirmwareMotion:
 
     flavor: str
     positions_mm: np.ndarray  # (n, 4) X Y Z E at t = k / sample_rate_hz
-    line_time_s: np.ndarray  # (number of blocks,) see planner.Plan.line_time_s (merged Marlin segments: their block's end)
+    # (number of blocks,) see planner.Plan.line_time_s (merged Marlin segments: their block's end)
+    line_time_s: np.ndarray
     duration_s: float
     merged_lines: list[int]  # Marlin: lines whose segments were too short to be blocks (merged with the next)
 

@@ -19,7 +19,8 @@ the first 2000 and last 300 lines. How lines are read:
 - Positions are machine coordinates: program = machine - ``Modal.offsets_mm`` (G92 moves the
   offsets, not the machine). XYZ are unknown (NaN) at the start and after probing, macros and
   unknown commands; a G28 leaves the axes it homes at the machine's home position (``home_mm``;
-  in LinuxCNC, whose G28 goes to a position stored outside the file, they are unknown); E starts known at 0 and is lost only where an unknown command
+  in LinuxCNC, whose G28 goes to a position stored outside the file, they are unknown); E starts
+  known at 0 and is lost only where an unknown command
   may have changed it while E is absolute. A G92 on an unknown axis makes it known; selecting
   another work coordinate system (G54..G59.3, offsets not in the file) makes XYZ unknown. A move
   is a MOVE when the start of every axis it moves (its axis words, and both axes of an arc's
@@ -113,7 +114,8 @@ class Kind(enum.Enum):
 class PlannerLimits:
     """Planner settings changed by one line; ``None`` (or a missing axis) means unchanged."""
 
-    acceleration_mm_s2: float | None = None  # M204 S/P, Klipper ACCEL: moves that extrude (all moves if no travel value)
+    # M204 S/P, Klipper ACCEL: moves that extrude (all moves if no travel value)
+    acceleration_mm_s2: float | None = None
     travel_acceleration_mm_s2: float | None = None  # M204 T (Marlin, RRF): moves that do not extrude
     max_velocity_mm_s: float | None = None  # Klipper VELOCITY
     square_corner_velocity_mm_s: float | None = None  # Klipper SQUARE_CORNER_VELOCITY
@@ -142,11 +144,13 @@ class Block:
     kind: Kind
     modal: Modal  # after this line
     position_mm: np.ndarray  # (len(AXES),) machine position after this line; NaN where unknown
-    points_mm: np.ndarray | None = None  # MOVE: (k, len(AXES)) machine-coordinate end points of its k >= 1 linear pieces
+    # MOVE: (k, len(AXES)) machine-coordinate end points of its k >= 1 linear pieces
+    points_mm: np.ndarray | None = None
     feed_mm_s: float | None = None  # MOVE: requested feed along the path; math.inf for a rapid (G0)
     dwell_s: float = 0.0  # STOP: time at rest (G4)
     limits: PlannerLimits | None = None  # planner changes made by this line
-    sets_position: tuple[int, ...] = ()  # axes (indices into AXES) whose program position this line sets where the machine is (G92)
+    # axes (indices into AXES) whose program position this line sets where the machine is (G92)
+    sets_position: tuple[int, ...] = ()
 
 
 # ----------------------------------------------------------------------------------------------

@@ -130,7 +130,10 @@ def _difference_matrix(order: int, n: int, sample_period_s: float) -> sparse.csr
     """Rows (r-th backward difference) / T^r over n + order samples: the first ``order`` are
     the samples before the stretch."""
     coeffs = [(-1) ** (order - i) * math.comb(order, i) for i in range(order + 1)]
-    return sparse.diags(coeffs, list(range(order + 1)), shape=(n, n + order), format="csr", dtype=float) / sample_period_s**order
+    return (
+        sparse.diags(coeffs, list(range(order + 1)), shape=(n, n + order), format="csr", dtype=float)
+        / sample_period_s**order
+    )
 
 
 class _Stretch:
@@ -187,7 +190,8 @@ class _Stretch:
             # H singular to working precision. A faint penalty on their third differences lets them
             # continue the spline's trend; the committed points, a whole overlap earlier, do not see it.
             self.E = None
-            tail = sparse.diags([-1.0, 3.0, -3.0, 1.0], [0, 1, 2, 3], shape=(n_free - 3, n_free), dtype=float).tocsr()[-m:]
+            third = sparse.diags([-1.0, 3.0, -3.0, 1.0], [0, 1, 2, 3], shape=(n_free - 3, n_free), dtype=float)
+            tail = third.tocsr()[-m:]
             self.H = self.H + 1e-9 * np.trace(self.H) / n_free * (tail.T @ tail).toarray()
             # The solve for every right-hand side at once: p_free = G target.
             self._factor = linalg.cho_factor(self.H)
@@ -208,7 +212,9 @@ class _Stretch:
                 column = r_max if kind == "command" else 2 * r_max
                 before[:, column - r:column] = D[:, :r].toarray()
                 prev.append(before)
-                state.append(D[:, r:] @ self.Phi[:n_samples] if kind == "output" else np.zeros((n_samples, self.Phi.shape[1])))
+                state.append(
+                    D[:, r:] @ self.Phi[:n_samples] if kind == "output" else np.zeros((n_samples, self.Phi.shape[1]))
+                )
                 row_sample.append(np.arange(n_samples))
         self.has_limits = bool(free)
         if self.has_limits:
@@ -507,7 +513,9 @@ class AxisCompensator:
         """The carry at rest at 1 mm (the carry at rest at x mm is x times it)."""
         if level not in self._rest_units:
             models = self.model_set(level)
-            self._rest_units[level] = np.concatenate([models.rest_state(1.0), np.ones(self.carry.size - models.n_states)])
+            self._rest_units[level] = np.concatenate(
+                [models.rest_state(1.0), np.ones(self.carry.size - models.n_states)]
+            )
         return self._rest_units[level]
 
     def remap(self, z: np.ndarray, old: int, new: int) -> np.ndarray:
@@ -516,7 +524,9 @@ class AxisCompensator:
             self._remaps[old, new] = self.varying.remap(old, new)
         to_new, from_command = self._remaps[old, new]
         z = z.copy()
-        z[:self.carry.n_states] = to_new @ z[:self.carry.n_states] + from_command * self.carry.previous(z)[self.carry.r_max - 1]
+        z[: self.carry.n_states] = (
+            to_new @ z[: self.carry.n_states] + from_command * self.carry.previous(z)[self.carry.r_max - 1]
+        )
         return z
 
     def regular(self, level: int = 0) -> tuple[_Stretch, _Sweep]:
@@ -570,7 +580,8 @@ class AxisStream:
             raise ValueError("the desired trajectory must be a non-empty 1-D array of finite positions")
         head = self._regular_windows() if owner.lookahead == "limited" else np.empty(0)
         if self.first_sample == 0 and self.buffer.size <= (settings.end_rest_order + 3) * settings.knot_spacing_samples:
-            result.command_mm = self.buffer.copy()  # a few spans: too short to shape, the end conditions would fix every point
+            # a few spans: too short to shape, the end conditions would fix every point
+            result.command_mm = self.buffer.copy()
             return result
         tail = self._final()
         tail[-1] = self.buffer[-1]  # the last position in exact arithmetic; make it so in floating point too
@@ -607,7 +618,8 @@ class AxisStream:
             stretch, sweep = owner.regular(level)
             desired = self.buffer[start:start + window * k]
             z = self.z
-            if desired[0] == desired[-1] and np.ptp(desired) == 0.0 and np.array_equal(z, owner.rest_unit(level) * desired[0]):
+            at_rest = desired[0] == desired[-1] and np.ptp(desired) == 0.0
+            if at_rest and np.array_equal(z, owner.rest_unit(level) * desired[0]):
                 command = desired[:rows].copy()  # at rest and staying there: exactly the optimum
             else:
                 p = sweep.Gd @ desired - sweep.Gz @ z

@@ -12,7 +12,8 @@ switched off and the profile's per-axis limits, as follows:
 
 - Every linear piece of a MOVE block is one move: its distance is the XYZ length, or when XYZ
   moves less than 1e-9 mm (extrude-only) the U V W length, else the A B C length (LinuxCNC's
-  rule: its other axes are planned like XYZ and E, followed exactly), else |dE|; its cruise speed is the feed, limited by the
+  rule: its other axes are planned like XYZ and E, followed exactly), else |dE|; its cruise speed
+  is the feed, limited by the
   planner's VELOCITY (if set) and, for every axis A with a limit, by max_velocity_A / |u_A|
   (u the piece's direction per mm of distance, E included). G0 (infinite feed) runs as fast as
   the limits allow. Zero-length pieces are dropped, as Klipper does. Axis limits are the
@@ -157,7 +158,8 @@ class Plan:
 
     sample_rate_hz: float
     n_samples: int  # samples at t_k = k / sample_rate_hz, k = 0..n-1
-    line_time_s: np.ndarray  # (n_blocks,): MOVE: end of its motion; PASS: when the motion reaches it; STOP: at rest at it (before its dwell)
+    # (n_blocks,): MOVE: end of its motion; PASS: when the motion reaches it; STOP: at rest at it (before its dwell)
+    line_time_s: np.ndarray
     move_start_s: np.ndarray  # (n_blocks,): MOVE: start of its motion; other blocks: = line_time_s
     is_move: np.ndarray  # (n_blocks,) bool: the block is a MOVE (rewritten), not a copied line
     is_stop: np.ndarray  # (n_blocks,) bool: the block is a STOP (the machine at rest at it)
@@ -180,7 +182,9 @@ class Plan:
     def moves(self) -> deque:
         """(line, start s, end s) of every MOVE block (a block per line)."""
         index = np.flatnonzero(self.is_move)
-        return deque(zip((index + 1).tolist(), self.move_start_s[index].tolist(), self.line_time_s[index].tolist()))
+        return deque(
+            zip((index + 1).tolist(), self.move_start_s[index].tolist(), self.line_time_s[index].tolist(), strict=True)
+        )
 
     @property
     def frontier(self) -> int:
@@ -481,7 +485,7 @@ class _PieceMaker:
         # junction limits: limit_v2[i] is the junction before piece i (the first after the last
         # piece made before: _prev), 0 between runs and at extrude-only pieces
         prev = self._prev or (np.ones(1, bool), np.full(1, -1))
-        eo, key = (np.concatenate([p, q]) for p, q in zip(prev, (extrude_only, run_key)))
+        eo, key = (np.concatenate([p, q]) for p, q in zip(prev, (extrude_only, run_key), strict=True))
         together = (key[1:] == key[:-1]) & ~eo[1:] & ~eo[:-1]
         limit_v2 = np.where(together, inner, 0.0)
         self._prev = (extrude_only[-1:], run_key[-1:])
@@ -585,8 +589,7 @@ class _PieceMaker:
         first time: a junction with itself, made 0 as the start of a run)."""
         held = self._junction_prev or tuple(c[:1] for c in columns)
         self._junction_prev = tuple(c[-1:] for c in columns)
-        return [np.concatenate([p, q]) for p, q in zip(held, columns)]
-
+        return [np.concatenate([p, q]) for p, q in zip(held, columns, strict=True)]
 
 
 class _LookAhead:
@@ -825,7 +828,6 @@ class _BlockReader:
         return self.eof or bool(self._prologue_known[:_E + 1].all()) or self._prologue_count >= PROLOGUE_ROWS
 
 
-
 class _BlockClock:
     """The blocks' times. Takes the blocks read (``_BlockReader.pending``) and, as their pieces are
     settled, the pieces' blocks and times (``settle``); gives each block timed with its line time
@@ -880,11 +882,10 @@ class _BlockClock:
         if self._keep:
             self.kept.append((line_time, move_start, is_move, is_stop))
         else:
-            self.lines.extend(zip((t[0] for t in taken), line_time.tolist(), is_stop.tolist()))
+            self.lines.extend(zip((t[0] for t in taken), line_time.tolist(), is_stop.tolist(), strict=True))
             moves = np.flatnonzero(is_move)
             self.moves.extend(zip((taken[i][0].line_no for i in moves), move_start[moves].tolist(),
-                                  line_time[moves].tolist()))
-
+                                  line_time[moves].tolist(), strict=True))
 
 
 class PlanStream:
@@ -988,9 +989,9 @@ class PlanStream:
     def whole(self) -> Plan:
         """The plan held (``keep``), once done."""
         kept_blocks, kept_pieces = self._clock.kept, self._kept_pieces
-        blocks = [np.concatenate(column) for column in zip(*kept_blocks)] \
+        blocks = [np.concatenate(column) for column in zip(*kept_blocks, strict=True)] \
             or [np.zeros(0), np.zeros(0), np.zeros(0, dtype=bool), np.zeros(0, dtype=bool)]
-        pieces = Pieces(*(np.concatenate(column) for column in zip(*kept_pieces))) if kept_pieces else \
+        pieces = Pieces(*(np.concatenate(column) for column in zip(*kept_pieces, strict=True))) if kept_pieces else \
             Pieces(*([np.zeros(0, dtype=np.int64)] * 2 + [np.zeros((0, _NA))] * 2 + [np.zeros(0)] * 9))
         return Plan(self._fs, self.n_samples, *blocks, [tuple(r) for r in self.runs], self.duration_s,
                     _Segments.joined(self._timeline.kept), pieces, self.notes, self.warnings)

@@ -2,7 +2,8 @@
 
 Takes a bundled profile name or a path to a ``.toml`` file; gives a ``MachineProfile`` with the
 sample rate, the planner settings, the firmware's own limits (``[firmware]``, optional: Klipper's
-defaults when absent) and, per compensated axis, its kinematic limits and modal dynamics. The modal residues are rescaled so every axis has a DC gain of exactly 1 (a
+defaults when absent) and, per compensated axis, its kinematic limits and modal dynamics. The modal
+residues are rescaled so every axis has a DC gain of exactly 1 (a
 position-controlled axis holds a constant command exactly).
 
 Errors are raised as ``ProfileError`` with a one-line message naming the file and the key.
@@ -59,7 +60,8 @@ class FirmwareProfile:
     names and defaults (klippy/toolhead.py, kinematics/extruder.py) where it has the setting."""
 
     steps_per_mm: dict[str, float] = field(default_factory=dict)  # per axis; an axis not given: unknown
-    shaper_frequency_hz: dict[str, float] = field(default_factory=dict)  # the user's input shaping (restored after the compensated motion)
+    # the user's input shaping (restored after the compensated motion)
+    shaper_frequency_hz: dict[str, float] = field(default_factory=dict)
     block_buffer: int = 16  # Marlin BLOCK_BUFFER_SIZE: look-ahead over this many blocks
     max_line_rate_hz: float | None = None  # most lines per second the machine takes (None: no limit)
     max_velocity_mm_s: float | None = None  # Klipper max_velocity (None: the slower of X and Y's max_velocity)
@@ -117,7 +119,15 @@ _HOME_KEYS = {"X", "Y", "Z"}
 _MOTION_KEYS = {"sample_rate"}
 _PLANNER_KEYS = {"acceleration", "square_corner_velocity"}
 _TOLERANCE_KEYS = ("frequency_tolerance", "damping_tolerance")
-_AXIS_KEYS = {"max_velocity", "max_acceleration", "max_jerk", "modes", "moving_mass", "filament_density", *_TOLERANCE_KEYS}
+_AXIS_KEYS = {
+    "max_velocity",
+    "max_acceleration",
+    "max_jerk",
+    "modes",
+    "moving_mass",
+    "filament_density",
+    *_TOLERANCE_KEYS,
+}
 _MODE_KEYS = {"frequency", "damping", "alpha", "beta", *_TOLERANCE_KEYS}
 # [firmware] key -> FirmwareProfile field, for the optional positive numbers
 _FIRMWARE_NUMBERS = {
@@ -239,7 +249,7 @@ def parse_profile(data: dict, source: str) -> MachineProfile:
             if not 0 < damping < 1:
                 raise fail(f"{mwhere}.damping", f"must be in (0, 1), got {damping!r}")
             tolerances = [_tolerance(raw, key, f"{mwhere}.{key}", default, fail, number)
-                          for key, default in zip(_TOLERANCE_KEYS, axis_tolerances)]
+                          for key, default in zip(_TOLERANCE_KEYS, axis_tolerances, strict=True)]
             modes.append(Mode(frequency, damping, number(raw, "alpha", f"{mwhere}.alpha"),
                               number(raw, "beta", f"{mwhere}.beta"), *tolerances))
         if modes:
@@ -335,7 +345,7 @@ def format_profile(profile: MachineProfile) -> str:
              "[planner]", f"acceleration = {number(profile.planner_acceleration_mm_s2)}",
              f"square_corner_velocity = {number(profile.planner_square_corner_velocity_mm_s)}"]
     if any(profile.home_mm):
-        lines += ["", "[home]", *(f"{a} = {number(v)}" for a, v in zip("XYZ", profile.home_mm))]
+        lines += ["", "[home]", *(f"{a} = {number(v)}" for a, v in zip("XYZ", profile.home_mm, strict=True))]
     lines += _format_firmware(profile.firmware, number)
     for name, axis in profile.axes.items():
         lines += ["", f"[axes.{name}]", f"max_velocity = {number(axis.max_velocity_mm_s)}",
@@ -343,7 +353,10 @@ def format_profile(profile: MachineProfile) -> str:
         if axis.max_jerk_mm_s3 is not None:
             lines.append(f"max_jerk = {number(axis.max_jerk_mm_s3)}")
         if axis.moving_mass_kg is not None:
-            lines += [f"moving_mass = {number(axis.moving_mass_kg)}", f"filament_density = {number(axis.filament_density_g_cm3)}"]
+            lines += [
+                f"moving_mass = {number(axis.moving_mass_kg)}",
+                f"filament_density = {number(axis.filament_density_g_cm3)}",
+            ]
         modes = [f"  {{ frequency = {number(m.frequency_hz)}, damping = {number(m.damping)}, "
                  f"alpha = {number(m.alpha)}, beta = {number(m.beta)}"
                  + "".join(f", {key} = {number(getattr(m, key))}" for key in _TOLERANCE_KEYS if getattr(m, key))

@@ -100,7 +100,8 @@ class _Breaks:
         rows = command if self.tail is None else np.concatenate([self.tail, command])
         self.fed += len(command)
         self.tail = rows[-2:]
-        new = [np.linalg.norm(np.diff(rows[a:a + _PIECE + 2], 2, axis=0), axis=1)  # (by pieces: big temporaries cost more than the arithmetic)
+        # (by pieces: big temporaries cost more than the arithmetic)
+        new = [np.linalg.norm(np.diff(rows[a:a + _PIECE + 2], 2, axis=0), axis=1)
                for a in range(0, max(len(rows) - 2, 0), _PIECE)]
         if self.fed == self.n:
             new.append(np.zeros(min(2, self.n)))  # no bend at the last two samples
@@ -170,14 +171,16 @@ def g5_blocks(command: np.ndarray, splits: np.ndarray, tolerance_mm: float,
 
     The run is fitted whole (fit_g5 searches its blocks in lock step: a call per stretch between
     copied lines is many times slower). Fitted blocks that a split falls inside, in which Z (or
-    a LinuxCNC axis other than X Y) moves, or that miss the tolerance (fit_g5 lets the minimum length win, and a short block
+    a LinuxCNC axis other than X Y) moves, or that miss the tolerance (fit_g5 lets the minimum
+    length win, and a short block
     before one of its chunk edges may miss where chords do not) become G1 blocks, between the
     splits and the other fitted blocks' ends: ``breakpoints`` of each such stretch, its last two
     blocks sharing their length where the last is shorter than the minimum (each then at least
     half the minimum long, and shorter than the first of them was). A curve whose control points
     lie on its chord's thirds is a straight line at constant speed: G1.
     """
-    fit = fit_g5(command[:, [0, 1, _E]], tolerance_mm, min_samples, _MAX_SAMPLES, step_mm=step_mm)  # (LinuxCNC: E stays 0)
+    # (LinuxCNC: E stays 0)
+    fit = fit_g5(command[:, [0, 1, _E]], tolerance_mm, min_samples, _MAX_SAMPLES, step_mm=step_mm)
     starts, ends = fit.starts, fit.ends
     # Z and LinuxCNC's other axes move in G1 blocks only
     z_steps = np.concatenate([[0], np.cumsum((np.diff(command[:, _NOT_IN_G5], axis=0) != 0).any(axis=1))])
@@ -187,7 +190,7 @@ def g5_blocks(command: np.ndarray, splits: np.ndarray, tolerance_mm: float,
     hard = np.union1d(np.concatenate([[0, ends[-1]], starts[kept], ends[kept]]), splits)  # neighbouring G1 blocks merge
     g1 = ~np.isin(hard[1:], ends[kept])  # stretches that are no kept block
     inner = [np.zeros(0, np.int64)]
-    for a, b in zip(hard[:-1][g1], hard[1:][g1]):
+    for a, b in zip(hard[:-1][g1], hard[1:][g1], strict=True):
         g1_ends = breakpoints(command[a:b + 1], tolerance_mm, min_samples) + a
         if len(g1_ends) > 2 and b - g1_ends[-2] < min_samples:  # a short last block: the last two share
             g1_ends[-2] = (g1_ends[-3] + b) // 2
@@ -285,7 +288,9 @@ class _Emitter:
         """
         ends_s = np.zeros(len(targets_mm)) if ends_s is None else ends_s
         if self.held is not None:
-            targets_mm, durations_s, ends_s = (np.concatenate(pair) for pair in zip(self.held, (targets_mm, durations_s, ends_s)))
+            targets_mm, durations_s, ends_s = (
+                np.concatenate(pair) for pair in zip(self.held, (targets_mm, durations_s, ends_s), strict=True)
+            )
             self.held = None
         digits = self.digits
         scale = 10.0 ** digits
@@ -299,7 +304,12 @@ class _Emitter:
                 kept = np.flatnonzero((np.diff(np.vstack([start, ints]), axis=0) != 0).any(axis=1))
                 last = kept[-1] if len(kept) else 0
                 self.held = (targets_mm[last:], durations_s[last:], ends_s[last:])
-                targets_mm, durations_s, ends_s, ints = targets_mm[:last], durations_s[:last], ends_s[:last], ints[:last]
+                targets_mm, durations_s, ends_s, ints = (
+                    targets_mm[:last],
+                    durations_s[:last],
+                    ends_s[:last],
+                    ints[:last],
+                )
         steps = np.diff(np.vstack([start, ints]), axis=0)
         moved = steps != 0
         length = self._marlin_lengths(start, ints, scale) if marlin else _lengths(steps / scale * self.unit_mm)
@@ -326,7 +336,11 @@ class _Emitter:
         new_feed = feed != np.concatenate([[self.feed], feed[:-1]])  # F only where it changes
         if len(feed):
             self.feed = int(feed[-1])
-        self.written = np.where(relative, self.written + (ints[-1] - start) / scale, ints[-1] / scale) if len(ints) else self.written
+        self.written = (
+            np.where(relative, self.written + (ints[-1] - start) / scale, ints[-1] / scale)
+            if len(ints)
+            else self.written
+        )
         values = np.column_stack([np.where(relative, steps, ints)[rows], feed])
         shown = np.column_stack([moved[rows], new_feed])
         digits = np.append(digits, _FEED_DECIMALS)
@@ -362,7 +376,7 @@ def _merged(start: np.ndarray, ints: np.ndarray, steps_per_unit: np.ndarray, min
         return ints
     kept, last = [0], at_steps[0].tolist()
     for k, row in enumerate(at_steps[1:].tolist(), 1):
-        if max(abs(a - b) for a, b in zip(row, last)) >= min_steps:
+        if max(abs(a - b) for a, b in zip(row, last, strict=True)) >= min_steps:
             kept.append(k)
             last = row
     if exact_last and kept[-1] != len(ints):
@@ -371,8 +385,8 @@ def _merged(start: np.ndarray, ints: np.ndarray, steps_per_unit: np.ndarray, min
     return ends[source[1:]]
 
 
-def _feeds(length_mm: np.ndarray, durations_s: np.ndarray, moving: np.ndarray, residue_s: float,
-           units_per_mm_s: float, speed_mm_s: float = 0.0, ramp_mm_s2: float = math.inf) -> tuple[np.ndarray, float, float]:
+def _feeds(length_mm: np.ndarray, durations_s: np.ndarray, moving: np.ndarray, residue_s: float, units_per_mm_s: float,
+           speed_mm_s: float = 0.0, ramp_mm_s2: float = math.inf) -> tuple[np.ndarray, float, float]:
     """The F of each moving block (integer units of its last digit; ``units_per_mm_s`` per mm/s),
     the time residue left after them and the last block's speed (``speed_mm_s``: the one's before).
 
@@ -385,7 +399,7 @@ def _feeds(length_mm: np.ndarray, durations_s: np.ndarray, moving: np.ndarray, r
     negative than half a block's duration, the block keeps half its own and the rest goes on.)
     """
     feeds = []
-    for length, duration, moves in zip(length_mm.tolist(), durations_s.tolist(), moving.tolist()):
+    for length, duration, moves in zip(length_mm.tolist(), durations_s.tolist(), moving.tolist(), strict=True):
         residue_s += duration
         if moves:
             feed = max(round(length * units_per_mm_s / max(residue_s, 0.5 * duration)), 1)
@@ -607,7 +621,8 @@ class _Deviation:
         block = np.searchsorted(ends_s, grid_s, "left")
         worst = np.zeros(len(ends_s))
         np.maximum.at(worst, block, off_mm)
-        self.loosened_s += float(np.diff(knots_s)[worst > self.tolerance_mm + 1e-4].sum())  # (rounding: 0.1 um per axis)
+        # (rounding: 0.1 um per axis)
+        self.loosened_s += float(np.diff(knots_s)[worst > self.tolerance_mm + 1e-4].sum())
         self.last_s = float(ends_s[-1])
         if self.executed is not None and len(grid_s):
             first = round(grid_s[0] * self.fs)

@@ -52,7 +52,9 @@ def off_polyline(points, line):
     return np.hypot(*(points[:, None] - a - t[..., None] * d).transpose(2, 0, 1)).min(axis=1)
 
 
-CTRL = np.array([[1.0, 2.0, 1.0], [4.0, 6.0, 2.5], [7.0, 1.0, 0.5], [9.0, 5.0, 1.0], [12.0, 3.0, 3.0], [14.0, 8.0, 1.0]])
+CTRL = np.array(
+    [[1.0, 2.0, 1.0], [4.0, 6.0, 2.5], [7.0, 1.0, 0.5], [9.0, 5.0, 1.0], [12.0, 3.0, 3.0], [14.0, 8.0, 1.0]]
+)
 
 
 @pytest.mark.parametrize("order", [3, 4, 5, 6])
