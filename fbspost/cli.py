@@ -459,7 +459,6 @@ def identify(frf_csv, axis, n_modes, max_modes, output, merge, plot, klipper_csv
     error, and writes a new profile (limits from the options or their defaults) or merges the
     axis into --merge (comments there are not kept).
     """
-    from . import excite as excite_module
     from . import identify as ident
 
     sources = [s for s in (frf_csv, klipper_csv, klipper_cfg, accel_log) if s]
@@ -474,58 +473,12 @@ def identify(frf_csv, axis, n_modes, max_modes, output, merge, plot, klipper_csv
     axis = axis.upper() if axis else None
     base = load_profile(merge) if merge else None
     lines = [f"fbspost {__version__}: identify from {sources[0]}"]
-    picture = None
     if klipper_csv or klipper_cfg:
-        if klipper_csv:
-            mode, f1, f2 = ident.klipper_psd_mode(klipper_csv, axis)
-            found = {axis: mode}
-            lines.append(f"axis {axis}: PSD peak {mode.frequency_hz:.4g} Hz, half power {f1:.4g}..{f2:.4g} Hz")
-            note = f"axis {axis}: COARSE ESTIMATE from Klipper calibrate_shaper data {klipper_csv.name}"
-        else:
-            found = ident.klipper_cfg_modes(klipper_cfg)
-            if axis:
-                if axis not in found:
-                    raise InputError(klipper_cfg, None, f"[input_shaper] has no shaper_freq_{axis.lower()}")
-                found = {axis: found[axis]}
-            note = f"axes {', '.join(found)}: COARSE ESTIMATE from Klipper [input_shaper] of {klipper_cfg.name}"
-        for name_, mode in found.items():
-            lines.append(f"axis {name_}: 1 mode {mode.frequency_hz:.4g} Hz, damping {mode.damping:.4g}, "
-                         f"alpha {mode.alpha:.6g}, beta 0")
-        lines.append("warning: a coarse estimate (one mode, no phase, no zeros), a starting point only: "
-                     "measure a frequency response (fbspost excite) for a real model")
-        axes_modes = {k: (v,) for k, v in found.items()}
+        axes_modes, note = _klipper_estimate(klipper_csv, klipper_cfg, axis, lines)
+        picture = None
     else:
-        if accel_log:
-            sweep = excite_module.read_sweep(program, axis)
-            times_s, accel = ident.read_accel_log(accel_log, accel_column or f"accel_{axis.lower()}")
-            rec = ident.frf_from_recording(times_s, accel, sweep)
-            fit = ident.fit_frf(rec.frequency_hz, rec.response, n_modes, max_modes, weights=rec.coherence,
-                                fit_delay=True)
-            frequency_hz, measured = (
-                rec.frequency_hz,
-                rec.response * np.exp(2j * np.pi * rec.frequency_hz * fit.delay_s),
-            )
-            lines.append(f"recording: {len(times_s)} samples at {rec.sample_rate_hz:.1f} Hz; the sweep starts at "
-                         f"{rec.offset_s + fit.delay_s:.6f} s of its time base"
-                         + ("; accelerometer axis reversed: sign flipped" if rec.inverted else ""))
-            note = f"axis {axis}: identified from the recording {accel_log.name} of {program.name}"
-        else:
-            frequency_hz, measured = ident.read_frf_csv(frf_csv)
-            fit = ident.fit_frf(frequency_hz, measured, n_modes, max_modes)
-            note = f"axis {axis}: identified from {frf_csv.name}"
-        lines.append(f"axis {axis}: {len(frequency_hz)} frequencies {frequency_hz[0]:.4g}..{frequency_hz[-1]:.4g} Hz, "
-                     f"{len(fit.modes)} modes" + ("" if n_modes else " (chosen automatically)"))
-        for i, m in enumerate(fit.modes, start=1):
-            lines.append(f"  mode {i}: {m.frequency_hz:.5g} Hz, damping {m.damping:.4g}, alpha {m.alpha:.6g}, "
-                         f"beta {m.beta:.6g}")
-        lines.append(f"fit error: RMS {100 * fit.rms_error:.3g}%, max {100 * fit.max_error:.3g}% of the peak |G| "
-                     f"{np.abs(measured).max():.4g}; RMS by mode count: "
-                     + ", ".join(f"{n}: {100 * e:.3g}%" for n, e in fit.errors_by_count.items()))
-        dc_gain = sum(m.alpha / m.omega_rad_s**2 for m in fit.modes)
-        lines.append(f"DC gain of the fit {dc_gain:.4f} (scaled to 1 in the profile)")
-        axes_modes = {axis: fit.modes}
-        if plot:
-            picture = ident.plot_png(frequency_hz, measured, fit.response(frequency_hz), note)
+        axes_modes, note, picture = _fitted(frf_csv, accel_log, program, accel_column, axis, n_modes, max_modes,
+                                            plot, lines)
     options = dict(sample_rate=sample_rate, planner_acceleration=planner_acceleration,
                    square_corner_velocity=square_corner_velocity, max_velocity=max_velocity,
                    max_acceleration=max_acceleration, max_jerk=max_jerk)
@@ -539,6 +492,66 @@ def identify(frf_csv, axis, n_modes, max_modes, output, merge, plot, klipper_csv
         atomic_write(plot, lambda f: f.write(picture))
         lines.append(f"wrote {plot}")
     click.echo("\n".join(lines), err=True)
+
+
+def _klipper_estimate(klipper_csv, klipper_cfg, axis, lines: list[str]) -> tuple[dict, str]:
+    """identify's coarse estimate from Klipper's files: the modes per axis and the profile's note."""
+    from . import identify as ident
+
+    if klipper_csv:
+        mode, f1, f2 = ident.klipper_psd_mode(klipper_csv, axis)
+        found = {axis: mode}
+        lines.append(f"axis {axis}: PSD peak {mode.frequency_hz:.4g} Hz, half power {f1:.4g}..{f2:.4g} Hz")
+        note = f"axis {axis}: COARSE ESTIMATE from Klipper calibrate_shaper data {klipper_csv.name}"
+    else:
+        found = ident.klipper_cfg_modes(klipper_cfg)
+        if axis:
+            if axis not in found:
+                raise InputError(klipper_cfg, None, f"[input_shaper] has no shaper_freq_{axis.lower()}")
+            found = {axis: found[axis]}
+        note = f"axes {', '.join(found)}: COARSE ESTIMATE from Klipper [input_shaper] of {klipper_cfg.name}"
+    for name_, mode in found.items():
+        lines.append(f"axis {name_}: 1 mode {mode.frequency_hz:.4g} Hz, damping {mode.damping:.4g}, "
+                     f"alpha {mode.alpha:.6g}, beta 0")
+    lines.append("warning: a coarse estimate (one mode, no phase, no zeros), a starting point only: "
+                 "measure a frequency response (fbspost excite) for a real model")
+    return {k: (v,) for k, v in found.items()}, note
+
+
+def _fitted(frf_csv, accel_log, program, accel_column, axis, n_modes, max_modes, plot, lines: list[str]) -> tuple:
+    """identify's fit of a measured frequency response (a CSV, or an accelerometer recording of
+    the sweep ``program``): the modes, the profile's note and the plot (PNG bytes, or None)."""
+    from . import excite as excite_module
+    from . import identify as ident
+
+    if accel_log:
+        sweep = excite_module.read_sweep(program, axis)
+        times_s, accel = ident.read_accel_log(accel_log, accel_column or f"accel_{axis.lower()}")
+        rec = ident.frf_from_recording(times_s, accel, sweep)
+        fit = ident.fit_frf(rec.frequency_hz, rec.response, n_modes, max_modes, weights=rec.coherence,
+                            fit_delay=True)
+        frequency_hz = rec.frequency_hz
+        measured = rec.response * np.exp(2j * np.pi * rec.frequency_hz * fit.delay_s)
+        lines.append(f"recording: {len(times_s)} samples at {rec.sample_rate_hz:.1f} Hz; the sweep starts at "
+                     f"{rec.offset_s + fit.delay_s:.6f} s of its time base"
+                     + ("; accelerometer axis reversed: sign flipped" if rec.inverted else ""))
+        note = f"axis {axis}: identified from the recording {accel_log.name} of {program.name}"
+    else:
+        frequency_hz, measured = ident.read_frf_csv(frf_csv)
+        fit = ident.fit_frf(frequency_hz, measured, n_modes, max_modes)
+        note = f"axis {axis}: identified from {frf_csv.name}"
+    lines.append(f"axis {axis}: {len(frequency_hz)} frequencies {frequency_hz[0]:.4g}..{frequency_hz[-1]:.4g} Hz, "
+                 f"{len(fit.modes)} modes" + ("" if n_modes else " (chosen automatically)"))
+    for i, m in enumerate(fit.modes, start=1):
+        lines.append(f"  mode {i}: {m.frequency_hz:.5g} Hz, damping {m.damping:.4g}, alpha {m.alpha:.6g}, "
+                     f"beta {m.beta:.6g}")
+    lines.append(f"fit error: RMS {100 * fit.rms_error:.3g}%, max {100 * fit.max_error:.3g}% of the peak |G| "
+                 f"{np.abs(measured).max():.4g}; RMS by mode count: "
+                 + ", ".join(f"{n}: {100 * e:.3g}%" for n, e in fit.errors_by_count.items()))
+    dc_gain = sum(m.alpha / m.omega_rad_s**2 for m in fit.modes)
+    lines.append(f"DC gain of the fit {dc_gain:.4f} (scaled to 1 in the profile)")
+    picture = ident.plot_png(frequency_hz, measured, fit.response(frequency_hz), note) if plot else None
+    return {axis: fit.modes}, note, picture
 
 
 @main.command()
