@@ -14,14 +14,19 @@ L20) are written back as G10 L2. Coordinates are rs274's: 4 decimals in the prog
 the machine's INI, rs274 runs in the INI's directory, as LinuxCNC does (relative subroutine
 paths, remaps).
 
-Refused (``InputError``): what rs274 reports without its data (G5/G5.1/G5.2 curves: ``NURBS_FEED``
-gives no control points; M66 waits), probing, spindle-synchronized motion, feed per revolution,
+G5/G5.1 splines, which rs274 prints without their control points, are run in a copy of the
+program that reports them (``rs274_splines``) and written back as G5/G5.1 in mm.
+
+Refused (``InputError``): what rs274 reports without its data (G5.2 NURBS: ``NURBS_FEED`` gives
+no control points; M66 waits), probing, spindle-synchronized motion, feed per revolution,
 coordinate rotation, U V W, and rs274's own errors (with the line it names; for G6.2, that this
-install's rs274, LinuxCNC 2.9, does not run it).
+install's rs274, LinuxCNC 2.9, does not run it). ``check_remaps``: a machine INI that remaps a
+code fbspost writes itself.
 """
 from __future__ import annotations
 
 import math
+import os
 import re
 import shutil
 import subprocess
@@ -29,6 +34,7 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
+from .rs274_splines import instrumented, spline_calls
 from .trajectory import InputError
 
 INSTALL_HINT = "LinuxCNC's interpreter rs274 is not installed: apt-get install linuxcnc-uspace"
@@ -47,7 +53,7 @@ _END_RESETS = {"SET_XY_ROTATION", "SELECT_PLANE", "SET_FEED_MODE", "SET_FEED_RAT
 STATE_CALLS = {"USE_LENGTH_UNITS", "SET_G5X_OFFSET", "SET_G92_OFFSET", "SET_XY_ROTATION", "SET_FEED_REFERENCE",
                "ON_RESET", "USE_TOOL_LENGTH_OFFSET", "SET_FEED_RATE", "SET_FEED_MODE", "SELECT_PLANE",
                "SET_SPINDLE_MODE", "COMMENT", "SET_NAIVECAM_TOLERANCE"}
-MOTION_CALLS = {"STRAIGHT_TRAVERSE", "STRAIGHT_FEED", "ARC_FEED", "NURBS_FEED", "STRAIGHT_PROBE"}
+MOTION_CALLS = {"STRAIGHT_TRAVERSE", "STRAIGHT_FEED", "ARC_FEED", "NURBS_FEED", "SPLINE_FEED", "STRAIGHT_PROBE"}
 _SIMPLE = {  # canonical call -> G-code, {0}, {1} its arguments
     "SET_SPINDLE_SPEED": "S{1}{s0}", "START_SPINDLE_CLOCKWISE": "M3{s0}", "START_SPINDLE_COUNTERCLOCKWISE": "M4{s0}",
     "STOP_SPINDLE_TURNING": "M5{s0}", "ORIENT_SPINDLE": "M19 R{1} P{2}{s0}", "MIST_ON": "M7", "FLOOD_ON": "M8",
@@ -61,11 +67,32 @@ _SIMPLE = {  # canonical call -> G-code, {0}, {1} its arguments
     "ENABLE_FEED_HOLD": "M53 P1", "DISABLE_FEED_HOLD": "M53 P0", "FINISH": "", "PALLET_SHUTTLE": "",
 }
 _REFUSED = {
-    "NURBS_FEED": "G5/G5.1/G5.2 curves in a program that needs LinuxCNC's interpreter (rs274 does not print "
-                  "their control points)",
+    "NURBS_FEED": "G5.2 NURBS (or a G5/G5.1 line without its G code, or in a subroutine file) in a program "
+                  "that needs LinuxCNC's interpreter (rs274 does not print their control points)",
     "STRAIGHT_PROBE": "probing (G38)", "TURN_PROBE_ON": "probing (G38)",
     "START_SPEED_FEED_SYNC": "spindle-synchronized motion (G33, G76)",
 }
+
+
+# what fbspost writes itself in a compensated program (its moves, feeds, blending, dwells)
+_WRITTEN_CODES = {"F", "G0", "G1", "G4", "G61", "G61.1", "G64"}
+
+
+def check_remaps(program: str | Path, ini: str | Path) -> None:
+    """InputError when the machine's INI remaps a code fbspost writes itself (``REMAP=F ...``):
+    each of its thousands of F words (or G1, G4, G64) would run the remap's code."""
+    with open(ini, encoding="utf-8", errors="replace") as f:
+        for text in f:
+            m = re.match(r"\s*REMAP\s*=\s*([A-Za-z][\d.]*)", text)
+            if m and _canonical_code(m.group(1)) in _WRITTEN_CODES:
+                raise InputError(program, None, f"the machine's INI remaps {m.group(1)} ({Path(ini).name}), a code "
+                                                "fbspost writes in every compensated move: not supported")
+
+
+def _canonical_code(code: str) -> str:
+    """G01 -> G1, g64 -> G64, f -> F."""
+    letter, number = code[0].upper(), code[1:]
+    return letter + (f"{float(number):g}" if number else "")
 
 
 def canonical_calls(program: str | Path, tool_table: str | Path | None = None, ini: str | Path | None = None,
@@ -79,20 +106,16 @@ def canonical_calls(program: str | Path, tool_table: str | Path | None = None, i
         table = Path(tool_table).resolve() if tool_table else Path(work, "empty.tbl")
         table.touch(exist_ok=True)
         out = Path(work, "canon.txt")
-        args = [rs274, "-t", str(table), "-v", str(Path(work, "rs274ngc.var")), "-g", str(Path(program).resolve()),
+        run = instrumented(program, Path(work, "program").mkdir() or Path(work, "program")) or program
+        args = [rs274, "-t", str(table), "-v", str(Path(work, "rs274ngc.var")), "-g", str(Path(run).resolve()),
                 str(out)]
         if ini:  # LinuxCNC runs in the INI's directory: its relative paths (SUBROUTINE_PATH, ...) are from there
             args[1:1] = ["-i", str(Path(ini).resolve())]
         try:
-            proc = subprocess.run(
-                args,
-                cwd=Path(ini).resolve().parent if ini else work,
-                stdin=subprocess.DEVNULL,
-                capture_output=True,
-                text=True,
-                errors="replace",
-                timeout=timeout_s,
-            )
+            # HOME: rs274 keeps its tool table in $HOME/.tool.mmap, which concurrent runs would share
+            proc = subprocess.run(args, cwd=Path(ini).resolve().parent if ini else work, stdin=subprocess.DEVNULL,
+                                  capture_output=True, text=True, errors="replace", timeout=timeout_s,
+                                  env={**os.environ, "HOME": work})
         except subprocess.TimeoutExpired:
             raise InputError(program, None, f"LinuxCNC's interpreter rs274 did not finish in {timeout_s:g} s") from None
         calls = []
@@ -103,7 +126,7 @@ def canonical_calls(program: str | Path, tool_table: str | Path | None = None, i
                     calls.append((m.group(1), _arguments(m.group(2))))
     if proc.returncode != 0:
         raise _rs274_error(program, (proc.stdout + proc.stderr).replace("executing", "").strip().splitlines())
-    return calls
+    return spline_calls(calls)
 
 
 def _arguments(text: str) -> list[str]:
@@ -207,11 +230,14 @@ class _Expander:
         self.pos = [0.0] * 6  # where the tool is in the output's coordinates (rs274 starts at 0)
         self.fresh = True  # the controller's position is not known to the output's reader: write XYZ
         self.mode = None  # CANON_CONTINUOUS tolerance, waiting for its naive-CAM tolerance
+        self.last_pq = None  # P Q (mm) of a G5 just before: a G5 without I J starts with -P -Q
 
     def lines(self, calls) -> Iterator[str]:
         for name, args in calls:
             if name in _REFUSED:
                 raise InputError(self.program, None, f"{_REFUSED[name]}: not supported by --expand")
+            if name in MOTION_CALLS and name != "SPLINE_FEED":
+                self.last_pq = None
             method = getattr(self, "on_" + name.lower(), None)
             if method is not None:
                 yield from method(args)
@@ -343,6 +369,28 @@ class _Expander:
         extra = f" P{abs(turns)}" if abs(turns) > 1 else ""
         # rs274 gives an arc's inverse time feed as units per minute itself
         yield self.move("G3" if turns > 0 else "G2", target, f" {words}{extra}" + self.feed_word(None), arc=True)
+
+    def on_spline_feed(self, args):
+        """A G5/G5.1 as rs274 evaluated it (``rs274_splines``): the same spline, in mm, X Y only."""
+        if self.plane != "CANON_PLANE_XY" or self.inverse_time:
+            raise InputError(self.program, None, "G5/G5.1 outside G17 or in inverse time (G93): not supported "
+                                                 "by --expand")
+        code, dx, dy = args[0], float(args[1]) * self.scale, float(args[2]) * self.scale
+        i, j, p, q = (None if v is None else float(v) * self.scale for v in args[3:7])
+        if code == "G5" and i is None:
+            if self.last_pq is None:
+                raise InputError(self.program, None, "a G5 without I and J not right after a G5: not supported "
+                                                     "by --expand")
+            i, j = -self.last_pq[0], -self.last_pq[1]
+        self.last_pq = (p, q) if code == "G5" else None
+        target = list(self.pos)
+        target[0] += dx
+        target[1] += dy
+        words = f"X{_mm(target[0])} Y{_mm(target[1])} I{_mm(i)} J{_mm(j)}"
+        if code == "G5":
+            words += f" P{_mm(p)} Q{_mm(q)}"
+        self.pos = target
+        yield f"{code} {words}{self.feed_word(None)}"
 
     def target(self, args) -> list[float]:
         if any(float(a) != 0.0 for a in args[6:9]):

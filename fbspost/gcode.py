@@ -45,8 +45,13 @@ the first 2000 and last 300 lines. How lines are read:
 - LinuxCNC NURBS (G5.2 ... G5.3, and G5.1 quadratic splines, XY only) are evaluated exactly as
   LinuxCNC 2.9 defines them (``nurbs_additional_functions.cc``: order L >= 3, the first control
   point the current position, clamped uniform integer knots, weights P) and cut into pieces
-  within CHORD_TOLERANCE_MM; the G5.2 line, its control point lines and the G5.3 line each
-  carry a share of the curve (one MOVE each), so that none is copied without its curve.
+  within CHORD_TOLERANCE_MM (every knot a chord's end); the G5.2 line, its control point lines
+  and the G5.3 line each carry a share of the curve (one MOVE each), so that none is copied
+  without its curve. G6.2 (LinuxCNC 2.10, as its nc_files/nurbs/G6 examples write it and
+  ``nurbs_additional_functions.cc`` evaluates it): the first line gives the order P and every
+  line a knot K, the control points X Y (the first where the tool is) their weights R, and
+  ``order`` lines of a knot alone end the NURBS; the knots are the K words in order (clamped,
+  not decreasing). Q (LinuxCNC's choice of how it steps along the curve) does not change it.
 - LinuxCNC's other axes, A B C (degrees, also under G20) and U V W, are columns of AXES after E:
   planned and written like the axes without modes (followed exactly, not compensated); a move's
   feed is along XYZ, else U V W, else A B C (``feed_lengths``, LinuxCNC's rule). They start
@@ -56,8 +61,8 @@ the first 2000 and last 300 lines. How lines are read:
 - Errors: cutter compensation, rotation, scaling, canned cycles, inverse-time or per-revolution
   feed, parameters and expressions, O-word subroutines and control flow, and in LinuxCNC G7,
   G33 and the lathe cycles (``NeedsInterpreter``
-  in LinuxCNC programs: ``--expand`` runs them through LinuxCNC's interpreter), G6.2 and other
-  unknown motion codes, A B C U V W outside LinuxCNC, missing or non-numeric values, arcs without
+  in LinuxCNC programs: ``--expand`` runs them through LinuxCNC's interpreter), unknown motion
+  codes, G6.2 in G91, A B C U V W outside LinuxCNC, missing or non-numeric values, arcs without
   a radius or with R shorter than half the chord, feeds <= 0.
 """
 from __future__ import annotations
@@ -217,7 +222,7 @@ _KLIPPER_PASS = {"SET_FAN_SPEED", "SET_PRESSURE_ADVANCE", "SET_HEATER_TEMPERATUR
                  "EXCLUDE_OBJECT_START", "EXCLUDE_OBJECT_END", "EXCLUDE_OBJECT_DEFINE"}
 _OTHER_AXES = "".join(AXES[i] for i in _EXTRA)
 _EXPAND_HINT = "--expand runs it through LinuxCNC's interpreter"
-_NURBS_G = {5.1, 5.2, 5.3, 6.2}  # LinuxCNC splines; G6.2 (LinuxCNC 2.10) is not supported
+_NURBS_G = {5.1, 5.2, 5.3, 6.2}  # LinuxCNC splines (G6.2: LinuxCNC 2.10's NURBS with its own knots)
 _IO_M = {62.0, 63.0, 64.0, 65.0, 66.0, 67.0, 68.0}  # LinuxCNC I/O: E P Q L are its words
 _LINUXCNC_PASS_M = {48.0, 49.0, 50.0, 51.0, 52.0, 53.0, 61.0, 62.0, 63.0, 64.0, 65.0, 67.0, 68.0}
 _PARAMETER = re.compile(r"#\s*(?:<[^>]*>?|\d+|\[)|\[[^\]]*\]?")
@@ -251,7 +256,11 @@ def _blocks(path: str | Path, flavor: str, home_mm) -> Iterator[Block]:
             elif block is not None:  # a spline's lines, held until its end
                 yield from block
         if reader.spline is not None:
-            raise reader.error(reader.spline.lines[0][0], "G5.2 without G5.3 (the NURBS is never ended)")
+            first = reader.spline.lines[0][0]
+            if reader.spline.knots is not None:
+                raise reader.error(first, f"G6.2 NURBS never ended ({reader.spline.order} lines of its last knot "
+                                          "alone, K, end it)")
+            raise reader.error(first, "G5.2 without G5.3 (the NURBS is never ended)")
 
 
 class _Reader:
@@ -279,7 +288,7 @@ class _Reader:
         self.wcs = 54.0
         self.tool_length = False  # G43 active (LinuxCNC)
         self.last_bezier_pq = None  # (P, Q) of the previous G5, mm
-        self.spline = None  # an open G5.2 NURBS: its lines are held until G5.3
+        self.spline = None  # an open G5.2 or G6.2 NURBS: its lines are held until its end
 
     def fast_move(self, n, raw, g, f1, x, y, z, e, f2) -> Block | None:
         """G0/G1 matched by _FAST_G01: the same as move(), or None to take the general path."""
@@ -557,7 +566,7 @@ class _Reader:
                     raise NeedsInterpreter(self.path, n, what, f"{what} is not supported: {_EXPAND_HINT}")
                 raise self.error(n, f"{_UNSUPPORTED_G[g]} is not supported")
             elif g in _NURBS_G or (self.cnc and 5.0 < g < 7.0):
-                if self.cnc and (g == 5.1 or g == 5.2 or g == 5.3):
+                if self.cnc and g in _NURBS_G:
                     if motion is not None:
                         raise self.error(n, "two motion commands on one line")
                     motion = g
@@ -677,6 +686,8 @@ class _Reader:
         if self.spline is not None or motion in _NURBS_G:
             if unknown or kind is not Kind.PASS or limits is not None or modal_changed or axis_words_used:
                 raise self.error(n, "inside a NURBS only control points (X Y P) and G5.3 are allowed")
+            if self.spline is not None and self.spline.knots is not None and motion is None:
+                motion = 6.2  # a G6.2 line of a knot alone
             self.motion = None if motion == 5.3 else motion
             return self.spline_line(n, raw, motion, params, dups, junk, scale)
         if motion is not None and not unknown:
@@ -979,7 +990,8 @@ class _Reader:
     # -- LinuxCNC splines (G5.1, G5.2 ... G5.3) -------------------------------------------------
 
     def spline_line(self, n, raw, motion, params, dups, junk, scale):
-        """A G5.1 (its block), or a G5.2 NURBS line: held (None) until G5.3 gives every line's block."""
+        """A G5.1 (its block), or a G5.2 or G6.2 NURBS line: held (None) until the NURBS' end
+        gives every line's block."""
         if junk is not None:
             raise self.error(n, junk)
         if dups:
@@ -989,6 +1001,10 @@ class _Reader:
         for a in "Z" + _OTHER_AXES:
             if a in params:
                 raise self.error(n, f"G{motion:g} splines move X and Y only: {a} is not allowed")
+        if self.spline is not None and (self.spline.knots is not None) != (motion == 6.2):
+            raise self.error(n, f"G{motion:g} inside a {'G6.2' if self.spline.knots is not None else 'G5.2'} NURBS")
+        if motion == 6.2:
+            return self.g62_line(n, raw, params, scale)
         if motion == 5.3:
             if self.spline is None:
                 raise self.error(n, "G5.3 without G5.2 first")
@@ -1023,12 +1039,48 @@ class _Reader:
         self.spline.lines.append((n, raw))
         return None
 
-class _Spline:
-    """A LinuxCNC spline being read: control points (x, y, weight) in machine mm, its order, and
-    its lines: (line number, bytes) of the spline's own lines, Blocks of comments between them."""
+    def g62_line(self, n, raw, params, scale):
+        """A line of a G6.2 NURBS (LinuxCNC 2.10): the first gives the order P; each a knot K, and
+        a control point X Y with its weight R, or (the last ``order`` lines) a knot alone."""
+        if not self.abs_xyz:
+            raise self.error(n, "G6.2 in incremental distance mode (G91) is not supported")
+        if "K" not in params:
+            raise self.error(n, "every G6.2 line needs its knot K")
+        spline = self.spline
+        if spline is None:
+            order = self.number(n, "P", params["P"]) if "P" in params else None
+            if order is None or order != int(order) or order < 2:
+                raise self.error(n, "the first G6.2 line needs its order P, an integer of at least 2")
+            if "X" not in params or "Y" not in params:
+                raise self.error(n, "the first G6.2 line needs its first control point (X Y R)")
+            first = [self.number(n, a, params[a]) * scale + self.off[i] for i, a in enumerate("XY")]
+            if math.dist(first, self.pos[:2]) > 1e-9:  # NaN (unknown start) passes: copied at rest
+                raise self.error(n, "a G6.2 NURBS starts at its first control point: X Y must be where the tool is")
+            spline = self.spline = _Spline([], int(order), [], knots=[])
+        if ("X" in params) != ("Y" in params):
+            raise self.error(n, "a G6.2 control point needs both X and Y")
+        if "X" in params:
+            if len(spline.knots) > len(spline.points):
+                raise self.error(n, "a G6.2 control point after the knots that end the NURBS")
+            weight = self.number(n, "R", params["R"]) if "R" in params else 0.0
+            if weight <= 0.0:
+                raise self.error(n, "a G6.2 control point needs a positive weight R")
+            spline.points.append((*(self.number(n, a, params[a]) * scale + self.off[i] for i, a in enumerate("XY")),
+                                  weight))
+        spline.knots.append(self.number(n, "K", params["K"]))
+        spline.lines.append((n, raw))
+        if len(spline.knots) == len(spline.points) + spline.order:
+            return spline.end(self)
+        return None
 
-    def __init__(self, points, order, lines):
-        self.points, self.order, self.lines = points, order, lines
+
+class _Spline:
+    """A LinuxCNC spline being read: control points (x, y, weight) in machine mm, its order, its
+    knots (G6.2; None: LinuxCNC's uniform ones), and its lines: (line number, bytes) of the
+    spline's own lines, Blocks of comments between them."""
+
+    def __init__(self, points, order, lines, knots=None):
+        self.points, self.order, self.lines, self.knots = points, order, lines, knots
 
     def end(self, reader: _Reader, n: int | None = None, raw: bytes | None = None) -> list[Block] | Block:
         """Every held line's block: the curve's pieces shared among the spline's own lines."""
@@ -1040,13 +1092,14 @@ class _Spline:
             raise reader.error(self.lines[-1][0], f"a NURBS of order {self.order} needs at least {self.order} "
                                                   f"control points, this one has {len(ctrl)}")
         start = reader.pos
+        knots = None if self.knots is None else self.checked_knots(reader)
         target = start[:]
         target[0], target[1] = ctrl[-1, 0], ctrl[-1, 1]
         reader.pos = target
         own = [i for i, line in enumerate(self.lines) if line.__class__ is not Block]
         moves = start[0] == start[0] and start[1] == start[1] and reader.feed is not None
         if moves:
-            xy = _spline_pieces(ctrl, self.order, len(own))
+            xy = _spline_pieces(ctrl, self.order, len(own), knots)
             points = np.tile(np.asarray(start, dtype=float), (len(xy), 1))
             points[:, :2] = xy
             points[-1] = target
@@ -1066,18 +1119,32 @@ class _Spline:
         return out[0] if len(out) == 1 else out
 
 
+    def checked_knots(self, reader: _Reader) -> np.ndarray:
+        """The G6.2 knots, which must not decrease and begin and end ``order`` times alike (the
+        curve runs from its first control point to its last)."""
+        knots, k, line = np.array(self.knots), self.order, self.lines[-1][0]
+        if np.any(np.diff(knots) < 0.0):
+            raise reader.error(line, "G6.2 knots K must not decrease")
+        if np.ptp(knots[:k]) or np.ptp(knots[-k:]) or knots[0] == knots[-1]:
+            raise reader.error(line, f"G6.2 knots must begin with {k} equal knots and end with {k} greater "
+                                     f"equal ones (P{k}: the curve from its first control point to its last)")
+        return knots
+
+
 def _along(start: list[float], target: list[float], frac: np.ndarray) -> np.ndarray:
     """(len(frac), len(AXES)): every axis moved linearly from ``start`` to ``target`` by ``frac``."""
     start = np.asarray(start)
     return start + (np.asarray(target) - start) * np.asarray(frac)[:, None]
 
 
-def nurbs_points(ctrl: np.ndarray, order: int, u: np.ndarray) -> np.ndarray:
-    """Points (len(u), 2) of LinuxCNC's NURBS: control points ``ctrl`` (m, 3: x, y, weight), order
-    k (degree k - 1), knots k zeros, 1 .. m - k, k times m - k + 1 (``knot_vector_creator``), at
-    parameters ``u`` in [0, m - k + 1]. Cox-de Boor on the weighted points."""
+def nurbs_points(ctrl: np.ndarray, order: int, u: np.ndarray, knots: np.ndarray | None = None) -> np.ndarray:
+    """Points (len(u), 2) of a NURBS: control points ``ctrl`` (m, 3: x, y, weight), order k
+    (degree k - 1), ``knots`` (m + k, clamped), by default G5.2's: k zeros, 1 .. m - k, k times
+    m - k + 1 (``knot_vector_creator``), at parameters ``u`` between knots k - 1 and m.
+    Cox-de Boor on the weighted points."""
     m, k = len(ctrl), order
-    knots = np.concatenate([np.zeros(k), np.arange(1.0, m - k + 1), np.full(k, m - k + 1.0)])
+    if knots is None:
+        knots = np.concatenate([np.zeros(k), np.arange(1.0, m - k + 1), np.full(k, m - k + 1.0)])
     u = np.asarray(u, dtype=float)[:, None]
     basis = ((knots[:-1] <= u) & (u < knots[1:])).astype(float)  # order 1, half-open spans
     basis[u[:, 0] >= knots[-1], m - 1] = 1.0  # the end belongs to the last span
@@ -1092,23 +1159,28 @@ def nurbs_points(ctrl: np.ndarray, order: int, u: np.ndarray) -> np.ndarray:
     return (weighted @ ctrl[:, :2]) / weighted.sum(axis=1, keepdims=True)
 
 
-def _spline_pieces(ctrl: np.ndarray, order: int, at_least: int) -> np.ndarray:
+def _spline_pieces(ctrl: np.ndarray, order: int, at_least: int, knots: np.ndarray | None = None) -> np.ndarray:
     """End points of the chords of the NURBS, every chord within CHORD_TOLERANCE_MM of the curve
-    (checked at each chord's middle parameter, with a margin), at least ``at_least`` of them."""
-    u_end = len(ctrl) - order + 1.0
-    count = max(at_least, 8 * (len(ctrl) - order + 1))
+    (checked at each chord's middle parameter, with a margin), at least ``at_least`` of them; every
+    knot is a chord's end (where a repeated knot makes a corner)."""
+    if knots is None:
+        knots = np.concatenate([np.zeros(order), np.arange(1.0, len(ctrl) - order + 1),
+                                np.full(order, len(ctrl) - order + 1.0)])
+    breaks = np.unique(knots[order - 1:len(ctrl) + 1])
+    per = max(8, -(-at_least // (len(breaks) - 1)))  # chords per knot span
     while True:
-        u = np.linspace(0.0, u_end, count + 1)
-        points = nurbs_points(ctrl, order, u)
-        middle = nurbs_points(ctrl, order, 0.5 * (u[1:] + u[:-1]))
+        steps = np.arange(per) / per
+        u = np.append((breaks[:-1, None] + np.diff(breaks)[:, None] * steps).ravel(), breaks[-1])
+        points = nurbs_points(ctrl, order, u, knots)
+        middle = nurbs_points(ctrl, order, 0.5 * (u[1:] + u[:-1]), knots)
         a, b = points[:-1], points[1:]
         chord = b - a
         length2 = np.maximum((chord * chord).sum(axis=1), 1e-300)
         t = np.clip(((middle - a) * chord).sum(axis=1) / length2, 0.0, 1.0)
         off = np.hypot(*(middle - a - t[:, None] * chord).T)
-        if off.max() <= 0.5 * CHORD_TOLERANCE_MM or count >= 1 << 20:
+        if off.max() <= 0.5 * CHORD_TOLERANCE_MM or per * len(breaks) >= 1 << 20:
             return points[1:]
-        count *= 2
+        per *= 2
 
 
 def _strip_comments(text: str) -> str:

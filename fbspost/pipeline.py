@@ -24,7 +24,7 @@ import numpy as np
 from . import __version__
 from .atomicfile import atomic_write
 from .dynamics import AxisDynamics, ModelSet
-from .expand import expand
+from .expand import check_remaps, expand
 from .fallback import FALLBACK, AxisGuard
 from .gcode import AXES, Block, NeedsInterpreter, detect_flavor, read_gcode
 from .optimizer import AxisCompensator, AxisLimits, FBSSettings
@@ -129,6 +129,8 @@ def compensate_file(input_path: str | Path, output_path: str | Path, profile: Ma
     refusal = format_refusal(flavor, options.output_format)
     if refusal:  # before the work
         raise InputError(input_path, None, refusal)
+    if flavor == "linuxcnc" and options.ini:
+        check_remaps(input_path, options.ini)
     if flavor == "linuxcnc" and options.expand:
         return _compensate_expanded(input_path, output_path, profile, options, "--expand given", progress, started)
     try:

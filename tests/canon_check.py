@@ -3,7 +3,8 @@
 ``path_problems``: the program fbspost compensated (the expansion, or the original when it
 needed none), re-read by fbspost's reader with compensation off, against rs274's canonical moves
 of the original: every point the reader gives lies on a canonical move (a line, or an arc: its
-radius and its axis' travel), moving forward through them, and every canonical move's end is
+radius and its axis' travel, or a G5/G5.1 spline as rs274 evaluates it, ``rs274_splines``: its
+Bezier curve in Bernstein form), moving forward through them, and every canonical move's end is
 among the reader's points, in order.
 ``command_problems``: rs274 run on fbspost's output gives the same non-motion canonical calls
 (spindle, coolant, tools, dwells, I/O, messages, stops, program end), in order, as on the original,
@@ -28,7 +29,7 @@ def canonical_moves(calls, with_tool: bool) -> tuple[list[tuple], float]:
     length) offsets added; arc = (centre, first, second, axis, turns) or None. Also the largest
     unit (mm) seen."""
     scale, unit, g92, tool = 1.0, 1.0, np.zeros(6), np.zeros(6)
-    plane, pos, moves = "CANON_PLANE_XY", np.zeros(6), []
+    plane, pos, moves, last_pq = "CANON_PLANE_XY", np.zeros(6), [], None
 
     def values(args):  # X Y Z in the program's unit, A B C in degrees
         return np.array([float(a) for a in args[:6]] + [0.0] * (6 - len(args[:6]))) * ([scale] * 3 + [1.0] * 3)
@@ -48,6 +49,16 @@ def canonical_moves(calls, with_tool: bool) -> tuple[list[tuple], float]:
         elif name in ("STRAIGHT_TRAVERSE", "STRAIGHT_FEED"):
             end = values(args) + g92 + tool
             moves.append((pos, end, None))
+            pos = end
+        elif name == "SPLINE_FEED":  # G5/G5.1 (rs274_splines), XY: its Bezier control points
+            dx, dy, i, j, p, q = (None if v is None else float(v) * scale for v in args[1:7])
+            if args[0] == "G5" and i is None:
+                i, j = -last_pq[0], -last_pq[1]
+            end = pos.copy()
+            end[:2] += [dx, dy]
+            ctrl = [pos[:2], pos[:2] + [i, j]] + ([end[:2] + [p, q]] if args[0] == "G5" else []) + [end[:2]]
+            last_pq = (p, q) if args[0] == "G5" else None
+            moves.append((pos, end, ("bezier", _bezier(np.array(ctrl)))))
             pos = end
         elif name == "ARC_FEED":
             a, b, c = _PLANE_AXES[plane]
@@ -77,9 +88,25 @@ def reader_points(program: str | Path) -> list[np.ndarray]:
     return points
 
 
+def _bezier(ctrl: np.ndarray, count: int = 20001) -> np.ndarray:
+    """Points of the Bezier curve of control points ``ctrl`` (Bernstein form), dense."""
+    t = np.linspace(0.0, 1.0, count)[:, None]
+    d = len(ctrl) - 1
+    return sum(math.comb(d, k) * t ** k * (1 - t) ** (d - k) * ctrl[k] for k in range(d + 1))
+
+
+def _off_polyline(point, line) -> float:
+    a, d = line[:-1], np.diff(line, axis=0)
+    t = np.clip(((point - a) * d).sum(1) / np.maximum((d * d).sum(1), 1e-300), 0.0, 1.0)
+    return float(np.hypot(*(point - a - t[:, None] * d).T).min())
+
+
 def _off_move(point, start, end, arc) -> float:
     """Distance of ``point`` from the move (NaN coordinates left out)."""
     known = ~np.isnan(point)
+    if arc is not None and isinstance(arc[0], str):  # a Bezier: X Y along it, the other axes where they are
+        rest = np.nan_to_num((point - end)[2:])
+        return math.hypot(_off_polyline(np.nan_to_num(point[:2]), arc[1]) if known[0] and known[1] else 0.0, *rest)
     if arc is None or start is None:
         if start is None:
             return float(np.linalg.norm((point - end)[known]))

@@ -90,6 +90,42 @@ def test_weighted_nurbs_is_a_circle(tmp_path):
     assert np.all(np.diff(angles) > 0) and 10 * (1 - math.cos(np.diff(angles).max() / 2)) <= CHORD_TOLERANCE_MM
 
 
+# G6.2 (LinuxCNC 2.10): order P, each line a knot K, control points with weights R; the knots
+# are the K words in order, unevenly spaced, one of them doubled (a corner of a quadratic)
+G62 = ("F600\nG6.2 P3 K0 X10 Y0 R1\nX14 Y6 R2.5 K0\nX20 Y1 R0.4 K0\nX26 Y7 R1 K0.7\nX30 Y-2 R3 K2.5\n"
+       "X35 Y4 R1 K2.5\nX40 Y0 R1 K4\nG6.2 K6\nK6\nG6.2 K6\nG1 X0\nM2\n")
+G62_CTRL = np.array([[10.0, 0, 1], [14, 6, 2.5], [20, 1, 0.4], [26, 7, 1], [30, -2, 3], [35, 4, 1], [40, 0, 1]])
+G62_KNOTS = [0, 0, 0, 0.7, 2.5, 2.5, 4, 6, 6, 6]
+
+
+def test_g62_is_planned_on_its_curve(tmp_path):
+    """Every piece end within 0.1 um of scipy's curve (its knots the K words as written), the
+    curve within the chord tolerance of the pieces, every line of the NURBS a MOVE, the end exact."""
+    blocks = moves(tmp_path / "g62.ngc", "G21 G90 G17\nG0 X10 Y0 Z1\n" + G62)
+    assert [b.kind for b in blocks[3:13]] == [Kind.MOVE] * 10
+    homogeneous = np.column_stack([G62_CTRL[:, :2] * G62_CTRL[:, 2:], G62_CTRL[:, 2]])
+    h = BSpline(np.array(G62_KNOTS, float), homogeneous, 2)(np.linspace(0.0, 6.0, 2_000_001))
+    curve = h[:, :2] / h[:, 2:]
+    pieces = np.concatenate([G62_CTRL[:1, :2], polyline(blocks[3:13])])
+    assert cKDTree(curve).query(pieces)[0].max() < 1e-4
+    assert off_polyline(curve[::4000], pieces).max() < CHORD_TOLERANCE_MM * 1.01
+    assert np.array_equal(blocks[12].position_mm[:3], [40.0, 0.0, 1.0])
+
+
+@pytest.mark.parametrize("old, new, words", [
+    ("X40 Y0 R1 K4\n", "X40 Y0 R1 K1\n", "G6.2 knots K must not decrease"),
+    ("X40 Y0 R1 K4\nG6.2 K6", "X40 Y0 R1 K4\nG6.2 K5", "G6.2 knots must begin with 3 equal knots and end with 3"),
+    ("X20 Y1 R0.4", "X20 Y1", "a G6.2 control point needs a positive weight R"),
+    ("\nK6\n", "\nX1 Y1 R1 K6\n", "a G6.2 control point after the knots that end the NURBS"),
+    ("G1 X0\n", "X1 Y1 R1 K6\n", "the first G6.2 line needs its order P"),  # modal G6.2: a new NURBS
+])
+def test_g62_errors(tmp_path, old, new, words):
+    program = tmp_path / "bad.ngc"
+    program.write_text("G21 G90 G17\nG0 X10 Y0 Z1\n" + G62.replace(old, new))
+    with pytest.raises(InputError, match=words):
+        list(read_gcode(program, "linuxcnc"))
+
+
 def test_g51_is_the_quadratic_spline(tmp_path):
     blocks = moves(tmp_path / "q.ngc", "G21 G90 F600\nG0 X0 Y0\nG5.1 X4 Y0 I2 J3\nM2\n")
     ctrl = np.array([[0.0, 0, 1], [2, 3, 1], [4, 0, 1]])
@@ -103,7 +139,8 @@ def test_g51_is_the_quadratic_spline(tmp_path):
     ("o100 while [#1 lt 3]", "O-word 'while': subroutines and control flow are not supported: --expand"),
     ("G81 X1 Y1 Z-1 R1", "canned cycles (G81) is not supported: --expand runs it"),
     ("G7", "lathe diameter mode (G7) is not supported: --expand runs it"),
-    ("G6.2 P1 Q2", "G6.2 is not supported"),
+    ("G6.2 P3 Q2 X10 Y0 R1", "every G6.2 line needs its knot K"),
+    ("G6.2 P3 K0 X9 Y0 R1", "a G6.2 NURBS starts at its first control point"),
     ("G5.3", "G5.3 without G5.2 first"),
 ])
 def test_without_expand_the_feature_is_named(tmp_path, line, words):
@@ -316,3 +353,37 @@ def test_helix_narrower_than_rs274s_digits_is_its_axis_line():
              ("STRAIGHT_TRAVERSE", ["1.0000", "2.0000", "0.1000", "0", "0", "0"]),
              ("ARC_FEED", ["1.0000", "2.0000", "1.0000", "2.0000", "1", "-0.0212", "0", "0", "0"])]
     assert list(_Expander("p.ngc", [0]).lines(calls))[1:] == ["G1 Z-0.53848 F1524"]
+
+
+@pytest.mark.parametrize("remap", ["F", "g01", "G64"])
+def test_remapped_code_fbspost_writes_is_refused(tmp_path, remap):
+    """A machine whose INI remaps F (LinuxCNC's extend-builtins example) would run the remap's
+    code at each of fbspost's F words: refused in one line, before any output."""
+    program, ini = tmp_path / "p.ngc", tmp_path / "machine.ini"
+    program.write_text("G21 G90\nG0 X0 Y0 Z1\nG1 X10 F600\nM2\n")
+    ini.write_text(f"[RS274NGC]\nREMAP=M6 modalgroup=6 ngc=change\nREMAP = {remap} prolog=setfeed_prolog ngc=setfeed\n")
+    result = CliRunner().invoke(main, ["compensate", str(program), "-m", "patent-xy-stage", "--flavor", "linuxcnc",
+                                       "--ini", str(ini), "-o", str(tmp_path / "out.ngc")])
+    assert result.exit_code == 1 and result.stderr == (
+        f"error: {program}: the machine's INI remaps {remap} (machine.ini), a code fbspost writes in every "
+        "compensated move: not supported\n")
+    assert not (tmp_path / "out.ngc").exists()
+
+
+@needs_rs274
+def test_g5_splines_expand_as_rs274_evaluates_them(tmp_path):
+    """rs274 prints G5/G5.1 without their control points: the program reports the values it
+    evaluates (rs274_splines), and the expansion writes the same splines in mm: here the words
+    by hand (inches: #3 = 0.5 in; the second G5 starts with the first's -P -Q); rs274's path
+    check accepts it and rejects a control point moved by 50 um."""
+    program, expanded = tmp_path / "s.ngc", tmp_path / "x.ngc"
+    program.write_text("G20 G90 G17 F10\n#3 = 0.5\nG0 X0 Y0 Z0.1\nG5 X[4*#3] Y0 I[#3] J[2*#3] P[-#3] Q#3 (a comment)\n"
+                       "G5 X[8*#3] Y[2*#3] P-0.25 Q0.5\nG5.1 X[12*#3] Y0 I[#3*2] J[-3*#3]\nG1 X0 Y0\nM2\n")
+    expand(program, expanded, "test")
+    lines = [line for line in expanded.read_text().splitlines() if line.startswith("G5")]
+    assert lines == ["G5 X50.8 Y0 I12.7 J25.4 P-12.7 Q12.7 F254", "G5 X101.6 Y25.4 I12.7 J-12.7 P-6.35 Q12.7",
+                     "G5.1 X152.4 Y0 I25.4 J-38.1"]
+    assert path_problems(program, expanded, True) == []
+    assert command_problems(program, expanded) == []
+    expanded.write_text(expanded.read_text().replace("I25.4 J-38.1", "I25.45 J-38.1"))
+    assert path_problems(program, expanded, True) != []
