@@ -127,10 +127,13 @@ def main() -> int:
     parser.add_argument("--jobs", type=int, default=2, help="programs compensated at once")
     args = parser.parse_args()
     todo = jobs(args.quick)
-    base = revision_outputs(commit_of(args.base), todo, args.jobs)
+    # (resolved now: a branch may move while the outputs are computed)
+    base_commit, head_commit = commit_of(args.base), args.head and commit_of(args.head)
+    print(f"base {args.base} = {base_commit}; head {args.head or 'the working tree'} = {head_commit or '-'}")
+    base = revision_outputs(base_commit, todo, args.jobs)
     with tempfile.TemporaryDirectory() as tmp:
-        if args.head:
-            head = revision_outputs(commit_of(args.head), todo, args.jobs)
+        if head_commit:
+            head = revision_outputs(head_commit, todo, args.jobs)
         else:
             head = Path(tmp)
             run_all(ROOT, todo, head, args.jobs)
@@ -139,8 +142,8 @@ def main() -> int:
     for name, verdict in verdicts.items():
         print(f"{name:60} {verdict}")
     differing = [name for name, verdict in verdicts.items() if verdict != "identical"]
-    print(f"{len(verdicts) - len(differing)} of {len(verdicts)} outputs of {args.head or 'the working tree'} identical "
-          f"to {args.base}'s" + (f"; differing: {' '.join(differing)}" if differing else ""))
+    print(f"{len(verdicts) - len(differing)} of {len(verdicts)} outputs of {head_commit or 'the working tree'} "
+          f"identical to {base_commit}'s" + (f"; differing: {' '.join(differing)}" if differing else ""))
     return 1 if differing else 0
 
 
