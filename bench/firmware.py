@@ -18,56 +18,20 @@ and applied to klippy's plan of the original. Print time is klippy's: moves and 
 from __future__ import annotations
 
 import itertools
-import math
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
-import numpy as np
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
 
-from fbspost.dynamics import AxisDynamics  # noqa: E402
-from fbspost.gcode import AXES, detect_flavor, read_gcode  # noqa: E402
+from fbspost.gcode import detect_flavor  # noqa: E402
 from fbspost.profile import load_profile  # noqa: E402
-from fbspost.shapers import SHAPERS, klipper_shaper, shape  # noqa: E402
-from fbspost.simulate import PathDistance, shaper_settings  # noqa: E402
-from klippy_planner import KlippyPlanner, sample_moves  # noqa: E402
+from firmware_results import contour_um, klippy_run, modelled, printed_path, shaped_plans  # noqa: E402
 
 DEFAULT = [("tests/data/gear-marlin2.gcode", "printer-two-mode", 8000),
            ("samples/butterfly-polyline.gcode", "patent-xy-stage", None)]
-
-
-def klippy_run(path: Path, profile, flavor: str):
-    """(print time s, the moves klippy plans, their samples) of ``path``."""
-    planner = KlippyPlanner(profile)
-    moves = planner.run(list(read_gcode(path, flavor)))
-    return planner.clock_s, moves, sample_moves(moves, profile.sample_rate_hz, planner.clock_s)
-
-
-def modelled(command: np.ndarray, profile) -> np.ndarray:
-    """The actual positions of ``command`` through the profile's modes (axes without modes: as commanded)."""
-    actual = command.copy()
-    for axis, spec in profile.axes.items():
-        if spec.modes and axis in AXES:
-            i = AXES.index(axis)
-            actual[:, i] = AxisDynamics(spec.modes, 1.0 / profile.sample_rate_hz).simulate(command[:, i])
-    return actual
-
-
-def contour_um(actual: np.ndarray, command: np.ndarray, path: PathDistance, printer: bool) -> tuple[float, float]:
-    """(RMS, max) contour error in um at the samples that print (see the module docstring)."""
-    if printer:
-        rising = np.diff(command[:, 3]) > 0
-        mask = np.append(rising, False) & np.insert(rising, 0, False)
-    else:
-        moving = np.flatnonzero(np.abs(np.diff(command[:, :3], axis=0)).max(axis=1) > 0)
-        mask = np.zeros(len(command), bool)
-        mask[moving[0]:moving[-1] + 2] = True
-    error, _ = path(actual[mask, :3])
-    return float(np.sqrt(np.mean(error**2))) * 1e3, float(error.max()) * 1e3
 
 
 def bench(program: str, machine: str, lines: int | None, output_flavor: str = "klipper") -> None:
@@ -84,25 +48,13 @@ def bench(program: str, machine: str, lines: int | None, output_flavor: str = "k
             raise SystemExit(done.stderr)
         time_a, moves_a, plan_a = klippy_run(original, profile, output_flavor)
         time_b, _, plan_b = klippy_run(output, profile, output_flavor)
-    printer = any(m.is_kinematic and m.axes_r[3] > 0 for m in moves_a)
-    chosen = [m for m in moves_a if m.is_kinematic and (m.axes_r[3] > 0 or not printer)]
-    path = PathDistance(np.array([m.start_pos[:3] for m in chosen]), np.array([m.end_pos[:3] for m in chosen]))
+    path, printer = printed_path(moves_a)
     rows = [("original", time_a, contour_um(modelled(plan_a, profile), plan_a, path, printer)),
             ("fbspost", time_b, contour_um(modelled(plan_b, profile), plan_b, path, printer))]
-    settings = shaper_settings(profile)
-    period = 1.0 / profile.sample_rate_hz
-    shapers = {name: {a: klipper_shaper(name, *settings[a]) for a in settings} for name in SHAPERS}
-    pad = math.ceil(max(s.lead_s + s.lag_s for row in shapers.values() for s in row.values()) / period) + 1
-    padded = np.pad(plan_a, ((pad, pad), (0, 0)), mode="edge")
-    best = None
-    for name, row in shapers.items():
-        command = padded.copy()
-        for axis, shaper in row.items():
-            command[:, AXES.index(axis)] = shape(padded[:, AXES.index(axis)], period, shaper)
-        result = contour_um(modelled(command, profile), padded, path, printer)
-        best = min(best or (name, result), (name, result), key=lambda r: r[1][0])
-    lag = max(s.lag_s for s in shapers[best[0]].values())
-    rows.append((f"{best[0]} shaper (best)", time_a + lag, best[1]))
+    shaped = {name: (contour_um(modelled(command, profile), padded, path, printer), lag_s)
+              for name, (command, padded, lag_s) in shaped_plans(plan_a, profile).items()}
+    best = min(shaped, key=lambda name: shaped[name][0][0])
+    rows.append((f"{best} shaper (best)", time_a + shaped[best][1], shaped[best][0]))
     print(f"{program} ({lines or 'all'} lines, {flavor}; compensated as {output_flavor}) on {machine}, "
           f"through klippy's own planner (firmware results):")
     print(f"  {'run':24} {'print s':>9} {'vs original':>12} {'RMS contour um':>15} {'max um':>9} {'RMS gain':>9}")

@@ -33,13 +33,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "tests"), str(ROOT / "bench")]
 
-from firmware import contour_um, klippy_run, modelled  # noqa: E402
-
 from fbspost.dynamics import scaled_mode  # noqa: E402
 from fbspost.gcode import AXES  # noqa: E402
 from fbspost.profile import load_profile  # noqa: E402
-from fbspost.shapers import SHAPERS, klipper_shaper, shape  # noqa: E402
-from fbspost.simulate import MODEL_ERRORS, PathDistance, model_error, shaper_settings, simulate_program  # noqa: E402
+from fbspost.shapers import SHAPERS  # noqa: E402
+from fbspost.simulate import MODEL_ERRORS, PathDistance, model_error, simulate_program  # noqa: E402
+from firmware_results import contour_um, klippy_run, modelled, printed_path, shaped_plans  # noqa: E402
 from reference import simulate_varying  # noqa: E402
 
 PROGRAM = "tests/data/gear-marlin2.gcode"
@@ -74,19 +73,9 @@ def firmware(program: Path) -> None:
                             str(output), "--flavor", "klipper", "-q"], cwd=ROOT, check=True)
             plans[f"fbs {name}"] = klippy_run(output, profile, "klipper")[2]
         _, moves, original = klippy_run(program, profile, "klipper")
-    chosen = [m for m in moves if m.is_kinematic and m.axes_r[3] > 0]
-    path = PathDistance(np.array([m.start_pos[:3] for m in chosen]), np.array([m.end_pos[:3] for m in chosen]))
-    period = 1.0 / profile.sample_rate_hz
-    settings = shaper_settings(profile)
-    shapers = {n: {a: klipper_shaper(n, *settings[a]) for a in settings} for n in SHAPERS}
-    pad = math.ceil(max(s.lead_s + s.lag_s for row in shapers.values() for s in row.values()) / period) + 1
-    padded = np.pad(original, ((pad, pad), (0, 0)), mode="edge")
-    commands = {"original": (original, original), **{n: (p, p) for n, p in plans.items()}}
-    for name, row in shapers.items():
-        command = padded.copy()
-        for axis, shaper in row.items():
-            command[:, AXES.index(axis)] = shape(padded[:, AXES.index(axis)], period, shaper)
-        commands[name] = (command, padded)
+    path, _ = printed_path(moves)
+    commands = {"original": (original, original), **{n: (p, p) for n, p in plans.items()},
+                **{n: (c, padded) for n, (c, padded, _) in shaped_plans(original, profile).items()}}
     rows = []
     for f, d in MODEL_ERRORS:
         machine = perturbed(profile, f, d)

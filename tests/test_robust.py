@@ -16,10 +16,13 @@ from fbspost.cli import main
 from fbspost.dynamics import AxisDynamics, ModelSet, modal_response, scaled_mode
 from fbspost.gcode import AXES
 from fbspost.optimizer import AxisCompensator, AxisLimits, FBSSettings
+from fbspost.pipeline import CompensateOptions, compensate_file
 from fbspost.profile import Mode, ProfileError, format_profile, load_profile, parse_profile
 from fbspost.simulate import MODEL_ERRORS, PathDistance, model_error, simulate_program
 from fbspost.varying import LoadModes
-from reference import simulate_lsim, simulate_varying
+from firmware_results import contour_um, klippy_run, modelled, printed_path, shaped_plans
+from klippy_planner import klippy_or_skip
+from reference import simulate_lsim, simulate_varying, unbudgeted
 from test_optimizer import brute_force_problem, smooth_move
 
 try:
@@ -186,6 +189,26 @@ def test_robust_fbs_at_most_the_best_shaper_on_every_perturbed_machine(gear_head
     assert any(
         plain["fbs"] > min(v for k, v in plain.items() if k not in ("original", "fbs")) for _, _, plain in nominal
     )
+
+
+@pytest.mark.slow
+def test_robust_fbs_as_klipper_runs_it_at_most_the_best_shaper(tmp_path, gear_head):
+    """Firmware results: the original and the robust profile's output (a Klipper program, no line
+    budget) run by klippy's own planner, then through every perturbed machine's modes; the shapers
+    on klippy's plan of the original."""
+    klippy_or_skip()
+    target = tmp_path / "robust.gcode"
+    compensate_file(gear_head, target, unbudgeted(ROBUST), CompensateOptions(flavor="klipper"))
+    _, moves, original = klippy_run(gear_head, NOMINAL, "klipper")
+    written = klippy_run(target, NOMINAL, "klipper")[2]
+    path, _ = printed_path(moves)
+    shaped = shaped_plans(original, NOMINAL)
+    for f, d in MODEL_ERRORS:
+        machine = dataclasses.replace(NOMINAL, axes={a: dataclasses.replace(
+            spec, modes=tuple(scaled_mode(m, f, d) for m in spec.modes)) for a, spec in NOMINAL.axes.items()})
+        fbs = contour_um(modelled(written, machine), written, path, True)[0]
+        best = min(contour_um(modelled(c, machine), padded, path, True)[0] for c, padded, _ in shaped.values())
+        assert fbs <= best, (f, d, fbs, best)
 
 
 def test_load_dependent_profile_keeps_the_gain_on_a_bed_whose_frequency_falls(gear_head, nominal_sim):
