@@ -51,6 +51,7 @@ def butterfly_runs(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name, duration_tolerance", [("butterfly-dense", 0.005), ("butterfly-polyline", 0.03)])
 def test_butterfly_programs_on_patent_stage(butterfly_runs, name, duration_tolerance):
     source, target, report = butterfly_runs[name]

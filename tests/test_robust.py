@@ -177,6 +177,7 @@ def nominal_sim(gear_head):
     return simulate_program(gear_head, NOMINAL)
 
 
+@pytest.mark.slow
 def test_robust_fbs_at_most_the_best_shaper_on_every_perturbed_machine(gear_head, nominal_sim):
     robust = model_error(simulate_program(gear_head, ROBUST))
     nominal = model_error(nominal_sim)
@@ -211,6 +212,7 @@ def test_robust_fbs_as_klipper_runs_it_at_most_the_best_shaper(tmp_path, gear_he
         assert fbs <= best, (f, d, fbs, best)
 
 
+@pytest.mark.slow
 def test_load_dependent_profile_keeps_the_gain_on_a_bed_whose_frequency_falls(gear_head, nominal_sim):
     """Y carries the print: its frequency falls 15% over the program (a bed of 0.46 g: the whole
     print's mass growth in its first 26 s), simulated exactly per sample (reference.simulate_varying)."""
@@ -241,6 +243,7 @@ def test_load_dependent_profile_keeps_the_gain_on_a_bed_whose_frequency_falls(ge
     assert fixed_gain < load_gain - 0.05  # the fixed model loses what the load-dependent one keeps
 
 
+@pytest.mark.slow
 def test_model_error_cli_table_and_json(gear_head, nominal_sim):
     """The nominal row is the simulation's own contour error; one row per perturbed machine."""
     result = CliRunner().invoke(main, ["simulate", str(gear_head), "-m", "printer-two-mode", "--shapers", "zv,mzv",

@@ -130,6 +130,7 @@ def assert_g5_where_dense_is(dense, g5, period_s, tolerance_mm=1e-3, rounding_mm
     assert abs(g5.ends[-1][0] - dense.ends[-1][0]) <= settle_s + 2 * period_s
 
 
+@pytest.mark.slow
 def test_g5_in_inches_relative_xyz_and_e(tmp_path):
     """G20, G91, M83 and a G92 mid-program: G5 words in inches (one more decimal), relative X Y E
     whose rounding residues do not accumulate (the end is exact), E exact at every copied line,
