@@ -131,6 +131,7 @@ def compensated(tmp_path_factory) -> Path:
 
 
 @pytest.mark.parametrize("smoothing", ["fixed", "ratio"])
+@pytest.mark.slow
 def test_plan_of_dense_output_is_klippys(klippy, compensated, smoothing):
     """fbspost's own dense output (its SET_VELOCITY_LIMIT lines included): klippy's plan."""
     blocks = list(read_gcode(compensated, "klipper"))

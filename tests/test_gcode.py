@@ -792,6 +792,7 @@ def scan_extrusion(path):
 
 
 @pytest.mark.parametrize("path", [GEAR, BLOB], ids=["absolute-e", "relative-e"])
+@pytest.mark.slow
 def test_total_extrusion_of_real_files(path):
     deltas = scan_extrusion(path)
     blocks = list(read_gcode(path, detect_flavor(path)))

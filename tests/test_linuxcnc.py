@@ -371,6 +371,7 @@ def test_remapped_code_fbspost_writes_is_refused(tmp_path, remap):
 
 
 @needs_rs274
+@pytest.mark.slow
 def test_g5_splines_expand_as_rs274_evaluates_them(tmp_path):
     """rs274 prints G5/G5.1 without their control points: the program reports the values it
     evaluates (rs274_splines), and the expansion writes the same splines in mm: here the words

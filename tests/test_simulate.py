@@ -251,6 +251,7 @@ def test_executing_a_compensated_program(tube_head, tmp_path):
     check_rows(report, rows, *rest, 1 / profile.sample_rate_hz, ["fbs"])
 
 
+@pytest.mark.slow
 def test_given_shaper_frequency_and_damping(tube_head):
     report = simulate_json(tube_head, "--machine", "bedslinger-example", "--shapers", "zv",
                            "--shaper-freq", "X=50,y=30", "--shaper-damping", "Y=0.2")
