@@ -1,8 +1,13 @@
-"""What Klipper really does with a program and with fbspost's output of it: firmware results.
+"""What the firmware really does with a program and with fbspost's output of it: firmware results.
 
 Run from the repository root:  python bench/firmware.py PROGRAM.gcode PROFILE [LINES [FLAVOR]]
 Without arguments: the first 8000 lines of tests/data/gear-marlin2.gcode on printer-two-mode,
 then samples/butterfly-polyline.gcode on patent-xy-stage.
+FLAVOR marlin: the program compensated as a Marlin program and both run through the model of
+Marlin's planner (fbspost/marlin.py), once at the profile's max_line_rate, else at a serial
+host's 300 lines/s (the host sending line by line) and once without a line budget (the output
+written from a copy of the profile with that max_line_rate, or without one); also where
+Marlin's buffer ran dry.
 
 For the program's first LINES lines (all by default) it runs (a) the original and (b) fbspost's
 output (``python -m fbspost.cli compensate``) through Klipper's own planner (klippy's
@@ -18,49 +23,121 @@ and applied to klippy's plan of the original. Print time is klippy's: moves and 
 from __future__ import annotations
 
 import itertools
+import re
 import subprocess
 import sys
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
+
+import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
 
-from fbspost.gcode import detect_flavor  # noqa: E402
+from fbspost.gcode import detect_flavor, read_gcode  # noqa: E402
+from fbspost.marlin import MarlinConfig, run_marlin  # noqa: E402
 from fbspost.profile import load_profile  # noqa: E402
+from fbspost.simulate import PathDistance  # noqa: E402
 from firmware_results import contour_um, klippy_run, modelled, printed_path, shaped_plans  # noqa: E402
 
+SERIAL_LINES_PER_S = 300.0  # a serial host's budget where the profile gives none
 DEFAULT = [("tests/data/gear-marlin2.gcode", "printer-two-mode", 8000),
            ("samples/butterfly-polyline.gcode", "patent-xy-stage", None)]
+
+
+@dataclass
+class Run:
+    """A program as the firmware runs it."""
+
+    seconds: float
+    samples: np.ndarray  # (n, 4) X Y Z E on the profile's grid
+    path: PathDistance  # its printing moves (every move for a machine without E)
+    printer: bool
+    notes: str = ""
+
+
+def klippy_as_run(path: Path, profile, flavor: str) -> Run:
+    """``path`` through klippy's own planner."""
+    seconds, moves, samples = klippy_run(path, profile, flavor)
+    return Run(seconds, samples, *printed_path(moves))
+
+
+def marlin_run(path: Path, profile, line_rate_hz: float | None) -> Run:
+    """``path`` through the model of Marlin's planner, the host sending at ``line_rate_hz``."""
+    run = run_marlin(list(read_gcode(path, "marlin", profile.home_mm)), profile,
+                     MarlinConfig.from_profile(profile, line_rate_hz=line_rate_hz))
+    delta = run.end_mm - run.start_mm
+    printer = bool((delta[:, 3] > 0).any())
+    chosen = (delta[:, 3] > 0) | (not printer)
+    chosen &= np.abs(delta[:, :3]).max(axis=1) > 0
+    rests = np.array(run.starved).reshape(-1, 2)
+    taken = np.sort(run.taken_s[np.isfinite(run.taken_s)])
+    rate = (np.arange(taken.size) + 1 - np.searchsorted(taken, taken - 1.0, "right")).max(initial=0)
+    notes = f"buffer dry {len(rests)}x, {rests[:, 1].sum():.3f} s; at most {rate} lines/s"
+    return Run(run.duration_s, run.positions_mm(profile.sample_rate_hz)[:, :4],
+               PathDistance(run.start_mm[chosen, :3], run.end_mm[chosen, :3]), printer, notes)
+
+
+def compensated(original: Path, machine: str, flavor: str, line_rate_hz: float | None = None) -> Path:
+    """fbspost's output of ``original``, written for ``line_rate_hz`` lines/s (None: no budget)."""
+    text = re.sub(r"(?m)^max_line_rate\s*=.*$", "", Path(load_profile(machine).source).read_text())
+    if line_rate_hz:
+        text = re.sub(r"(?m)^\[firmware\]$", f"[firmware]\nmax_line_rate = {line_rate_hz!r}", text)
+    machine = str(original.with_name(f"budget-{line_rate_hz}.toml"))
+    Path(machine).write_text(text)
+    output = original.with_name(f"compensated-{flavor}-{line_rate_hz}.gcode")
+    done = subprocess.run([sys.executable, "-m", "fbspost.cli", "compensate", str(original), "-m", machine,
+                           "-o", str(output), "--flavor", flavor], cwd=ROOT, capture_output=True, text=True)
+    if done.returncode:
+        raise SystemExit(done.stderr)
+    return output
 
 
 def bench(program: str, machine: str, lines: int | None, output_flavor: str = "klipper") -> None:
     profile = load_profile(machine)
     flavor = detect_flavor(ROOT / program)
+    if output_flavor == "marlin":
+        for budget in (profile.firmware.max_line_rate_hz or SERIAL_LINES_PER_S, None):
+            name = f"at {budget:g} lines/s" if budget else "without a line budget"
+            with tempfile.TemporaryDirectory() as tmp:
+                original = excerpt(program, lines, Path(tmp))
+                output = compensated(original, machine, "marlin", budget)
+                table(program, lines, flavor, machine, f"through the model of Marlin's planner, {name}", profile,
+                      marlin_run(original, profile, budget), marlin_run(output, profile, budget))
+        return
     with tempfile.TemporaryDirectory() as tmp:
-        original = Path(tmp) / Path(program).name
-        with open(ROOT / program, "rb") as f:
-            original.write_bytes(b"".join(itertools.islice(f, lines)))
-        output = Path(tmp) / "compensated.gcode"
-        done = subprocess.run([sys.executable, "-m", "fbspost.cli", "compensate", str(original), "-m", machine,
-                               "-o", str(output), "--flavor", output_flavor], cwd=ROOT, capture_output=True, text=True)
-        if done.returncode:
-            raise SystemExit(done.stderr)
-        time_a, moves_a, plan_a = klippy_run(original, profile, output_flavor)
-        time_b, _, plan_b = klippy_run(output, profile, output_flavor)
-    path, printer = printed_path(moves_a)
+        original = excerpt(program, lines, Path(tmp))
+        output = compensated(original, machine, output_flavor, profile.firmware.max_line_rate_hz)
+        table(program, lines, flavor, machine, f"compensated as {output_flavor}, through klippy's own planner", profile,
+              klippy_as_run(original, profile, output_flavor), klippy_as_run(output, profile, output_flavor))
+
+
+def excerpt(program: str, lines: int | None, folder: Path) -> Path:
+    """The first ``lines`` lines of ``program`` in ``folder``."""
+    original = folder / Path(program).name
+    with open(ROOT / program, "rb") as f:
+        original.write_bytes(b"".join(itertools.islice(f, lines)))
+    return original
+
+
+def table(program: str, lines, flavor: str, machine: str, how: str, profile, run_a: Run, run_b: Run) -> None:
+    """Print time, RMS and max contour error of the original, fbspost's output and the best input shaper."""
+    time_a, plan_a, path, printer = run_a.seconds, run_a.samples, run_a.path, run_a.printer
     rows = [("original", time_a, contour_um(modelled(plan_a, profile), plan_a, path, printer)),
-            ("fbspost", time_b, contour_um(modelled(plan_b, profile), plan_b, path, printer))]
+            ("fbspost", run_b.seconds, contour_um(modelled(run_b.samples, profile), run_b.samples, path, printer))]
     shaped = {name: (contour_um(modelled(command, profile), padded, path, printer), lag_s)
               for name, (command, padded, lag_s) in shaped_plans(plan_a, profile).items()}
     best = min(shaped, key=lambda name: shaped[name][0][0])
     rows.append((f"{best} shaper (best)", time_a + shaped[best][1], shaped[best][0]))
-    print(f"{program} ({lines or 'all'} lines, {flavor}; compensated as {output_flavor}) on {machine}, "
-          f"through klippy's own planner (firmware results):")
+    print(f"{program} ({lines or 'all'} lines, {flavor}) on {machine}, {how} (firmware results):")
     print(f"  {'run':24} {'print s':>9} {'vs original':>12} {'RMS contour um':>15} {'max um':>9} {'RMS gain':>9}")
     for name, seconds, (rms, peak) in rows:
         print(f"  {name:24} {seconds:9.3f} {100 * (seconds / time_a - 1):+11.2f}% {rms:15.3f} {peak:9.1f} "
               f"{rows[0][2][0] / rms:8.2f}x")
+    for name, run in (("original", run_a), ("fbspost", run_b)):
+        if run.notes:
+            print(f"  {name}: {run.notes}")
 
 
 if __name__ == "__main__":

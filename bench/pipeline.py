@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import subprocess
 import sys
 import tempfile
@@ -26,6 +27,7 @@ from multiprocessing import get_context
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # as the fbspost command (fbspost/__init__.py); numpy loads next
 sys.path[:0] = [str(ROOT), str(ROOT / "tests" / "data")]  # this checkout's fbspost, not an installed one
 
 import make_sliced  # noqa: E402  (the corpus' models and slicer settings)

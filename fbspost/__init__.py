@@ -7,7 +7,13 @@ Stages, one module each: ``gcode`` (reading programs), ``planner`` (the controll
 (Klipper's input shapers), ``simulate`` (methods compared through the model), ``plots`` (their
 plots), ``cli`` (the ``fbspost`` command).
 """
+import os
 from importlib.metadata import PackageNotFoundError, version
+
+# One BLAS thread unless told otherwise (read when numpy loads: the ``fbspost`` command loads it
+# after this): the matrices are small and the axes already run on threads of their own; OpenBLAS's
+# threads made the gear's optimize stage take 1.4 times the CPU time on two cores.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 try:
     __version__ = version("fbspost")

@@ -25,6 +25,7 @@ running at the sample rate executes: velocity (u[k] - u[k-1]) / T, acceleration 
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from dataclasses import dataclass, field, replace
 
 import daqp
@@ -123,6 +124,7 @@ class AxisResult:
 
 _LIMIT_TOLERANCE = 1e-7  # relative excess over a limit accepted as meeting it
 _QP_ROUNDS = 4
+_FINAL_CACHE_BYTES = 128 << 20  # per axis (printer-two-mode's X: the final windows of every long run's length, 63 MB)
 _ACTIVE_SET_STEPS = 400
 
 
@@ -223,6 +225,17 @@ class _Stretch:
             self.row_sample = np.concatenate(row_sample)
         self._qp = None
         self._ldp = self._hinv_at = None
+
+    @property
+    def nbytes(self) -> int:
+        """Memory held by its matrices (and factorizations)."""
+        held = [x for v in vars(self).values() for x in (v if isinstance(v, tuple) else (v,))]
+        return sum(v.nbytes if isinstance(v, np.ndarray) else v.data.nbytes + v.indices.nbytes + v.indptr.nbytes
+                   for v in held if isinstance(v, np.ndarray) or sparse.issparse(v))
+
+    def reset(self) -> None:
+        """Drop OSQP's state (its duals) from earlier windows: a reused window solves as a new one."""
+        self._qp = None
 
     # ---- the pieces every solve needs -------------------------------------------------------
     def target(self, desired: np.ndarray, state: np.ndarray, p_fixed: np.ndarray) -> np.ndarray:
@@ -493,6 +506,8 @@ class AxisCompensator:
         self.extruded_from = None  # the first filament position pushed (mm), for ``varying``
         self._sets = {0: self.models}
         self._rest_units, self._regulars, self._remaps = {}, {}, {}
+        self._finals: OrderedDict[tuple[int, int], _Stretch] = OrderedDict()
+        self._finals_bytes = 0
 
     def __call__(self, desired_mm: np.ndarray) -> AxisResult:
         stream = self.stream()
@@ -537,6 +552,25 @@ class AxisCompensator:
             stretch = _Stretch(models, self.settings, self.limits, window * k, window)
             self._regulars[level] = stretch, _Sweep(stretch, models, self.carry, self.settings.commit_spans, k)
         return self._regulars[level]
+
+    def final(self, n_rows: int, level: int = 0) -> _Stretch:
+        """The final window of a run whose last ``n_rows`` samples it solves. Every run has one;
+        its length is at most the samples a regular window needs ahead, so runs share them: the
+        most recently used are kept, up to ``_FINAL_CACHE_BYTES`` (a few hundred per axis)."""
+        key = level, n_rows
+        final = self._finals.pop(key, None)
+        if final is None:
+            settings = self.settings
+            # The spans up to the last sample; a point whose support starts at the last sample does nothing.
+            final = _Stretch(self.model_set(level), settings, self.limits, n_rows + settings.settle_samples,
+                             max(1, -(-(n_rows - 1) // settings.knot_spacing_samples)), hold_from=n_rows,
+                             end_conditions=True)
+            self._finals_bytes += final.nbytes
+        final.reset()
+        self._finals[key] = final
+        while self._finals_bytes > _FINAL_CACHE_BYTES:
+            self._finals_bytes -= self._finals.popitem(last=False)[1].nbytes
+        return final
 
 
 class AxisStream:
@@ -647,10 +681,7 @@ class AxisStream:
         if np.ptp(desired_mm) == 0.0 and np.array_equal(z, owner.rest_unit(self.level) * desired_mm[0]):
             return desired_mm.copy()  # at rest and staying there
         n_rows = desired_mm.size
-        # The spans up to the last sample; a point whose support starts at the last sample does nothing.
-        final = _Stretch(owner.model_set(self.level), settings, owner.limits, n_rows + settings.settle_samples,
-                         max(1, -(-(n_rows - 1) // settings.knot_spacing_samples)), hold_from=n_rows,
-                         end_conditions=True)
+        final = owner.final(n_rows, self.level)
         desired = np.concatenate([desired_mm, np.full(settings.settle_samples, desired_mm[-1])])
         end_values = np.zeros(settings.end_rest_order + 1)
         end_values[0] = desired_mm[-1]

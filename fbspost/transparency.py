@@ -17,7 +17,9 @@ the ramps' time, made up only approximately, drifted 0.6 us/s (klippy's own plan
 print's first 1000 lines: 6.6 um largest distance from the command at 1e7, 0.7 um at 1e8). Marlin
 and RepRapFirmware keep block accelerations in 32-bit steps/s^2 (times
 2^24 / timer rate in Marlin): 1e6 mm/s^2 fits at up to 250 steps/mm, at most 5 us and 50 nm per
-junction. Junctions: Klipper's limit R * scv^2 (sqrt2 - 1) (R = sin(t/2) / (1 - sin(t/2)), t the
+junction (Marlin: with M201 E raised too, a printing block's acceleration is otherwise its E limit
+over the E per mm; the writer makes up these ramps' time as Klipper's).
+Junctions: Klipper's limit R * scv^2 (sqrt2 - 1) (R = sin(t/2) / (1 - sin(t/2)), t the
 angle between the blocks) does not depend on ACCEL; SQUARE_CORNER_VELOCITY 10000 mm/s lets every
 junction turning less than 179 degrees pass at 500 mm/s, and its centripetal limit
 move_d tan(t/2) A / 2 passes a turn of d at speed v once A > v d / block time, the command's own
@@ -40,6 +42,9 @@ STEPPED_ACCEL_MM_S2 = 1e6  # Marlin, RepRapFirmware
 MARLIN_JUNCTION_DEVIATION_MM = 0.3
 JERK_MM_S = 1000.0  # Marlin M205 X Y, RepRapFirmware M566 (mm/min there)
 _SHAPED_AXES = "XY"
+# Marlin limits a printing block's acceleration by M201 E / (E per mm) too (planner.cpp
+# LIMIT_ACCEL): about 5000 / 0.033 mm/s^2, whose ramps would slow every block by microseconds
+_M201_AXES = {"marlin": "XYE", "reprap": "XY"}
 _BLEND = re.compile(rb"[Gg]\s*0*6\s*(?:4(?:\s*[PpQq]\s*[-+]?[\d.]+)*|1(?:\s*\.\s*1)?)(?![\d.])")
 
 
@@ -102,7 +107,7 @@ class Transparency:
         # the acceleration the firmware then ramps between the blocks' speeds at, where the time
         # that loses is made up (Klipper: verified on its own planner; Marlin's and RRF's junctions
         # lose more than their ramps, not modelled: none)
-        self.ramp_mm_s2 = KLIPPER_ACCEL_MM_S2 if flavor == "klipper" else math.inf
+        self.ramp_mm_s2 = {"klipper": KLIPPER_ACCEL_MM_S2, "marlin": STEPPED_ACCEL_MM_S2}.get(flavor, math.inf)
 
     def note(self, block: Block) -> None:
         """A copied program line: the program's settings (planner limits, LinuxCNC's blending mode
@@ -126,7 +131,7 @@ class Transparency:
         kept = [f"input shaping on {a}" for a in _SHAPED_AXES
                 if self.flavor == "reprap" or a not in program.shaper_frequency_hz]
         if self.flavor in ("marlin", "reprap"):
-            kept += [f"M201 {a}" for a in "XY" if a not in program.axis_max_acceleration_mm_s2]
+            kept += [f"M201 {a}" for a in _M201_AXES[self.flavor] if a not in program.axis_max_acceleration_mm_s2]
         if self.flavor == "marlin" and program.junction_deviation_mm is None:
             kept.append("M205 J")
         if kept:
@@ -143,10 +148,16 @@ class Transparency:
         if not self.limits_set:
             lines += _transparent_limits(self.flavor, self.tolerance_mm / (25.4 if modal.inches else 1.0))
             self.limits_set = True
-        if at_rest and not self.shaping_off:
-            lines += _shaping_lines(self.flavor, {a: 0.0 for a in _SHAPED_AXES})
-            self.shaping_off = True
+        if at_rest:
+            lines += self.shaping_off_lines()
         return lines
+
+    def shaping_off_lines(self) -> list[str]:
+        """The lines that switch input shaping off, where the machine is at rest (empty: it is off)."""
+        if self.shaping_off:
+            return []
+        self.shaping_off = True
+        return _shaping_lines(self.flavor, {a: 0.0 for a in _SHAPED_AXES})
 
     def restore(self, shaping: bool = True) -> list[str]:
         """Lines that give the firmware back the program's settings (empty: it has them);
@@ -165,7 +176,7 @@ def _transparent_limits(flavor: str, tolerance: float) -> list[str]:
                 f"MINIMUM_CRUISE_RATIO=0 SQUARE_CORNER_VELOCITY={_num(KLIPPER_SCV_MM_S)}"]
     accel = _num(STEPPED_ACCEL_MM_S2)
     if flavor == "marlin":
-        return [f"M201 X{accel} Y{accel}", f"M204 P{accel} T{accel}",
+        return [f"M201 X{accel} Y{accel} E{accel}", f"M204 P{accel} T{accel}",
                 f"M205 B0 J{_num(MARLIN_JUNCTION_DEVIATION_MM, 3)} X{_num(JERK_MM_S)} Y{_num(JERK_MM_S)}"]
     if flavor == "reprap":
         return [f"M201 X{accel} Y{accel}", f"M204 P{accel} T{accel}",
@@ -180,8 +191,8 @@ def _program_limits(flavor: str, program: FirmwareSettings) -> list[str]:
     travel = _num(_first(program.travel_acceleration_mm_s2, program.acceleration_mm_s2))
     scv = program.square_corner_velocity_mm_s
     axes = program.axis_max_acceleration_mm_s2
-    # Marlin and RRF: M201 for X and Y, as the program or the profile gave them (else they stay raised)
-    m201 = " ".join(f"{a}{_num(axes[a])}" for a in "XY" if a in axes)
+    # Marlin and RRF: M201 for X and Y (Marlin: and E), as the program or the profile gave them (else they stay raised)
+    m201 = " ".join(f"{a}{_num(axes[a])}" for a in _M201_AXES.get(flavor, "") if a in axes)
     lines = [f"M201 {m201}"] if m201 and flavor in ("marlin", "reprap") else []
     if flavor == "klipper":
         # Klipper >= 2024 reads MINIMUM_CRUISE_RATIO (and ignores ACCEL_TO_DECEL then), klippy before reads

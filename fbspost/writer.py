@@ -266,14 +266,19 @@ class _Emitter:
         moves = (np.rint(self.to_program(targets_mm) * scale) != np.rint(self.written * scale)).any(axis=1)
         return int(np.argmax(moves)) if moves.any() else len(moves)
 
-    def _marlin_lengths(self, start: np.ndarray, ints: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    def _marlin_lengths(self, start: np.ndarray, ints: np.ndarray, scale: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The lengths Marlin times the blocks by (planner.cpp, _populate_block): of the whole
-        steps they move, E's where no XYZ axis moves its minimum steps."""
+        steps they move, E's where no XYZ axis moves its minimum steps; and the speeds up to
+        which Marlin enters each block at once, without a ramp: its minimum planner speed
+        sqrt(0.5 a / steps per mm), a the ramps' (where the speed rises above it, it ramps from there)."""
         spm = self.steps_per_mm
         step_counts = np.diff(np.rint(np.vstack([start, ints]) * (spm * self.unit_mm / scale)), axis=0)
         delta_mm = np.where(spm > 0, step_counts / np.where(spm > 0, spm, 1.0),
                             np.diff(np.vstack([start, ints]), axis=0) / scale * self.unit_mm)
-        return _lengths(delta_mm, (np.abs(step_counts[:, :3]) >= self.min_steps).any(axis=1))
+        length = _lengths(delta_mm, (np.abs(step_counts[:, :3]) >= self.min_steps).any(axis=1))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            jump = np.sqrt(0.5 * self.ramp_mm_s2 * length / np.abs(step_counts).max(axis=1, initial=0))
+        return length, np.nan_to_num(jump)
 
     def blocks(self, targets_mm: np.ndarray, durations_s: np.ndarray, ends_s: np.ndarray | None = None,
                curves: Curves | None = None, exact_last: bool = True) -> tuple[bytes, int]:
@@ -304,15 +309,11 @@ class _Emitter:
                 kept = np.flatnonzero((np.diff(np.vstack([start, ints]), axis=0) != 0).any(axis=1))
                 last = kept[-1] if len(kept) else 0
                 self.held = (targets_mm[last:], durations_s[last:], ends_s[last:])
-                targets_mm, durations_s, ends_s, ints = (
-                    targets_mm[:last],
-                    durations_s[:last],
-                    ends_s[:last],
-                    ints[:last],
-                )
+                targets_mm, durations_s, ends_s, ints = (x[:last] for x in (targets_mm, durations_s, ends_s, ints))
         steps = np.diff(np.vstack([start, ints]), axis=0)
         moved = steps != 0
-        length = self._marlin_lengths(start, ints, scale) if marlin else _lengths(steps / scale * self.unit_mm)
+        length, jump = (self._marlin_lengths(start, ints, scale) if marlin
+                        else (_lengths(steps / scale * self.unit_mm), np.zeros(len(steps))))
         if curves is not None:
             # Control points rounded as written: I J (P Q) are the rounded point minus the rounded
             # start (end), as the controller adds them to the positions it has. The rounded curve
@@ -332,15 +333,12 @@ class _Emitter:
         rows = slice(None) if moving.all() else moving  # nearly always all of them: no copies
         feed, self.residue_s, self.speed_mm_s = _feeds(length, durations_s, moving, self.residue_s,
                                                        60.0 * 10 ** _FEED_DECIMALS / self.unit_mm,
-                                                       self.speed_mm_s, self.ramp_mm_s2)
+                                                       self.speed_mm_s, self.ramp_mm_s2, jump)
         new_feed = feed != np.concatenate([[self.feed], feed[:-1]])  # F only where it changes
         if len(feed):
             self.feed = int(feed[-1])
-        self.written = (
-            np.where(relative, self.written + (ints[-1] - start) / scale, ints[-1] / scale)
-            if len(ints)
-            else self.written
-        )
+        if len(ints):
+            self.written = np.where(relative, self.written + (ints[-1] - start) / scale, ints[-1] / scale)
         values = np.column_stack([np.where(relative, steps, ints)[rows], feed])
         shown = np.column_stack([moved[rows], new_feed])
         digits = np.append(digits, _FEED_DECIMALS)
@@ -371,22 +369,33 @@ def _merged(start: np.ndarray, ints: np.ndarray, steps_per_unit: np.ndarray, min
     motion, whose time the next block takes. With ``exact_last`` the last end is kept, merging
     the last kept block before it instead."""
     ends = np.vstack([start, ints])
-    at_steps = np.rint(ends * steps_per_unit)
-    if (np.abs(np.diff(at_steps, axis=0)).max(axis=1) >= min_steps).all():
+    stepped = steps_per_unit > 0  # (the other columns never step)
+    at_steps = np.rint(ends[:, stepped] * steps_per_unit[stepped])
+    far = (np.abs(np.diff(at_steps, axis=0)) >= min_steps).any(axis=1)  # each row from the one before
+    if far.all():
         return ints
-    kept, last = [0], at_steps[0].tolist()
-    for k, row in enumerate(at_steps[1:].tolist(), 1):
-        if max(abs(a - b) for a, b in zip(row, last, strict=True)) >= min_steps:
-            kept.append(k)
-            last = row
+    # After a kept row, a row far from it is kept; only after a merged one is a row compared
+    # with an earlier one (the last kept), until one is far from it.
+    kept = np.ones(len(ends), dtype=bool)
+    near, rows = (np.flatnonzero(~far) + 1).tolist(), at_steps.tolist()
+    i = 0
+    while i < len(near):
+        k = near[i]
+        last = rows[k - 1]
+        while k < len(rows) and max((abs(a - b) for a, b in zip(rows[k], last, strict=True)), default=0.0) < min_steps:
+            kept[k] = False
+            k += 1
+        i = bisect.bisect_right(near, k, i)
+    kept = np.flatnonzero(kept).tolist()
     if exact_last and kept[-1] != len(ints):
         kept[-1 if len(kept) > 1 else len(kept):] = [len(ints)]
     source = np.repeat(kept, np.diff(np.append(kept, len(ends))))  # each row: the last kept at or before it
     return ends[source[1:]]
 
 
-def _feeds(length_mm: np.ndarray, durations_s: np.ndarray, moving: np.ndarray, residue_s: float, units_per_mm_s: float,
-           speed_mm_s: float = 0.0, ramp_mm_s2: float = math.inf) -> tuple[np.ndarray, float, float]:
+def _feeds(length_mm: np.ndarray, durations_s: np.ndarray, moving: np.ndarray, residue_s: float,
+           units_per_mm_s: float, speed_mm_s: float = 0.0, ramp_mm_s2: float = math.inf,
+           jump_mm_s: np.ndarray | None = None) -> tuple[np.ndarray, float, float]:
     """The F of each moving block (integer units of its last digit; ``units_per_mm_s`` per mm/s),
     the time residue left after them and the last block's speed (``speed_mm_s``: the one's before).
 
@@ -397,16 +406,30 @@ def _feeds(length_mm: np.ndarray, durations_s: np.ndarray, moving: np.ndarray, r
     ramps from one block's speed to the next at ``ramp_mm_s2``, inside the faster one, and arrives
     (dv)^2 / (2 ramp max(v)) late: the next block makes that up too. (Where the residue is more
     negative than half a block's duration, the block keeps half its own and the rest goes on.)
+    Marlin enters a faster block at once up to its ``jump_mm_s`` (see ``_Emitter._marlin_lengths``).
     """
     feeds = []
-    for length, duration, moves in zip(length_mm.tolist(), durations_s.tolist(), moving.tolist(), strict=True):
+    add = feeds.append
+    ramped = ramp_mm_s2 != math.inf
+    # (One line per block, the slowest loop of the writer: max() and the ramp's term only where they count.)
+    lengths = (length_mm * units_per_mm_s).tolist()
+    jumps = [0.0] * len(lengths) if jump_mm_s is None else jump_mm_s.tolist()
+    for length_units_s, duration, moves, jump in zip(lengths, durations_s.tolist(), moving.tolist(), jumps,
+                                                     strict=True):
         residue_s += duration
         if moves:
-            feed = max(round(length * units_per_mm_s / max(residue_s, 0.5 * duration)), 1)
-            feeds.append(feed)
-            residue_s -= length * units_per_mm_s / feed
+            half = 0.5 * duration
+            feed = round(length_units_s / (residue_s if residue_s >= half else half))
+            if feed < 1:
+                feed = 1
+            add(feed)
+            residue_s -= length_units_s / feed
             speed = feed / units_per_mm_s
-            residue_s -= (speed - speed_mm_s) ** 2 / (2.0 * ramp_mm_s2 * max(speed, speed_mm_s))
+            if ramped:
+                lower_mm_s = speed_mm_s if speed_mm_s >= jump else jump
+                step = speed - lower_mm_s if speed > speed_mm_s else speed_mm_s - speed
+                if step > 0.0:
+                    residue_s -= step ** 2 / (2.0 * ramp_mm_s2 * (speed if speed >= speed_mm_s else speed_mm_s))
             speed_mm_s = speed
     return np.array(feeds, dtype=np.int64), residue_s, speed_mm_s
 
@@ -694,7 +717,8 @@ class _RunWriter:
         self.emitter: _Emitter | None = None
         self.copied_sample = -1  # of the last copied line
         self.dwelt_s = 0.0  # the dwells of the lines at rest since the last block (the controller's time: +)
-        self._run_index = 0
+        self.run_index = 0  # the run being written
+        self.latency_s = _marlin_start_latency_s(options)
         self._run_breaks, self._run_g5 = None, None  # the current run's block ends (dense) or blocks and curves (g5)
 
     def runs_from(self, r: int) -> bool:
@@ -710,10 +734,10 @@ class _RunWriter:
         line comes before it, once _FLUSH_S is due (dense): so that a program of motion alone is
         written as it goes."""
         plan, fs = self._plan, self._fs
-        while self._run_index < len(plan.runs):
+        while self.run_index < len(plan.runs):
             if not soft:  # the run's end, or that it goes on past t_end_s
-                plan.wait(lambda: plan.runs[self._run_index][1] is not None or plan.settled_s > t_end_s)
-            first, last = plan.runs[self._run_index]
+                plan.wait(lambda: plan.runs[self.run_index][1] is not None or plan.settled_s > t_end_s)
+            first, last = plan.runs[self.run_index]
             run_end_s = math.inf if last is None else last / fs
             stop_s = min(t_end_s, run_end_s)
             start_s = max(self._out.written_until_s, first / fs)
@@ -745,9 +769,9 @@ class _RunWriter:
             still = emitter.still(targets[:-1]) if run_start else 0
             if still:
                 span_s = ends[still - 1] - from_s
-                dwell_s = out.dwell(span_s + emitter.residue_s)
+                dwell_s, late_s = _start_dwell(out.dwell, span_s + emitter.residue_s, self.latency_s)
                 if dwell_s > 0:
-                    emitter.residue_s += span_s - dwell_s
+                    emitter.residue_s += span_s - dwell_s - late_s
                     from_s, ends, targets = ends[still - 1], ends[still:], targets[still:]
                     curves = None if curves is None else curves[still:]
             text, count = emitter.blocks(targets, np.diff(np.append(from_s, ends)), ends, curves,
@@ -761,13 +785,13 @@ class _RunWriter:
             samples.release(int(min(start_s, self.deviation.last_s) * fs) - 1)
 
     def _end_run(self) -> None:
-        self._run_index += 1
+        self.run_index += 1
         self._run_breaks = self._run_g5 = None
         # A run's end where the command no longer moves (a settle margin unused) is a dwell:
         # its time must not slow the next run's first block, nor be lost (the lines after it
         # run at the plan's times).
         self.emitter.residue_s -= self._out.dwell(self.emitter.residue_s)
-        if self._settings is not None and not self.runs_from(self._run_index):
+        if self._settings is not None and not self.runs_from(self.run_index):
             self._out.lines(*self._settings.restore())  # the program's own, as it left them
 
     def _block_ends(self, first: int, start_s: float, stop_s: float, soft: bool = False):
@@ -787,8 +811,8 @@ class _RunWriter:
         """The blocks' end samples and curves of the run from sample ``first``, fitted whole, with a
         block end at every copied line's sample in it."""
         plan = self._plan
-        plan.wait(lambda: plan.runs[self._run_index][1] is not None)
-        last = plan.runs[self._run_index][1]
+        plan.wait(lambda: plan.runs[self.run_index][1] is not None)
+        last = plan.runs[self.run_index][1]
         ahead = [self.copied_sample]  # this copied line and those settled after it: all of the run's
         for block, line_time_s, is_stop in plan.lines:
             if block.kind is not Kind.MOVE:
@@ -802,7 +826,7 @@ class _RunWriter:
 
     def _run_last(self, first: int) -> int | None:
         """The run's last sample (None while it goes on), told to its block-end search."""
-        last = self._plan.runs[self._run_index][1]
+        last = self._plan.runs[self.run_index][1]
         self._run_breaks.n = None if last is None else last - first + 1
         return last
 
@@ -834,7 +858,7 @@ class _RunWriter:
                 yield inner, None
                 start_s = inner[-1]
             fed = first + breaks.fed
-            plan.wait(lambda fed=fed: plan.runs[self._run_index][1] is not None or plan.frontier >= fed + _FEED)
+            plan.wait(lambda fed=fed: plan.runs[self.run_index][1] is not None or plan.frontier >= fed + _FEED)
             last = self._run_last(first)
             breaks.feed(self._samples.rows(fed, fed + _FEED if last is None else min(fed + _FEED, last + 1)))
 
@@ -895,10 +919,15 @@ class _ProgramWriter:
         motion.until(t, previous_mm)  # the motion before the line ends where the program was before it
         if settings is not None and is_stop and _may_move(previous_mm, block.position_mm, slice(None)):
             # a move fbspost copies runs under the program's own settings (shaping: where it moves X or Y)
-            out.lines(*settings.restore(shaping=_may_move(previous_mm, block.position_mm, slice(0, 2))))
+            moves_xy = _may_move(previous_mm, block.position_mm, slice(0, 2))
+            out.lines(*settings.restore(shaping=moves_xy))
             if motion.emitter.speed_mm_s > 0:
                 # from rest, as planned: the last block's speed would carry into it
                 out.lines(dwell_line(self._options.flavor, 0.0)[0])
+            if motion.latency_s is not None and not moves_xy and motion.run_index == 0:
+                # Marlin's M593 waits for the buffer to empty: at the first run, after this move, it would
+                # leave the move alone in the buffer (held 100 ms, see _start_dwell); X Y shaping does not touch it
+                out.lines(*settings.shaping_off_lines())
         # where the program is: the plan where the line does not say
         reached = samples.at(np.array([t]), fs, planned=True)[0]
         reached = np.where(np.isnan(block.position_mm), reached, block.position_mm)
@@ -951,6 +980,23 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
 
 _FEED = 1 << 14  # samples given to the block-end search at once
 _FLUSH_S = 10.0  # motion written without waiting for a copied line, once this much is due
+
+
+def _marlin_start_latency_s(options: WriteOptions) -> float | None:
+    """Marlin: how late a run's first block starts after a G4 (None: not Marlin). Marlin's stepper
+    starts a block added to an empty buffer once 3 are queued, or after 100 ms (planner.cpp
+    ``get_current_block``): the run's third block is taken three line times after the G4."""
+    if options.flavor != "marlin":
+        return None
+    return 3.0 / options.max_line_rate_hz if options.max_line_rate_hz else 0.0
+
+
+def _start_dwell(dwell, rest_s: float, latency_s: float | None) -> tuple[float, float]:
+    """The G4 before a run's first block, for ``rest_s`` of rest: (its dwell, the latency it takes:
+    on Marlin, ``latency_s`` not None, the run starts that much after the G4, which dwells less)."""
+    if latency_s is not None and dwell_line("marlin", rest_s - latency_s)[1] > 0:
+        return dwell(rest_s - latency_s), latency_s
+    return dwell(rest_s), 0.0
 
 
 def _copied_sample(line_time_s: float, is_stop: bool, fs: float, previous: int) -> int:

@@ -258,6 +258,11 @@ def rest_limits(profile) -> dict[str, tuple[float, float]]:
             for a in "ZE" if a in profile.axes}
 
 
+def serial(profile, lines_per_s: float = 300.0):
+    """``profile`` fed by a host over a serial line: at most ``lines_per_s`` lines a second."""
+    return dataclasses.replace(profile, firmware=dataclasses.replace(profile.firmware, max_line_rate_hz=lines_per_s))
+
+
 def unbudgeted(profile):
     """``profile`` without the firmware's line rate and steps: the writer's blocks then keep to
     the tolerance everywhere (the budget's cost is tested apart)."""

@@ -12,11 +12,13 @@ import math
 
 import pytest
 
-from fbspost.firmware import merge_short_segments, replan
+from fbspost.firmware import replan
 from fbspost.gcode import read_gcode
+from fbspost.marlin import merge_short_segments
 from fbspost.profile import load_profile
+from reference import serial
 
-PRINTER = load_profile("printer-two-mode")
+PRINTER = serial(load_profile("printer-two-mode"))  # a host sending 300 lines/s
 
 
 def blocks_of(tmp_path, text: str, flavor: str):
@@ -25,9 +27,10 @@ def blocks_of(tmp_path, text: str, flavor: str):
     return list(read_gcode(path, flavor))
 
 
-@pytest.mark.parametrize("flavor", ["klipper", "marlin", "reprap", "linuxcnc"])
+@pytest.mark.parametrize("flavor", ["klipper", "reprap", "linuxcnc"])
 def test_single_trapezoid(tmp_path, flavor):
-    """100 mm at 100 mm/s from rest to rest at 3000 mm/s^2: 1 + 100 / 3000 s, every flavor."""
+    """100 mm at 100 mm/s from rest to rest at 3000 mm/s^2: 1 + 100 / 3000 s (Marlin's:
+    tests/test_marlin.py)."""
     motion = replan(blocks_of(tmp_path, "G1 X0 Y0 F6000\nG1 X100 F6000\n", flavor), PRINTER, flavor)
     assert motion.duration_s == pytest.approx(1.0 + 100.0 / 3000.0, rel=1e-12)
     assert motion.positions_mm[-1, 0] == pytest.approx(100.0, abs=1e-9)
@@ -35,25 +38,31 @@ def test_single_trapezoid(tmp_path, flavor):
 
 def test_klipper_retraction_is_a_triangle_at_extrude_only_accel(tmp_path):
     """On Klipper a 1 mm retraction at F2400 is limited by max_extrude_only_accel (its peak 28 mm/s
-    stays under F); elsewhere it runs at the planner's 3000 mm/s^2 and cruises at 40 mm/s."""
+    stays under F); on Marlin it runs at 3000 mm/s^2 and cruises at 40 mm/s, from and to its
+    minimum planner speed (0.5 a / 415 steps/mm), after two lines at 300 lines/s and the 100 ms
+    first-move delay."""
     text = "G1 X0 Y0 F6000\nG1 E-1 F2400\n"
     accel = 3000.0 * 0.64 / (math.pi * 0.875**2)
     assert replan(blocks_of(tmp_path, text, "klipper"), PRINTER, "klipper").duration_s == pytest.approx(
         2.0 * math.sqrt(1.0 / accel), rel=1e-12)
+    v_min = math.sqrt(0.5 * 3000.0 / 415.0)
     assert replan(blocks_of(tmp_path, text, "marlin"), PRINTER, "marlin").duration_s == pytest.approx(
-        1.0 / 40.0 + 40.0 / 3000.0, rel=1e-12)
+        2.0 / 300.0 + 0.1 + 1.0 / 40.0 + (40.0 - v_min) ** 2 / 3000.0 / 40.0, rel=1e-12)
 
 
 def test_marlin_merges_a_3_step_segment(tmp_path):
     """X +0.0375 mm (3 steps at 80/mm) is no block: the next block runs 0 -> 1 mm in one piece,
-    a triangle 2 sqrt(d / a) from rest to rest."""
+    a triangle from and to the minimum planner speed v (v^2 = 0.5 a / 80), 2 (sqrt(v^2 + a d) - v) / a,
+    after three lines at 300 lines/s and the 100 ms first-move delay."""
     blocks = blocks_of(tmp_path, "G1 X0 Y0 F6000\nG1 X0.0375\nG1 X1\n", "marlin")
     merged, lines = merge_short_segments(blocks, PRINTER)
     assert lines == [2]
     assert merged[1].points_mm is None
     motion = replan(blocks, PRINTER, "marlin")
     assert motion.merged_lines == [2]
-    assert motion.duration_s == pytest.approx(2.0 * math.sqrt(1.0 / 3000.0), rel=1e-12)
+    v_min2 = 0.5 * 3000.0 / 80.0
+    triangle_s = 2.0 * (math.sqrt(v_min2 + 3000.0) - math.sqrt(v_min2)) / 3000.0
+    assert motion.duration_s == pytest.approx(3.0 / 300.0 + 0.1 + triangle_s, rel=1e-12)
 
 
 def test_marlin_keeps_6_steps_and_rounds_to_whole_steps(tmp_path):

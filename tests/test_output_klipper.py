@@ -19,7 +19,7 @@ from fbspost.profile import load_profile
 from firmware_results import contour_um, klippy_run, modelled, printed_path, shaped_plans
 from klippy_motion import executed
 from klippy_planner import klippy_or_skip
-from reference import rms, simulate_lsim, unbudgeted
+from reference import rms, serial, simulate_lsim, unbudgeted
 
 pytestmark = pytest.mark.slow  # whole programs through Klipper's own planner
 
@@ -98,12 +98,12 @@ def test_sliced_print_runs_as_written(tmp_path, klippy, name):
 def test_report_is_the_written_program_as_klipper_runs_it(tmp_path, klippy):
     """compensate's summary (after) is the tracking error of the written program as klippy runs
     it, through the modes (reference.simulate_lsim), over the runs and two periods of the
-    lowest mode after each; before: the plan's. With the profile's 300 lines/s, blocks span
+    lowest mode after each; before: the plan's. With 300 lines/s, blocks span
     several samples, so the written program is not the command."""
     source, target = tmp_path / "gear.gcode", tmp_path / "out.gcode"
     with open("tests/data/gear-marlin2.gcode", "rb") as f:
         source.write_bytes(b"".join(f.readlines()[:1000]))
-    profile = load_profile("printer-two-mode")
+    profile = serial(load_profile("printer-two-mode"))
     report = compensate_file(source, target, profile, CompensateOptions(flavor="klipper"))
     plan = plan_blocks(read_gcode(source, "klipper", profile.home_mm), profile, firmware="klipper",
                        margins=RunMargins.for_profile(profile))

@@ -5,15 +5,19 @@ rounded to steps) is under 6, so none may be; the lines in any second of the pro
 the written blocks, run at their feeds, against the compensated command on its grid."""
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
-from fbspost.gcode import read_gcode
+from fbspost.gcode import Kind, read_gcode
+from fbspost.marlin import run_marlin
 from fbspost.pipeline import CompensateOptions, compensate_file, compensated_samples
 from fbspost.planner import RunMargins, plan_blocks
 from fbspost.profile import load_profile
+from reference import serial
 
-PROFILE = load_profile("printer-two-mode")  # 80 steps/mm on X Y, 400 Z, 415 E; 300 lines/s
+PROFILE = serial(load_profile("printer-two-mode"), 300.0)  # 80 steps/mm on X Y, 400 Z, 415 E; 300 lines/s
 MIN_STEPS = 6
 
 
@@ -97,22 +101,95 @@ def test_line_rate_within_budget(marlin_output):
 
 def test_accuracy_cost_reported(marlin_output):
     """The written blocks, each at constant speed from its start to its end as Marlin times them,
-    against the command at every sample inside them: the report's largest and RMS distance (what
-    the budget and the merge cost), the rounding aside."""
+    against the command at every sample between any two rests (a constant delay aside: where the
+    machine rests, Marlin's first-move delays): the report's largest distance (what the budget and
+    the merge cost), the rounding aside."""
     source, target, report = marlin_output
+    program = list(read_gcode(target, "marlin", PROFILE.home_mm))
+    written = blocks(target)
+
+    def at(t, lines):
+        times, ends = np.array([written[k][0] for k in lines]), np.array([written[k][2] for k in lines])
+        return np.column_stack([np.interp(t, times, ends[:, c]) for c in range(3)])
+
+    off_mm = _off_command(program, written, _command(source), [t for t, _, _ in written], at)
+    print(f"blocks vs command: max {off_mm.max() * 1e3:.2f} um; report {report.tolerance_used_mm * 1e3:.2f} um")
+    assert report.tolerance_used_mm == pytest.approx(off_mm.max(), abs=2e-4)
+
+
+def test_marlin_runs_the_output_as_written(marlin_output):
+    """Through the model of Marlin's planner (fbspost/marlin.py, its own tests against Marlin's
+    formulas) at the profile's 300 lines/s: the buffer never runs dry, and between any two rests
+    the machine's motion, a constant delay aside, is the command's within the report's tolerance,
+    the rounding to whole steps (half a step on X and Y: 8.8 um) and 2 um."""
+    source, target, report = marlin_output
+    program = list(read_gcode(target, "marlin", PROFILE.home_mm))
+    machine = run_marlin(program, PROFILE)
+    assert machine.starved == []
+    sent = [i for i, b in enumerate(program) if b.raw.split(b";")[0].strip()]
+    off_mm = _off_command(program, blocks(target), _command(source), machine.line_time_s[sent],
+                          lambda t, lines: machine.at(t)[:, :3])
+    print(f"Marlin's motion vs the command: {off_mm.max() * 1e3:.2f} um at most; "
+          f"report {report.tolerance_used_mm * 1e3:.2f} um")
+    assert off_mm.max() < report.tolerance_used_mm + 0.5 * np.hypot(1 / 80.0, 1 / 80.0) + 2e-3
+
+
+@pytest.mark.xfail(strict=True, reason="the output's G4 before a run leaves the copied retraction before it alone in "
+                   "Marlin's buffer, which Marlin holds 100 ms (BLOCK_DELAY_FOR_1ST_MOVE): +1.8% here")
+def test_marlin_output_lasts_as_planned(marlin_output):
+    """Through the model of Marlin's planner: the output lasts as Marlin runs the original plus
+    fbspost's margins, within 0.2% and 100 ms (the two programs' first lines differ, and with
+    them Marlin's first-move delays before the first run)."""
+    source, target, report = marlin_output
+    machine = run_marlin(list(read_gcode(target, "marlin", PROFILE.home_mm)), PROFILE)
+    original = run_marlin(list(read_gcode(source, "marlin", PROFILE.home_mm)), PROFILE)
+    expected_s = original.duration_s + report.added_time_s
+    print(f"Marlin: the output {machine.duration_s:.3f} s, the original {original.duration_s:.3f} s "
+          f"+ margins {report.added_time_s:.3f} s")
+    assert abs(machine.duration_s - expected_s) < 2e-3 * expected_s + 0.1
+
+
+def _off_command(program, written, command, line_times_s, at) -> np.ndarray:
+    """Distances from the command of the motion ``at(t, lines)`` (rows X Y Z at times t, for the
+    sent lines ``lines``) whose lines end at ``line_times_s`` (per sent line), over every
+    stretch between rests, each delayed by its median delay (each block's end is a sample of
+    the command: its time there)."""
+    fs = PROFILE.sample_rate_hz
+    sent = [i for i, b in enumerate(program) if b.raw.split(b";")[0].strip()]
+    assert len(sent) == len(written)
+    off = []
+    for lines in _stretches(program, sent):
+        samples = np.array([_on_command(command, written[k][0] * fs, written[k][2]) for k in lines])
+        delay_s = np.median(np.asarray(line_times_s)[lines] - samples / fs)
+        grid = np.arange(samples[0], samples[-1] + 1)
+        off.append(np.linalg.norm(at(grid / fs + delay_s, lines) - command[grid, :3], axis=1))
+    assert len(off) > 10
+    return np.concatenate(off)
+
+
+def _command(source):
     plan = plan_blocks(read_gcode(source, "marlin", PROFILE.home_mm), PROFILE, firmware="marlin",
                        margins=RunMargins.for_profile(PROFILE))
-    command = compensated_samples(plan, PROFILE)
-    lines = [(t, xyz) for t, steps, xyz in blocks(target) if steps is not None and not np.isnan(xyz).any()]
-    times, ends = np.array([t for t, _ in lines]), np.array([xyz for _, xyz in lines])
-    grid = np.arange(len(command)) / PROFILE.sample_rate_hz
-    inside = (grid > times[0]) & (grid < times[-1])
-    in_runs = np.zeros(len(grid), dtype=bool)  # (the copied lines at rest: the plan jumps there)
-    for first, last in plan.runs:
-        in_runs[first:last + 1] = True
-    inside &= in_runs
-    written = np.column_stack([np.interp(grid[inside], times, ends[:, c]) for c in range(3)])
-    off_mm = np.linalg.norm(written - command[inside, :3], axis=1)
-    print(f"blocks vs command: max {off_mm.max() * 1e3:.2f} um, RMS {np.sqrt(np.mean(off_mm**2)) * 1e3:.3f} um; "
-          f"report {report.tolerance_used_mm * 1e3:.2f}, {report.rms_deviation_mm * 1e3:.3f} um")
-    assert report.tolerance_used_mm == pytest.approx(off_mm.max(), abs=2e-4)
+    return compensated_samples(plan, PROFILE)
+
+
+def _on_command(command, near: float, end_mm: np.ndarray) -> int:
+    """The sample of ``command`` within 5 of ``near`` closest to ``end_mm`` (X Y Z)."""
+    window = np.arange(max(int(near) - 5, 0), min(int(near) + 6, len(command)))
+    return int(window[np.argmin(np.linalg.norm(command[window, :3] - end_mm, axis=1))])
+
+
+def _stretches(program, sent):
+    """Runs of at least 10 lines (indices into ``sent``) that move X or Y, none of them merged
+    away by Marlin (their time is the next block's), between lines of any other kind."""
+    run = []
+    for k, i in enumerate(sent):
+        block = program[i]
+        if block.kind is Kind.MOVE and re.search(rb"[XY]", block.raw) and block.feed_mm_s > 1.0:
+            run.append(k)
+            continue
+        if len(run) >= 10:
+            yield run
+        run = []
+    if len(run) >= 10:
+        yield run

@@ -6,10 +6,15 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 
+from fbspost import optimizer
+from fbspost.dynamics import AxisDynamics
+from fbspost.optimizer import AxisCompensator, AxisLimits, FBSSettings
 from fbspost.pipeline import CompensateOptions, compensate_file
 from fbspost.profile import load_profile
+from fbspost.writer import _merged
 
 DATA = Path(__file__).parent / "data"
 
@@ -39,6 +44,21 @@ def test_axes_on_threads_write_the_serial_output_byte_for_byte(tmp_path, program
     assert outputs[True].read_bytes() == outputs[False].read_bytes()
 
 
+@pytest.mark.slow
+def test_final_windows_kept_or_built_anew_write_the_same_bytes(tmp_path, monkeypatch):
+    """The gear's head (corners on every layer: hundreds of runs, most of equal final-window
+    lengths) with every final window kept for the next runs of its length, and with none kept."""
+    source = tmp_path / "gear.gcode"
+    with open(DATA / "gear-marlin2.gcode", "rb") as f:
+        source.write_bytes(b"".join(f.readline() for _ in range(1200)))
+    profile, outputs = load_profile("printer-two-mode"), []
+    for budget in (optimizer._FINAL_CACHE_BYTES, 0):
+        monkeypatch.setattr(optimizer, "_FINAL_CACHE_BYTES", budget)
+        outputs.append(tmp_path / f"kept-{budget}.gcode")
+        compensate_file(source, outputs[-1], profile, replace(CompensateOptions(), parallel_axes=False))
+    assert outputs[0].read_bytes() == outputs[1].read_bytes()
+
+
 def test_help_loads_no_scipy():
     """`fbspost --help` (and a bad argument) answer without loading scipy, osqp or DAQP: the
     commands import the stages they run."""
@@ -48,3 +68,56 @@ def test_help_loads_no_scipy():
     loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                             cwd=DATA.parent.parent).stdout
     assert loaded.strip() == "[]"
+
+
+def _min_jerk(distance_mm, duration_s, n_samples, period_s):
+    """A minimum-jerk move from rest to rest (closed form), then at rest: ``n_samples`` samples."""
+    s = np.clip(np.arange(n_samples) * period_s / duration_s, 0.0, 1.0)
+    return distance_mm * (10 * s**3 - 15 * s**4 + 6 * s**5)
+
+
+def test_runs_of_equal_length_share_their_final_window_and_solve_alike():
+    """Each run's final window is kept for later runs of its length (AxisCompensator.final): a
+    run solved after another of its length gives, bit for bit, what a new compensator gives,
+    also where the limits bind there (the QP solved in the final window)."""
+    profile = load_profile("printer-two-mode")
+    axis, period_s = profile.axes["X"], 1.0 / profile.sample_rate_hz
+
+    def compensator():
+        return AxisCompensator(AxisDynamics(axis.modes, period_s), AxisLimits.from_profile(axis),
+                               FBSSettings(settle_weight=5.0))
+
+    first, second = _min_jerk(5.0, 0.12, 180, period_s), _min_jerk(-8.0, 0.06, 180, period_s)
+    shared = compensator()
+    shared(first)
+    again = shared(second)
+    assert len(shared._finals) == 1 and again.qp_windows >= 1
+    alone = compensator()(second)
+    assert np.array_equal(again.command_mm, alone.command_mm)
+
+
+def _merged_row_by_row(start, ints, steps_per_unit, min_steps, exact_last):
+    """Marlin's merge as its docstring says it, one row at a time over every column."""
+    ends = np.vstack([start, ints])
+    at_steps = np.rint(ends * steps_per_unit)
+    kept = [0]
+    for k in range(1, len(ends)):
+        if np.abs(at_steps[k] - at_steps[kept[-1]]).max() >= min_steps:
+            kept.append(k)
+    if exact_last and kept[-1] != len(ints):
+        kept[-1 if len(kept) > 1 else len(kept):] = [len(ints)]
+    return np.array([ends[max(j for j in kept if j <= k)] for k in range(1, len(ends))])
+
+
+@pytest.mark.parametrize("exact_last", [True, False])
+def test_marlin_merge_as_done_row_by_row(exact_last):
+    """writer._merged (which compares a row with an earlier one only after a merged row, and only
+    the stepped columns) against the rule done naively, on blocks of 0 to 5 steps, about half of them merged."""
+    rng = np.random.default_rng(7)
+    steps_per_unit = np.zeros(10)
+    steps_per_unit[:4] = [0.08, 0.08, 0.4, 0.093]  # X Y Z E stepped, per written unit
+    ints = np.cumsum(rng.integers(-12, 13, size=(3000, 10)), axis=0)
+    start = ints[0] - 5
+    merged = _merged(start, ints, steps_per_unit, 3, exact_last)
+    assert np.array_equal(merged, _merged_row_by_row(start, ints, steps_per_unit, 3, exact_last))
+    assert 0.2 < np.mean((merged != ints).any(axis=1)) < 0.9  # many merged, many kept

@@ -19,7 +19,7 @@ PRINTER = load_profile("printer-two-mode")
 TRANSPARENT = {
     "klipper": ["SET_VELOCITY_LIMIT ACCEL=100000000 ACCEL_TO_DECEL=100000000 MINIMUM_CRUISE_RATIO=0 "
                 "SQUARE_CORNER_VELOCITY=10000"],
-    "marlin": ["M201 X1000000 Y1000000", "M204 P1000000 T1000000", "M205 B0 J0.3 X1000 Y1000"],
+    "marlin": ["M201 X1000000 Y1000000 E1000000", "M204 P1000000 T1000000", "M205 B0 J0.3 X1000 Y1000"],
     "reprap": ["M201 X1000000 Y1000000", "M204 P1000000 T1000000", "M566 X60000 Y60000"],
     "linuxcnc": ["G64 P0.001 Q0"],
 }
@@ -70,7 +70,7 @@ def test_lines_per_flavor(flavor):
 
 def test_header_names_what_cannot_be_restored():
     marlin = Transparency("marlin", FirmwareSettings(3000.0), 1e-3).header()[-1]
-    assert "input shaping on X, input shaping on Y, M201 X, M201 Y, M205 J" in marlin
+    assert "input shaping on X, input shaping on Y, M201 X, M201 Y, M201 E, M205 J" in marlin
     known = FirmwareSettings(3000.0, shaper_frequency_hz={"X": 50.0, "Y": 40.0})
     assert len(Transparency("klipper", known, 1e-3).header()) == 1  # nothing left unrestored
 
