@@ -325,7 +325,7 @@ def _stable_pairs(roots, n_pairs, band):
     roots = -np.abs(roots.real) + 1j * roots.imag
     upper = list(roots[roots.imag > 1e-9])
     real = np.sort(roots[np.abs(roots.imag) <= 1e-9].real)
-    for r1, r2 in zip(real[::2], real[1::2], strict=True):
+    for r1, r2 in zip(real[::2], real[1::2], strict=False):  # (an odd one left over is dropped)
         w = math.sqrt(r1 * r2)
         zeta = min(0.95, -(r1 + r2) / (2 * w))
         upper.append(w * (-zeta + 1j * math.sqrt(1 - zeta * zeta)))

@@ -144,9 +144,9 @@ def _tracking(ax, sim: Simulation, shown, axis: str) -> None:
 def _spectrum(ax, sim: Simulation, shown) -> None:
     period_s = 1.0 / sim.profile.sample_rate_hz
     top_hz = 3 * max(m.frequency_hz for a in sim.modelled for m in sim.profile.axes[a].modes)
-    styles = ["-", "--", ":"]
+    styles = ["-", "--", ":"]  # (for up to three modelled axes)
     for method, color in shown:
-        for axis, style in zip(sim.modelled, styles, strict=True):
+        for axis, style in zip(sim.modelled, styles, strict=False):
             error_um = (sim.desired_mm[:, AXES.index(axis)] - method.actual_mm[:, AXES.index(axis)]) * 1e3
             amplitude = 2 * np.abs(np.fft.rfft(error_um)) / len(error_um)  # of a sine at that frequency
             frequency = np.fft.rfftfreq(len(error_um), period_s)
