@@ -850,8 +850,10 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
             # a move fbspost copies runs under the program's own settings (shaping: where it moves X or Y)
             moves_xy = _may_move(previous_mm, block.position_mm, slice(0, 2))
             emit(*settings.restore(shaping=moves_xy))
-            if emitter.speed_mm_s > 0:
+            if emitter.speed_mm_s > 0 and latency_s is None:
                 emit(dwell_line(options.flavor, 0.0)[0])  # from rest, as planned: the last block's speed would carry into it
+            # (Marlin: no G4. Its junction caps the move's entry at the slow last block's speed, and a G4
+            # would leave the move alone in the buffer before the next run's G4, held 100 ms: _start_dwell)
             if latency_s is not None and not moves_xy and run_index == 0:
                 # Marlin's M593 waits for the buffer to empty: at the first run, after this move, it would
                 # leave the move alone in the buffer (held 100 ms, see _start_dwell); X Y shaping does not touch it

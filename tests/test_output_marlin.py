@@ -132,8 +132,6 @@ def test_marlin_runs_the_output_as_written(marlin_output):
     assert off_mm.max() < report.tolerance_used_mm + 0.5 * np.hypot(1 / 80.0, 1 / 80.0) + 2e-3
 
 
-@pytest.mark.xfail(strict=True, reason="the output's G4 before a run leaves the copied retraction before it alone in "
-                   "Marlin's buffer, which Marlin holds 100 ms (BLOCK_DELAY_FOR_1ST_MOVE): +1.8% here")
 def test_marlin_output_lasts_as_planned(marlin_output):
     """Through the model of Marlin's planner: the output lasts as Marlin runs the original plus
     fbspost's margins, within 0.2% and 100 ms (the two programs' first lines differ, and with
