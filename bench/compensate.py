@@ -14,8 +14,12 @@ from pathlib import Path
 from fbspost.pipeline import compensate_file
 from fbspost.profile import load_profile
 
-DEFAULT = ["tests/data/gear-marlin2.gcode:bedslinger-example", "tests/data/blob-reprap-relative-e.gcode:bedslinger-example",
-           "samples/butterfly-dense.gcode:patent-xy-stage", "samples/butterfly-polyline.gcode:patent-xy-stage"]
+DEFAULT = [
+    "tests/data/gear-marlin2.gcode:bedslinger-example",
+    "tests/data/blob-reprap-relative-e.gcode:bedslinger-example",
+    "samples/butterfly-dense.gcode:patent-xy-stage",
+    "samples/butterfly-polyline.gcode:patent-xy-stage",
+]
 
 
 def main(jobs: list[str]) -> None:
@@ -29,7 +33,9 @@ def main(jobs: list[str]) -> None:
             report = compensate_file(path, Path(tmp) / "out.gcode", profile)
             wall = time.perf_counter() - started
         stages = " ".join(f"{report.stage_time_s[k]:6.2f}" for k in ("read", "plan", "optimize", "write"))
-        errors = ", ".join(f"{a} {r.rms_error_before_um:.3g} -> {r.rms_error_after_um:.3g}" for a, r in report.axes.items())
+        errors = ", ".join(
+            f"{a} {r.rms_error_before_um:.3g} -> {r.rms_error_after_um:.3g}" for a, r in report.axes.items()
+        )
         print(f"{Path(path).name:34} {profile.name:20} {report.lines_in:8d} {report.lines_out:9d} "
               f"{report.print_time_s:8.1f} {wall:7.2f} {report.print_time_s / wall:7.1f} {stages}  {errors}"
               + (f"  ({len(report.warnings)} warnings)" if report.warnings else ""))

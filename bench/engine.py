@@ -6,6 +6,7 @@ Run from the repository root:  python bench/engine.py [--long-seconds 60]
 from __future__ import annotations
 
 import argparse
+import functools
 import time
 
 import numpy as np
@@ -43,7 +44,7 @@ def butterfly_table(profile):
               f"{np.abs(desired - dynamics.simulate(desired))[skip:].max() * 1e3:8.2f} {100:12.3f}")
         times = {}
         for mode in ("complete", "limited"):
-            result, times[mode] = timed(lambda: compensate_axis(desired, dynamics, limits, lookahead=mode))
+            result, times[mode] = timed(functools.partial(compensate_axis, desired, dynamics, limits, lookahead=mode))
             u = result.command_mm
             err = (desired - dynamics.simulate(u))[skip:]
             print(f"{name:4} {mode:10} {times[mode]:8.2f} {result.windows:7d} {result.qp_windows:3d} "
@@ -72,7 +73,7 @@ def throughput(profile, seconds):
             compensate = AxisCompensator(dynamics, limits)
             compensate(desired[:n // 10])
             stream = compensate.stream()
-            regular, elapsed = timed(lambda: stream.push(desired))
+            regular, elapsed = timed(functools.partial(stream.push, desired))
             result, final_s = timed(stream.finish)
             print(f"{name:4} {label:8} {elapsed:8.2f} {regular.size / elapsed:12.0f} {final_s:8.2f} "
                   f"{result.windows:7d} {result.qp_windows:4d}")

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import itertools
 import tempfile
 import time
 from pathlib import Path
@@ -38,7 +39,7 @@ def programs(folder: Path, lines: int | None):
     for source in PRINTS:
         path = folder / source.name
         with open(source, "rb") as f:
-            path.write_bytes(b"".join(line for _, line in zip(range(lines or 1 << 62), f)))
+            path.write_bytes(b"".join(itertools.islice(f, lines or None)))
         yield source.stem, path, "printer-two-mode"
 
 
@@ -76,7 +77,8 @@ def main() -> None:
             clock = time.perf_counter()
             profile = unbudgeted(load_profile(profile_name))
             on, off = measure(path, profile, True, Path(tmp)), measure(path, profile, False, Path(tmp))
-            print(f"{name:34} {on['orig_rms']:9.3f} {on['gain']:8.2f}x {off['gain']:8.2f}x {on['gain'] / off['gain']:6.3f} "
+            print(f"{name:34} {on['orig_rms']:9.3f} {on['gain']:8.2f}x "
+                  f"{off['gain']:8.2f}x {on['gain'] / off['gain']:6.3f} "
                   f"{on['max']:8.2f} {on['orig_max']:8.2f} {on['stretches']:9d} {on['added_s']:8.3f} "
                   f"{time.perf_counter() - clock:7.1f}", flush=True)
 

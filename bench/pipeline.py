@@ -92,7 +92,7 @@ def cnc_program(cache: Path, size_mb: float = 100.0) -> Path:
                     y = (row * 0.5) % 60.0
                     xs = x if row % 2 == 0 else x[::-1]
                     z = -1.0 + 0.5 * np.sin(xs / 7.0) * math.cos(y / 9.0)
-                    f.write("".join(f"G1 X{a:.4f} Y{y:.4f} Z{b:.4f} F3000\n" for a, b in zip(xs, z)))
+                    f.write("".join(f"G1 X{a:.4f} Y{y:.4f} Z{b:.4f} F3000\n" for a, b in zip(xs, z, strict=True)))
                     row += 1
                 f.write("G0 Z5\nM2\n")
             out.replace(path)
@@ -117,7 +117,8 @@ def pipeline_table(sizes: list[str], cache: Path) -> None:
           "wall time is at least half of it), peak memory of the process; samples/s (S/s)\n"
           "per stage, samples = print time x sample rate, once per compensated axis for optimize and\n"
           "fallback; QP %: the optimizer's windows that needed the QP; fallback %: its share of the wall time")
-    print(f"{'program':16} {'profile':19} {'lines':>8} {'print s':>8} {'wall s':>8} {'cpu s':>8} {'x real':>7} {'peak MB':>8} "
+    print(f"{'program':16} {'profile':19} {'lines':>8} {'print s':>8} "
+          f"{'wall s':>8} {'cpu s':>8} {'x real':>7} {'peak MB':>8} "
           + " ".join(f"{stage + ' S/s':>12}" for stage in STAGES) + f" {'QP %':>5} {'fallback %':>10}")
     for size in sizes:
         program = cnc_program(cache) if size == CNC else sliced_program(size, cache)
@@ -131,7 +132,8 @@ def pipeline_table(sizes: list[str], cache: Path) -> None:
         rates = " ".join(f"{rates_s[stage]:12.3g}" for stage in STAGES)
         windows = sum(axis["windows"] for axis in report["axes"].values())
         qp = sum(axis["qp_windows"] for axis in report["axes"].values()) / max(windows, 1)
-        print(f"{program.name:16} {profile:19} {report['lines_in']:8d} {report['print_time_s']:8.1f} {wall_s:8.2f} {cpu_s:8.2f} "
+        print(f"{program.name:16} {profile:19} {report['lines_in']:8d} {report['print_time_s']:8.1f} "
+              f"{wall_s:8.2f} {cpu_s:8.2f} "
               f"{report['print_time_s'] / wall_s:7.1f} {peak_mb:8.0f} {rates} {qp:5.0%} "
               f"{report['stage_time_s']['fallback'] / wall_s:10.0%}", flush=True)
 
@@ -140,7 +142,9 @@ def size_list(text: str) -> list[str]:
     sizes = text.split(",")
     unknown = set(sizes) - set(SCALES) - {CNC}
     if unknown:
-        raise argparse.ArgumentTypeError(f"unknown size {', '.join(sorted(unknown))}; sizes: {', '.join(SCALES)}, {CNC}")
+        raise argparse.ArgumentTypeError(
+            f"unknown size {', '.join(sorted(unknown))}; sizes: {', '.join(SCALES)}, {CNC}"
+        )
     return sizes
 
 

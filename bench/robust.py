@@ -46,8 +46,10 @@ MACHINES = {"nominal": "printer-two-mode", "robust": "tests/data/printer-two-mod
 
 
 def perturbed(profile, frequency_scale, damping_scale):
-    axes = {name: dataclasses.replace(axis, modes=tuple(scaled_mode(m, frequency_scale, damping_scale) for m in axis.modes))
-            for name, axis in profile.axes.items()}
+    axes = {
+        name: dataclasses.replace(axis, modes=tuple(scaled_mode(m, frequency_scale, damping_scale) for m in axis.modes))
+        for name, axis in profile.axes.items()
+    }
     return dataclasses.replace(profile, axes=axes)
 
 
@@ -56,7 +58,7 @@ def predictions(program: Path) -> dict:
     sims = {name: simulate_program(program, load_profile(machine)) for name, machine in MACHINES.items()}
     tables = {name: model_error(sim) for name, sim in sims.items()}
     _table([(f, d, {"original": e["original"], "fbs nominal": e["fbs"], "fbs robust": r["fbs"],
-                    **_best(e)}) for (f, d, e), (_, _, r) in zip(tables["nominal"], tables["robust"])])
+                    **_best(e)}) for (f, d, e), (_, _, r) in zip(tables["nominal"], tables["robust"], strict=True)])
     return sims
 
 
@@ -104,7 +106,8 @@ def load_dependent(sim) -> None:
 
     original, fbs = sim.methods[:2]
     before = rms(original, True)
-    print(f"  moving mass {mass_kg * 1e3:.3g} g, {extruded.max():.0f} mm of filament; RMS contour error um, gain = removed")
+    print(f"  moving mass {mass_kg * 1e3:.3g} g, {extruded.max():.0f} mm of filament; "
+          f"RMS contour error um, gain = removed")
     for label, error, base in (("fbs, constant machine it models", rms(fbs, False), rms(original, False)),
                                ("fbs load-dependent, varying machine", rms(loaded.methods[1], True), before),
                                ("fbs fixed profile, varying machine", rms(fbs, True), before)):
@@ -121,7 +124,8 @@ def speed(program: Path) -> None:
             data = json.loads(report.read_text())
             windows = sum(a["windows"] for a in data["axes"].values())
             optimize_s = data["stage_time_s"]["optimize"]
-            print(f"  {name:8} {windows:6d} windows  optimize {optimize_s:7.2f} s  {1e3 * optimize_s / windows:6.2f} ms/window")
+            print(f"  {name:8} {windows:6d} windows  "
+                  f"optimize {optimize_s:7.2f} s  {1e3 * optimize_s / windows:6.2f} ms/window")
 
 
 def _best(errors: dict) -> dict:

@@ -141,6 +141,32 @@ class _Fit:
             getattr(self, name)[index] = getattr(other, name)[other_index]
 
 
+def _allowed_lengths(rest, g, open_end, min_samples: int, max_samples: int) -> tuple:
+    """Block lengths ``g`` with ``rest`` samples left clipped to [shortest, longest] and moved off
+    tails shorter than min_samples (unless ``open_end``); and the shortest."""
+    cannot_split = (rest < 2 * min_samples) & (rest <= max_samples) & ~open_end
+    shortest = np.where(cannot_split, rest, np.minimum(min_samples, rest))
+    g = np.clip(g, shortest, np.minimum(max_samples, rest))
+    tail = rest - g
+    short_tail = (tail > 0) & (tail < min_samples) & ~open_end
+    return np.where(short_tail, np.maximum(rest - min_samples, shortest), g), shortest
+
+
+def _next_length(low, high, err_low, err_high, tolerance_mm: float) -> np.ndarray:
+    """The next candidate length from the bracket [longest pass ``low``, shortest fail ``high``]
+    (0: none yet) and their errors."""
+    with np.errstate(all="ignore"):
+        grow = low * np.clip((tolerance_mm / err_low) ** 0.5, 1.25, _GROW)  # no failure yet
+        shrink = high * np.clip((tolerance_mm / err_high) ** 0.5, 0.25, 0.8)  # no pass yet
+        # Both known: log(error) linear in log(length), solved for the tolerance.
+        p = np.maximum(np.log(err_high / err_low) / np.log(high / low), 0.5)
+        between = low * (tolerance_mm / err_low) ** (1.0 / p)
+    margin = np.maximum(1, (high - low) // 8)
+    between = np.clip(np.nan_to_num(between), low + margin, high - margin)
+    g = np.where((low > 0) & (high > 0), between, np.where(high > 0, shrink, np.maximum(grow, low + 1)))
+    return np.nan_to_num(g).astype(np.int64)
+
+
 def _search(fitter, pos, stop, open_end, tolerance_mm, min_samples, max_samples):
     """Greedy blocks from each ``pos`` to its ``stop``, all of these lanes in lock step.
 
@@ -162,27 +188,11 @@ def _search(fitter, pos, stop, open_end, tolerance_mm, min_samples, max_samples)
     out_start, out_end, out_fit = [], [], []
 
     def allowed(lane, g):
-        """Lengths clipped to [shortest, longest] and moved off short tails; and the shortest."""
-        rest = stop[lane] - pos[lane]
-        cannot_split = (rest < 2 * min_samples) & (rest <= max_samples) & ~open_end[lane]
-        shortest = np.where(cannot_split, rest, np.minimum(min_samples, rest))
-        g = np.clip(g, shortest, np.minimum(max_samples, rest))
-        tail = rest - g
-        short_tail = (tail > 0) & (tail < min_samples) & ~open_end[lane]
-        return np.where(short_tail, np.maximum(rest - min_samples, shortest), g), shortest
+        return _allowed_lengths(stop[lane] - pos[lane], g, open_end[lane], min_samples, max_samples)
 
     def next_length(lane):
-        l, h, el, eh = lo[lane], hi[lane], err_lo[lane], err_hi[lane]
-        with np.errstate(all="ignore"):
-            grow = l * np.clip((tolerance_mm / el) ** 0.5, 1.25, _GROW)  # no failure yet
-            shrink = h * np.clip((tolerance_mm / eh) ** 0.5, 0.25, 0.8)  # no pass yet
-            # Both known: log(error) linear in log(length), solved for the tolerance.
-            p = np.maximum(np.log(eh / el) / np.log(h / l), 0.5)
-            between = l * (tolerance_mm / el) ** (1.0 / p)
-        margin = np.maximum(1, (h - l) // 8)
-        between = np.clip(np.nan_to_num(between), l + margin, h - margin)
-        g = np.where((l > 0) & (h > 0), between, np.where(h > 0, shrink, np.maximum(grow, l + 1)))
-        return allowed(lane, np.nan_to_num(g).astype(np.int64))[0]
+        g = _next_length(lo[lane], hi[lane], err_lo[lane], err_hi[lane], tolerance_mm)
+        return allowed(lane, g)[0]
 
     active = np.flatnonzero(pos < stop)
     cand[active] = allowed(active, cand[active])[0]
@@ -198,11 +208,11 @@ def _search(fitter, pos, stop, open_end, tolerance_mm, min_samples, max_samples)
         lo[active[passed]], err_lo[active[passed]] = c[passed], err[passed]
         hi[active[~passed]], err_hi[active[~passed]] = c[~passed], err[~passed]
 
-        l, h = lo[active], hi[active]
+        low, high = lo[active], hi[active]
         nxt = next_length(active)
         top = np.minimum(max_samples, stop[active] - pos[active])
-        done = forced | ((l > 0) & (((h > 0) & ((h - l <= 1) | (nxt >= h)))
-                                    | (l == top) | (nxt <= l)))
+        done = forced | ((low > 0) & (((high > 0) & ((high - low <= 1) | (nxt >= high)))
+                                      | (low == top) | (nxt <= low)))
         cand[active] = nxt
 
         fin = active[done]
@@ -247,7 +257,7 @@ def _search_across(fitter, starts, ends, fit, edges, n, tolerance_mm, min_sample
     window = np.searchsorted(starts[left], new_starts, side="right") - 1  # each new block's window
     fewer = np.bincount(window, minlength=len(left)) < far - left + 1
     old = np.ones(len(starts), bool)
-    for a, b in zip(left[fewer], far[fewer]):
+    for a, b in zip(left[fewer], far[fewer], strict=True):
         old[a:b + 1] = False
     new = fewer[window]
     order = np.argsort(np.concatenate([starts[old], new_starts[new]]), kind="stable")
@@ -431,7 +441,7 @@ class _Fitter:
 
         def arc(u):  # s(u), from the table's node u0
             s_u = s0.copy()
-            for x, w in zip(_GL_X, _GL_W):
+            for x, w in zip(_GL_X, _GL_W, strict=True):
                 v = u0 + x * (u - u0)
                 dx, dy = ax + v * (bx + v * c2x), ay + v * (by + v * c2y)
                 s_u += w * (u - u0) * np.sqrt(dx * dx + dy * dy)
@@ -521,19 +531,8 @@ def _fit_curves(pts, counts, line, tolerance_mm, q=None, damping=_DAMPING, good=
             if step < reparameterize:  # bring the time fractions to the given curve's arc length first
                 u = _monotone(u - ds / sigma, first, last, block)
                 continue
-            tx, ty = dx / sigma, dy / sigma
-            rx -= tx * ds  # to first order, the residual at the arc-length fraction
-            ry -= ty * ds
             h = tau * np.take(S[1:, last], block, axis=1) - S[1:]  # sigma * du_k / dq_j
-            w = 1.0 - u
-            b1, b2 = 3.0 * u * w * w, 3.0 * u * u * w
-            jx, jy = tx * h, ty * h
-            jx[0] += b1
-            jx[2] += b2
-            jy[1] += b1
-            jy[3] += b2
-            normal = np.add.reduceat(np.concatenate([jx[_I] * jx[_J] + jy[_I] * jy[_J], jx * rx + jy * ry]),
-                                     first, axis=1)
+            normal = _normal_equations(u, (rx, ry), (dx / sigma, dy / sigma), ds, h, first)
             delta = _solve(normal, q, line[:, ids], damping * _DECAY ** (step - reparameterize))
             q = q + delta
             du = (np.einsum("jk,jk->k", h, np.take(delta, block, axis=1)) - ds) / sigma
@@ -545,6 +544,23 @@ def _fit_curves(pts, counts, line, tolerance_mm, q=None, damping=_DAMPING, good=
                 pts, u = np.compress(keep_pts, pts, axis=1), u[keep_pts]
                 first, block, _ = _ragged(counts)
     return best_q, best_len, best_err
+
+
+def _normal_equations(u, residual, tangent, ds, h, first) -> np.ndarray:
+    """_fit_curves' Gauss-Newton system per block (its unique entries, then the right-hand side)
+    for the points' residuals at parameters ``u``, moved to their arc-length fractions to first
+    order (``ds`` along the unit ``tangent``); ``h``: sigma * du_k / dq_j."""
+    tx, ty = tangent
+    rx = residual[0] - tx * ds  # to first order, the residual at the arc-length fraction
+    ry = residual[1] - ty * ds
+    w = 1.0 - u
+    b1, b2 = 3.0 * u * w * w, 3.0 * u * u * w
+    jx, jy = tx * h, ty * h
+    jx[0] += b1
+    jx[2] += b2
+    jy[1] += b1
+    jy[3] += b2
+    return np.add.reduceat(np.concatenate([jx[_I] * jx[_J] + jy[_I] * jy[_J], jx * rx + jy * ry]), first, axis=1)
 
 
 # Pairs (i, j), i <= j, of the 4 x 4 normal matrix of (p1x, p1y, p2x, p2y).
@@ -669,7 +685,7 @@ def _arc_integrals(u, coef, first, block):
     prev[first] = u[first]  # no step before a block's first sample
     step = u - prev
     acc = np.zeros((5, len(u)))
-    for x, w in zip(_GL_X, _GL_W):
+    for x, w in zip(_GL_X, _GL_W, strict=True):
         v = prev + x * step
         dx, dy = ax + v * (bx + v * cx), ay + v * (by + v * cy)
         sigma = np.sqrt(dx * dx + dy * dy)

@@ -183,7 +183,9 @@ def compensate(inputs, machine, output, output_dir, jobs, output_format, toleran
     if len(inputs) == 1:
         _compensate_single(inputs[0], targets[0], profile, options, report_path, quiet)
         return
-    failed = _compensate_many(list(zip(inputs, targets)), profile, options, jobs or os.cpu_count() or 1, quiet)
+    failed = _compensate_many(
+        list(zip(inputs, targets, strict=True)), profile, options, jobs or os.cpu_count() or 1, quiet
+    )
     if failed:
         click.echo(f"error: {len(failed)} of {len(inputs)} files failed: {', '.join(map(str, failed))}", err=True)
         click.get_current_context().exit(1)
@@ -201,7 +203,9 @@ def _targets(inputs: tuple[Path, ...], output: Path | None, output_dir: Path | N
     for i, target in enumerate(resolved):
         if target in resolved[:i]:
             # Two jobs writing one file would race, and an input compensated twice is wrong.
-            raise click.UsageError(f"{inputs[resolved.index(target)]} and {inputs[i]} would both be written to {target}")
+            raise click.UsageError(
+                f"{inputs[resolved.index(target)]} and {inputs[i]} would both be written to {target}"
+            )
     if output_dir:
         output_dir.mkdir(parents=True, exist_ok=True)
     return targets
@@ -344,10 +348,14 @@ def _summary(source: Path, target: Path, profile: MachineProfile, report: Report
                  f"{report.loosened_s:.3f} s of them beyond the tolerance")
     for name, axis in report.axes.items():
         # (after: the written blocks as the firmware runs them, straight between their ends)
-        command = "" if axis.rms_error_command_um is None else f" (the command itself: {axis.rms_error_command_um:.4g} um)"
-        lines.append(f"axis {name}: predicted RMS error {axis.rms_error_before_um:.4g} -> {axis.rms_error_after_um:.4g} um "
-                     f"as the firmware runs the output{command}, "
-                     f"max {axis.max_error_before_um:.4g} -> {axis.max_error_after_um:.4g} um")
+        command = (
+            "" if axis.rms_error_command_um is None else f" (the command itself: {axis.rms_error_command_um:.4g} um)"
+        )
+        lines.append(
+            f"axis {name}: predicted RMS error {axis.rms_error_before_um:.4g} -> {axis.rms_error_after_um:.4g} um "
+            f"as the firmware runs the output{command}, "
+            f"max {axis.max_error_before_um:.4g} -> {axis.max_error_after_um:.4g} um"
+        )
     lines.extend(f"warning: {w}" for w in report.warnings)
     return "\n".join(lines)
 
@@ -451,7 +459,6 @@ def identify(frf_csv, axis, n_modes, max_modes, output, merge, plot, klipper_csv
     error, and writes a new profile (limits from the options or their defaults) or merges the
     axis into --merge (comments there are not kept).
     """
-    from . import excite as excite_module
     from . import identify as ident
 
     sources = [s for s in (frf_csv, klipper_csv, klipper_cfg, accel_log) if s]
@@ -466,55 +473,12 @@ def identify(frf_csv, axis, n_modes, max_modes, output, merge, plot, klipper_csv
     axis = axis.upper() if axis else None
     base = load_profile(merge) if merge else None
     lines = [f"fbspost {__version__}: identify from {sources[0]}"]
-    picture = None
     if klipper_csv or klipper_cfg:
-        if klipper_csv:
-            mode, f1, f2 = ident.klipper_psd_mode(klipper_csv, axis)
-            found = {axis: mode}
-            lines.append(f"axis {axis}: PSD peak {mode.frequency_hz:.4g} Hz, half power {f1:.4g}..{f2:.4g} Hz")
-            note = f"axis {axis}: COARSE ESTIMATE from Klipper calibrate_shaper data {klipper_csv.name}"
-        else:
-            found = ident.klipper_cfg_modes(klipper_cfg)
-            if axis:
-                if axis not in found:
-                    raise InputError(klipper_cfg, None, f"[input_shaper] has no shaper_freq_{axis.lower()}")
-                found = {axis: found[axis]}
-            note = f"axes {', '.join(found)}: COARSE ESTIMATE from Klipper [input_shaper] of {klipper_cfg.name}"
-        for name_, mode in found.items():
-            lines.append(f"axis {name_}: 1 mode {mode.frequency_hz:.4g} Hz, damping {mode.damping:.4g}, "
-                         f"alpha {mode.alpha:.6g}, beta 0")
-        lines.append("warning: a coarse estimate (one mode, no phase, no zeros), a starting point only: "
-                     "measure a frequency response (fbspost excite) for a real model")
-        axes_modes = {k: (v,) for k, v in found.items()}
+        axes_modes, note = _klipper_estimate(klipper_csv, klipper_cfg, axis, lines)
+        picture = None
     else:
-        if accel_log:
-            sweep = excite_module.read_sweep(program, axis)
-            times_s, accel = ident.read_accel_log(accel_log, accel_column or f"accel_{axis.lower()}")
-            rec = ident.frf_from_recording(times_s, accel, sweep)
-            fit = ident.fit_frf(rec.frequency_hz, rec.response, n_modes, max_modes, weights=rec.coherence,
-                                fit_delay=True)
-            frequency_hz, measured = rec.frequency_hz, rec.response * np.exp(2j * np.pi * rec.frequency_hz * fit.delay_s)
-            lines.append(f"recording: {len(times_s)} samples at {rec.sample_rate_hz:.1f} Hz; the sweep starts at "
-                         f"{rec.offset_s + fit.delay_s:.6f} s of its time base"
-                         + ("; accelerometer axis reversed: sign flipped" if rec.inverted else ""))
-            note = f"axis {axis}: identified from the recording {accel_log.name} of {program.name}"
-        else:
-            frequency_hz, measured = ident.read_frf_csv(frf_csv)
-            fit = ident.fit_frf(frequency_hz, measured, n_modes, max_modes)
-            note = f"axis {axis}: identified from {frf_csv.name}"
-        lines.append(f"axis {axis}: {len(frequency_hz)} frequencies {frequency_hz[0]:.4g}..{frequency_hz[-1]:.4g} Hz, "
-                     f"{len(fit.modes)} modes" + ("" if n_modes else " (chosen automatically)"))
-        for i, m in enumerate(fit.modes, start=1):
-            lines.append(f"  mode {i}: {m.frequency_hz:.5g} Hz, damping {m.damping:.4g}, alpha {m.alpha:.6g}, "
-                         f"beta {m.beta:.6g}")
-        lines.append(f"fit error: RMS {100 * fit.rms_error:.3g}%, max {100 * fit.max_error:.3g}% of the peak |G| "
-                     f"{np.abs(measured).max():.4g}; RMS by mode count: "
-                     + ", ".join(f"{n}: {100 * e:.3g}%" for n, e in fit.errors_by_count.items()))
-        dc_gain = sum(m.alpha / m.omega_rad_s**2 for m in fit.modes)
-        lines.append(f"DC gain of the fit {dc_gain:.4f} (scaled to 1 in the profile)")
-        axes_modes = {axis: fit.modes}
-        if plot:
-            picture = ident.plot_png(frequency_hz, measured, fit.response(frequency_hz), note)
+        axes_modes, note, picture = _fitted(frf_csv, accel_log, program, accel_column, axis, n_modes, max_modes,
+                                            plot, lines)
     options = dict(sample_rate=sample_rate, planner_acceleration=planner_acceleration,
                    square_corner_velocity=square_corner_velocity, max_velocity=max_velocity,
                    max_acceleration=max_acceleration, max_jerk=max_jerk)
@@ -528,6 +492,66 @@ def identify(frf_csv, axis, n_modes, max_modes, output, merge, plot, klipper_csv
         atomic_write(plot, lambda f: f.write(picture))
         lines.append(f"wrote {plot}")
     click.echo("\n".join(lines), err=True)
+
+
+def _klipper_estimate(klipper_csv, klipper_cfg, axis, lines: list[str]) -> tuple[dict, str]:
+    """identify's coarse estimate from Klipper's files: the modes per axis and the profile's note."""
+    from . import identify as ident
+
+    if klipper_csv:
+        mode, f1, f2 = ident.klipper_psd_mode(klipper_csv, axis)
+        found = {axis: mode}
+        lines.append(f"axis {axis}: PSD peak {mode.frequency_hz:.4g} Hz, half power {f1:.4g}..{f2:.4g} Hz")
+        note = f"axis {axis}: COARSE ESTIMATE from Klipper calibrate_shaper data {klipper_csv.name}"
+    else:
+        found = ident.klipper_cfg_modes(klipper_cfg)
+        if axis:
+            if axis not in found:
+                raise InputError(klipper_cfg, None, f"[input_shaper] has no shaper_freq_{axis.lower()}")
+            found = {axis: found[axis]}
+        note = f"axes {', '.join(found)}: COARSE ESTIMATE from Klipper [input_shaper] of {klipper_cfg.name}"
+    for name_, mode in found.items():
+        lines.append(f"axis {name_}: 1 mode {mode.frequency_hz:.4g} Hz, damping {mode.damping:.4g}, "
+                     f"alpha {mode.alpha:.6g}, beta 0")
+    lines.append("warning: a coarse estimate (one mode, no phase, no zeros), a starting point only: "
+                 "measure a frequency response (fbspost excite) for a real model")
+    return {k: (v,) for k, v in found.items()}, note
+
+
+def _fitted(frf_csv, accel_log, program, accel_column, axis, n_modes, max_modes, plot, lines: list[str]) -> tuple:
+    """identify's fit of a measured frequency response (a CSV, or an accelerometer recording of
+    the sweep ``program``): the modes, the profile's note and the plot (PNG bytes, or None)."""
+    from . import excite as excite_module
+    from . import identify as ident
+
+    if accel_log:
+        sweep = excite_module.read_sweep(program, axis)
+        times_s, accel = ident.read_accel_log(accel_log, accel_column or f"accel_{axis.lower()}")
+        rec = ident.frf_from_recording(times_s, accel, sweep)
+        fit = ident.fit_frf(rec.frequency_hz, rec.response, n_modes, max_modes, weights=rec.coherence,
+                            fit_delay=True)
+        frequency_hz = rec.frequency_hz
+        measured = rec.response * np.exp(2j * np.pi * rec.frequency_hz * fit.delay_s)
+        lines.append(f"recording: {len(times_s)} samples at {rec.sample_rate_hz:.1f} Hz; the sweep starts at "
+                     f"{rec.offset_s + fit.delay_s:.6f} s of its time base"
+                     + ("; accelerometer axis reversed: sign flipped" if rec.inverted else ""))
+        note = f"axis {axis}: identified from the recording {accel_log.name} of {program.name}"
+    else:
+        frequency_hz, measured = ident.read_frf_csv(frf_csv)
+        fit = ident.fit_frf(frequency_hz, measured, n_modes, max_modes)
+        note = f"axis {axis}: identified from {frf_csv.name}"
+    lines.append(f"axis {axis}: {len(frequency_hz)} frequencies {frequency_hz[0]:.4g}..{frequency_hz[-1]:.4g} Hz, "
+                 f"{len(fit.modes)} modes" + ("" if n_modes else " (chosen automatically)"))
+    for i, m in enumerate(fit.modes, start=1):
+        lines.append(f"  mode {i}: {m.frequency_hz:.5g} Hz, damping {m.damping:.4g}, alpha {m.alpha:.6g}, "
+                     f"beta {m.beta:.6g}")
+    lines.append(f"fit error: RMS {100 * fit.rms_error:.3g}%, max {100 * fit.max_error:.3g}% of the peak |G| "
+                 f"{np.abs(measured).max():.4g}; RMS by mode count: "
+                 + ", ".join(f"{n}: {100 * e:.3g}%" for n, e in fit.errors_by_count.items()))
+    dc_gain = sum(m.alpha / m.omega_rad_s**2 for m in fit.modes)
+    lines.append(f"DC gain of the fit {dc_gain:.4f} (scaled to 1 in the profile)")
+    picture = ident.plot_png(frequency_hz, measured, fit.response(frequency_hz), note) if plot else None
+    return {axis: fit.modes}, note, picture
 
 
 @main.command()
@@ -612,7 +636,8 @@ def _per_axis(low: float, high: float | None):
               help="Shaper damping ratio per axis, e.g. X=0.1,Y=0.1 (default: the dominant mode's).")
 @click.option("--flavor", type=click.Choice(FLAVORS), help="Firmware dialect (default: detected from INPUT).")
 @_margin_options
-@click.option("--json", "as_json", is_flag=True, help="Print the figures as JSON (keys in docs/simulate.md) instead of tables.")
+@click.option("--json", "as_json", is_flag=True,
+              help="Print the figures as JSON (keys in docs/simulate.md) instead of tables.")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False, path_type=Path), metavar="FILE",
               help="Also write plots: FILE.png (one page) or FILE.pdf (one panel per page).")
 @click.option("--model-error", "model_error", is_flag=True,
@@ -673,8 +698,13 @@ def _model_error_table(perturbed) -> str:
              "frequency damping  " + "".join(f"{n:9s}" for n in names) + ("best shaper" if shapers else "")]
     for frequency_scale, damping_scale, errors in perturbed:
         best = min(shapers, key=errors.get) if shapers else None
-        lines.append((f"x{frequency_scale:<8.3f} x{damping_scale:<7.2f} " + "".join(_g(errors[n], 8) + " " for n in names)
-                      + (f"{best} {_g(errors[best], 0)}" if best else "")).rstrip())
+        lines.append(
+            (
+                f"x{frequency_scale:<8.3f} x{damping_scale:<7.2f} "
+                + "".join(_g(errors[n], 8) + " " for n in names)
+                + (f"{best} {_g(errors[best], 0)}" if best else "")
+            ).rstrip()
+        )
     return "\n" + "\n".join(lines)
 
 
@@ -685,24 +715,31 @@ def _simulate_tables(sim) -> str:
     lines = [f"fbspost simulate: {sim.program} on {p.name} ({sim.flavor}, {p.sample_rate_hz:g} Hz); "
              f"contour error on {moves}; residual vibration over {sim.settle_s:.3g} s after the last motion"]
     lines += [f"  {m.label}" for m in sim.methods]
-    lines += ["", "path      contour um        tracking um       residual  command off path  duration   starts    ends     "
-                  "|v| max  |a| max",
-              "          RMS       max     RMS       max     max um    RMS um    max um  s          early s   late s   "
-              "mm/s     mm/s^2"]
+    lines += [
+        "",
+        "path      contour um        tracking um       residual  command off path  duration   starts    ends     "
+        "|v| max  |a| max",
+        "          RMS       max     RMS       max     max um    RMS um    max um  s          early s   late s   "
+        "mm/s     mm/s^2",
+    ]
     for m in sim.methods:
         q = m.path
-        lines.append(f"{m.name:9s} {_g(q.rms_contour_error_um, 9)} {_g(q.max_contour_error_um, 7)} "
-                     f"{_g(q.rms_tracking_error_um, 9)} {_g(q.max_tracking_error_um, 7)} {_g(q.residual_vibration_um, 9)} "
-                     f"{_g(q.rms_command_contour_error_um, 9)} {_g(q.max_command_contour_error_um, 7)} "
-                     f"{q.duration_s:<10.4f} {q.start_advance_s:<9.4f} {q.end_delay_s:<8.4f} "
-                     f"{_g(q.max_velocity_mm_s, 8)} {q.max_acceleration_mm_s2:.0f}")
+        lines.append(
+            f"{m.name:9s} {_g(q.rms_contour_error_um, 9)} {_g(q.max_contour_error_um, 7)} "
+            f"{_g(q.rms_tracking_error_um, 9)} {_g(q.max_tracking_error_um, 7)} {_g(q.residual_vibration_um, 9)} "
+            f"{_g(q.rms_command_contour_error_um, 9)} {_g(q.max_command_contour_error_um, 7)} "
+            f"{q.duration_s:<10.4f} {q.start_advance_s:<9.4f} {q.end_delay_s:<8.4f} "
+            f"{_g(q.max_velocity_mm_s, 8)} {q.max_acceleration_mm_s2:.0f}"
+        )
     for axis in sim.modelled:
         lines += ["", f"axis {axis}    tracking um       residual  |v| max  |a| max",
                   "          RMS       max     max um    mm/s     mm/s^2"]
         for m in sim.methods:
             q = m.axes[axis]
-            lines.append(f"{m.name:9s} {_g(q.rms_tracking_error_um, 9)} {_g(q.max_tracking_error_um, 7)} "
-                         f"{_g(q.residual_vibration_um, 9)} {_g(q.max_velocity_mm_s, 8)} {q.max_acceleration_mm_s2:.0f}")
+            lines.append(
+                f"{m.name:9s} {_g(q.rms_tracking_error_um, 9)} {_g(q.max_tracking_error_um, 7)} "
+                f"{_g(q.residual_vibration_um, 9)} {_g(q.max_velocity_mm_s, 8)} {q.max_acceleration_mm_s2:.0f}"
+            )
     lines += [f"warning: {w}" for w in sim.warnings]
     return "\n".join(lines)
 

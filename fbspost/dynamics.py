@@ -36,7 +36,9 @@ class AxisDynamics:
             a_c = np.array([[0.0, 1.0], [-w * w, -2.0 * z * w]])
             b_c = np.array([[0.0], [1.0]])
             c_c = np.array([[mode.alpha, mode.beta]])
-            a_d, b_d, c_d, d_d, _ = signal.cont2discrete((a_c, b_c, c_c, np.zeros((1, 1))), self.sample_period_s, method="zoh")
+            a_d, b_d, c_d, d_d, _ = signal.cont2discrete(
+                (a_c, b_c, c_c, np.zeros((1, 1))), self.sample_period_s, method="zoh"
+            )
             blocks_a.append(a_d)
             blocks_b.append(b_d[:, 0])
             blocks_c.append(c_d[0])

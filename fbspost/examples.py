@@ -64,7 +64,7 @@ def _program(points_mm: np.ndarray, feeds_mm_min: np.ndarray, title: str) -> str
     """A LinuxCNC-style program of G1 blocks through ``points_mm``, F written where it changes."""
     lines = [f"({title})", "G21 G90 G17", f"G0 X{points_mm[0, 0]:.4f} Y{points_mm[0, 1]:.4f}"]
     previous = None
-    for (x, y), feed in zip(points_mm[1:], feeds_mm_min):
+    for (x, y), feed in zip(points_mm[1:], feeds_mm_min, strict=True):
         words = f"G1 X{x:.4f} Y{y:.4f}"
         if feed != previous:
             words += f" F{feed:.3f}"
@@ -96,4 +96,6 @@ def butterfly_polyline_program(size_mm: float, chord_mm: float = 0.05, feed_mm_m
     arc = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(curve, axis=0).T))])
     stations = np.linspace(0.0, arc[-1], int(np.ceil(arc[-1] / chord_mm)) + 1)
     chords = np.column_stack([np.interp(stations, arc, curve[:, 0]), np.interp(stations, arc, curve[:, 1])])
-    return _program(chords, np.full(len(chords) - 1, feed_mm_min), f"butterfly, {chord_mm:g} mm chords at F{feed_mm_min:g}")
+    return _program(
+        chords, np.full(len(chords) - 1, feed_mm_min), f"butterfly, {chord_mm:g} mm chords at F{feed_mm_min:g}"
+    )

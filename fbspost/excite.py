@@ -79,13 +79,15 @@ def sweep_program(axis: AxisProfile, positions_mm: np.ndarray, block_s: float, s
     accel = np.abs(np.diff(positions_mm, 2)).max() / block_s**2
     lines = [
         f"; fbspost excite: a sine sweep of axis {name} for identification ({machine})",
-        f"; band: {start_hz:g} Hz to {end_hz:g} Hz, exponential, {(len(positions_mm) - 1) * block_s:g} s with the ramps "
+        f"; band: {start_hz:g} Hz to {end_hz:g} Hz, exponential, "
+        f"{(len(positions_mm) - 1) * block_s:g} s with the ramps "
         f"in {block_s * 1e3:g} ms blocks, about {rounded[0]:.3f} mm",
         f"; largest amplitude {np.abs(positions_mm - positions_mm[0]).max():.4f} mm, velocity {speed:.4g} mm/s, "
         f"acceleration {accel:.5g} mm/s^2 (the axis' limits: {axis.max_velocity_mm_s:g} mm/s, "
         f"{axis.max_acceleration_mm_s2:g} mm/s^2)",
         "; Home the machine and make sure the axis is free to move there. The firmware's acceleration",
-        f"; limit must be at least {math.ceil(accel)} mm/s^2 (e.g. Klipper SET_VELOCITY_LIMIT ACCEL=..., Marlin M204 S...)",
+        f"; limit must be at least {math.ceil(accel)} mm/s^2 "
+        f"(e.g. Klipper SET_VELOCITY_LIMIT ACCEL=..., Marlin M204 S...)",
         "; and input shaping or other motion filtering off, or it is identified with the machine.",
         "; Record an accelerometer on the moving part during the whole program, then:",
         f";   fbspost identify --accel-log LOG.csv --program THIS.gcode --axis {name} -o PROFILE.toml",

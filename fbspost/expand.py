@@ -275,12 +275,13 @@ class _Expander:
 
     def on_set_g5x_offset(self, args):
         index, offsets = int(args[0]), self.length_values(args[1:])
-        self.pos = [p + old - new for p, old, new in zip(self.pos, self.g5x, offsets)]  # the tool stays put
+        # the tool stays put
+        self.pos = [p + old - new for p, old, new in zip(self.pos, self.g5x, offsets, strict=True)]
         self.g5x = offsets
         if any(offsets) and self.g5x_written.get(index) != offsets:  # set by the program (rs274's own are 0)
             self.g5x_written[index] = offsets
             self.fresh = True
-            yield f"G10 L2 P{index} " + " ".join(f"{a}{_mm(v)}" for a, v in zip("XYZABC", offsets))
+            yield f"G10 L2 P{index} " + " ".join(f"{a}{_mm(v)}" for a, v in zip("XYZABC", offsets, strict=True))
         if index != self.wcs:
             self.wcs = index
             self.fresh = True
@@ -414,7 +415,7 @@ class _Expander:
 
     def move(self, code: str, target: list[float], rest: str = "", arc: bool = False) -> str:
         """Writes every axis that changed; all of XYZ while the position is unknown (start, new WCS)."""
-        words = [f"{a}{_mm(v)}" for i, (a, v) in enumerate(zip("XYZABC", target))
+        words = [f"{a}{_mm(v)}" for i, (a, v) in enumerate(zip("XYZABC", target, strict=True))
                  if (self.fresh or arc) and i < 3 or v != self.pos[i]]
         self.pos, self.fresh = list(target), False
         return f"{code} {' '.join(words)}{rest}".rstrip()

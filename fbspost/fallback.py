@@ -79,6 +79,64 @@ class Stretch:
     level: float = 1.0  # lowest level in it (0: the planned original)
 
 
+class _ChangeModel:
+    """The axis' modelled response to the written command's change from the planned one, from
+    sample ``n`` on. Takes the changes written (``advance``) and the samples where the model
+    starts from rest again (``restarts``); gives the response ahead to a change (``moved``)."""
+
+    def __init__(self, dynamics, horizon: int, reach: int):
+        self.dynamics = dynamics
+        self.free = _krylov(dynamics.A.T, dynamics.C, horizon)  # rows C A^k: the response to a state
+        self.inputs = _krylov(dynamics.A, dynamics.B, reach)[::-1].T  # columns A^(L-1-i) B: state after L inputs
+        self.powers = {}  # A^L
+        self.restarts: list[int] = []  # samples from n on where the model starts from rest again
+        self.n = 0
+        self.x = np.zeros(dynamics.n_states)  # state of the response to written - planned, at n
+
+    def moved(self, change: np.ndarray, n: int, from_state: bool = True) -> np.ndarray:
+        """The first n samples of the response to input ``change`` (zero after it) from the state
+        at ``self.n`` (or from zero), from rest again at every restart."""
+        x = self.x if from_state else None
+        cuts = [r - self.n for r in self.restarts if r - self.n < n]
+        if not cuts:
+            out = self._forced(change, n)
+            return out if x is None else out + self.free[:n] @ x
+        out = np.empty(n)
+        for a, b in zip([0, *cuts], [*cuts, n], strict=True):
+            out[a:b] = self._forced(change[a:b], b - a)
+        if x is not None and cuts[0] > 0:
+            out[:cuts[0]] += self.free[:cuts[0]] @ x
+        return out
+
+    def _forced(self, v: np.ndarray, n: int) -> np.ndarray:
+        """The first n samples of the response to ``v`` from the zero state."""
+        if not len(v):
+            return np.zeros(n)
+        if n <= len(v):
+            return self.dynamics.filter(v[:n])
+        out = np.empty(n)
+        out[:len(v)] = self.dynamics.filter(v)
+        out[len(v):] = self.free[:n - len(v)] @ self._state(v)
+        return out
+
+    def _state(self, v: np.ndarray) -> np.ndarray:
+        """The state after input ``v`` from the zero state."""
+        return self.inputs[:, -len(v):] @ v
+
+    def advance(self, change: np.ndarray) -> None:
+        """``change`` written from n on."""
+        size = len(change)
+        restarts = [r - self.n for r in self.restarts if r - self.n < size]
+        if restarts:  # nothing before the last restart matters after it
+            self.x = self._state(change[restarts[-1]:])
+            self.restarts = [r for r in self.restarts if r >= self.n + size]
+        else:
+            if size not in self.powers:
+                self.powers[size] = np.linalg.matrix_power(self.dynamics.A, size)
+            self.x = self.powers[size] @ self.x + self._state(change)
+        self.n += size
+
+
 class AxisGuard:
     """One axis over a whole program: ``push(planned, compensated, moving, follows)`` with the
     next samples gives the written samples decided so far, ``finish()`` the rest. ``moving``:
@@ -109,18 +167,14 @@ class AxisGuard:
         self.horizon = longest * self.unit + self.ramp + tail
         self.reach = longest * self.unit + self.ramp + self.history  # compensated samples a decision needs
         self.up = _smoothstep(np.arange(1, self.ramp + 1) / (self.ramp + 1.0))
-        self.free = _krylov(dynamics.A.T, dynamics.C, self.horizon)  # rows C A^k: the response to a state
-        self.inputs = _krylov(dynamics.A, dynamics.B, self.reach)[::-1].T  # columns A^(L-1-i) B: state after L inputs
-        self.powers = {}  # A^L
+        self.model = _ChangeModel(dynamics, self.horizon, self.reach)
         # From sample n on: planned, compensated, the planned's modelled error, counted by the report.
         self.planned = self.command = self.error = np.empty(0)
         self.counted = np.empty(0, bool)
-        self.restarts: list[int] = []  # samples from n on where the model starts from rest again
         self.response = None
         self.since_motion = self.settle + 1  # samples since the last in motion
         self.n = 0
         self.end = None  # samples in the program, once finished
-        self.x = np.zeros(dynamics.n_states)  # state of the response to written - planned, at n
         self.weights = np.empty(0)  # w of the safe plan from n on (0 after)
         self.level = 0.0  # w at n - 1
         self.written_before = self.planned_before = self.command_before = None  # the last ``history`` samples before n
@@ -144,7 +198,7 @@ class AxisGuard:
         last = self.planned[-1] if self.planned.size else self.planned_before[-1]
         if self.response is None or (not follows and planned_mm[0] != last):
             self.response = self.dynamics.response(planned_mm[0])
-            self.restarts.append(self.n + len(self.planned))
+            self.model.restarts.append(self.n + len(self.planned))
         if moving:
             self.since_motion, counted = 0, np.ones(planned_mm.size, bool)
         else:
@@ -177,35 +231,6 @@ class AxisGuard:
         self.emitted += len(out)
         return out
 
-    def _moved(self, x: np.ndarray | None, change: np.ndarray, n: int) -> np.ndarray:
-        """The first n samples of the response to state x at n (None: zero) and input ``change``
-        (zero after it), from rest again at every restart."""
-        cuts = [r - self.n for r in self.restarts if r - self.n < n]
-        if not cuts:
-            out = self._forced(change, n)
-            return out if x is None else out + self.free[:n] @ x
-        out = np.empty(n)
-        for a, b in zip([0, *cuts], [*cuts, n]):
-            out[a:b] = self._forced(change[a:b], b - a)
-        if x is not None and cuts[0] > 0:
-            out[:cuts[0]] += self.free[:cuts[0]] @ x
-        return out
-
-    def _forced(self, v: np.ndarray, n: int) -> np.ndarray:
-        """The first n samples of the response to ``v`` from the zero state."""
-        if not len(v):
-            return np.zeros(n)
-        if n <= len(v):
-            return self.dynamics.filter(v[:n])
-        out = np.empty(n)
-        out[:len(v)] = self.dynamics.filter(v)
-        out[len(v):] = self.free[:n - len(v)] @ self._state(v)
-        return out
-
-    def _state(self, v: np.ndarray) -> np.ndarray:
-        """The state after input ``v`` from the zero state."""
-        return self.inputs[:, -len(v):] @ v
-
     def _check(self) -> int:
         """The next safe plan: compensated, at the highest level up to 1 that does no harm, for
         as many units as it does none; or the safe plan as it was. The samples it decides."""
@@ -219,9 +244,11 @@ class AxisGuard:
         windows, peaks = (counted, np.ones(horizon, bool)), self._recent_peaks()
         if counted.all():  # one window: the counted samples' recent peak is the stricter
             windows, peaks = windows[1:], peaks[:1]
-        planned_error = self.error[:horizon] - self._moved(self.x, np.empty(0), horizon)  # the original from n on
-        safe_error = planned_error - self._moved(None, self.weights * difference[:len(self.weights)], horizon)
-        allowed = [max(peak, np.abs(self.error[:horizon][w]).max(initial=0.0)) for w, peak in zip(windows, peaks)]
+        planned_error = self.error[:horizon] - self.model.moved(np.empty(0), horizon)  # the original from n on
+        safe_error = planned_error - self.model.moved(self.weights * difference[:len(self.weights)], horizon, False)
+        allowed = [
+            max(peak, np.abs(self.error[:horizon][w]).max(initial=0.0)) for w, peak in zip(windows, peaks, strict=True)
+        ]
         budget = [safe_error[w] @ safe_error[w] for w in windows]
         # A change of level steps the command unless the compensated command is the planned one
         # just before n (at rest): blend from the level before to the new one.
@@ -234,12 +261,12 @@ class AxisGuard:
             if blend:
                 scaled[:ramp] = self.up
                 if self.level:
-                    base = base - self._moved(None, self.level * self.up[::-1] * difference[:ramp], horizon)
+                    base = base - self.model.moved(self.level * self.up[::-1] * difference[:ramp], horizon, False)
             # its largest error is judged where it writes (the blend down after it is written only if
             # no later decision extends it; judged there, a blend that would do harm at a sharp
             # corner ahead makes the guard blend down now, which does the same harm earlier)
             written = np.arange(horizon) < h * unit
-            level, short_of = _highest_level(base, self._moved(None, scaled * difference[:len(scaled)], horizon),
+            level, short_of = _highest_level(base, self.model.moved(scaled * difference[:len(scaled)], horizon, False),
                                              windows, [w & written for w in windows], allowed, budget)
             if level is not None and best is not None and level <= best[0]:
                 continue
@@ -302,15 +329,8 @@ class AxisGuard:
         written = np.where(w == 1.0, command, np.where(w == 0.0, planned, planned + w * (command - planned)))
         change = written - planned
         self.before.add(error[counted])
-        self.after.add((error - self._moved(self.x, change, size))[counted])
-        restarts = [r - self.n for r in self.restarts if r - self.n < size]
-        if restarts:  # nothing before the last restart matters after it
-            self.x = self._state(change[restarts[-1]:])
-            self.restarts = [r for r in self.restarts if r >= self.n + size]
-        else:
-            if size not in self.powers:
-                self.powers[size] = np.linalg.matrix_power(self.dynamics.A, size)
-            self.x = self.powers[size] @ self.x + self._state(change)
+        self.after.add((error - self.model.moved(change, size))[counted])
+        self.model.advance(change)
         self.recent.append((self.n + size, *(np.abs(error[w]).max(initial=0.0) for w in (counted, slice(None)))))
         while self.recent[0][0] <= self.n + size - self.recent_samples:
             self.recent.popleft()
@@ -351,16 +371,16 @@ def _highest_level(base: np.ndarray, response: np.ndarray, windows, peak_windows
     one of ``windows`` (boolean masks; None if there is none), and what a = 1 breaks. The bounds
     on a are found ``margin`` (relative) inside, so that rounding keeps it within."""
     def breaks(error):
-        return ({WORSE for w, b in zip(windows, budget)
+        return ({WORSE for w, b in zip(windows, budget, strict=True)
                  if error[w] @ error[w] > b * (1.0 + _TIE) + _TIE_MM**2 * np.count_nonzero(w)}
-                | {LARGEST for w, peak in zip(peak_windows, allowed)
+                | {LARGEST for w, peak in zip(peak_windows, allowed, strict=True)
                    if np.abs(error[w]).max(initial=0.0) > peak * (1.0 + _TIE) + _TIE_MM})
 
     failed = breaks(base - response)
     if not failed:
         return 1.0, failed
     low, high = 0.0, 1.0
-    for w, peak, b, pw in zip(windows, allowed, budget, peak_windows):
+    for w, peak, b, pw in zip(windows, allowed, budget, peak_windows, strict=True):
         e, r = base[pw], response[pw]
         peak *= 1.0 - margin
         flat = r == 0.0  # |e - a r| <= peak, sample by sample

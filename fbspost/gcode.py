@@ -19,7 +19,8 @@ the first 2000 and last 300 lines. How lines are read:
 - Positions are machine coordinates: program = machine - ``Modal.offsets_mm`` (G92 moves the
   offsets, not the machine). XYZ are unknown (NaN) at the start and after probing, macros and
   unknown commands; a G28 leaves the axes it homes at the machine's home position (``home_mm``;
-  in LinuxCNC, whose G28 goes to a position stored outside the file, they are unknown); E starts known at 0 and is lost only where an unknown command
+  in LinuxCNC, whose G28 goes to a position stored outside the file, they are unknown); E starts
+  known at 0 and is lost only where an unknown command
   may have changed it while E is absolute. A G92 on an unknown axis makes it known; selecting
   another work coordinate system (G54..G59.3, offsets not in the file) makes XYZ unknown. A move
   is a MOVE when the start of every axis it moves (its axis words, and both axes of an arc's
@@ -118,7 +119,8 @@ class Kind(enum.Enum):
 class PlannerLimits:
     """Planner settings changed by one line; ``None`` (or a missing axis) means unchanged."""
 
-    acceleration_mm_s2: float | None = None  # M204 S/P, Klipper ACCEL: moves that extrude (all moves if no travel value)
+    # M204 S/P, Klipper ACCEL: moves that extrude (all moves if no travel value)
+    acceleration_mm_s2: float | None = None
     travel_acceleration_mm_s2: float | None = None  # M204 T (Marlin, RRF): moves that do not extrude
     max_velocity_mm_s: float | None = None  # Klipper VELOCITY
     square_corner_velocity_mm_s: float | None = None  # Klipper SQUARE_CORNER_VELOCITY
@@ -147,11 +149,13 @@ class Block:
     kind: Kind
     modal: Modal  # after this line
     position_mm: np.ndarray  # (len(AXES),) machine position after this line; NaN where unknown
-    points_mm: np.ndarray | None = None  # MOVE: (k, len(AXES)) machine-coordinate end points of its k >= 1 linear pieces
+    # MOVE: (k, len(AXES)) machine-coordinate end points of its k >= 1 linear pieces
+    points_mm: np.ndarray | None = None
     feed_mm_s: float | None = None  # MOVE: requested feed along the path; math.inf for a rapid (G0)
     dwell_s: float = 0.0  # STOP: time at rest (G4)
     limits: PlannerLimits | None = None  # planner changes made by this line
-    sets_position: tuple[int, ...] = ()  # axes (indices into AXES) whose program position this line sets where the machine is (G92)
+    # axes (indices into AXES) whose program position this line sets where the machine is (G92)
+    sets_position: tuple[int, ...] = ()
 
 
 # ----------------------------------------------------------------------------------------------
@@ -259,103 +263,27 @@ def _blocks(path: str | Path, flavor: str, home_mm) -> Iterator[Block]:
             raise reader.error(first, "G5.2 without G5.3 (the NURBS is never ended)")
 
 
-class _Reader:
-    """The interpreter's state between lines and the interpretation of one line."""
+@dataclass
+class _Effects:
+    """What a line's commands do, gathered in LinuxCNC's order of execution before its motion."""
 
-    def __init__(self, path: str | Path, flavor: str, home_mm=(0.0, 0.0, 0.0)):
-        self.path = path
-        self.home_mm = [float(v) for v in home_mm]
-        self.flavor = flavor
-        self.cnc = flavor == "linuxcnc"
-        # machine position: XYZ (and LinuxCNC's other axes) unknown, E at 0 (the printers' other axes never move)
-        self.pos = [_NAN, _NAN, _NAN, 0.0] + [_NAN if self.cnc else 0.0] * len(_EXTRA)
-        self.off = [0.0] * len(AXES)  # program = machine - off (G92)
-        self.frame = (0, 1, 2, *_EXTRA) if self.cnc else (0, 1, 2)  # the axes an unknown frame or command loses
-        self.saved_off = None  # G92.2 keeps the offsets here for G92.3
-        self.abs_xyz = True
-        self.abs_e = True  # as given by M82/M83 (and G90/G91 in Marlin)
-        self.inches = False
-        self.modal = Modal()
-        self.eabs = True  # E words are absolute (the effect of G90/G91 and M82/M83 in this flavor)
-        self.motion = None  # last motion mode: 0 1 2 3 5
-        self.feed = None  # mm/s
-        self.plane = 17  # G17 / G18 / G19 (see _PLANES)
-        self.abs_ijk = False  # G90.1
-        self.wcs = 54.0
-        self.tool_length = False  # G43 active (LinuxCNC)
-        self.last_bezier_pq = None  # (P, Q) of the previous G5, mm
-        self.spline = None  # an open G5.2 or G6.2 NURBS: its lines are held until its end
+    kind: Kind = Kind.PASS
+    dwell: float = 0.0
+    limits: PlannerLimits | None = None
+    unknown: bool = False  # an unknown command: XYZ (and absolute E) unknown afterwards
+    modal_changed: bool = False
+    motion: float | None = None
+    axis_words_used: bool = False  # a non-motion command took the axis words
+    sets_position: tuple[int, ...] = ()
 
-    def fast_move(self, n, raw, g, f1, x, y, z, e, f2) -> Block | None:
-        """G0/G1 matched by _FAST_G01: the same as move(), or None to take the general path."""
-        if f1 is not None:
-            if f2 is not None:
-                return None
-            f2 = f1
-        scale = _INCH if self.inches else 1.0
-        if f2 is not None:
-            feed = float(f2)
-            if feed <= 0.0:
-                raise self.error(n, f"feed F{f2.decode()} must be positive")
-            self.feed = feed * scale / 60.0
-        motion = 1 if g == b"1" else 0
-        self.motion = motion
-        start = self.pos
-        target = start[:]
-        off = self.off
-        if self.abs_xyz:
-            if x is not None:
-                target[0] = float(x) * scale + off[0]
-            if y is not None:
-                target[1] = float(y) * scale + off[1]
-            if z is not None:
-                target[2] = float(z) * scale + off[2]
-        else:
-            if x is not None:
-                target[0] += float(x) * scale
-            if y is not None:
-                target[1] += float(y) * scale
-            if z is not None:
-                target[2] += float(z) * scale
-        if e is not None:
-            if self.cnc:
-                return None
-            target[3] = float(e) * scale + off[3] if self.eabs else target[3] + float(e) * scale
-        elif x is None and y is None and z is None:
-            return Block(n, raw, Kind.PASS, self.modal, np.array(start))
-        self.pos = target
-        feed = math.inf if (motion == 0 and self.cnc) else self.feed
-        if feed is None or ((x is not None and start[0] != start[0]) or (y is not None and start[1] != start[1])
-                            or (z is not None and start[2] != start[2]) or (e is not None and start[3] != start[3])):
-            return Block(n, raw, Kind.STOP, self.modal, np.array(target))  # from an unknown start
-        if target == start:  # (unnamed axes hold the very same float objects, NaN included)
-            return Block(n, raw, Kind.PASS, self.modal, np.array(target))
-        both = np.array((target, target))  # one allocation: row 0 the position, row 1 the piece
-        return Block(n, raw, Kind.MOVE, self.modal, both[0], both[1:], feed)
 
-    # -- helpers -------------------------------------------------------------------------------
+class _Words:
+    """The reader's words and values: a line's text to its commands and words (comments,
+    line numbers, checksums, O-words, extended commands taken apart), numbers read or refused
+    with the line's one-line error. Part of ``_Reader``, whose state it reads."""
 
     def error(self, line_no: int, message: str) -> InputError:
         return InputError(self.path, line_no, message)
-
-    def e_absolute(self) -> bool:
-        if self.flavor == "klipper":  # Klipper: E is relative under G91 or M83
-            return self.abs_e and self.abs_xyz
-        return self.abs_e
-
-    def new_modal(self) -> None:
-        self.eabs = self.e_absolute()
-        self.modal = Modal(self.abs_xyz, self.eabs, self.inches, tuple(self.off), self.plane)
-
-    def block(self, n, raw, kind, **kw) -> Block:
-        return Block(n, raw, kind, self.modal, np.array(self.pos), **kw)
-
-    def forget(self, axes, e_too: bool = False) -> None:
-        """The machine position of ``axes`` (indices) is unknown after this line."""
-        for i in axes:
-            self.pos[i] = _NAN
-        if e_too and self.eabs and not self.cnc:  # LinuxCNC has no E: it stays at 0
-            self.pos[3] = _NAN
 
     def number(self, n: int, letter: str, text: str | None) -> float:
         """A word's value as a finite number, or an InputError naming the word."""
@@ -368,8 +296,6 @@ class _Reader:
         if not -1e300 < value < 1e300:
             raise self.error(n, f"{letter}{text} is not a finite number")
         return value
-
-    # -- one line ------------------------------------------------------------------------------
 
     def line(self, n: int, raw: bytes) -> Block | list[Block] | None:
         """The line's block; inside a G5.2 NURBS None (held), and at its G5.3 every held line's block."""
@@ -438,7 +364,12 @@ class _Reader:
                 self.forget(self.frame, e_too=True)
                 return self.block(n, raw, Kind.STOP)
 
-        # words
+        return self.execute(n, raw, *self._words(n, code))
+
+    def _words(self, n: int, code: str) -> tuple:
+        """The words of ``code``: (G numbers, M numbers, T value, {letter: value}, letters given
+        twice (None: none), what could not be read (None: nothing)). LinuxCNC takes several
+        commands on a line; the printers' firmwares one, the rest its parameters."""
         gcodes = []
         mcodes = []
         tool = None
@@ -477,7 +408,7 @@ class _Reader:
             junk = f"cannot read {code!r}: unexpected {junk!r}"
             if multi:
                 raise self.error(n, junk + " (expressions and parameters are not supported)")
-        return self.execute(n, raw, gcodes, mcodes, tool, params, dups, junk)
+        return gcodes, mcodes, tool, params, dups, junk
 
     def oword(self, n, raw, code) -> Block:
         m = _OWORD.match(code)
@@ -489,6 +420,12 @@ class _Reader:
                 raise NeedsInterpreter(self.path, n, "O-words", f"{message}: {_EXPAND_HINT}")
             raise self.error(n, message)
         return self.block(n, raw, Kind.PASS)
+
+
+class _Commands:
+    """The reader's commands that set limits or the position, and the flavors' own commands:
+    Klipper's extended commands and macros, M201/M203/M204/M205/M566 per flavor, G4, G92.
+    Part of ``_Reader``, whose state they change."""
 
     def extended(self, n, raw, code) -> Block:
         """Klipper extended commands and macros, RRF meta commands: a name, then NAME=VALUE."""
@@ -522,232 +459,6 @@ class _Reader:
         # a macro or an unknown command: it may move anything
         self.forget(self.frame, e_too=True)
         return self.block(n, raw, Kind.STOP)
-
-    # -- a line of words -------------------------------------------------------------------------
-
-    def execute(self, n, raw, gcodes, mcodes, tool, params, dups, junk) -> Block:
-        kind = Kind.PASS
-        dwell = 0.0
-        limits = None
-        unknown = False  # an unknown command: XYZ (and absolute E) unknown afterwards
-        modal_changed = False
-        motion = None
-        axis_words_used = False  # a non-motion command took the axis words
-        flavor = self.flavor
-
-        # G codes, in LinuxCNC's order of execution: modal settings, then the others, then motion
-        others = []
-        for g in gcodes:
-            m = _MOTION.get(g)
-            if m is not None:
-                if motion is not None:
-                    raise self.error(n, "two motion commands on one line")
-                motion = m
-            elif g == 90.0 or g == 91.0:
-                self.abs_xyz = g == 90.0
-                if flavor == "marlin":
-                    self.abs_e = self.abs_xyz
-                modal_changed = True
-            elif g == 20.0 or g == 21.0:
-                self.inches = g == 20.0
-                modal_changed = True
-            elif g in _PLANES:
-                self.plane = int(g)
-                modal_changed = True
-            elif g == 90.1 or g == 91.1:
-                self.abs_ijk = g == 90.1
-            elif g in _UNSUPPORTED_G or (self.cnc and g in _LINUXCNC_INTERPRETED_G):
-                if self.cnc:
-                    what = _UNSUPPORTED_G.get(g) or _LINUXCNC_INTERPRETED_G[g]
-                    raise NeedsInterpreter(self.path, n, what, f"{what} is not supported: {_EXPAND_HINT}")
-                raise self.error(n, f"{_UNSUPPORTED_G[g]} is not supported")
-            elif g in _NURBS_G or (self.cnc and 5.0 < g < 7.0):
-                if self.cnc and g in _NURBS_G:
-                    if motion is not None:
-                        raise self.error(n, "two motion commands on one line")
-                    motion = g
-                else:
-                    raise self.error(n, f"G{g:g} is not supported (a motion fbspost does not know)")
-            elif g in _WCS:
-                if g != self.wcs:  # another work coordinate system: offsets we do not know
-                    self.wcs = g
-                    unknown = True
-            elif self.cnc and g in _LINUXCNC_PASS_G:
-                if g == 49.0 and self.tool_length:
-                    self.tool_length = False
-                    self.forget((2,))
-                    kind = Kind.STOP
-            else:
-                others.append(g)
-        scale = _INCH if self.inches else 1.0
-
-        for m in mcodes:
-            if m == 82.0 or m == 83.0:
-                self.abs_e = m == 82.0
-                modal_changed = True
-            elif self.cnc and 70.0 <= m <= 73.0:
-                raise NeedsInterpreter(self.path, n, f"modal state save and restore (M{m:g})",
-                                       f"modal state save and restore (M{m:g}) is not supported: {_EXPAND_HINT}")
-            elif self.cnc and (m in _LINUXCNC_PASS_M or m == 66.0):
-                axis_words_used |= m in _IO_M  # M66 E0 L3: the input's number, not an extruder
-                if m == 66.0:
-                    kind = Kind.STOP  # waits for an input
-            elif m in _PASS_M or 862.0 <= m < 863.0:
-                pass
-            elif m in _LIMIT_M:
-                if junk is not None:
-                    raise self.error(n, junk)
-                limits = self.limits(n, m, params, scale)
-                if limits is False:
-                    unknown = True
-                    limits = None
-            elif m in _STOP_M:
-                kind = Kind.STOP
-            else:  # M98 (RRF macro call) and every unknown M code
-                unknown = True
-        if tool is not None:
-            kind = Kind.STOP
-
-        if motion is not None:  # name a bad axis word before anything else on the line
-            for a in AXES:
-                if a in params:
-                    self.number(n, a, params[a])
-
-        # feed
-        f = params.get("F")
-        if f is not None and (self.cnc or motion is not None or not (gcodes or mcodes or tool is not None)):
-            feed = self.number(n, "F", f)
-            if feed <= 0.0:
-                raise self.error(n, f"feed F{f} must be positive")
-            self.feed = feed * scale / 60.0
-
-        sets_position = ()
-        for g in others:
-            if g == 4.0:
-                kind = Kind.STOP
-                dwell = self.dwell(n, params, junk)
-            elif g == 92.0:
-                axis_words_used = True
-                sets_position = self.g92(n, params, dups, junk, scale)
-                modal_changed |= bool(sets_position)
-            elif g == 92.1 or (self.cnc and g == 92.2):
-                if g == 92.2:
-                    self.saved_off = self.off[:]
-                else:
-                    self.saved_off = None
-                for i in self.frame:
-                    self.off[i] = 0.0
-                modal_changed = True
-            elif g == 92.3 and self.cnc:
-                if self.saved_off is not None:
-                    self.off = self.saved_off
-                    self.saved_off = None
-                    modal_changed = True
-            elif g == 28.0:
-                axis_words_used = True
-                named = [i for i in self.frame if AXES[i] in params] or self.frame
-                if self.cnc:  # LinuxCNC: to the position stored in #5161.., not in the file
-                    self.forget(named)
-                else:  # homing: the homed axes are at the machine's home position
-                    for i in named:
-                        self.pos[i] = self.home_mm[i]
-                kind = Kind.STOP
-            elif g == 29.0 or g == 30.0 or 38.0 <= g < 39.0:
-                axis_words_used = True
-                self.forget(self.frame)
-                kind = Kind.STOP
-            elif g == 10.0 or g == 11.0:
-                axis_words_used = True
-                kind = Kind.STOP
-                if self.cnc or "L" in params or any(a in params for a in "XYZ"):
-                    unknown = True  # coordinate system or tool offsets
-            elif self.cnc and 43.0 <= g < 44.0:
-                self.tool_length = True
-                axis_words_used = True
-                unknown = True
-            else:  # G53, G60/G61 (Marlin), G80 (Prusa mesh levelling), ... and unknown G codes
-                axis_words_used = True
-                unknown = True
-
-        if modal_changed:
-            self.new_modal()
-
-        # motion: an explicit G0-G5, or axis words continuing the last motion mode
-        if motion is None and not axis_words_used and (self.cnc or not (gcodes or mcodes or tool is not None)):
-            if ("X" in params or "Y" in params or "Z" in params or "E" in params
-                    or (self.cnc and any(a in params for a in _OTHER_AXES))):
-                motion = self.motion
-                if motion is None:
-                    raise self.error(n, "axis words without a motion command (G0/G1/G2/G3/G5)")
-        if self.spline is not None or motion in _NURBS_G:
-            if unknown or kind is not Kind.PASS or limits is not None or modal_changed or axis_words_used:
-                raise self.error(n, "inside a NURBS only control points (X Y P) and G5.3 are allowed")
-            if self.spline is not None and self.spline.knots is not None and motion is None:
-                motion = 6.2  # a G6.2 line of a knot alone
-            self.motion = None if motion == 5.3 else motion
-            return self.spline_line(n, raw, motion, params, dups, junk, scale)
-        if motion is not None and not unknown:
-            self.motion = motion
-            block = self.move(n, raw, motion, params, dups, junk, scale, kind is Kind.STOP)
-            if kind is Kind.STOP and block.kind is not Kind.STOP:
-                block.kind = Kind.STOP
-                block.points_mm = None
-                block.feed_mm_s = None
-            block.dwell_s = dwell
-            block.limits = limits
-            return block
-
-        if unknown:  # with a motion too ("G53 G0 Z0"): it moves in a frame fbspost does not know
-            if motion is not None:
-                self.motion = motion
-            self.forget(self.frame, e_too=True)
-            kind = Kind.STOP
-        return self.block(n, raw, kind, dwell_s=dwell, limits=limits, sets_position=sets_position)
-
-    # -- commands -------------------------------------------------------------------------------
-
-    def dwell(self, n, params, junk) -> float:
-        if junk is not None:
-            raise self.error(n, junk)
-        s = params.get("S")
-        p = params.get("P")
-        if self.cnc:
-            seconds = self.number(n, "P", p) if p is not None else 0.0
-        elif s is not None:
-            seconds = self.number(n, "S", s)
-        elif p is not None:
-            seconds = self.number(n, "P", p) / 1000.0
-        else:
-            seconds = 0.0
-        if seconds < 0.0:
-            raise self.error(n, "dwell time must not be negative")
-        return seconds
-
-    def g92(self, n, params, dups, junk, scale) -> tuple[int, ...]:
-        """Sets the program position of the axes named (indices into AXES, which it gives)."""
-        if junk is not None:
-            raise self.error(n, junk)
-        if dups and dups & set("XYZE"):
-            raise self.error(n, f"{''.join(sorted(dups))} given twice")
-        values = {}
-        for i in (*self.frame, _E):
-            v = params.get(AXES[i])
-            if v is not None:  # E follows G20/G21 too (Marlin)
-                values[i] = self.number(n, AXES[i], v) * (1.0 if i in _DEGREES else scale)
-        if not values:
-            if self.flavor == "klipper":  # Klipper: G92 alone zeroes all axes
-                values = {0: 0.0, 1: 0.0, 2: 0.0, 3: 0.0}
-            elif self.cnc:
-                raise self.error(n, "G92 needs at least one axis word")
-            else:  # Marlin, RRF: nothing to set
-                return ()
-        pos, off = self.pos, self.off
-        for i, v in values.items():
-            if pos[i] != pos[i]:  # unknown machine position: it is now known in this frame
-                pos[i] = v + off[i]
-            else:
-                off[i] = pos[i] - v
-        return tuple(values)
 
     def limits(self, n, m, params, scale):
         """PlannerLimits of M201/M203/M204/M205/M566, None if nothing is set, False if unknown."""
@@ -792,7 +503,101 @@ class _Reader:
         jerks = [x for a in "XY" if (x := value(a, scale / 60.0, zero_ok=True)) is not None]
         return PlannerLimits(square_corner_velocity_mm_s=min(jerks)) if jerks else None
 
-    # -- motion ---------------------------------------------------------------------------------
+    def dwell(self, n, params, junk) -> float:
+        if junk is not None:
+            raise self.error(n, junk)
+        s = params.get("S")
+        p = params.get("P")
+        if self.cnc:
+            seconds = self.number(n, "P", p) if p is not None else 0.0
+        elif s is not None:
+            seconds = self.number(n, "S", s)
+        elif p is not None:
+            seconds = self.number(n, "P", p) / 1000.0
+        else:
+            seconds = 0.0
+        if seconds < 0.0:
+            raise self.error(n, "dwell time must not be negative")
+        return seconds
+
+    def g92(self, n, params, dups, junk, scale) -> tuple[int, ...]:
+        """Sets the program position of the axes named (indices into AXES, which it gives)."""
+        if junk is not None:
+            raise self.error(n, junk)
+        if dups and dups & set("XYZE"):
+            raise self.error(n, f"{''.join(sorted(dups))} given twice")
+        values = {}
+        for i in (*self.frame, _E):
+            v = params.get(AXES[i])
+            if v is not None:  # E follows G20/G21 too (Marlin)
+                values[i] = self.number(n, AXES[i], v) * (1.0 if i in _DEGREES else scale)
+        if not values:
+            if self.flavor == "klipper":  # Klipper: G92 alone zeroes all axes
+                values = {0: 0.0, 1: 0.0, 2: 0.0, 3: 0.0}
+            elif self.cnc:
+                raise self.error(n, "G92 needs at least one axis word")
+            else:  # Marlin, RRF: nothing to set
+                return ()
+        pos, off = self.pos, self.off
+        for i, v in values.items():
+            if pos[i] != pos[i]:  # unknown machine position: it is now known in this frame
+                pos[i] = v + off[i]
+            else:
+                off[i] = pos[i] - v
+        return tuple(values)
+
+
+class _Motion:
+    """The reader's motion: G0/G1 (``fast_move`` for the common line), G2/G3 arcs and G5
+    cubic Beziers cut into linear pieces within the chord tolerance, in machine mm. Part of
+    ``_Reader``, whose position and modes they use."""
+
+    def fast_move(self, n, raw, g, f1, x, y, z, e, f2) -> Block | None:
+        """G0/G1 matched by _FAST_G01: the same as move(), or None to take the general path."""
+        if f1 is not None:
+            if f2 is not None:
+                return None
+            f2 = f1
+        scale = _INCH if self.inches else 1.0
+        if f2 is not None:
+            feed = float(f2)
+            if feed <= 0.0:
+                raise self.error(n, f"feed F{f2.decode()} must be positive")
+            self.feed = feed * scale / 60.0
+        motion = 1 if g == b"1" else 0
+        self.motion = motion
+        start = self.pos
+        target = start[:]
+        off = self.off
+        if self.abs_xyz:
+            if x is not None:
+                target[0] = float(x) * scale + off[0]
+            if y is not None:
+                target[1] = float(y) * scale + off[1]
+            if z is not None:
+                target[2] = float(z) * scale + off[2]
+        else:
+            if x is not None:
+                target[0] += float(x) * scale
+            if y is not None:
+                target[1] += float(y) * scale
+            if z is not None:
+                target[2] += float(z) * scale
+        if e is not None:
+            if self.cnc:
+                return None
+            target[3] = float(e) * scale + off[3] if self.eabs else target[3] + float(e) * scale
+        elif x is None and y is None and z is None:
+            return Block(n, raw, Kind.PASS, self.modal, np.array(start))
+        self.pos = target
+        feed = math.inf if (motion == 0 and self.cnc) else self.feed
+        if feed is None or ((x is not None and start[0] != start[0]) or (y is not None and start[1] != start[1])
+                            or (z is not None and start[2] != start[2]) or (e is not None and start[3] != start[3])):
+            return Block(n, raw, Kind.STOP, self.modal, np.array(target))  # from an unknown start
+        if target == start:  # (unnamed axes hold the very same float objects, NaN included)
+            return Block(n, raw, Kind.PASS, self.modal, np.array(target))
+        both = np.array((target, target))  # one allocation: row 0 the position, row 1 the piece
+        return Block(n, raw, Kind.MOVE, self.modal, both[0], both[1:], feed)
 
     def move(self, n, raw, motion, params, dups, junk, scale, stop) -> Block:
         for a in AXES:
@@ -983,7 +788,10 @@ class _Reader:
             return None
         return points
 
-    # -- LinuxCNC splines (G5.1, G5.2 ... G5.3) -------------------------------------------------
+
+class _Splines:
+    """The reader's LinuxCNC splines: G5.1, G5.2 ... G5.3 and G6.2 NURBS lines, held as a
+    ``_Spline`` until its end. Part of ``_Reader``."""
 
     def spline_line(self, n, raw, motion, params, dups, junk, scale):
         """A G5.1 (its block), or a G5.2 or G6.2 NURBS line: held (None) until the NURBS' end
@@ -1068,6 +876,242 @@ class _Reader:
         if len(spline.knots) == len(spline.points) + spline.order:
             return spline.end(self)
         return None
+
+
+class _Reader(_Words, _Commands, _Motion, _Splines):
+    """The interpreter's state between lines and the interpretation of one line."""
+
+    def __init__(self, path: str | Path, flavor: str, home_mm=(0.0, 0.0, 0.0)):
+        self.path = path
+        self.home_mm = [float(v) for v in home_mm]
+        self.flavor = flavor
+        self.cnc = flavor == "linuxcnc"
+        # machine position: XYZ (and LinuxCNC's other axes) unknown, E at 0 (the printers' other axes never move)
+        self.pos = [_NAN, _NAN, _NAN, 0.0] + [_NAN if self.cnc else 0.0] * len(_EXTRA)
+        self.off = [0.0] * len(AXES)  # program = machine - off (G92)
+        self.frame = (0, 1, 2, *_EXTRA) if self.cnc else (0, 1, 2)  # the axes an unknown frame or command loses
+        self.saved_off = None  # G92.2 keeps the offsets here for G92.3
+        self.abs_xyz = True
+        self.abs_e = True  # as given by M82/M83 (and G90/G91 in Marlin)
+        self.inches = False
+        self.modal = Modal()
+        self.eabs = True  # E words are absolute (the effect of G90/G91 and M82/M83 in this flavor)
+        self.motion = None  # last motion mode: 0 1 2 3 5
+        self.feed = None  # mm/s
+        self.plane = 17  # G17 / G18 / G19 (see _PLANES)
+        self.abs_ijk = False  # G90.1
+        self.wcs = 54.0
+        self.tool_length = False  # G43 active (LinuxCNC)
+        self.last_bezier_pq = None  # (P, Q) of the previous G5, mm
+        self.spline = None  # an open G5.2 or G6.2 NURBS: its lines are held until its end
+
+    def e_absolute(self) -> bool:
+        if self.flavor == "klipper":  # Klipper: E is relative under G91 or M83
+            return self.abs_e and self.abs_xyz
+        return self.abs_e
+
+    def new_modal(self) -> None:
+        self.eabs = self.e_absolute()
+        self.modal = Modal(self.abs_xyz, self.eabs, self.inches, tuple(self.off), self.plane)
+
+    def block(self, n, raw, kind, **kw) -> Block:
+        return Block(n, raw, kind, self.modal, np.array(self.pos), **kw)
+
+    def forget(self, axes, e_too: bool = False) -> None:
+        """The machine position of ``axes`` (indices) is unknown after this line."""
+        for i in axes:
+            self.pos[i] = _NAN
+        if e_too and self.eabs and not self.cnc:  # LinuxCNC has no E: it stays at 0
+            self.pos[3] = _NAN
+
+    def execute(self, n, raw, gcodes, mcodes, tool, params, dups, junk) -> Block:
+        """The block of a line of words, its commands in LinuxCNC's order of execution: modal
+        settings, then the others, then motion."""
+        fx = _Effects()
+        others = self._modal_gcodes(n, gcodes, fx)
+        scale = _INCH if self.inches else 1.0
+        self._mcodes(n, mcodes, params, junk, scale, fx)
+        if tool is not None:
+            fx.kind = Kind.STOP
+
+        if fx.motion is not None:  # name a bad axis word before anything else on the line
+            for a in AXES:
+                if a in params:
+                    self.number(n, a, params[a])
+
+        # feed
+        f = params.get("F")
+        if f is not None and (self.cnc or fx.motion is not None or not (gcodes or mcodes or tool is not None)):
+            feed = self.number(n, "F", f)
+            if feed <= 0.0:
+                raise self.error(n, f"feed F{f} must be positive")
+            self.feed = feed * scale / 60.0
+
+        for g in others:
+            self._other_gcode(n, g, params, dups, junk, scale, fx)
+        if fx.modal_changed:
+            self.new_modal()
+        return self._executed(n, raw, bool(gcodes or mcodes or tool is not None), params, dups, junk, scale, fx)
+
+    def _modal_gcodes(self, n, gcodes, fx: _Effects) -> list[float]:
+        """The line's motion and modal G codes applied; gives the other G codes, in order."""
+        flavor = self.flavor
+        others = []
+        for g in gcodes:
+            m = _MOTION.get(g)
+            if m is not None:
+                if fx.motion is not None:
+                    raise self.error(n, "two motion commands on one line")
+                fx.motion = m
+            elif g == 90.0 or g == 91.0:
+                self.abs_xyz = g == 90.0
+                if flavor == "marlin":
+                    self.abs_e = self.abs_xyz
+                fx.modal_changed = True
+            elif g == 20.0 or g == 21.0:
+                self.inches = g == 20.0
+                fx.modal_changed = True
+            elif g in _PLANES:
+                self.plane = int(g)
+                fx.modal_changed = True
+            elif g == 90.1 or g == 91.1:
+                self.abs_ijk = g == 90.1
+            elif g in _UNSUPPORTED_G or (self.cnc and g in _LINUXCNC_INTERPRETED_G):
+                if self.cnc:
+                    what = _UNSUPPORTED_G.get(g) or _LINUXCNC_INTERPRETED_G[g]
+                    raise NeedsInterpreter(self.path, n, what, f"{what} is not supported: {_EXPAND_HINT}")
+                raise self.error(n, f"{_UNSUPPORTED_G[g]} is not supported")
+            elif g in _NURBS_G or (self.cnc and 5.0 < g < 7.0):
+                if self.cnc and g in _NURBS_G:
+                    if fx.motion is not None:
+                        raise self.error(n, "two motion commands on one line")
+                    fx.motion = g
+                else:
+                    raise self.error(n, f"G{g:g} is not supported (a motion fbspost does not know)")
+            elif g in _WCS:
+                if g != self.wcs:  # another work coordinate system: offsets we do not know
+                    self.wcs = g
+                    fx.unknown = True
+            elif self.cnc and g in _LINUXCNC_PASS_G:
+                if g == 49.0 and self.tool_length:
+                    self.tool_length = False
+                    self.forget((2,))
+                    fx.kind = Kind.STOP
+            else:
+                others.append(g)
+        return others
+
+    def _mcodes(self, n, mcodes, params, junk, scale, fx: _Effects) -> None:
+        for m in mcodes:
+            if m == 82.0 or m == 83.0:
+                self.abs_e = m == 82.0
+                fx.modal_changed = True
+            elif self.cnc and 70.0 <= m <= 73.0:
+                raise NeedsInterpreter(self.path, n, f"modal state save and restore (M{m:g})",
+                                       f"modal state save and restore (M{m:g}) is not supported: {_EXPAND_HINT}")
+            elif self.cnc and (m in _LINUXCNC_PASS_M or m == 66.0):
+                fx.axis_words_used |= m in _IO_M  # M66 E0 L3: the input's number, not an extruder
+                if m == 66.0:
+                    fx.kind = Kind.STOP  # waits for an input
+            elif m in _PASS_M or 862.0 <= m < 863.0:
+                pass
+            elif m in _LIMIT_M:
+                if junk is not None:
+                    raise self.error(n, junk)
+                fx.limits = self.limits(n, m, params, scale)
+                if fx.limits is False:
+                    fx.unknown = True
+                    fx.limits = None
+            elif m in _STOP_M:
+                fx.kind = Kind.STOP
+            else:  # M98 (RRF macro call) and every unknown M code
+                fx.unknown = True
+
+    def _other_gcode(self, n, g, params, dups, junk, scale, fx: _Effects) -> None:
+        """A G code that is neither motion nor a modal setting: dwell, G92 and its kin, homing,
+        probing, offsets, and the unknown ones."""
+        if g == 4.0:
+            fx.kind = Kind.STOP
+            fx.dwell = self.dwell(n, params, junk)
+        elif g == 92.0:
+            fx.axis_words_used = True
+            fx.sets_position = self.g92(n, params, dups, junk, scale)
+            fx.modal_changed |= bool(fx.sets_position)
+        elif g == 92.1 or (self.cnc and g == 92.2):
+            if g == 92.2:
+                self.saved_off = self.off[:]
+            else:
+                self.saved_off = None
+            for i in self.frame:
+                self.off[i] = 0.0
+            fx.modal_changed = True
+        elif g == 92.3 and self.cnc:
+            if self.saved_off is not None:
+                self.off = self.saved_off
+                self.saved_off = None
+                fx.modal_changed = True
+        elif g == 28.0:
+            fx.axis_words_used = True
+            named = [i for i in self.frame if AXES[i] in params] or self.frame
+            if self.cnc:  # LinuxCNC: to the position stored in #5161.., not in the file
+                self.forget(named)
+            else:  # homing: the homed axes are at the machine's home position
+                for i in named:
+                    self.pos[i] = self.home_mm[i]
+            fx.kind = Kind.STOP
+        elif g == 29.0 or g == 30.0 or 38.0 <= g < 39.0:
+            fx.axis_words_used = True
+            self.forget(self.frame)
+            fx.kind = Kind.STOP
+        elif g == 10.0 or g == 11.0:
+            fx.axis_words_used = True
+            fx.kind = Kind.STOP
+            if self.cnc or "L" in params or any(a in params for a in "XYZ"):
+                fx.unknown = True  # coordinate system or tool offsets
+        elif self.cnc and 43.0 <= g < 44.0:
+            self.tool_length = True
+            fx.axis_words_used = True
+            fx.unknown = True
+        else:  # G53, G60/G61 (Marlin), G80 (Prusa mesh levelling), ... and unknown G codes
+            fx.axis_words_used = True
+            fx.unknown = True
+
+
+    def _executed(self, n, raw, commanded: bool, params, dups, junk, scale, fx: _Effects) -> Block:
+        """The line's motion (an explicit G0-G5, or axis words continuing the last motion mode)
+        or its block without motion; ``commanded``: the line has a G, M or T command."""
+        # motion: an explicit G0-G5, or axis words continuing the last motion mode
+        if fx.motion is None and not fx.axis_words_used and (self.cnc or not commanded):
+            if ("X" in params or "Y" in params or "Z" in params or "E" in params
+                    or (self.cnc and any(a in params for a in _OTHER_AXES))):
+                fx.motion = self.motion
+                if fx.motion is None:
+                    raise self.error(n, "axis words without a motion command (G0/G1/G2/G3/G5)")
+        if self.spline is not None or fx.motion in _NURBS_G:
+            if (fx.unknown or fx.kind is not Kind.PASS or fx.limits is not None or fx.modal_changed
+                    or fx.axis_words_used):
+                raise self.error(n, "inside a NURBS only control points (X Y P) and G5.3 are allowed")
+            if self.spline is not None and self.spline.knots is not None and fx.motion is None:
+                fx.motion = 6.2  # a G6.2 line of a knot alone
+            self.motion = None if fx.motion == 5.3 else fx.motion
+            return self.spline_line(n, raw, fx.motion, params, dups, junk, scale)
+        if fx.motion is not None and not fx.unknown:
+            self.motion = fx.motion
+            block = self.move(n, raw, fx.motion, params, dups, junk, scale, fx.kind is Kind.STOP)
+            if fx.kind is Kind.STOP and block.kind is not Kind.STOP:
+                block.kind = Kind.STOP
+                block.points_mm = None
+                block.feed_mm_s = None
+            block.dwell_s = fx.dwell
+            block.limits = fx.limits
+            return block
+
+        if fx.unknown:  # with a motion too ("G53 G0 Z0"): it moves in a frame fbspost does not know
+            if fx.motion is not None:
+                self.motion = fx.motion
+            self.forget(self.frame, e_too=True)
+            fx.kind = Kind.STOP
+        return self.block(n, raw, fx.kind, dwell_s=fx.dwell, limits=fx.limits, sets_position=fx.sets_position)
 
 
 class _Spline:

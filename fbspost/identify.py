@@ -197,12 +197,20 @@ def _fit_count(s, hn, weights, n, tau0, previous):
         # where the complex residual, averaged over neighbouring frequencies, is largest: noise
         # averages out there, a missing mode does not
         residual = weights * (_model(previous, s, m, fit_delay) - hn)
-        w_new = s.imag[np.argmax(np.abs(ndimage.uniform_filter1d(residual.real, 15) + 1j * ndimage.uniform_filter1d(residual.imag, 15)))]
+        w_new = s.imag[
+            np.argmax(
+                np.abs(ndimage.uniform_filter1d(residual.real, 15) + 1j * ndimage.uniform_filter1d(residual.imag, 15))
+            )
+        ]
         w_prev, zeta_prev = previous[:m], previous[m:2 * m]
         poles = np.append(w_prev * (-zeta_prev + 1j * np.sqrt(1 - zeta_prev**2)), w_new * (-0.01 + 1j))
         starts.append((poles, previous[-1] if fit_delay else None))
-    lower = np.concatenate([np.full(n, s.imag.min()), np.full(n, 1e-5), np.full(2 * n, -np.inf)] + ([[-np.inf]] if fit_delay else []))
-    upper = np.concatenate([np.full(n, s.imag.max()), np.full(n, 0.999), np.full(2 * n, np.inf)] + ([[np.inf]] if fit_delay else []))
+    lower = np.concatenate(
+        [np.full(n, s.imag.min()), np.full(n, 1e-5), np.full(2 * n, -np.inf)] + ([[-np.inf]] if fit_delay else [])
+    )
+    upper = np.concatenate(
+        [np.full(n, s.imag.max()), np.full(n, 0.999), np.full(2 * n, np.inf)] + ([[np.inf]] if fit_delay else [])
+    )
 
     def residual(x):
         r = weights * (_model(x, s, n, fit_delay) - hn)
@@ -317,7 +325,7 @@ def _stable_pairs(roots, n_pairs, band):
     roots = -np.abs(roots.real) + 1j * roots.imag
     upper = list(roots[roots.imag > 1e-9])
     real = np.sort(roots[np.abs(roots.imag) <= 1e-9].real)
-    for r1, r2 in zip(real[::2], real[1::2]):
+    for r1, r2 in zip(real[::2], real[1::2], strict=True):
         w = math.sqrt(r1 * r2)
         zeta = min(0.95, -(r1 + r2) / (2 * w))
         upper.append(w * (-zeta + 1j * math.sqrt(1 - zeta * zeta)))
@@ -393,11 +401,13 @@ def klipper_cfg_modes(path: str | Path) -> dict[str, Mode]:
         saved.append(content if in_section else "")
     values, lines = {}, {}
     for part in ("\n".join(main), "\n".join(saved)):
-        parser = configparser.RawConfigParser(strict=False, inline_comment_prefixes=("#", ";"))
+        parser = configparser.RawConfigParser(strict=True, inline_comment_prefixes=("#", ";"))
         try:
             parser.read_string(part, source=str(path))
         except configparser.Error as exc:
-            raise InputError(path, getattr(exc, "lineno", None), f"not a Klipper config: {exc.message.splitlines()[0]}") from None
+            raise InputError(
+                path, getattr(exc, "lineno", None), f"not a Klipper config: {exc.message.splitlines()[0]}"
+            ) from None
         if parser.has_section("input_shaper"):
             values.update(parser["input_shaper"])
     if not values and not any(line.strip().lower().startswith("[input_shaper]") for line in main + saved):
@@ -537,8 +547,10 @@ def profile_with_axes(base: MachineProfile | None, axes_modes: dict[str, tuple[M
     for axis_name, modes in axes_modes.items():
         old = axes.get(axis_name)
         dc_gain = sum(m.alpha / m.omega_rad_s**2 for m in modes)
-        normalized = tuple(Mode(float(m.frequency_hz), float(m.damping), float(m.alpha / dc_gain), float(m.beta / dc_gain))
-                           for m in modes)
+        normalized = tuple(
+            Mode(float(m.frequency_hz), float(m.damping), float(m.alpha / dc_gain), float(m.beta / dc_gain))
+            for m in modes
+        )
         axes[axis_name] = AxisProfile(
             axis_name,
             pick("max_velocity", old and old.max_velocity_mm_s),

@@ -177,13 +177,19 @@ def _compensate(read_path, input_path, output_path, profile, options, flavor, pr
                     stages, "optimize",
                     exclude=lambda: plan.time_s)
     write_options = WriteOptions(
-        flavor=flavor, output_format=options.output_format, tolerance_mm=options.tolerance_mm,
+        flavor=flavor,
+        output_format=options.output_format,
+        tolerance_mm=options.tolerance_mm,
         min_segment_time_s=options.min_segment_time_s,
-        header=(f"fbspost {__version__}: filtered B-spline compensation for machine profile {profile.name}",
-                f"fbspost settings: format {options.output_format}, tolerance {options.tolerance_mm:g} mm, "
-                f"minimum segment {options.min_segment_time_s * 1e3:g} ms, flavor {flavor}, {options.lookahead} look-ahead"),
-        firmware=FirmwareSettings.from_profile(profile), max_line_rate_hz=profile.firmware.max_line_rate_hz,
-        **_marlin_steps(profile, flavor))
+        header=(
+            f"fbspost {__version__}: filtered B-spline compensation for machine profile {profile.name}",
+            f"fbspost settings: format {options.output_format}, tolerance {options.tolerance_mm:g} mm, "
+            f"minimum segment {options.min_segment_time_s * 1e3:g} ms, flavor {flavor}, {options.lookahead} look-ahead",
+        ),
+        firmware=FirmwareSettings.from_profile(profile),
+        max_line_rate_hz=profile.firmware.max_line_rate_hz,
+        **_marlin_steps(profile, flavor),
+    )
     stats = []
     executed = ExecutedError(compensators, plan.runs)
     clock = time.perf_counter()
@@ -281,7 +287,8 @@ def _compensated(plan: Plan | PlanStream, compensators: dict[int, AxisCompensato
     for planned, command, moving, follows in _optimized(plan, compensators, lanes and lanes.optimizer, tally):
         held = np.concatenate([held, planned])
         clock = time.perf_counter()
-        pushed = _per_axis(fallbacks, lambda c: guards[c].push(planned[:, c], command[:, c], moving, follows), guards)
+        pushed = _per_axis(fallbacks, lambda c, planned=planned, command=command, moving=moving, follows=follows:
+                           guards[c].push(planned[:, c], command[:, c], moving, follows), guards)
         tally.fallback_s += time.perf_counter() - clock
         written = {c: np.concatenate([written[c], pushed[c]]) for c in guards}
         lines.note(min((guard.n for guard in guards.values()), default=np.inf) / plan.sample_rate_hz)
@@ -310,7 +317,7 @@ def _optimized(plan: Plan | PlanStream, compensators: dict[int, AxisCompensator]
     the run while the chunk of the last one is written."""
     r = next_sample = 0
     while True:
-        plan.wait(lambda: len(plan.runs) > r or plan.done)
+        plan.wait(lambda r=r: len(plan.runs) > r or plan.done)
         if len(plan.runs) <= r:
             break
         first = plan.runs[r][0]
@@ -328,10 +335,10 @@ def _optimized(plan: Plan | PlanStream, compensators: dict[int, AxisCompensator]
                 command[:, c] = commands[c][:n]
             return (planned_rows[:n], command), planned_rows[n:], {c: v[n:] for c, v in commands.items()}
 
-        def pieces(a):
+        def pieces(a, r=r):
             """The run's planned samples, a chunk at a time, as the plan settles them."""
             while True:
-                plan.wait(lambda: plan.runs[r][1] is not None or plan.frontier >= a + _CHUNK)
+                plan.wait(lambda a=a: plan.runs[r][1] is not None or plan.frontier >= a + _CHUNK)
                 last = plan.runs[r][1]
                 stop = min(a + _CHUNK, plan.frontier if last is None else last + 1)
                 samples = plan.samples(a, stop)
@@ -355,7 +362,7 @@ def _optimized(plan: Plan | PlanStream, compensators: dict[int, AxisCompensator]
             pending = planned, running
         last = plan.runs[r][1]
         # (The optimizer's warnings of limits not met are the fallback's to give: it falls back there.)
-        results = _per_axis(lanes, lambda c: streams[c].finish(), streams)
+        results = _per_axis(lanes, lambda c, streams=streams: streams[c].finish(), streams)
         for c, result in results.items():
             counts = tally.windows[c]
             counts[0] += result.windows
@@ -463,7 +470,8 @@ class _ErrorStats:
 
     def add(self, error_mm: np.ndarray) -> None:
         if error_mm.size:
-            self.sum_squares_mm2 += float(np.einsum("i,i->", error_mm, error_mm))  # (np.dot: BLAS threads, far slower here)
+            # (np.dot: BLAS threads, far slower here)
+            self.sum_squares_mm2 += float(np.einsum("i,i->", error_mm, error_mm))
             self.count += error_mm.size
             self.peak_mm = max(self.peak_mm, float(np.abs(error_mm).max()))
 
@@ -504,7 +512,9 @@ class ExecutedError:
         if not n:
             return
         if self.steps is None:
-            self.steps = {c: (m.response(planned_mm[0, c]), m.response(executed_mm[0, c])) for c, m in self.models.items()}
+            self.steps = {
+                c: (m.response(planned_mm[0, c]), m.response(executed_mm[0, c])) for c, m in self.models.items()
+            }
         for c in self.axes:
             counted = self._counted(first, n, self.settle[c])
             original, written = self.steps[c]

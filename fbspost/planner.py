@@ -12,7 +12,8 @@ switched off and the profile's per-axis limits, as follows:
 
 - Every linear piece of a MOVE block is one move: its distance is the XYZ length, or when XYZ
   moves less than 1e-9 mm (extrude-only) the U V W length, else the A B C length (LinuxCNC's
-  rule: its other axes are planned like XYZ and E, followed exactly), else |dE|; its cruise speed is the feed, limited by the
+  rule: its other axes are planned like XYZ and E, followed exactly), else |dE|; its cruise speed
+  is the feed, limited by the
   planner's VELOCITY (if set) and, for every axis A with a limit, by max_velocity_A / |u_A|
   (u the piece's direction per mm of distance, E included). G0 (infinite feed) runs as fast as
   the limits allow. Zero-length pieces are dropped, as Klipper does. Axis limits are the
@@ -157,7 +158,8 @@ class Plan:
 
     sample_rate_hz: float
     n_samples: int  # samples at t_k = k / sample_rate_hz, k = 0..n-1
-    line_time_s: np.ndarray  # (n_blocks,): MOVE: end of its motion; PASS: when the motion reaches it; STOP: at rest at it (before its dwell)
+    # (n_blocks,): MOVE: end of its motion; PASS: when the motion reaches it; STOP: at rest at it (before its dwell)
+    line_time_s: np.ndarray
     move_start_s: np.ndarray  # (n_blocks,): MOVE: start of its motion; other blocks: = line_time_s
     is_move: np.ndarray  # (n_blocks,) bool: the block is a MOVE (rewritten), not a copied line
     is_stop: np.ndarray  # (n_blocks,) bool: the block is a STOP (the machine at rest at it)
@@ -180,7 +182,9 @@ class Plan:
     def moves(self) -> deque:
         """(line, start s, end s) of every MOVE block (a block per line)."""
         index = np.flatnonzero(self.is_move)
-        return deque(zip((index + 1).tolist(), self.move_start_s[index].tolist(), self.line_time_s[index].tolist()))
+        return deque(
+            zip((index + 1).tolist(), self.move_start_s[index].tolist(), self.line_time_s[index].tolist(), strict=True)
+        )
 
     @property
     def frontier(self) -> int:
@@ -418,142 +422,334 @@ _PIECE_FIELDS = ("block", "run", "start", "end", "length", "extrude_only", "acce
                  "smooth_delta_v2")
 
 
-class PlanStream:
-    """The plan of a program as its blocks are read (see the module docstring).
+def _trapezoids(length, accel, v0_2, peak2, v1_2) -> tuple:
+    """Pieces of ``length`` and ``accel`` from squared speed v0_2 through peak2 to v1_2:
+    ((v0, peak, v1), accelerating distance, accelerating and cruising times, duration)."""
+    v0, vp, v1 = np.sqrt(v0_2), np.sqrt(peak2), np.sqrt(v1_2)
+    d_accel = (peak2 - v0_2) / (2.0 * accel)
+    d_decel = (peak2 - v1_2) / (2.0 * accel)
+    d_cruise = np.maximum(length - d_accel - d_decel, 0.0)
+    t_accel = 2.0 * d_accel / (v0 + vp)
+    t_decel = 2.0 * d_decel / (v1 + vp)
+    t_cruise = d_cruise / vp
+    return (v0, vp, v1), d_accel, t_accel, t_cruise, t_accel + t_cruise + t_decel
 
-    Consumers ask for more with ``advance`` (or ``wait``) and find, settled so far: ``runs``
-    ([first, last] sample indices, last None while the run goes on), the samples below
-    ``frontier`` (``samples``; ``release`` drops what is behind), the blocks with their times
-    (``blocks``), and at the end (``done``) ``n_samples``, ``duration_s``, ``notes`` and
-    ``warnings``. ``keep`` holds everything for ``whole`` (``plan_blocks``). ``firmware``
-    "klipper" plans with Klipper's rules (``klipper_rules``), anything else as above."""
 
-    def __init__(self, blocks: Iterable[Block], profile: MachineProfile, batch_blocks: int | None = None,
-                 keep: bool = False, margins: RunMargins | None = None, firmware: str | None = None):
-        self.sample_rate_hz = self._fs = float(profile.sample_rate_hz)
-        margins = margins or RunMargins()
-        self._lead = round(margins.lead_s * self._fs)  # samples
-        self._settle_s = round(margins.settle_s * self._fs) / self._fs
-        self.added_s = 0.0  # the margins' time, over the runs settled
-        self._blocks_in = iter(blocks)
-        self._batch = batch_blocks or BATCH_BLOCKS
-        self._keep = keep
-        self._klipper = firmware == "klipper"
-        self._rules = klipper_rules.constants(profile) if self._klipper else None
-        # the axes a compensated command moves: a move of the others alone is a rest of these
-        self._compensated = np.array([name in profile.axes and bool(profile.axes[name].modes) for name in AXES])
-        self._limits = _LimitState(profile, self._klipper)
-        self._state_row = self._limits.row()
-        # settled, for the consumers
-        self.runs: list[list] = []
-        self.frontier = 0  # samples below it are settled
-        self.settled_s = 0.0  # the motion is settled up to this time (the end of the last piece settled)
-        self.lines: deque = deque()  # (block, line time s, is_stop) settled and not yet taken
-        self.moves: deque = deque()  # (line, start s, end s) of the MOVE blocks settled and not yet taken
-        self.done = False
-        self.n_blocks = 0
-        self.n_samples: int | None = None
-        self.duration_s: float | None = None
-        self.notes: list[str] = []
-        self.warnings: list[str] = []
-        self.time_s = 0.0  # spent in advance(), reading included
-        self._segments = _Segments(np.zeros(0), np.zeros(0), np.zeros((0, _NA)), np.zeros((0, _NA)), np.zeros((0, _NA)))
-        # read, not yet settled
-        self._eof = False
-        self._pending_blocks: deque = deque()  # (block, is_move, is_stop, dwell before it in total)
-        self._read_mm = np.full(_NA, math.nan)  # where the last block read left the machine (NaN: unknown)
-        self._first_pending_block = 0
-        self._rows: list = []  # per block with waypoints: (block index, line, is motion, feed, state row, points)
-        self._cum_dwell = 0.0  # dwells of every block read (and the settle margins)
-        self._moved = False  # a MOVE since the last STOP: a run to close, whose settle margin comes first
-        self._last_row: np.ndarray | None = None  # the last waypoint, filled (None: the prologue)
+class _PieceMaker:
+    """Waypoints to pieces. Takes the rows of waypoints read (per block: its index, line, whether
+    it is motion, feed, row of the limits table, points) and gives the new pieces' columns
+    (``_PIECE_FIELDS``) with the junction limit before each; fills the positions not known (the
+    notes say where) and counts the feeds clamped by the machine's limits."""
+
+    def __init__(self, profile: MachineProfile, klipper: bool, notes: list[str]):
+        self._klipper = klipper
+        self._rules = klipper_rules.constants(profile) if klipper else None
+        self._notes = notes
+        self.last_row: np.ndarray | None = None  # the last waypoint, filled (None: the prologue)
         self._ever_known = np.zeros(_NA, dtype=bool)
         self._zeroed = np.zeros(_NA, dtype=bool)  # axes unknown through the prologue, planned at 0 until known
-        self._prologue_seen, self._prologue_count, self._prologue_known = 0, 0, np.zeros(_NA, dtype=bool)
         self._lost, self._clamped = 0, 0
         self._clamped_first = ""
-        self._stops = 0  # STOP blocks turned into waypoints
-        self._pending = {name: None for name in _PIECE_FIELDS}  # pieces from _p0 on
-        self._m = self._p0 = 0  # pieces made; settled
+        self.stops = 0  # STOP blocks turned into waypoints
         self._prev = None  # the last piece made: extrude-only, run (for the junction after it)
         self._junction_prev = None  # its columns for the junction limits
-        self._scan_s0 = 0  # the scans' first junction (a chunk start) ...
-        self._scan_limit, self._scan_delta = np.zeros(0), np.zeros(0)  # ... its limits and deltas on
-        self._scan_carry = math.inf  # the forward pass arriving at _scan_s0
-        self._scan_smooth = np.zeros(0)  # Klipper: the smoothed pass' deltas from _scan_s0 on ...
-        self._scan_smooth_carry = math.inf  # ... and its forward pass arriving at _scan_s0
+
+    def make(self, rows: list) -> dict | None:
+        """The columns of the pieces of ``rows`` (None: they make none)."""
+        counts = np.array([len(r[5]) for r in rows], dtype=np.int64)
+        raw = np.concatenate([r[5] for r in rows]).astype(float, copy=False)
+        seg_block = np.repeat(np.array([r[0] for r in rows], dtype=np.int64), counts)
+        seg_line = np.repeat(np.array([r[1] for r in rows], dtype=np.int64), counts)
+        seg_motion = np.repeat(np.array([r[2] for r in rows], dtype=bool), counts)
+        moving = [r for r in rows if r[2]]
+        previous, filled = self._filled(raw, seg_motion, seg_line)
+        stop_blocks = seg_block[~seg_motion]
+        start = np.concatenate([previous[None], filled[:-1]])
+        delta = filled - start
+        length, extrude_only = feed_lengths(delta, still_mm=EXTRUDE_ONLY_MM)
+        keep = seg_motion & (length > 0)
+        group = np.repeat(np.cumsum([r[2] for r in rows]) - 1, counts)[keep]
+        start, delta, length, extrude_only = start[keep], delta[keep], length[keep], extrude_only[keep]
+        piece_block, piece_line = seg_block[keep], seg_line[keep]
+        run_key = self.stops + np.searchsorted(stop_blocks, piece_block, side="left")
+        self.stops += stop_blocks.size
+        if not length.size:
+            return None
+        table = np.asarray([r[4] for r in moving])[group]
+        feed = np.asarray([r[3] for r in moving])[group]
+        unit, max_v, accel, delta_v2, smooth_delta_v2, clamped = self.piece_limits(delta, length, extrude_only, feed,
+                                                                                   table)
+        inner = self._junction_limits(unit, max_v, accel, length, delta_v2, table[:, 3])
+        self._count_clamped(clamped, feed, max_v, piece_block, piece_line)
+
+        # junction limits: limit_v2[i] is the junction before piece i (the first after the last
+        # piece made before: _prev), 0 between runs and at extrude-only pieces
+        prev = self._prev or (np.ones(1, bool), np.full(1, -1))
+        eo, key = (np.concatenate([p, q]) for p, q in zip(prev, (extrude_only, run_key), strict=True))
+        together = (key[1:] == key[:-1]) & ~eo[1:] & ~eo[:-1]
+        limit_v2 = np.where(together, inner, 0.0)
+        self._prev = (extrude_only[-1:], run_key[-1:])
+        return dict(block=piece_block, run=run_key, start=start, end=start + delta, length=length,
+                    extrude_only=extrude_only, accel=accel, max_v=max_v, delta_v2=delta_v2, limit_v2=limit_v2,
+                    smooth_delta_v2=smooth_delta_v2)
+
+    def finish(self, warnings: list[str]) -> None:
+        """At the end: the notes on axes never known and on lines beyond MAX_NOTES, and the one
+        warning on feeds clamped (slicers write Z moves at travel feeds on every layer)."""
+        never = np.flatnonzero(~self._ever_known[:4])  # (LinuxCNC's other axes never known: never used)
+        self._notes[:0] = [f"{AXES[i]}: position never known, planned at 0 mm" for i in never]
+        if self._lost > MAX_NOTES:
+            self._notes.append(f"... and {self._lost - MAX_NOTES} more lines with unknown positions")
+        if self._clamped:
+            more = f" and {self._clamped - 1} more lines" if self._clamped > 1 else ""
+            warnings.append(self._clamped_first + more)
+
+    def _filled(self, raw: np.ndarray, seg_motion: np.ndarray, seg_line: np.ndarray) -> tuple:
+        """(the position before the waypoints, the waypoints) with the unknown positions filled."""
+        n = raw.shape[0]
+        nan = np.isnan(raw)
+        if self.last_row is None:  # the prologue: before its first known value an axis is there ...
+            filled, _ = fill_unknown(np.concatenate([np.full((1, _NA), np.nan), raw]))
+            previous, filled = filled[0], filled[1:]
+            # ... if it is known within the first PROLOGUE_ROWS waypoints; else at 0 until it is
+            self._zeroed = nan[:PROLOGUE_ROWS].all(axis=0)
+            if self._zeroed.any():
+                source = np.maximum.accumulate(np.where(nan, -1, np.arange(n)[:, None]), axis=0)
+                held = np.where(source >= 0, np.take_along_axis(raw, np.maximum(source, 0), axis=0), 0.0)
+                filled[:, self._zeroed] = held[:, self._zeroed]
+                previous[self._zeroed] = 0.0
+        else:  # held at the last known value
+            previous = self.last_row
+            source = np.maximum.accumulate(np.where(nan, -1, np.arange(n)[:, None]), axis=0)
+            filled = np.where(source >= 0, np.take_along_axis(raw, np.maximum(source, 0), axis=0), previous)
+        known_before = np.maximum.accumulate(np.concatenate([self._ever_known[None], ~nan]), axis=0)
+        self._note_unknown(nan, known_before, seg_motion, seg_line)
+        self._ever_known = known_before[-1]
+        self.last_row = filled[-1]
+        return previous, filled
+
+    def _note_unknown(self, nan: np.ndarray, known_before: np.ndarray, seg_motion: np.ndarray,
+                      seg_line: np.ndarray) -> None:
+        """Notes: the lines after which a known axis is no longer known; the axes planned at 0."""
+        lost = (~seg_motion)[:, None] & nan & known_before[:-1]
+        for i in np.flatnonzero(lost.any(axis=1)):
+            if self._lost < MAX_NOTES:
+                axes = "".join(AXES[a] for a in np.flatnonzero(lost[i]))
+                self._notes.append(f"line {seg_line[i]}: {axes} unknown after this line, held at the last known "
+                                   "position")
+            self._lost += 1
+        found = self._zeroed & ~self._ever_known & known_before[-1]
+        found[_E + 1:] = False  # (LinuxCNC's other axes: at 0 until their first move, at rest, puts them)
+        for a in np.flatnonzero(found):
+            line = seg_line[np.flatnonzero(~nan[:, a])[0]]
+            self._notes.append(f"{AXES[a]}: position not known in the first {PROLOGUE_ROWS} waypoints, planned at 0 mm "
+                               f"until line {line}")
+
+    def piece_limits(self, delta, length, extrude_only, feed, table):
+        """Per piece, from its row of the limits table (``_LimitState.row``): its direction per mm,
+        cruise limit, accel, 2 a d, the same for Klipper's smoothing (2 a d where there is none) and
+        whether its feed is clamped by the machine's limits."""
+        accel_print, accel_travel, planner_v = table[:, 0], table[:, 1], table[:, 2]
+        if self._klipper:
+            z_limits, e_limits, _ = self._rules
+            unit, max_v, accel = klipper_rules.piece_limits(delta, length, extrude_only, feed, planner_v, accel_print,
+                                                            z_limits, e_limits)
+            delta_v2 = 2.0 * length * accel
+            smooth_delta_v2 = np.minimum(2.0 * length * table[:, -1], delta_v2)
+            return unit, max_v, accel, delta_v2, smooth_delta_v2, np.isfinite(feed) & (max_v < feed) & ~extrude_only
+        axis_v, axis_a = table[:, 4:4 + _NA], table[:, 4 + _NA:4 + 2 * _NA]
+        unit, max_v, accel, clamped = axis_piece_limits(delta, length, extrude_only, feed, planner_v, accel_print,
+                                                        accel_travel, axis_v, axis_a)
+        delta_v2 = 2.0 * accel * length
+        return unit, max_v, accel, delta_v2, delta_v2, clamped
+
+    def _junction_limits(self, unit, max_v, accel, length, delta_v2, jd) -> np.ndarray:
+        """The junction limit before each piece (with the last piece made before): Klipper's rules,
+        or the junction-deviation model of ``junction_limits``."""
+        cruise_v2 = max_v * max_v
+        if self._klipper:
+            u, jd_, acc, d, cv2 = self._junction_carry((unit, jd, accel, length, cruise_v2))
+            return klipper_rules.junction_limits(u[:-1], u[1:], jd_[:-1], jd_[1:], acc[:-1], acc[1:], d[:-1], d[1:],
+                                                 cv2[:-1], cv2[1:], self._rules[2])
+        u, jd_, acc, dv2, cv2 = self._junction_carry((unit[:, :3], jd, accel, delta_v2, cruise_v2))
+        return junction_limits(u[:-1], u[1:], jd_[:-1], jd_[1:], acc[:-1], acc[1:], dv2[:-1], dv2[1:],
+                               cv2[:-1], cv2[1:])
+
+    def _count_clamped(self, clamped: np.ndarray, feed, max_v, piece_block, piece_line) -> None:
+        clamped = np.flatnonzero(clamped)
+        clamped = clamped[np.unique(piece_block[clamped], return_index=True)[1]]  # the first piece of each block
+        if clamped.size and not self._clamped:
+            i = clamped[0]
+            self._clamped_first = (f"{CLAMPED}: line {piece_line[i]} (feed {feed[i] * 60:.6g} mm/min, runs at "
+                                   f"{max_v[i] * 60:.6g} mm/min)")
+        self._clamped += clamped.size
+
+    def _junction_carry(self, columns: tuple) -> list[np.ndarray]:
+        """``columns`` of the new pieces after those of the last piece made before (its own copy the
+        first time: a junction with itself, made 0 as the start of a run)."""
+        held = self._junction_prev or tuple(c[:1] for c in columns)
+        self._junction_prev = tuple(c[-1:] for c in columns)
+        return [np.concatenate([p, q]) for p, q in zip(held, columns, strict=True)]
+
+
+class _LookAhead:
+    """The look-ahead's min-plus scans over the pieces not yet settled (see the module docstring).
+
+    Takes each new piece's junction limit and 2 a d, and Klipper's smoothed 2 a d (``extend``);
+    gives how many of the pending pieces no later piece can change, with their squared speeds
+    (``decided``). The scans start at a chunk boundary with the forward pass carried into it, so
+    their bits are those of one scan from piece 0."""
+
+    def __init__(self, klipper: bool):
+        self._klipper = klipper
+        self._s0 = 0  # the scans' first junction (a chunk start) ...
+        self._limit, self._delta = np.zeros(0), np.zeros(0)  # ... its limits and deltas on
+        self._carry = math.inf  # the forward pass arriving at _s0
+        self._smooth = np.zeros(0)  # Klipper: the smoothed pass' deltas from _s0 on ...
+        self._smooth_carry = math.inf  # ... and its forward pass arriving at _s0
         self._peak_carry = 0.0  # Klipper: the cruise a decelerating run carries past the last settled piece
-        # carried over settled pieces and blocks
-        self._cum_dur = 0.0
+        self._reach = self._reach_smooth = None  # the last decision's forward passes
+
+    def extend(self, pieces: dict) -> None:
+        self._limit = np.concatenate([self._limit, pieces["limit_v2"]])
+        self._delta = np.concatenate([self._delta, pieces["delta_v2"]])
+        self._smooth = np.concatenate([self._smooth, pieces["smooth_delta_v2"]])
+
+    def decided(self, pending: dict, p0: int, ends_at_rest: bool) -> tuple:
+        """(n, v2, speeds): the first n of the ``pending`` pieces (piece p0 on) are decided, with
+        their squared junction speeds v2 (n + 1), or Klipper's (start, cruise, end) squared speeds."""
+        s0 = self._s0
+        limit = np.append(self._limit, 0.0 if ends_at_rest else math.inf)
+        reach = self._reach = forward_pass(limit, self._delta, SCAN_CHUNK, self._carry)
+        v2 = backward_pass(reach, self._delta, SCAN_CHUNK)
+        if self._klipper:
+            n, speeds, self._reach_smooth = self._klipper_speeds(pending, p0, reach, v2, ends_at_rest)
+            if n:
+                self._peak_carry = float(speeds[4][n - 1])
+            return n, None, [x[:n] for x in speeds[:3]]
+        n = len(pending["block"])
+        if not ends_at_rest:  # settle the pieces whose both junctions are decided
+            reach[-1] = 0.0
+            differ = np.flatnonzero(backward_pass(reach, self._delta, SCAN_CHUNK)[p0 - s0:] != v2[p0 - s0:])
+            n = max(int(differ[0]) - 1, 0) if differ.size else n
+        return n, v2[p0 - s0:p0 - s0 + n + 1], None
+
+    def restart(self, p0: int) -> None:
+        """The pieces before ``p0`` are settled: the scans restart at the chunk of piece p0."""
+        s0, s1 = self._s0, (p0 // SCAN_CHUNK) * SCAN_CHUNK
+        if s1 > s0:
+            self._carry = self._reach[s1 - 1 - s0] + self._delta[s1 - 1 - s0]
+            self._limit, self._delta = self._limit[s1 - s0:], self._delta[s1 - s0:]
+            if self._klipper:
+                self._smooth_carry = self._reach_smooth[s1 - 1 - s0] + self._smooth[s1 - 1 - s0]
+            self._smooth = self._smooth[s1 - s0:]
+            self._s0 = s1
+
+    def _klipper_speeds(self, pending: dict, p0: int, reach: np.ndarray, v2: np.ndarray, ends_at_rest: bool) -> tuple:
+        """Klipper's smoothed look-ahead over the pending pieces (``klipper_rules.cruise_speeds``):
+        how many are settled and their speeds. ``reach`` and ``v2`` are the forward and backward
+        passes from the scans' start; a piece is settled when its speeds are the same however
+        the program goes on: the junction speeds it and the next piece depend on are decided
+        (as in ``decided``, for both passes) and so is the piece that sets its peak."""
+        s0, smooth = self._s0, self._smooth
+        reach_smooth = forward_pass(reach, smooth, SCAN_CHUNK, self._smooth_carry)
+        smoothed = backward_pass(reach_smooth, smooth, SCAN_CHUNK)
+        speeds = klipper_rules.cruise_speeds(v2[p0 - s0:], smoothed[p0 - s0:], pending["delta_v2"],
+                                             pending["smooth_delta_v2"], pending["max_v"] ** 2, self._peak_carry)
+        n = len(pending["block"])
+        if not ends_at_rest:
+            low, low_smooth = reach.copy(), reach_smooth.copy()
+            low[-1] = low_smooth[-1] = 0.0
+            differ = np.flatnonzero((backward_pass(low, self._delta, SCAN_CHUNK)[p0 - s0:] != v2[p0 - s0:])
+                                    | (backward_pass(low_smooth, smooth, SCAN_CHUNK)[p0 - s0:] != smoothed[p0 - s0:]))
+            decided = speeds[3][:max(int(differ[0]) - 2, 0)] if differ.size else speeds[3]
+            n = int(np.flatnonzero(decided)[-1]) + 1 if decided.any() else 0
+        return n, speeds, reach_smooth
+
+
+class _Timeline:
+    """The plan's samples. Takes the segments of the settled motion (``add``: pieces' phases,
+    rests, each with an order key) and gives the samples below the frontier (``samples``), dropping
+    what is ``release``d; with ``keep``, holds every segment for the whole plan (``kept``)."""
+
+    def __init__(self, fs: float, keep: bool):
+        self._fs, self._keep = fs, keep
+        self._segments = _Segments(np.zeros(0), np.zeros(0), np.zeros((0, _NA)), np.zeros((0, _NA)), np.zeros((0, _NA)))
         self._t0_max = -math.inf
-        self._open = False  # the last run goes on
-        self._run_key = -1  # STOPs before the last settled piece
-        self._run_clock = self._run_base = 0.0
-        self._last_sample, self._dwell_after_run = -1, 0.0
-        self._last_end = np.zeros(_NA)  # where the last settled piece ends
-        self._last_dwell_after = 0.0  # dwells up to the block of the last settled piece
-        self._last_piece = -1
-        self._trail = (-1, 0.0)  # (block, start s) of the block whose pieces are being settled
-        self._latest_end, self._latest_dwell = 0.0, 0.0  # the last block with pieces: its end, dwells to it
-        self._kept: dict[str, list] = {"pieces": [], "segments": [], "blocks": []}
-        self._settled_pieces = (np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0), self._trail)
-
-    # ---- for the consumers ----
-
-    def advance(self) -> bool:
-        """Read the next batch of blocks and settle what it decides; False once done."""
-        if self.done:
-            return False
-        clock = time.perf_counter()
-        self._read()
-        if self._last_row is not None or self._prologue_over():
-            self._make_pieces()
-        self._settle()
-        if self._eof and not self._rows and self._m == self._p0:
-            self._finish()
-        self.time_s += time.perf_counter() - clock
-        return True
-
-    def wait(self, known: Callable[[], bool]) -> None:
-        """Advance until ``known()`` or the end."""
-        while not known() and self.advance():
-            pass
+        self.kept: list[_Segments] = []
 
     def samples(self, first: int, stop: int) -> np.ndarray:
-        """(stop - first, 4) settled samples first .. stop - 1 (``wait`` for the frontier first)."""
-        assert stop <= self.frontier, "samples asked for before they are settled"
         return self._segments.evaluate(first, stop, self._fs)
 
     def release(self, sample: int) -> None:
-        """Samples before ``sample`` will not be asked for again."""
         drop = int(np.searchsorted(self._segments.t0, sample / self._fs, side="right")) - 1
         if drop > len(self._segments.t0) // 2:  # copy seldom
             self._segments = self._segments[drop:]
 
-    def blocks(self) -> Iterator[tuple[Block, float, bool]]:
-        """The program's blocks in order, each with its line time (s: see ``Plan.line_time_s``)
-        and whether it is a STOP, as they are settled."""
-        while True:
-            if self.lines:
-                yield self.lines.popleft()
-            elif not self.advance():
-                return
+    def add(self, parts: list) -> None:
+        """The segments ``parts`` ((order keys, _Segments) each), in the order of their keys."""
+        keys = np.concatenate([np.ravel(k) for k, _ in parts])
+        seg = _Segments.joined([s for _, s in parts])[np.argsort(keys, kind="stable")]
+        # Sums of rounded times can put a phase an ulp after the next one's start: they are in
+        # time order, make their starts say so (of equal starts, the later rules)
+        seg.t0 = np.maximum.accumulate(np.concatenate([[self._t0_max], seg.t0]))[1:]
+        self._t0_max = seg.t0[-1]
+        if self._keep:
+            self.kept.append(seg)
+        else:
+            self._segments = _Segments.joined([self._segments, seg])
 
-    def whole(self) -> Plan:
-        """The plan held (``keep``), once done."""
-        kept = self._kept
-        blocks = [np.concatenate(column) if kept["blocks"] else np.zeros(0) for column in zip(*kept["blocks"])] \
-            or [np.zeros(0), np.zeros(0), np.zeros(0, dtype=bool), np.zeros(0, dtype=bool)]
-        pieces = Pieces(*(np.concatenate(column) for column in zip(*kept["pieces"]))) if kept["pieces"] else \
-            Pieces(*([np.zeros(0, dtype=np.int64)] * 2 + [np.zeros((0, _NA))] * 2 + [np.zeros(0)] * 9))
-        return Plan(self._fs, self.n_samples, *blocks, [tuple(r) for r in self.runs], self.duration_s,
-                    _Segments.joined(kept["segments"]), pieces, self.notes, self.warnings)
+    @staticmethod
+    def held(key: int, t0: float, ref: float, position: np.ndarray) -> tuple:
+        """A rest at ``position`` from ``t0`` on, with its order key."""
+        t = np.array([t0])
+        return np.array([key]), _Segments(t, np.array([ref]), position[None], np.zeros((1, _NA)), np.zeros((1, _NA)))
 
-    # ---- reading ----
+    @staticmethod
+    def phases(first_piece: int, piece_start, piece_end, t_accel, t_cruise, start, end, d_accel, length, accel,
+               speeds) -> tuple:
+        """The three phases of every piece (the braking phase measured from the piece's end, so
+        pieces end exactly at their end point), with their order keys."""
+        v0, vp, v1 = speeds
+        unit_pos = (end - start) / length[:, None]  # position per mm of the piece
+        half_a = (0.5 * accel)[:, None] * unit_pos
+        n = len(piece_start)
+        return (8 * (first_piece + np.arange(n))[:, None] + np.arange(3), _Segments(
+            np.stack([piece_start, piece_start + t_accel, piece_start + (t_accel + t_cruise)], axis=1).ravel(),
+            np.stack([piece_start, piece_start + t_accel, piece_end], axis=1).ravel(),
+            np.stack([start, start + d_accel[:, None] * unit_pos, end], axis=1).reshape(-1, _NA),
+            np.stack([v0[:, None] * unit_pos, vp[:, None] * unit_pos, v1[:, None] * unit_pos], axis=1).reshape(-1, _NA),
+            np.stack([half_a, np.zeros_like(half_a), -half_a], axis=1).reshape(-1, _NA)))
 
-    def _read(self) -> None:
+
+class _BlockReader:
+    """The program's blocks, read a batch at a time (``read``). Gives, per block with waypoints,
+    a row in ``rows`` (its index, line, whether it is motion, feed, row of the limits table,
+    points), and per block (block, is MOVE, is STOP, the dwells before it) in ``pending`` until
+    it is timed. A MOVE that moves no compensated axis is read as a STOP (``_uncompensated_s``)."""
+
+    def __init__(self, blocks: Iterable[Block], profile: MachineProfile, klipper: bool, batch: int,
+                 settle_s: float, piece_limits: Callable):
+        self._blocks_in = iter(blocks)
+        self._batch = batch
+        self._settle_s = settle_s
+        self._piece_limits = piece_limits
+        # the axes a compensated command moves: a move of the others alone is a rest of these
+        self._compensated = np.array([name in profile.axes and bool(profile.axes[name].modes) for name in AXES])
+        self._limits = _LimitState(profile, klipper)
+        self._state_row = self._limits.row()
+        self.n_blocks = 0
+        self.eof = False
+        self.pending: deque = deque()  # (block, is_move, is_stop, dwell before it in total)
+        self.rows: list = []
+        self.cum_dwell = 0.0  # dwells of every block read (and the settle margins)
+        self._read_mm = np.full(_NA, math.nan)  # where the last block read left the machine (NaN: unknown)
+        self._moved = False  # a MOVE since the last STOP: a run to close, whose settle margin comes first
+        self._prologue_seen, self._prologue_count, self._prologue_known = 0, 0, np.zeros(_NA, dtype=bool)
+
+    def read(self) -> None:
         j0 = j = self.n_blocks
-        rows, pending, cum_dwell, state_row = self._rows, self._pending_blocks, self._cum_dwell, self._state_row
+        rows, pending, cum_dwell, state_row = self.rows, self.pending, self.cum_dwell, self._state_row
         move, stop = Kind.MOVE, Kind.STOP
         for block in itertools.islice(self._blocks_in, self._batch):
             kind = block.kind
@@ -588,8 +784,9 @@ class PlanStream:
                 pending.append((block, False, False, cum_dwell))
             j += 1
         self.n_blocks = j
-        self._eof = j - j0 < self._batch
-        self._cum_dwell = self._margin_after_run(cum_dwell) if self._eof else cum_dwell
+        self.eof = j - j0 < self._batch
+        self.cum_dwell = self._margin_after_run(cum_dwell) if self.eof else cum_dwell
+
 
     def _uncompensated_s(self, points: np.ndarray, feed: float, state_row: list) -> float | None:
         """How long a MOVE that moves no compensated axis (a retraction, a Z hop, a layer change)
@@ -605,10 +802,12 @@ class PlanStream:
         if still.all() or not still[0, self._compensated].all() or not np.isfinite(delta).all():
             return None
         length, eo = feed_lengths(delta, still_mm=EXTRUDE_ONLY_MM)
-        _, max_v, accel, _, smooth_v2, _ = self._piece_limits(delta, length, eo, np.array([feed]), np.array([state_row]))
+        limits = self._piece_limits(delta, length, eo, np.array([feed]), np.array([state_row]))
+        max_v, accel, smooth_v2 = limits[1], limits[2], limits[4]
         peak_v2 = min(max_v[0] ** 2, 0.5 * smooth_v2[0])  # a trapezoid from rest to rest
         peak, a = math.sqrt(peak_v2), float(accel[0])
         return 2.0 * peak / a + (length[0] - peak_v2 / a) / peak
+
 
     def _margin_after_run(self, cum_dwell: float) -> float:
         """The running dwell sum with the settle margin of the run that a STOP (or the end) closes:
@@ -618,173 +817,206 @@ class PlanStream:
             return cum_dwell + self._settle_s
         return cum_dwell
 
-    def _prologue_over(self) -> bool:
+
+    def prologue_over(self) -> bool:
         """Every axis known (LinuxCNC's other axes need not be: unset, they are at 0 until their
         first move, which is at rest), enough waypoints searched, or the end: the start can be filled."""
-        for row in self._rows[self._prologue_seen:]:
+        for row in self.rows[self._prologue_seen:]:
             self._prologue_known |= ~np.isnan(row[5]).all(axis=0)
             self._prologue_count += len(row[5])
-        self._prologue_seen = len(self._rows)
-        return self._eof or bool(self._prologue_known[:_E + 1].all()) or self._prologue_count >= PROLOGUE_ROWS
+        self._prologue_seen = len(self.rows)
+        return self.eof or bool(self._prologue_known[:_E + 1].all()) or self._prologue_count >= PROLOGUE_ROWS
 
-    # ---- waypoints to pieces ----
 
-    def _make_pieces(self) -> None:
-        if not self._rows:
+class _BlockClock:
+    """The blocks' times. Takes the blocks read (``_BlockReader.pending``) and, as their pieces are
+    settled, the pieces' blocks and times (``settle``); gives each block timed with its line time
+    and whether it is a STOP (``lines``) and the MOVE blocks' (line, start s, end s) (``moves``),
+    or with ``keep`` the columns of the whole plan (``kept``). A block without pieces happens when
+    the motion before it ends, after the dwells between."""
+
+    def __init__(self, pending: deque, keep: bool):
+        self._pending, self._keep = pending, keep
+        self.first = 0  # the first block not yet timed
+        self.latest_end, self.latest_dwell = 0.0, 0.0  # the last block with pieces: its end, dwells to it
+        self.lines: deque = deque()  # (block, line time s, is_stop) settled and not yet taken
+        self.moves: deque = deque()  # (line, start s, end s) of the MOVE blocks settled and not yet taken
+        self.kept: list[tuple] = []
+
+    def dwell_before(self, block: int) -> float:
+        """The dwells of the blocks before ``block`` (a block not yet timed)."""
+        return self._pending[block - self.first][3]
+
+    def settle(self, stop: int, pieces: tuple) -> None:
+        """Time the blocks before ``stop`` (the first with waypoints or pieces not settled), with
+        the pieces settled since the last call: (block, start s, end s) each, and the (block,
+        start s) of the block whose pieces the last call left going on."""
+        block, piece_start, piece_end, trail = pieces
+        count = stop - self.first
+        if count <= 0:
             return
-        rows, self._rows = self._rows, []
-        counts = np.array([len(r[5]) for r in rows], dtype=np.int64)
-        raw = np.concatenate([r[5] for r in rows]).astype(float, copy=False)
-        seg_block = np.repeat(np.array([r[0] for r in rows], dtype=np.int64), counts)
-        seg_line = np.repeat(np.array([r[1] for r in rows], dtype=np.int64), counts)
-        seg_motion = np.repeat(np.array([r[2] for r in rows], dtype=bool), counts)
-        moving = [r for r in rows if r[2]]
-        n = raw.shape[0]
-        nan = np.isnan(raw)
-        if self._last_row is None:  # the prologue: before its first known value an axis is there ...
-            filled, _ = fill_unknown(np.concatenate([np.full((1, _NA), np.nan), raw]))
-            previous, filled = filled[0], filled[1:]
-            # ... if it is known within the first PROLOGUE_ROWS waypoints; else at 0 until it is
-            self._zeroed = nan[:PROLOGUE_ROWS].all(axis=0)
-            if self._zeroed.any():
-                source = np.maximum.accumulate(np.where(nan, -1, np.arange(n)[:, None]), axis=0)
-                held = np.where(source >= 0, np.take_along_axis(raw, np.maximum(source, 0), axis=0), 0.0)
-                filled[:, self._zeroed] = held[:, self._zeroed]
-                previous[self._zeroed] = 0.0
-        else:  # held at the last known value
-            previous = self._last_row
-            source = np.maximum.accumulate(np.where(nan, -1, np.arange(n)[:, None]), axis=0)
-            filled = np.where(source >= 0, np.take_along_axis(raw, np.maximum(source, 0), axis=0), previous)
-        known_before = np.maximum.accumulate(np.concatenate([self._ever_known[None], ~nan]), axis=0)
-        lost = (~seg_motion)[:, None] & nan & known_before[:-1]
-        for i in np.flatnonzero(lost.any(axis=1)):
-            if self._lost < MAX_NOTES:
-                axes = "".join(AXES[a] for a in np.flatnonzero(lost[i]))
-                self.notes.append(f"line {seg_line[i]}: {axes} unknown after this line, held at the last known position")
-            self._lost += 1
-        found = self._zeroed & ~self._ever_known & known_before[-1]
-        found[_E + 1:] = False  # (LinuxCNC's other axes: at 0 until their first move, at rest, puts them)
-        for a in np.flatnonzero(found):
-            line = seg_line[np.flatnonzero(~nan[:, a])[0]]
-            self.notes.append(f"{AXES[a]}: position not known in the first {PROLOGUE_ROWS} waypoints, planned at 0 mm "
-                              f"until line {line}")
-        self._ever_known = known_before[-1]
-        self._last_row = filled[-1]
-        stop_blocks = seg_block[~seg_motion]
-        start = np.concatenate([previous[None], filled[:-1]])
-        delta = filled - start
-        length, extrude_only = feed_lengths(delta, still_mm=EXTRUDE_ONLY_MM)
-        keep = seg_motion & (length > 0)
-        group = np.repeat(np.cumsum([r[2] for r in rows]) - 1, counts)[keep]
-        start, delta, length, extrude_only = start[keep], delta[keep], length[keep], extrude_only[keep]
-        piece_block, piece_line = seg_block[keep], seg_line[keep]
-        run_key = self._stops + np.searchsorted(stop_blocks, piece_block, side="left")
-        self._stops += stop_blocks.size
-        m = length.size
-        if not m:
-            return
-        table = np.asarray([r[4] for r in moving])[group]
-        feed = np.asarray([r[3] for r in moving])[group]
-        unit, max_v, accel, delta_v2, smooth_delta_v2, clamped = self._piece_limits(delta, length, extrude_only, feed,
-                                                                                    table)
-        inner = self._junction_limits(unit, max_v, accel, length, delta_v2, table[:, 3])
-        self._count_clamped(clamped, feed, max_v, piece_block, piece_line)
+        taken = [self._pending.popleft() for _ in range(count)]
+        idx = np.arange(self.first, stop)
+        self.first = stop
+        dwell_before = np.array([t[3] for t in taken])
+        is_move = np.array([t[1] for t in taken], dtype=bool)
+        is_stop = np.array([t[2] for t in taken], dtype=bool)
+        last_piece = np.searchsorted(block, idx, side="right") - 1
+        has = last_piece >= 0
+        has[has] = block[last_piece[has]] == idx[has]
+        if block.size:
+            first_piece = np.minimum(np.searchsorted(block, idx, side="left"), block.size - 1)
+            block_end = np.where(has, piece_end[np.maximum(last_piece, 0)], 0.0)
+            block_start = np.where(has, np.where(idx == trail[0], trail[1], piece_start[first_piece]), 0.0)
+        else:
+            block_end = block_start = np.zeros(count)
+        latest = np.maximum.accumulate(np.where(has, np.arange(count), -1))
+        end_at = np.where(latest >= 0, block_end[np.maximum(latest, 0)], self.latest_end)
+        # (a MOVE has no dwell)
+        dwell_at = np.where(latest >= 0, dwell_before[np.maximum(latest, 0)], self.latest_dwell)
+        clock_at = end_at + (dwell_before - dwell_at)
+        line_time = np.where(has, block_end, clock_at)
+        move_start = np.where(has, block_start, clock_at)
+        if latest[-1] >= 0:
+            self.latest_end, self.latest_dwell = float(end_at[-1]), float(dwell_at[-1])
+        if self._keep:
+            self.kept.append((line_time, move_start, is_move, is_stop))
+        else:
+            self.lines.extend(zip((t[0] for t in taken), line_time.tolist(), is_stop.tolist(), strict=True))
+            moves = np.flatnonzero(is_move)
+            self.moves.extend(zip((taken[i][0].line_no for i in moves), move_start[moves].tolist(),
+                                  line_time[moves].tolist(), strict=True))
 
-        # junction limits: limit_v2[i] is the junction before piece i (the first after the last
-        # piece made before: _prev), 0 between runs and at extrude-only pieces
-        prev = self._prev or (np.ones(1, bool), np.full(1, -1))
-        eo, key = (np.concatenate([p, q]) for p, q in zip(prev, (extrude_only, run_key)))
-        together = (key[1:] == key[:-1]) & ~eo[1:] & ~eo[:-1]
-        limit_v2 = np.where(together, inner, 0.0)
-        self._prev = (extrude_only[-1:], run_key[-1:])
-        new = dict(block=piece_block, run=run_key, start=start, end=start + delta, length=length,
-                   extrude_only=extrude_only, accel=accel, max_v=max_v, delta_v2=delta_v2, limit_v2=limit_v2,
-                   smooth_delta_v2=smooth_delta_v2)
-        for name, value in new.items():
-            held = self._pending[name]
-            self._pending[name] = value if held is None else np.concatenate([held, value])
-        self._scan_limit = np.concatenate([self._scan_limit, limit_v2])
-        self._scan_delta = np.concatenate([self._scan_delta, delta_v2])
-        self._scan_smooth = np.concatenate([self._scan_smooth, smooth_delta_v2])
-        self._m += m
 
-    def _piece_limits(self, delta, length, extrude_only, feed, table):
-        """Per piece, from its row of the limits table (``_LimitState.row``): its direction per mm,
-        cruise limit, accel, 2 a d, the same for Klipper's smoothing (2 a d where there is none) and
-        whether its feed is clamped by the machine's limits."""
-        accel_print, accel_travel, planner_v = table[:, 0], table[:, 1], table[:, 2]
-        if self._klipper:
-            z_limits, e_limits, _ = self._rules
-            unit, max_v, accel = klipper_rules.piece_limits(delta, length, extrude_only, feed, planner_v, accel_print,
-                                                            z_limits, e_limits)
-            delta_v2 = 2.0 * length * accel
-            smooth_delta_v2 = np.minimum(2.0 * length * table[:, -1], delta_v2)
-            return unit, max_v, accel, delta_v2, smooth_delta_v2, np.isfinite(feed) & (max_v < feed) & ~extrude_only
-        unit, max_v, accel, clamped = axis_piece_limits(delta, length, extrude_only, feed, planner_v, accel_print,
-                                                        accel_travel, table[:, 4:4 + _NA], table[:, 4 + _NA:4 + 2 * _NA])
-        delta_v2 = 2.0 * accel * length
-        return unit, max_v, accel, delta_v2, delta_v2, clamped
+class PlanStream:
+    """The plan of a program as its blocks are read (see the module docstring).
 
-    def _junction_limits(self, unit, max_v, accel, length, delta_v2, jd) -> np.ndarray:
-        """The junction limit before each piece (with the last piece made before): Klipper's rules,
-        or the junction-deviation model of ``junction_limits``."""
-        cruise_v2 = max_v * max_v
-        if self._klipper:
-            u, jd_, acc, d, cv2 = self._junction_carry((unit, jd, accel, length, cruise_v2))
-            return klipper_rules.junction_limits(u[:-1], u[1:], jd_[:-1], jd_[1:], acc[:-1], acc[1:], d[:-1], d[1:],
-                                                 cv2[:-1], cv2[1:], self._rules[2])
-        u, jd_, acc, dv2, cv2 = self._junction_carry((unit[:, :3], jd, accel, delta_v2, cruise_v2))
-        return junction_limits(u[:-1], u[1:], jd_[:-1], jd_[1:], acc[:-1], acc[1:], dv2[:-1], dv2[1:], cv2[:-1], cv2[1:])
+    Consumers ask for more with ``advance`` (or ``wait``) and find, settled so far: ``runs``
+    ([first, last] sample indices, last None while the run goes on), the samples below
+    ``frontier`` (``samples``; ``release`` drops what is behind), the blocks with their times
+    (``blocks``), and at the end (``done``) ``n_samples``, ``duration_s``, ``notes`` and
+    ``warnings``. ``keep`` holds everything for ``whole`` (``plan_blocks``). ``firmware``
+    "klipper" plans with Klipper's rules (``klipper_rules``), anything else as above.
 
-    def _count_clamped(self, clamped: np.ndarray, feed, max_v, piece_block, piece_line) -> None:
-        clamped = np.flatnonzero(clamped)
-        clamped = clamped[np.unique(piece_block[clamped], return_index=True)[1]]  # the first piece of each block
-        if clamped.size and not self._clamped:
-            i = clamped[0]
-            self._clamped_first = (f"{CLAMPED}: line {piece_line[i]} (feed {feed[i] * 60:.6g} mm/min, runs at "
-                                   f"{max_v[i] * 60:.6g} mm/min)")
-        self._clamped += clamped.size
+    The stream reads blocks (``_BlockReader``), makes their pieces (``_PieceMaker``), decides
+    their speeds (``_LookAhead``) and settles them here: the pieces' times, the runs and the
+    blocks' times, whose motion goes to the samples (``_Timeline``)."""
 
-    def _junction_carry(self, columns: tuple) -> list[np.ndarray]:
-        """``columns`` of the new pieces after those of the last piece made before (its own copy the
-        first time: a junction with itself, made 0 as the start of a run)."""
-        held = self._junction_prev or tuple(c[:1] for c in columns)
-        self._junction_prev = tuple(c[-1:] for c in columns)
-        return [np.concatenate([p, q]) for p, q in zip(held, columns)]
+    def __init__(self, blocks: Iterable[Block], profile: MachineProfile, batch_blocks: int | None = None,
+                 keep: bool = False, margins: RunMargins | None = None, firmware: str | None = None):
+        self.sample_rate_hz = self._fs = float(profile.sample_rate_hz)
+        margins = margins or RunMargins()
+        self._lead = round(margins.lead_s * self._fs)  # samples
+        self._settle_s = round(margins.settle_s * self._fs) / self._fs
+        self.added_s = 0.0  # the margins' time, over the runs settled
+        self._keep = keep
+        klipper = firmware == "klipper"
+        # settled, for the consumers
+        self.runs: list[list] = []
+        self.frontier = 0  # samples below it are settled
+        self.settled_s = 0.0  # the motion is settled up to this time (the end of the last piece settled)
+        self.done = False
+        self.n_blocks = 0
+        self.n_samples: int | None = None
+        self.duration_s: float | None = None
+        self.notes: list[str] = []
+        self.warnings: list[str] = []
+        self.time_s = 0.0  # spent in advance(), reading included
+        self._pieces = _PieceMaker(profile, klipper, self.notes)
+        self._reader = _BlockReader(blocks, profile, klipper, batch_blocks or BATCH_BLOCKS, self._settle_s,
+                                    self._pieces.piece_limits)
+        self._scans = _LookAhead(klipper)
+        self._timeline = _Timeline(self._fs, keep)
+        self._clock = _BlockClock(self._reader.pending, keep)
+        self.lines, self.moves = self._clock.lines, self._clock.moves  # (see _BlockClock)
+        # made, not yet settled
+        self._pending = {name: None for name in _PIECE_FIELDS}  # pieces from _p0 on
+        self._m = self._p0 = 0  # pieces made; settled
+        # carried over settled pieces and blocks
+        self._cum_dur = 0.0
+        self._open, self._run_key = False, -1  # the last run goes on; the STOPs before the last settled piece
+        self._run_clock = self._run_base = 0.0
+        self._last_sample, self._dwell_after_run = -1, 0.0
+        self._last_end = np.zeros(_NA)  # where the last settled piece ends
+        self._last_dwell_after = 0.0  # dwells up to the block of the last settled piece
+        self._last_piece = -1
+        self._trail = (-1, 0.0)  # (block, start s) of the block whose pieces are being settled
+        self._kept_pieces: list[tuple] = []
+        self._settled_pieces = (np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0), self._trail)
+
+    # ---- for the consumers ----
+
+    def advance(self) -> bool:
+        """Read the next batch of blocks and settle what it decides; False once done."""
+        if self.done:
+            return False
+        clock = time.perf_counter()
+        reader = self._reader
+        reader.read()
+        self.n_blocks = reader.n_blocks
+        if reader.rows and (self._pieces.last_row is not None or reader.prologue_over()):
+            rows, reader.rows = reader.rows, []
+            self._add_pieces(self._pieces.make(rows))
+        self._settle()
+        if reader.eof and not reader.rows and self._m == self._p0:
+            self._finish()
+        self.time_s += time.perf_counter() - clock
+        return True
+
+    def wait(self, known: Callable[[], bool]) -> None:
+        """Advance until ``known()`` or the end."""
+        while not known() and self.advance():
+            pass
+
+    def samples(self, first: int, stop: int) -> np.ndarray:
+        """(stop - first, 4) settled samples first .. stop - 1 (``wait`` for the frontier first)."""
+        assert stop <= self.frontier, "samples asked for before they are settled"
+        return self._timeline.samples(first, stop)
+
+    def release(self, sample: int) -> None:
+        """Samples before ``sample`` will not be asked for again."""
+        self._timeline.release(sample)
+
+    def blocks(self) -> Iterator[tuple[Block, float, bool]]:
+        """The program's blocks in order, each with its line time (s: see ``Plan.line_time_s``)
+        and whether it is a STOP, as they are settled."""
+        while True:
+            if self.lines:
+                yield self.lines.popleft()
+            elif not self.advance():
+                return
+
+    def whole(self) -> Plan:
+        """The plan held (``keep``), once done."""
+        kept_blocks, kept_pieces = self._clock.kept, self._kept_pieces
+        blocks = [np.concatenate(column) for column in zip(*kept_blocks, strict=True)] \
+            or [np.zeros(0), np.zeros(0), np.zeros(0, dtype=bool), np.zeros(0, dtype=bool)]
+        pieces = Pieces(*(np.concatenate(column) for column in zip(*kept_pieces, strict=True))) if kept_pieces else \
+            Pieces(*([np.zeros(0, dtype=np.int64)] * 2 + [np.zeros((0, _NA))] * 2 + [np.zeros(0)] * 9))
+        return Plan(self._fs, self.n_samples, *blocks, [tuple(r) for r in self.runs], self.duration_s,
+                    _Segments.joined(self._timeline.kept), pieces, self.notes, self.warnings)
 
     # ---- settling ----
 
+    def _add_pieces(self, new: dict | None) -> None:
+        if new is None:
+            return
+        for name, value in new.items():
+            held = self._pending[name]
+            self._pending[name] = value if held is None else np.concatenate([held, value])
+        self._scans.extend(new)
+        self._m += len(new["block"])
+
     def _settle(self) -> None:
-        p0, m, s0 = self._p0, self._m, self._scan_s0
-        if m > p0:
+        reader, stops = self._reader, self._pieces.stops
+        if self._m > self._p0:
             pending = self._pending
-            ends_at_rest = self._eof or self._stops > pending["run"][-1] or pending["extrude_only"][-1]
-            limit = np.append(self._scan_limit, 0.0 if ends_at_rest else math.inf)
-            reach = forward_pass(limit, self._scan_delta, SCAN_CHUNK, self._scan_carry)
-            v2 = backward_pass(reach, self._scan_delta, SCAN_CHUNK)
-            n = m - p0
-            if self._klipper:
-                n, speeds, reach_smooth = self._klipper_speeds(reach, v2, ends_at_rest)
-            elif not ends_at_rest:  # settle the pieces whose both junctions are decided
-                reach[-1] = 0.0
-                differ = np.flatnonzero(backward_pass(reach, self._scan_delta, SCAN_CHUNK)[p0 - s0:] != v2[p0 - s0:])
-                n = max(int(differ[0]) - 1, 0) if differ.size else n
+            ends_at_rest = reader.eof or stops > pending["run"][-1] or pending["extrude_only"][-1]
+            n, v2, speeds = self._scans.decided(pending, self._p0, ends_at_rest)
             if n:
-                if self._klipper:
-                    self._peak_carry = float(speeds[4][n - 1])
-                    self._settle_pieces(n, speeds=[x[:n] for x in speeds[:3]])
-                else:
-                    self._settle_pieces(n, v2[p0 - s0:p0 - s0 + n + 1])
-                # the scans restart at the chunk of the first piece not settled
-                s1 = (self._p0 // SCAN_CHUNK) * SCAN_CHUNK
-                if s1 > s0:
-                    self._scan_carry = reach[s1 - 1 - s0] + self._scan_delta[s1 - 1 - s0]
-                    self._scan_limit, self._scan_delta = self._scan_limit[s1 - s0:], self._scan_delta[s1 - s0:]
-                    if self._klipper:
-                        self._scan_smooth_carry = reach_smooth[s1 - 1 - s0] + self._scan_smooth[s1 - 1 - s0]
-                    self._scan_smooth = self._scan_smooth[s1 - s0:]
-                    self._scan_s0 = s1
-        over = self._stops > self._run_key or self._eof and not self._rows
+                self._settle_pieces(n, v2, speeds)
+                self._scans.restart(self._p0)
+        over = stops > self._run_key or reader.eof and not reader.rows
         if self._open and over and (self._m == self._p0 or self._pending["run"][0] != self._run_key):
             self._close_run()  # (its last piece settled, the next run's first not yet)
         self._settle_blocks()
@@ -792,28 +1024,6 @@ class PlanStream:
             self.frontier = max(self.runs[-1][0] + 1, math.floor(self.settled_s * self._fs) - 1)
         elif self.runs:
             self.frontier = self.runs[-1][1] + 1
-
-    def _klipper_speeds(self, reach: np.ndarray, v2: np.ndarray, ends_at_rest: bool) -> tuple:
-        """Klipper's smoothed look-ahead over the pending pieces (``klipper_rules.cruise_speeds``):
-        how many are settled and their speeds. ``reach`` and ``v2`` are the forward and backward
-        passes from the scans' start; a piece is settled when its speeds are the same however
-        the program goes on: the junction speeds it and the next piece depend on are decided
-        (as in ``_settle``, for both passes) and so is the piece that sets its peak."""
-        p0, s0, pending = self._p0, self._scan_s0, self._pending
-        smooth = self._scan_smooth
-        reach_smooth = forward_pass(reach, smooth, SCAN_CHUNK, self._scan_smooth_carry)
-        smoothed = backward_pass(reach_smooth, smooth, SCAN_CHUNK)
-        speeds = klipper_rules.cruise_speeds(v2[p0 - s0:], smoothed[p0 - s0:], pending["delta_v2"],
-                                             pending["smooth_delta_v2"], pending["max_v"] ** 2, self._peak_carry)
-        n = self._m - p0
-        if not ends_at_rest:
-            low, low_smooth = reach.copy(), reach_smooth.copy()
-            low[-1] = low_smooth[-1] = 0.0
-            differ = np.flatnonzero((backward_pass(low, self._scan_delta, SCAN_CHUNK)[p0 - s0:] != v2[p0 - s0:])
-                                    | (backward_pass(low_smooth, smooth, SCAN_CHUNK)[p0 - s0:] != smoothed[p0 - s0:]))
-            decided = speeds[3][:max(int(differ[0]) - 2, 0)] if differ.size else speeds[3]
-            n = int(np.flatnonzero(decided)[-1]) + 1 if decided.any() else 0
-        return n, speeds, reach_smooth
 
     def _settle_pieces(self, n: int, v2: np.ndarray | None = None, speeds: list | None = None) -> None:
         """Settle the next ``n`` pieces, their squared junction speeds ``v2`` (n + 1) given, or
@@ -824,20 +1034,13 @@ class PlanStream:
         p0 = self._p0
         self._p0 += n
         block, key, start, end, length = taken["block"], taken["run"], taken["start"], taken["end"], taken["length"]
-        accel, max_v, delta_v2 = taken["accel"], taken["max_v"], taken["delta_v2"]
+        accel, max_v = taken["accel"], taken["max_v"]
         if speeds is None:
             v0_2, v1_2 = v2[:-1], v2[1:]
-            peak2 = np.maximum(np.minimum(max_v * max_v, 0.5 * (v0_2 + v1_2 + delta_v2)), np.maximum(v0_2, v1_2))
-        else:
-            v0_2, peak2, v1_2 = speeds
-        v0, vp, v1 = np.sqrt(v0_2), np.sqrt(peak2), np.sqrt(v1_2)
-        d_accel = (peak2 - v0_2) / (2.0 * accel)
-        d_decel = (peak2 - v1_2) / (2.0 * accel)
-        d_cruise = np.maximum(length - d_accel - d_decel, 0.0)
-        t_accel = 2.0 * d_accel / (v0 + vp)
-        t_decel = 2.0 * d_decel / (v1 + vp)
-        t_cruise = d_cruise / vp
-        duration = t_accel + t_cruise + t_decel
+            peak2 = np.maximum(np.minimum(max_v * max_v, 0.5 * (v0_2 + v1_2 + taken["delta_v2"])),
+                               np.maximum(v0_2, v1_2))
+            speeds = (v0_2, peak2, v1_2)
+        (v0, vp, v1), d_accel, t_accel, t_cruise, duration = _trapezoids(length, accel, *speeds)
         cum = np.cumsum(np.concatenate([[self._cum_dur], duration]))  # (the running sum's bits)
 
         # runs: pieces between the same two STOP blocks, one after the other, separated by the
@@ -864,91 +1067,43 @@ class PlanStream:
         if last_block_first or self._trail[0] != block[-1]:  # its pieces may go on in the next batch
             self._trail = (int(block[-1]), float(piece_start[last_block_first]))
         if self._keep:
-            self._kept["pieces"].append((block, run, start, end, length, taken["extrude_only"], accel, max_v,
-                                         v0, vp, v1, piece_start, duration))
+            self._kept_pieces.append((block, run, start, end, length, taken["extrude_only"], accel, max_v,
+                                      v0, vp, v1, piece_start, duration))
 
         # every sample lies in one segment of a piecewise-quadratic timeline: the three phases of
-        # every piece (the braking phase measured from the piece's end, so pieces end exactly at
-        # their end point), the rest at the end of each run until its last sample, and, from the
+        # every piece, the rest at the end of each run until its last sample, and, from the
         # sample after that, the start of the next run (a STOP's jump shows there) or, after the
         # last run, the final position
-        unit_pos = (end - start) / length[:, None]  # position per mm of the piece
-        half_a = (0.5 * accel)[:, None] * unit_pos
-        segments.append((8 * (p0 + np.arange(n))[:, None] + np.arange(3), _Segments(
-            np.stack([piece_start, piece_start + t_accel, piece_start + (t_accel + t_cruise)], axis=1).ravel(),
-            np.stack([piece_start, piece_start + t_accel, piece_end], axis=1).ravel(),
-            np.stack([start, start + d_accel[:, None] * unit_pos, end], axis=1).reshape(-1, _NA),
-            np.stack([v0[:, None] * unit_pos, vp[:, None] * unit_pos, v1[:, None] * unit_pos], axis=1).reshape(-1, _NA),
-            np.stack([half_a, np.zeros_like(half_a), -half_a], axis=1).reshape(-1, _NA))))
-        self._add_segments(segments)
+        segments.append(_Timeline.phases(p0, piece_start, piece_end, t_accel, t_cruise, start, end, d_accel, length,
+                                         accel, (v0, vp, v1)))
+        self._timeline.add(segments)
 
     def _settled_to(self, piece: int, cum: float, end: np.ndarray, block: int) -> None:
         """The last piece settled (a run closing ends there)."""
         self._last_piece, self._cum_dur, self._last_end = piece, cum, end
-        self._last_dwell_after = self._dwell_before(block)  # (a MOVE block has no dwell)
+        self._last_dwell_after = self._clock.dwell_before(block)  # (a MOVE block has no dwell)
 
     def _settle_blocks(self) -> None:
-        """Time the blocks before the first one with waypoints or pieces not settled: a block
-        without pieces happens when the motion before it ends, after the dwells between."""
         if self._m > self._p0:
             stop = int(self._pending["block"][0])
         else:
-            stop = self._rows[0][0] if self._rows else self.n_blocks
-        count = stop - self._first_pending_block
-        block, piece_start, piece_end, trail = self._settled_pieces
+            stop = self._reader.rows[0][0] if self._reader.rows else self._reader.n_blocks
+        pieces = self._settled_pieces
         self._settled_pieces = (np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0), self._trail)
-        if count <= 0:
-            return
-        taken = [self._pending_blocks.popleft() for _ in range(count)]
-        idx = np.arange(self._first_pending_block, stop)
-        self._first_pending_block = stop
-        dwell_before = np.array([t[3] for t in taken])
-        is_move = np.array([t[1] for t in taken], dtype=bool)
-        is_stop = np.array([t[2] for t in taken], dtype=bool)
-        last_piece = np.searchsorted(block, idx, side="right") - 1
-        has = last_piece >= 0
-        has[has] = block[last_piece[has]] == idx[has]
-        if block.size:
-            first_piece = np.minimum(np.searchsorted(block, idx, side="left"), block.size - 1)
-            block_end = np.where(has, piece_end[np.maximum(last_piece, 0)], 0.0)
-            block_start = np.where(has, np.where(idx == trail[0], trail[1], piece_start[first_piece]), 0.0)
-        else:
-            block_end = block_start = np.zeros(count)
-        latest = np.maximum.accumulate(np.where(has, np.arange(count), -1))
-        end_at = np.where(latest >= 0, block_end[np.maximum(latest, 0)], self._latest_end)
-        dwell_at = np.where(latest >= 0, dwell_before[np.maximum(latest, 0)], self._latest_dwell)  # (a MOVE has no dwell)
-        clock_at = end_at + (dwell_before - dwell_at)
-        line_time = np.where(has, block_end, clock_at)
-        move_start = np.where(has, block_start, clock_at)
-        if latest[-1] >= 0:
-            self._latest_end, self._latest_dwell = float(end_at[-1]), float(dwell_at[-1])
-        if self._keep:
-            self._kept["blocks"].append((line_time, move_start, is_move, is_stop))
-        else:
-            self.lines.extend(zip((t[0] for t in taken), line_time.tolist(), is_stop.tolist()))
-            moves = np.flatnonzero(is_move)
-            self.moves.extend(zip((taken[i][0].line_no for i in moves), move_start[moves].tolist(), line_time[moves].tolist()))
+        self._clock.settle(stop, pieces)
 
     def _finish(self) -> None:
         if self._open:
             self._close_run()
         segments = []
-        self._next_segment(np.zeros(_NA) if self._last_row is None else self._last_row, 0, segments)
-        self._add_segments(segments)
-        self.duration_s = float(self._latest_end + (self._cum_dwell - self._latest_dwell))
+        self._next_segment(np.zeros(_NA) if self._pieces.last_row is None else self._pieces.last_row, 0, segments)
+        self._timeline.add(segments)
+        clock = self._clock
+        self.duration_s = float(clock.latest_end + (self._reader.cum_dwell - clock.latest_dwell))
         self.n_samples = math.ceil(self.duration_s * self._fs) + 1
-        never = np.flatnonzero(~self._ever_known[:4])  # (LinuxCNC's other axes never known: never used)
-        self.notes[:0] = [f"{AXES[i]}: position never known, planned at 0 mm" for i in never]
-        if self._lost > MAX_NOTES:
-            self.notes.append(f"... and {self._lost - MAX_NOTES} more lines with unknown positions")
-        if self._clamped:  # one line: slicers write Z moves at travel feeds on every layer
-            self.warnings.append(self._clamped_first + (f" and {self._clamped - 1} more lines" if self._clamped > 1 else ""))
+        self._pieces.finish(self.warnings)
         self.frontier = self.n_samples
         self.done = True
-
-    def _dwell_before(self, block: int) -> float:
-        """The dwells of the blocks before ``block`` (a block not yet settled)."""
-        return self._pending_blocks[block - self._first_pending_block][3]
 
     def _open_run(self, piece: int, key: int, block: int, start: np.ndarray, cum: float, segments: list) -> None:
         fs = self._fs
@@ -956,7 +1111,7 @@ class PlanStream:
         # runs) and the run starts on the first sample after it: a whole sample later at least
         # (runs do not share samples; the output's first block takes that up: writer).
         rest_from_s = self._last_sample / fs if self.runs else 0.0
-        clock = rest_from_s + (self._dwell_before(block) - self._dwell_after_run)
+        clock = rest_from_s + (self._clock.dwell_before(block) - self._dwell_after_run)
         first = max(math.ceil(clock * fs - 1e-6), self._last_sample + 1)  # (an ulp over is not a sample later)
         clock = (first + self._lead) / fs  # the lead margin: the run starts before its motion
         self._next_segment(start, 8 * piece - 2, segments)
@@ -975,26 +1130,11 @@ class PlanStream:
         self.runs[-1][1] = last
         self._last_sample, self._dwell_after_run = last, dwell_after
         self._open = False
-        t = np.array([end_s])
-        segments.append((np.array([8 * self._last_piece + 3]), _Segments(t, t, self._last_end[None], np.zeros((1, _NA)),
-                                                                       np.zeros((1, _NA)))))
+        segments.append(_Timeline.held(8 * self._last_piece + 3, end_s, end_s, self._last_end))
         if own:
-            self._add_segments(segments)
+            self._timeline.add(segments)
 
     def _next_segment(self, position: np.ndarray, key: int, segments: list) -> None:
         """The position from the sample after the last run's end (before the first run: always)."""
-        t0 = np.array([(self._last_sample + 0.5) / self._fs if self.runs else -np.inf])
-        segments.append((np.array([key]), _Segments(t0, np.zeros(1), position[None], np.zeros((1, _NA)),
-                                                    np.zeros((1, _NA)))))
-
-    def _add_segments(self, parts: list) -> None:
-        keys = np.concatenate([np.ravel(k) for k, _ in parts])
-        seg = _Segments.joined([s for _, s in parts])[np.argsort(keys, kind="stable")]
-        # Sums of rounded times can put a phase an ulp after the next one's start: they are in
-        # time order, make their starts say so (of equal starts, the later rules)
-        seg.t0 = np.maximum.accumulate(np.concatenate([[self._t0_max], seg.t0]))[1:]
-        self._t0_max = seg.t0[-1]
-        if self._keep:
-            self._kept["segments"].append(seg)
-        else:
-            self._segments = _Segments.joined([self._segments, seg])
+        t0 = (self._last_sample + 0.5) / self._fs if self.runs else -np.inf
+        segments.append(_Timeline.held(key, t0, 0.0, position))

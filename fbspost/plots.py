@@ -146,7 +146,7 @@ def _spectrum(ax, sim: Simulation, shown) -> None:
     top_hz = 3 * max(m.frequency_hz for a in sim.modelled for m in sim.profile.axes[a].modes)
     styles = ["-", "--", ":"]
     for method, color in shown:
-        for axis, style in zip(sim.modelled, styles):
+        for axis, style in zip(sim.modelled, styles, strict=True):
             error_um = (sim.desired_mm[:, AXES.index(axis)] - method.actual_mm[:, AXES.index(axis)]) * 1e3
             amplitude = 2 * np.abs(np.fft.rfft(error_um)) / len(error_um)  # of a sine at that frequency
             frequency = np.fft.rfftfreq(len(error_um), period_s)
@@ -167,7 +167,7 @@ def _response(ax, sim: Simulation) -> None:
     top_hz = 3 * max(m.frequency_hz for a in sim.modelled for m in sim.profile.axes[a].modes)
     frequency = np.linspace(0.1, top_hz, 3000)
     shaped = next((m for m in sim.methods if m.shapers), None)
-    for i, axis in enumerate(sim.modelled):
+    for axis in sim.modelled:
         modes = sim.profile.axes[axis].modes
         gain = np.abs(AxisDynamics(modes, 1.0 / sim.profile.sample_rate_hz).frequency_response(frequency))
         line, = ax.plot(frequency, gain, lw=1.2, label=f"{axis}: |G(j 2 pi f)|")

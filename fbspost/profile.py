@@ -2,7 +2,8 @@
 
 Takes a bundled profile name or a path to a ``.toml`` file; gives a ``MachineProfile`` with the
 sample rate, the planner settings, the firmware's own limits (``[firmware]``, optional: Klipper's
-defaults when absent) and, per compensated axis, its kinematic limits and modal dynamics. The modal residues are rescaled so every axis has a DC gain of exactly 1 (a
+defaults when absent) and, per compensated axis, its kinematic limits and modal dynamics. The modal
+residues are rescaled so every axis has a DC gain of exactly 1 (a
 position-controlled axis holds a constant command exactly).
 
 Errors are raised as ``ProfileError`` with a one-line message naming the file and the key.
@@ -59,7 +60,8 @@ class FirmwareProfile:
     names and defaults (klippy/toolhead.py, kinematics/extruder.py) where it has the setting."""
 
     steps_per_mm: dict[str, float] = field(default_factory=dict)  # per axis; an axis not given: unknown
-    shaper_frequency_hz: dict[str, float] = field(default_factory=dict)  # the user's input shaping (restored after the compensated motion)
+    # the user's input shaping (restored after the compensated motion)
+    shaper_frequency_hz: dict[str, float] = field(default_factory=dict)
     block_buffer: int = 16  # Marlin BLOCK_BUFFER_SIZE: look-ahead over this many blocks
     max_line_rate_hz: float | None = None  # most lines per second the machine takes (None: no limit)
     max_velocity_mm_s: float | None = None  # Klipper max_velocity (None: the slower of X and Y's max_velocity)
@@ -117,7 +119,15 @@ _HOME_KEYS = {"X", "Y", "Z"}
 _MOTION_KEYS = {"sample_rate"}
 _PLANNER_KEYS = {"acceleration", "square_corner_velocity"}
 _TOLERANCE_KEYS = ("frequency_tolerance", "damping_tolerance")
-_AXIS_KEYS = {"max_velocity", "max_acceleration", "max_jerk", "modes", "moving_mass", "filament_density", *_TOLERANCE_KEYS}
+_AXIS_KEYS = {
+    "max_velocity",
+    "max_acceleration",
+    "max_jerk",
+    "modes",
+    "moving_mass",
+    "filament_density",
+    *_TOLERANCE_KEYS,
+}
 _MODE_KEYS = {"frequency", "damping", "alpha", "beta", *_TOLERANCE_KEYS}
 # [firmware] key -> FirmwareProfile field, for the optional positive numbers
 _FIRMWARE_NUMBERS = {
@@ -158,35 +168,43 @@ def load_profile(name_or_path: str | Path) -> MachineProfile:
     return parse_profile(data, str(path))
 
 
-def parse_profile(data: dict, source: str) -> MachineProfile:
-    """Validate the parsed TOML ``data`` of the file ``source``."""
+class _Checker:
+    """The checks of one profile file ``source``: each failure a ``ProfileError`` naming the key."""
 
-    def fail(key: str, message: str) -> ProfileError:
-        return ProfileError(f"{source}: {key}: {message}")
+    def __init__(self, source: str):
+        self.source = source
 
-    def table(parent: dict, key: str, where: str, allowed: set[str]) -> dict:
+    def fail(self, key: str, message: str) -> ProfileError:
+        return ProfileError(f"{self.source}: {key}: {message}")
+
+    def table(self, parent: dict, key: str, where: str, allowed: set[str]) -> dict:
         if key not in parent:
-            raise fail(where, "missing")
+            raise self.fail(where, "missing")
         value = parent[key]
         if not isinstance(value, dict):
-            raise fail(where, "must be a table")
+            raise self.fail(where, "must be a table")
         for k in value:
             if k not in allowed:
-                raise fail(f"{where}.{k}", f"unknown key (expected one of {', '.join(sorted(allowed))})")
+                raise self.fail(f"{where}.{k}", f"unknown key (expected one of {', '.join(sorted(allowed))})")
         return value
 
-    def number(parent: dict, key: str, where: str, *, positive: bool = False, optional: bool = False):
+    def number(self, parent: dict, key: str, where: str, *, positive: bool = False, optional: bool = False):
         if key not in parent:
             if optional:
                 return None
-            raise fail(where, "missing")
+            raise self.fail(where, "missing")
         value = parent[key]
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            raise fail(where, f"must be a finite number, got {value!r}")
+            raise self.fail(where, f"must be a finite number, got {value!r}")
         if positive and value <= 0:
-            raise fail(where, f"must be > 0, got {value!r}")
+            raise self.fail(where, f"must be > 0, got {value!r}")
         return float(value)
 
+
+def parse_profile(data: dict, source: str) -> MachineProfile:
+    """Validate the parsed TOML ``data`` of the file ``source``."""
+    check = _Checker(source)
+    fail, table, number = check.fail, check.table, check.number
     for k in data:
         if k not in _TOP_KEYS:
             raise fail(k, f"unknown key (expected one of {', '.join(sorted(_TOP_KEYS))})")
@@ -211,55 +229,62 @@ def parse_profile(data: dict, source: str) -> MachineProfile:
     axes_table = table(data, "axes", "axes", set(AXIS_NAMES))
     if not axes_table:
         raise fail("axes", "no axis defined")
-    axes = {}
-    for axis_name in axes_table:
-        where = f"axes.{axis_name}"
-        axis = table(axes_table, axis_name, where, _AXIS_KEYS)
-        max_velocity = number(axis, "max_velocity", f"{where}.max_velocity", positive=True)
-        max_acceleration = number(axis, "max_acceleration", f"{where}.max_acceleration", positive=True)
-        max_jerk = number(axis, "max_jerk", f"{where}.max_jerk", positive=True, optional=True)
-        raw_modes = axis.get("modes")
-        if raw_modes is None:
-            raise fail(f"{where}.modes", "missing (use modes = [] for an axis without dynamics)")
-        if not isinstance(raw_modes, list):
-            raise fail(f"{where}.modes", "must be a list of tables")
-        modes = []
-        axis_tolerances = [_tolerance(axis, key, f"{where}.{key}", 0.0, fail, number) for key in _TOLERANCE_KEYS]
-        for i, raw in enumerate(raw_modes):
-            mwhere = f"{where}.modes[{i}]"
-            if not isinstance(raw, dict):
-                raise fail(mwhere, "must be a table")
-            for k in raw:
-                if k not in _MODE_KEYS:
-                    raise fail(f"{mwhere}.{k}", f"unknown key (expected one of {', '.join(sorted(_MODE_KEYS))})")
-            frequency = number(raw, "frequency", f"{mwhere}.frequency", positive=True)
-            if frequency >= sample_rate / 2:
-                raise fail(f"{mwhere}.frequency", f"must be below the Nyquist frequency {sample_rate / 2:g} Hz")
-            damping = number(raw, "damping", f"{mwhere}.damping")
-            if not 0 < damping < 1:
-                raise fail(f"{mwhere}.damping", f"must be in (0, 1), got {damping!r}")
-            tolerances = [_tolerance(raw, key, f"{mwhere}.{key}", default, fail, number)
-                          for key, default in zip(_TOLERANCE_KEYS, axis_tolerances)]
-            modes.append(Mode(frequency, damping, number(raw, "alpha", f"{mwhere}.alpha"),
-                              number(raw, "beta", f"{mwhere}.beta"), *tolerances))
-        if modes:
-            dc_gain = sum(m.alpha / m.omega_rad_s**2 for m in modes)
-            if not dc_gain > 0:
-                raise fail(f"{where}.modes", f"DC gain sum(alpha/w^2) = {dc_gain:g} must be > 0 for a position axis")
-            modes = [replace(m, alpha=m.alpha / dc_gain, beta=m.beta / dc_gain) for m in modes]
-        load = {"moving_mass_kg": number(axis, "moving_mass", f"{where}.moving_mass", positive=True, optional=True),
-                "filament_density_g_cm3": number(axis, "filament_density", f"{where}.filament_density", positive=True,
-                                                 optional=True)}
-        if load["filament_density_g_cm3"] is not None and load["moving_mass_kg"] is None:
-            raise fail(f"{where}.filament_density", "needs moving_mass (the mass the modes were measured with)")
-        axes[axis_name] = AxisProfile(axis_name, max_velocity, max_acceleration, max_jerk, tuple(modes),
-                                      **{k: v for k, v in load.items() if v is not None})
-
+    axes = {axis_name: _parse_axis(check, axes_table, axis_name, sample_rate) for axis_name in axes_table}
     firmware = FirmwareProfile()
     if "firmware" in data:
         firmware = _parse_firmware(table(data, "firmware", "firmware", _FIRMWARE_KEYS), fail, number)
     return MachineProfile(name.strip(), description, source, sample_rate, acceleration, scv, axes, firmware,
                           home_mm)
+
+
+def _parse_axis(check: _Checker, axes_table: dict, axis_name: str, sample_rate: float) -> AxisProfile:
+    """The axis ``axis_name`` of the profile's [axes]: limits, modes scaled to DC gain 1, load."""
+    fail, number = check.fail, check.number
+    where = f"axes.{axis_name}"
+    axis = check.table(axes_table, axis_name, where, _AXIS_KEYS)
+    max_velocity = number(axis, "max_velocity", f"{where}.max_velocity", positive=True)
+    max_acceleration = number(axis, "max_acceleration", f"{where}.max_acceleration", positive=True)
+    max_jerk = number(axis, "max_jerk", f"{where}.max_jerk", positive=True, optional=True)
+    raw_modes = axis.get("modes")
+    if raw_modes is None:
+        raise fail(f"{where}.modes", "missing (use modes = [] for an axis without dynamics)")
+    if not isinstance(raw_modes, list):
+        raise fail(f"{where}.modes", "must be a list of tables")
+    axis_tolerances = [_tolerance(axis, key, f"{where}.{key}", 0.0, fail, number) for key in _TOLERANCE_KEYS]
+    modes = [_parse_mode(check, raw, f"{where}.modes[{i}]", sample_rate, axis_tolerances)
+             for i, raw in enumerate(raw_modes)]
+    if modes:
+        dc_gain = sum(m.alpha / m.omega_rad_s**2 for m in modes)
+        if not dc_gain > 0:
+            raise fail(f"{where}.modes", f"DC gain sum(alpha/w^2) = {dc_gain:g} must be > 0 for a position axis")
+        modes = [replace(m, alpha=m.alpha / dc_gain, beta=m.beta / dc_gain) for m in modes]
+    load = {"moving_mass_kg": number(axis, "moving_mass", f"{where}.moving_mass", positive=True, optional=True),
+            "filament_density_g_cm3": number(axis, "filament_density", f"{where}.filament_density", positive=True,
+                                             optional=True)}
+    if load["filament_density_g_cm3"] is not None and load["moving_mass_kg"] is None:
+        raise fail(f"{where}.filament_density", "needs moving_mass (the mass the modes were measured with)")
+    return AxisProfile(axis_name, max_velocity, max_acceleration, max_jerk, tuple(modes),
+                       **{k: v for k, v in load.items() if v is not None})
+
+
+def _parse_mode(check: _Checker, raw, where: str, sample_rate: float, axis_tolerances: list) -> Mode:
+    """One mode table at ``where``, as written (unscaled); its tolerances default to the axis'."""
+    fail, number = check.fail, check.number
+    if not isinstance(raw, dict):
+        raise fail(where, "must be a table")
+    for k in raw:
+        if k not in _MODE_KEYS:
+            raise fail(f"{where}.{k}", f"unknown key (expected one of {', '.join(sorted(_MODE_KEYS))})")
+    frequency = number(raw, "frequency", f"{where}.frequency", positive=True)
+    if frequency >= sample_rate / 2:
+        raise fail(f"{where}.frequency", f"must be below the Nyquist frequency {sample_rate / 2:g} Hz")
+    damping = number(raw, "damping", f"{where}.damping")
+    if not 0 < damping < 1:
+        raise fail(f"{where}.damping", f"must be in (0, 1), got {damping!r}")
+    tolerances = [_tolerance(raw, key, f"{where}.{key}", default, fail, number)
+                  for key, default in zip(_TOLERANCE_KEYS, axis_tolerances, strict=True)]
+    return Mode(frequency, damping, number(raw, "alpha", f"{where}.alpha"), number(raw, "beta", f"{where}.beta"),
+                *tolerances)
 
 
 def _tolerance(raw: dict, key: str, where: str, default: float, fail, number) -> float:
@@ -335,7 +360,7 @@ def format_profile(profile: MachineProfile) -> str:
              "[planner]", f"acceleration = {number(profile.planner_acceleration_mm_s2)}",
              f"square_corner_velocity = {number(profile.planner_square_corner_velocity_mm_s)}"]
     if any(profile.home_mm):
-        lines += ["", "[home]", *(f"{a} = {number(v)}" for a, v in zip("XYZ", profile.home_mm))]
+        lines += ["", "[home]", *(f"{a} = {number(v)}" for a, v in zip("XYZ", profile.home_mm, strict=True))]
     lines += _format_firmware(profile.firmware, number)
     for name, axis in profile.axes.items():
         lines += ["", f"[axes.{name}]", f"max_velocity = {number(axis.max_velocity_mm_s)}",
@@ -343,7 +368,10 @@ def format_profile(profile: MachineProfile) -> str:
         if axis.max_jerk_mm_s3 is not None:
             lines.append(f"max_jerk = {number(axis.max_jerk_mm_s3)}")
         if axis.moving_mass_kg is not None:
-            lines += [f"moving_mass = {number(axis.moving_mass_kg)}", f"filament_density = {number(axis.filament_density_g_cm3)}"]
+            lines += [
+                f"moving_mass = {number(axis.moving_mass_kg)}",
+                f"filament_density = {number(axis.filament_density_g_cm3)}",
+            ]
         modes = [f"  {{ frequency = {number(m.frequency_hz)}, damping = {number(m.damping)}, "
                  f"alpha = {number(m.alpha)}, beta = {number(m.beta)}"
                  + "".join(f", {key} = {number(getattr(m, key))}" for key in _TOLERANCE_KEYS if getattr(m, key))

@@ -100,7 +100,7 @@ def shape(positions_mm: np.ndarray, period_s: float, shaper: Shaper) -> np.ndarr
     columns = positions_mm.reshape(len(positions_mm), -1)
     t = np.arange(len(positions_mm)) * period_s
     out = np.zeros_like(columns)
-    for a, delay in zip(shaper.amplitudes, shaper.times_s):
+    for a, delay in zip(shaper.amplitudes, shaper.times_s, strict=True):
         for j in range(columns.shape[1]):
             out[:, j] += a * np.interp(t - delay, t, columns[:, j])
     return out.reshape(positions_mm.shape)

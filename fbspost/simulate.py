@@ -129,7 +129,9 @@ class Simulation:
 def dominant_mode(axis: AxisProfile):
     """The mode with the highest resonance peak |alpha + j beta w| / (2 damping w^2): the peak a
     resonance test (Klipper's calibrate_shaper) finds."""
-    return max(axis.modes, key=lambda m: abs(complex(m.alpha, m.beta * m.omega_rad_s)) / (2 * m.damping * m.omega_rad_s**2))
+    return max(
+        axis.modes, key=lambda m: abs(complex(m.alpha, m.beta * m.omega_rad_s)) / (2 * m.damping * m.omega_rad_s**2)
+    )
 
 
 def shaper_settings(profile: MachineProfile, frequency_hz: dict[str, float] | None = None,
@@ -191,7 +193,9 @@ def simulate_program(program: str | Path, profile: MachineProfile, shapers: tupl
         fbs = ("fbs", f"fbs: {compensated} run block by block at its feed", command)
     else:
         optimizer_warnings = []
-        command = np.pad(compensated_samples(plan, profile, warnings=optimizer_warnings), ((before, after), (0, 0)), mode="edge")
+        command = np.pad(
+            compensated_samples(plan, profile, warnings=optimizer_warnings), ((before, after), (0, 0)), mode="edge"
+        )
         sim.warnings += [f"fbs: {w}" for w in optimizer_warnings]
         fbs = ("fbs", "fbs: compensated now", command)
     rows = [("original", "original: the plan", desired), fbs]

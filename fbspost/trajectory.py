@@ -88,6 +88,6 @@ def write_trajectory_csv(path: str | Path, trajectory: Trajectory) -> None:
     lines = body.getvalue().splitlines()
     if trajectory.time_text is not None:
         names = ["time_s", *names]
-        lines = [f"{t},{line}" for t, line in zip(trajectory.time_text, lines)]
+        lines = [f"{t},{line}" for t, line in zip(trajectory.time_text, lines, strict=True)]
     payload = (",".join(names) + "\n" + "\n".join(lines) + "\n").encode()
     atomic_write(path, lambda f: f.write(payload))

@@ -14,7 +14,8 @@ Klipper (ACCEL = 1e8 mm/s^2): at most 0.05 us and 0.5 nm per junction, typically
 10, v 100); the writer makes that time up in the next block. 1e7 was not enough: the centripetal
 limit below held a command that wiggles block to block at 130 mm/s travel back by 3-5 um, and
 the ramps' time, made up only approximately, drifted 0.6 us/s (klippy's own planner on a sliced
-print's first 1000 lines: 6.6 um largest distance from the command at 1e7, 0.7 um at 1e8). Marlin and RepRapFirmware keep block accelerations in 32-bit steps/s^2 (times
+print's first 1000 lines: 6.6 um largest distance from the command at 1e7, 0.7 um at 1e8). Marlin
+and RepRapFirmware keep block accelerations in 32-bit steps/s^2 (times
 2^24 / timer rate in Marlin): 1e6 mm/s^2 fits at up to 250 steps/mm, at most 5 us and 50 nm per
 junction (Marlin: with M201 E raised too, a printing block's acceleration is otherwise its E limit
 over the E per mm; the writer makes up these ramps' time as Klipper's).
@@ -134,8 +135,10 @@ class Transparency:
         if self.flavor == "marlin" and program.junction_deviation_mm is None:
             kept.append("M205 J")
         if kept:
-            notes.append(f"fbspost firmware settings not known, so left as the output sets them after the compensated motion: "
-                         f"{', '.join(kept)} (give them in the profile's [firmware] table or the program)")
+            notes.append(
+                f"fbspost firmware settings not known, so left as the output sets them after the compensated motion: "
+                f"{', '.join(kept)} (give them in the profile's [firmware] table or the program)"
+            )
         return notes
 
     def apply(self, at_rest: bool, modal: Modal) -> list[str]:

@@ -51,8 +51,8 @@ class LoadModes:
         level ``old``'s and the command u held before it: every mode of every model keeps its
         output y = alpha q + beta q' and its rate y' = alpha q' + beta q'' (q'' takes u)."""
         blocks, offsets = [], []
-        for before, after in zip(self.models(old).models, self.models(new).models):
-            for a, b in zip(before.modes, after.modes):
+        for before, after in zip(self.models(old).models, self.models(new).models, strict=True):
+            for a, b in zip(before.modes, after.modes, strict=True):
                 (to_a, u_a), (to_b, u_b) = _physical(a), _physical(b)
                 blocks.append(linalg.solve(to_b, to_a))
                 offsets.append(linalg.solve(to_b, u_a - u_b))

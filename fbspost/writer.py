@@ -100,7 +100,8 @@ class _Breaks:
         rows = command if self.tail is None else np.concatenate([self.tail, command])
         self.fed += len(command)
         self.tail = rows[-2:]
-        new = [np.linalg.norm(np.diff(rows[a:a + _PIECE + 2], 2, axis=0), axis=1)  # (by pieces: big temporaries cost more than the arithmetic)
+        # (by pieces: big temporaries cost more than the arithmetic)
+        new = [np.linalg.norm(np.diff(rows[a:a + _PIECE + 2], 2, axis=0), axis=1)
                for a in range(0, max(len(rows) - 2, 0), _PIECE)]
         if self.fed == self.n:
             new.append(np.zeros(min(2, self.n)))  # no bend at the last two samples
@@ -170,14 +171,16 @@ def g5_blocks(command: np.ndarray, splits: np.ndarray, tolerance_mm: float,
 
     The run is fitted whole (fit_g5 searches its blocks in lock step: a call per stretch between
     copied lines is many times slower). Fitted blocks that a split falls inside, in which Z (or
-    a LinuxCNC axis other than X Y) moves, or that miss the tolerance (fit_g5 lets the minimum length win, and a short block
+    a LinuxCNC axis other than X Y) moves, or that miss the tolerance (fit_g5 lets the minimum
+    length win, and a short block
     before one of its chunk edges may miss where chords do not) become G1 blocks, between the
     splits and the other fitted blocks' ends: ``breakpoints`` of each such stretch, its last two
     blocks sharing their length where the last is shorter than the minimum (each then at least
     half the minimum long, and shorter than the first of them was). A curve whose control points
     lie on its chord's thirds is a straight line at constant speed: G1.
     """
-    fit = fit_g5(command[:, [0, 1, _E]], tolerance_mm, min_samples, _MAX_SAMPLES, step_mm=step_mm)  # (LinuxCNC: E stays 0)
+    # (LinuxCNC: E stays 0)
+    fit = fit_g5(command[:, [0, 1, _E]], tolerance_mm, min_samples, _MAX_SAMPLES, step_mm=step_mm)
     starts, ends = fit.starts, fit.ends
     # Z and LinuxCNC's other axes move in G1 blocks only
     z_steps = np.concatenate([[0], np.cumsum((np.diff(command[:, _NOT_IN_G5], axis=0) != 0).any(axis=1))])
@@ -187,7 +190,7 @@ def g5_blocks(command: np.ndarray, splits: np.ndarray, tolerance_mm: float,
     hard = np.union1d(np.concatenate([[0, ends[-1]], starts[kept], ends[kept]]), splits)  # neighbouring G1 blocks merge
     g1 = ~np.isin(hard[1:], ends[kept])  # stretches that are no kept block
     inner = [np.zeros(0, np.int64)]
-    for a, b in zip(hard[:-1][g1], hard[1:][g1]):
+    for a, b in zip(hard[:-1][g1], hard[1:][g1], strict=True):
         g1_ends = breakpoints(command[a:b + 1], tolerance_mm, min_samples) + a
         if len(g1_ends) > 2 and b - g1_ends[-2] < min_samples:  # a short last block: the last two share
             g1_ends[-2] = (g1_ends[-3] + b) // 2
@@ -323,7 +326,9 @@ class _Emitter:
         """
         ends_s = np.zeros(len(targets_mm)) if ends_s is None else ends_s
         if self.held is not None:
-            targets_mm, durations_s, ends_s = (np.concatenate(pair) for pair in zip(self.held, (targets_mm, durations_s, ends_s)))
+            targets_mm, durations_s, ends_s = (
+                np.concatenate(pair) for pair in zip(self.held, (targets_mm, durations_s, ends_s), strict=True)
+            )
             self.held = None
         digits = self.digits
         scale = 10.0 ** digits
@@ -340,7 +345,7 @@ class _Emitter:
                 last = kept[-1] if len(kept) else 0
                 self.step_error = step_errors[last]
                 self.held = (targets_mm[last:], durations_s[last:], ends_s[last:])
-                targets_mm, durations_s, ends_s, ints = targets_mm[:last], durations_s[:last], ends_s[:last], ints[:last]
+                targets_mm, durations_s, ends_s, ints = (x[:last] for x in (targets_mm, durations_s, ends_s, ints))
         steps = np.diff(np.vstack([start, ints]), axis=0)
         moved = steps != 0
         length, jump = (self._marlin_lengths(start, ints, scale) if marlin
@@ -368,7 +373,8 @@ class _Emitter:
         new_feed = feed != np.concatenate([[self.feed], feed[:-1]])  # F only where it changes
         if len(feed):
             self.feed = int(feed[-1])
-        self.written = np.where(relative, self.written + (ints[-1] - start) / scale, ints[-1] / scale) if len(ints) else self.written
+        if len(ints):
+            self.written = np.where(relative, self.written + (ints[-1] - start) / scale, ints[-1] / scale)
         values = np.column_stack([np.where(relative, steps, ints)[rows], feed])
         shown = np.column_stack([moved[rows], new_feed])
         digits = np.append(digits, _FEED_DECIMALS)
@@ -412,7 +418,7 @@ def _merged(start: np.ndarray, ints: np.ndarray, steps_per_unit: np.ndarray, min
     while i < len(near):
         k = near[i]
         last = rows[k - 1]
-        while k < len(rows) and max((abs(a - b) for a, b in zip(rows[k], last)), default=0.0) < min_steps:
+        while k < len(rows) and max((abs(a - b) for a, b in zip(rows[k], last, strict=True)), default=0.0) < min_steps:
             kept[k] = False
             k += 1
         i = bisect.bisect_right(near, k, i)
@@ -458,7 +464,8 @@ def _feeds(length_mm: np.ndarray, durations_s: np.ndarray, moving: np.ndarray, r
             residue_s -= length_units_s / feed
             speed = feed / units_per_mm_s
             if ramped:
-                step = speed - (speed_mm_s if speed_mm_s >= jump else jump) if speed > speed_mm_s else speed_mm_s - speed
+                lower_mm_s = speed_mm_s if speed_mm_s >= jump else jump
+                step = speed - lower_mm_s if speed > speed_mm_s else speed_mm_s - speed
                 if step > 0.0:
                     residue_s -= step ** 2 / (2.0 * ramp_mm_s2 * (speed if speed >= speed_mm_s else speed_mm_s))
             speed_mm_s = speed
@@ -675,7 +682,8 @@ class _Deviation:
         block = np.searchsorted(ends_s, grid_s, "left")
         worst = np.zeros(len(ends_s))
         np.maximum.at(worst, block, off_mm)
-        self.loosened_s += float(np.diff(knots_s)[worst > self.tolerance_mm + 1e-4].sum())  # (rounding: 0.1 um per axis)
+        # (rounding: 0.1 um per axis)
+        self.loosened_s += float(np.diff(knots_s)[worst > self.tolerance_mm + 1e-4].sum())
         self.last_s = float(ends_s[-1])
         if self.executed is not None and len(grid_s):
             first = round(grid_s[0] * self.fs)
@@ -690,102 +698,192 @@ class _Deviation:
             self.executed.add(self.executed.next, rest, rest)
 
 
-def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions, out, executed=None) -> WriteStats:
-    """Write the output program to the binary stream ``out``. The program's blocks come from
-    ``plan`` as it settles them. With ``options.firmware``, the firmware is made transparent
-    before the written blocks and given back the program's settings (as its copied lines change
-    them) before every copied line that may move the machine and after the last run
-    (``transparency``). ``executed`` (``pipeline.ExecutedError``) is given the written program's
-    motion as the firmware runs it, sample by sample.
-    """
-    refusal = format_refusal(options.flavor, options.output_format)
-    if refusal:
-        raise ValueError(refusal)
-    stats = WriteStats()
-    fs = plan.sample_rate_hz
-    comment = ("(", ")") if options.flavor == "linuxcnc" else ("; ", "")
-    settings = None if options.firmware is None else Transparency(options.flavor, options.firmware, options.tolerance_mm)
+class _Output:
+    """The output program's text. Takes lines to write (each ended by the program's newline,
+    counted in ``stats`` and in the line rate at ``written_until_s``) and the program's lines to
+    copy as they are; a copied line without a line ending gets one when more follows it."""
 
-    def runs_from(r: int) -> bool:
+    def __init__(self, out, flavor: str):
+        self._out, self._flavor = out, flavor
+        self.stats = WriteStats()
+        self.newline = b"\n"
+        self.rate = _LineRate()
+        self.written_until_s = 0.0  # the end of the last block written: the time of lines written now
+        self._unterminated = False  # the last copied line had no line ending (the end of the file)
+
+    def text(self, text: bytes, count: int) -> None:
+        """Write ``count`` lines, each ended by the newline."""
+        if count:
+            self._out.write((self.newline if self._unterminated else b"") + text)
+            self.stats.lines_out += count
+            self._unterminated = False
+
+    def lines(self, *lines: str) -> None:
+        self.text(b"".join(x.encode() + self.newline for x in lines), len(lines))
+        self.rate.add([self.written_until_s] * len(lines))
+
+    def dwell(self, seconds: float) -> float:
+        """A G4 for about ``seconds`` (none where it rounds to nothing); gives how long it dwells."""
+        line, dwell_s = dwell_line(self._flavor, seconds)
+        if dwell_s > 0:
+            self.lines(line)
+        return dwell_s
+
+    def copy(self, raw: bytes) -> None:
+        """One of the program's lines, byte for byte."""
+        self._out.write(raw)
+        self._unterminated = not raw.endswith((b"\n", b"\r"))
+        self.stats.lines_out += 1
+        self.stats.passthrough_lines += 1
+
+
+class _RunWriter:
+    """The runs of motion as blocks. Takes the plan's runs and the command (``SampleWindow``);
+    writes the blocks from where the output is up to a time (``until``): their ends (dense:
+    ``_Breaks``, as the samples come; G5: ``g5_blocks``, each run fitted whole), the firmware's
+    settings before them, a dwell for the blocks at a run's start that round to no motion, and
+    the end of each run. ``emitter`` formats them (set before the first call)."""
+
+    def __init__(self, plan: PlanStream, samples: SampleWindow, options: WriteOptions, output: _Output,
+                 settings: Transparency | None, executed=None):
+        self._plan, self._samples, self._options, self._out, self._settings = plan, samples, options, output, settings
+        self._fs = fs = plan.sample_rate_hz
+        # The line rate: blocks no shorter than a line's share of it, a tenth of it left to the copied lines
+        min_segment_s = max(options.min_segment_time_s, 1.0 / (0.9 * (options.max_line_rate_hz or math.inf)))
+        self._min_samples = max(1, int(np.ceil(min_segment_s * fs - 1e-9)))
+        self.deviation = _Deviation(samples, fs, options.tolerance_mm, executed)
+        self.emitter: _Emitter | None = None
+        self.copied_sample = -1  # of the last copied line
+        self.dwelt_s = 0.0  # the dwells of the lines at rest since the last block (the controller's time: +)
+        self.run_index = 0  # the run being written
+        self.latency_s = _marlin_start_latency_s(options)
+        self._run_breaks, self._run_g5 = None, None  # the current run's block ends (dense) or blocks and curves (g5)
+
+    def runs_from(self, r: int) -> bool:
         """Whether the program has a run r (or later)."""
+        plan = self._plan
         plan.wait(lambda: len(plan.runs) > r or plan.done)
         return len(plan.runs) > r
 
-    follows_plan = samples.follows_plan
-    # The line rate: blocks no shorter than a line's share of it, a tenth of it left to the copied lines
-    min_segment_s = max(options.min_segment_time_s, 1.0 / (0.9 * (options.max_line_rate_hz or math.inf)))
-    min_samples = max(1, int(np.ceil(min_segment_s * fs - 1e-9)))
-    rate, deviation = _LineRate(), _Deviation(samples, fs, options.tolerance_mm, executed)
-    copied_sample = -1  # of the last copied line
-    newline = b"\n"
-    emitter = None
-    run_index, written_until_s = 0, 0.0
-    dwelt_s = 0.0  # the dwells of the lines at rest since the last block: the controller's time is written_until_s + dwelt_s
-    run_breaks, run_g5 = None, None  # the current run's block ends (dense) or blocks and curves (g5)
-    latency_s = _marlin_start_latency_s(options)
+    def until(self, t_end_s: float, end_exact_mm: np.ndarray | None = None, soft: bool = False) -> None:
+        """Blocks from where the output is to ``t_end_s``; the axes that follow the plan end
+        exactly at ``end_exact_mm`` (the position the program reached there; NaN: as planned).
+        ``soft``: only the current run's blocks that end well before ``t_end_s``, where no copied
+        line comes before it, once _FLUSH_S is due (dense): so that a program of motion alone is
+        written as it goes."""
+        plan, fs = self._plan, self._fs
+        while self.run_index < len(plan.runs):
+            if not soft:  # the run's end, or that it goes on past t_end_s
+                plan.wait(lambda: plan.runs[self.run_index][1] is not None or plan.settled_s > t_end_s)
+            first, last = plan.runs[self.run_index]
+            run_end_s = math.inf if last is None else last / fs
+            stop_s = min(t_end_s, run_end_s)
+            start_s = max(self._out.written_until_s, first / fs)
+            if soft and (t_end_s >= run_end_s or stop_s - start_s < _FLUSH_S or self._options.output_format == "g5"):
+                return
+            if stop_s > start_s:
+                self._blocks(first, start_s, stop_s, soft, end_exact_mm if t_end_s == stop_s else None)
+            if soft or t_end_s < run_end_s:
+                return
+            self._end_run()
 
-    unterminated = False  # the last copied line had no line ending (the end of the file)
+    def _blocks(self, first: int, start_s: float, stop_s: float, soft: bool, end_exact_mm: np.ndarray | None) -> None:
+        """The blocks of the run from sample ``first`` from ``start_s`` to ``stop_s``; the last
+        ends at ``end_exact_mm`` where the run's blocks reach stop_s (not ``soft``)."""
+        out, emitter, samples, fs = self._out, self.emitter, self._samples, self._fs
+        follows_plan = samples.follows_plan
+        # A run's first block starts where the controller is, at most a sample before
+        # the run's first sample (planner): it takes up the difference.
+        from_s = start_s if out.written_until_s >= first / fs else min(out.written_until_s + self.dwelt_s, start_s)
+        for ends, curves in self._block_ends(first, start_s, stop_s, soft):
+            run_start = out.written_until_s <= first / fs
+            if self._settings is not None:
+                out.lines(*self._settings.apply(run_start, emitter.modal))  # (at a run's start: at rest)
+            targets = samples.at(ends, fs)
+            if ends[-1] == stop_s and end_exact_mm is not None and not soft:
+                exact = np.where(np.isnan(end_exact_mm), samples.at(ends[-1:], fs, planned=True)[0], end_exact_mm)
+                targets[-1, follows_plan] = exact[follows_plan]
+            # blocks that round to no motion at a run's start: a dwell, not a slow first block
+            still = emitter.still(targets[:-1]) if run_start else 0
+            if still:
+                span_s = ends[still - 1] - from_s
+                dwell_s, late_s = _start_dwell(out.dwell, span_s + emitter.residue_s, self.latency_s)
+                if dwell_s > 0:
+                    emitter.residue_s += span_s - dwell_s - late_s
+                    from_s, ends, targets = ends[still - 1], ends[still:], targets[still:]
+                    curves = None if curves is None else curves[still:]
+            text, count = emitter.blocks(targets, np.diff(np.append(from_s, ends)), ends, curves,
+                                         exact_last=ends[-1] >= stop_s)
+            out.text(text, count)
+            self.deviation.add(from_s if run_start else None, emitter.written_s, emitter.written_mm)
+            out.rate.add(emitter.written_s)
+            out.stats.motion_blocks += count
+            from_s = start_s = out.written_until_s = float(ends[-1])
+            self.dwelt_s = 0.0
+            samples.release(int(min(start_s, self.deviation.last_s) * fs) - 1)
 
-    def emit_text(text: bytes, count: int) -> None:
-        """Write ``count`` lines, each ended by the newline."""
-        nonlocal unterminated
-        if count:
-            out.write((newline if unterminated else b"") + text)
-            stats.lines_out += count
-            unterminated = False
+    def _end_run(self) -> None:
+        self.run_index += 1
+        self._run_breaks = self._run_g5 = None
+        # A run's end where the command no longer moves (a settle margin unused) is a dwell:
+        # its time must not slow the next run's first block, nor be lost (the lines after it
+        # run at the plan's times).
+        self.emitter.residue_s -= self._out.dwell(self.emitter.residue_s)
+        if self._settings is not None and not self.runs_from(self.run_index):
+            self._out.lines(*self._settings.restore())  # the program's own, as it left them
 
-    def emit(*lines: str) -> None:
-        emit_text(b"".join(x.encode() + newline for x in lines), len(lines))
-        rate.add([written_until_s] * len(lines))
-
-    def dwell(seconds: float) -> float:
-        """A G4 for about ``seconds`` (none where it rounds to nothing); gives how long it dwells."""
-        line, dwell_s = dwell_line(options.flavor, seconds)
-        if dwell_s > 0:
-            emit(line)
-        return dwell_s
-
-    def block_ends(first: int, start_s: float, stop_s: float, soft: bool = False):
+    def _block_ends(self, first: int, start_s: float, stop_s: float, soft: bool = False):
         """The current run's block ends after ``start_s`` up to ``stop_s`` (s), and their curves, in
         batches as they become known (the last one ends at stop_s; ``soft``: only those before
         stop_s - half the minimum segment, dense only)."""
-        nonlocal run_breaks, run_g5
-        if options.output_format == "g5" and emitter.modal.plane == 17:  # G5 is an XY-plane command
-            if run_g5 is None:  # fitted whole: the run's samples are held
-                plan.wait(lambda: plan.runs[run_index][1] is not None)
-                last = plan.runs[run_index][1]
-                ahead = [copied_sample]  # this copied line and those settled after it: all of the run's
-                for block, line_time_s, is_stop in plan.lines:
-                    if block.kind is not Kind.MOVE:
-                        ahead.append(_copied_sample(line_time_s, is_stop, fs, ahead[-1]))
-                copied = np.unique(ahead)
-                splits = copied[np.searchsorted(copied, first, "right"):np.searchsorted(copied, last, "left")] - first
-                step_mm = 10.0 ** -emitter.digits[0] * emitter.unit_mm  # I J P Q as written
-                run_ends, curves = g5_blocks(samples.rows(first, last + 1), splits, options.tolerance_mm, min_samples,
-                                             step_mm)
-                run_g5 = (run_ends + first, curves)
-            run_ends, run_curves = run_g5  # every copied line's sample among them
-            rows = slice(*np.searchsorted(run_ends, np.rint(np.array([start_s, stop_s]) * fs), "right"))
-            yield run_ends[rows] / fs, run_curves[rows]
+        if self._options.output_format == "g5" and self.emitter.modal.plane == 17:  # G5 is an XY-plane command
+            if self._run_g5 is None:  # fitted whole: the run's samples are held
+                self._run_g5 = self._g5_run(first)
+            run_ends, run_curves = self._run_g5  # every copied line's sample among them
+            rows = slice(*np.searchsorted(run_ends, np.rint(np.array([start_s, stop_s]) * self._fs), "right"))
+            yield run_ends[rows] / self._fs, run_curves[rows]
             return
-        if run_breaks is None:
-            run_breaks = _Breaks(None, options.tolerance_mm, min_samples)
-        half = 0.5 * options.min_segment_time_s
-        ends = run_breaks.ends
+        yield from self._dense_ends(first, start_s, stop_s, soft)
 
-        def run_last() -> int | None:
-            """The run's last sample (None while it goes on), told to its block-end search."""
-            last = plan.runs[run_index][1]
-            run_breaks.n = None if last is None else last - first + 1
-            return last
+    def _g5_run(self, first: int) -> tuple:
+        """The blocks' end samples and curves of the run from sample ``first``, fitted whole, with a
+        block end at every copied line's sample in it."""
+        plan = self._plan
+        plan.wait(lambda: plan.runs[self.run_index][1] is not None)
+        last = plan.runs[self.run_index][1]
+        ahead = [self.copied_sample]  # this copied line and those settled after it: all of the run's
+        for block, line_time_s, is_stop in plan.lines:
+            if block.kind is not Kind.MOVE:
+                ahead.append(_copied_sample(line_time_s, is_stop, self._fs, ahead[-1]))
+        copied = np.unique(ahead)
+        splits = copied[np.searchsorted(copied, first, "right"):np.searchsorted(copied, last, "left")] - first
+        step_mm = 10.0 ** -self.emitter.digits[0] * self.emitter.unit_mm  # I J P Q as written
+        run_ends, curves = g5_blocks(self._samples.rows(first, last + 1), splits, self._options.tolerance_mm,
+                                     self._min_samples, step_mm)
+        return run_ends + first, curves
 
+    def _run_last(self, first: int) -> int | None:
+        """The run's last sample (None while it goes on), told to its block-end search."""
+        last = self._plan.runs[self.run_index][1]
+        self._run_breaks.n = None if last is None else last - first + 1
+        return last
+
+    def _dense_ends(self, first: int, start_s: float, stop_s: float, soft: bool):
+        """``_block_ends`` of the dense format: ``_Breaks`` fed the run's samples as they settle."""
+        plan, fs = self._plan, self._fs
+        if self._run_breaks is None:
+            self._run_breaks = _Breaks(None, self._options.tolerance_mm, self._min_samples)
+        breaks = self._run_breaks
+        half = 0.5 * self._options.min_segment_time_s
+        ends = breaks.ends
         while True:
-            last = run_last()
+            last = self._run_last(first)
             # The ends known so far strictly between start + half and stop - half (in seconds),
             # until one at or past stop is known.
-            final = ends[-1] >= min(stop_s * fs, math.inf if last is None else last) - first or run_breaks.fed == run_breaks.n
+            final = ends[-1] >= min(stop_s * fs, math.inf if last is None else last) - first or breaks.fed == breaks.n
             low = bisect.bisect_left(ends, math.floor((start_s + half) * fs) - first - 1)
-            times = (np.asarray(ends[low:bisect.bisect_right(ends, math.ceil((stop_s - half) * fs) - first + 1)]) + first) / fs
+            high = bisect.bisect_right(ends, math.ceil((stop_s - half) * fs) - first + 1)
+            times = (np.asarray(ends[low:high]) + first) / fs
             inner = times[np.searchsorted(times, start_s + half, "right"):np.searchsorted(times, stop_s - half, "left")]
             del ends[:min(low, len(ends) - 1)]  # passed: later calls start after them
             if final:
@@ -797,138 +895,127 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
             if inner.size:
                 yield inner, None
                 start_s = inner[-1]
-            fed = first + run_breaks.fed
-            plan.wait(lambda: plan.runs[run_index][1] is not None or plan.frontier >= fed + _FEED)
-            last = run_last()
-            run_breaks.feed(samples.rows(fed, fed + _FEED if last is None else min(fed + _FEED, last + 1)))
+            fed = first + breaks.fed
+            plan.wait(lambda fed=fed: plan.runs[self.run_index][1] is not None or plan.frontier >= fed + _FEED)
+            last = self._run_last(first)
+            breaks.feed(self._samples.rows(fed, fed + _FEED if last is None else min(fed + _FEED, last + 1)))
 
-    def motion_until(t_end_s: float, end_exact_mm: np.ndarray | None = None, soft: bool = False) -> None:
-        """Blocks from where the output is to ``t_end_s``; the axes that follow the plan end
-        exactly at ``end_exact_mm`` (the position the program reached there; NaN: as planned).
-        ``soft``: only the current run's blocks that end well before ``t_end_s``, where no copied
-        line comes before it, once _FLUSH_S is due (dense): so that a program of motion alone is
-        written as it goes."""
-        nonlocal run_index, written_until_s, dwelt_s, run_breaks, run_g5
-        while run_index < len(plan.runs):
-            if not soft:  # the run's end, or that it goes on past t_end_s
-                plan.wait(lambda: plan.runs[run_index][1] is not None or plan.settled_s > t_end_s)
-            first, last = plan.runs[run_index]
-            run_end_s = math.inf if last is None else last / fs
-            stop_s = min(t_end_s, run_end_s)
-            start_s = max(written_until_s, first / fs)
-            if soft and (t_end_s >= run_end_s or stop_s - start_s < _FLUSH_S or options.output_format == "g5"):
-                return
-            if stop_s > start_s:
-                # A run's first block starts where the controller is, at most a sample before
-                # the run's first sample (planner): it takes up the difference.
-                from_s = start_s if written_until_s >= first / fs else min(written_until_s + dwelt_s, start_s)
-                for ends, curves in block_ends(first, start_s, stop_s, soft):
-                    run_start = written_until_s <= first / fs
-                    if settings is not None:
-                        emit(*settings.apply(run_start, emitter.modal))  # (at a run's start: at rest)
-                    targets = samples.at(ends, fs)
-                    if ends[-1] == t_end_s and not soft:
-                        exact = np.where(np.isnan(end_exact_mm), samples.at(ends[-1:], fs, planned=True)[0], end_exact_mm)
-                        targets[-1, follows_plan] = exact[follows_plan]
-                    # blocks that round to no motion at a run's start: a dwell, not a slow first block
-                    still = emitter.still(targets[:-1]) if run_start else 0
-                    if still:
-                        span_s = ends[still - 1] - from_s
-                        dwell_s, late_s = _start_dwell(dwell, span_s + emitter.residue_s, latency_s)
-                        if dwell_s > 0:
-                            emitter.residue_s += span_s - dwell_s - late_s
-                            from_s, ends, targets = ends[still - 1], ends[still:], targets[still:]
-                            curves = None if curves is None else curves[still:]
-                    text, count = emitter.blocks(targets, np.diff(np.append(from_s, ends)), ends, curves,
-                                                 exact_last=ends[-1] >= stop_s)
-                    emit_text(text, count)
-                    deviation.add(from_s if run_start else None, emitter.written_s, emitter.written_mm)
-                    rate.add(emitter.written_s)
-                    stats.motion_blocks += count
-                    from_s = start_s = written_until_s = float(ends[-1])
-                    dwelt_s = 0.0
-                    samples.release(int(min(start_s, deviation.last_s) * fs) - 1)
-            if soft or t_end_s < run_end_s:
-                return
-            run_index += 1
-            run_breaks = run_g5 = None
-            # A run's end where the command no longer moves (a settle margin unused) is a dwell:
-            # its time must not slow the next run's first block, nor be lost (the lines after it
-            # run at the plan's times).
-            emitter.residue_s -= dwell(emitter.residue_s)
-            if settings is not None and not runs_from(run_index):
-                emit(*settings.restore())  # the program's own, as it left them
 
-    header_done = False
-    previous_modal, previous_mm = Modal(), np.full(len(AXES), np.nan)
-    last_line = None
-    for block, line_time_s, is_stop in plan.blocks():
-        if emitter is None:
-            newline = b"\r\n" if block.raw.endswith(b"\r\n") else b"\n"  # (only the last line has no ending)
-            emitter = _Emitter(samples.rows(0, 1)[0], newline, None if options.steps_per_mm is None
-                               else np.asarray(options.steps_per_mm), options.min_steps_per_segment,
-                               math.inf if settings is None else settings.ramp_mm_s2)
-        if not header_done and _is_code(block):
-            notes = settings.header() if settings is not None and runs_from(0) else []
-            header = [f"{comment[0]}{text}{comment[1]}" for text in options.header + tuple(notes)]
-            emit_text(b"".join(x.encode() + newline for x in header), len(header))  # (comments: not sent)
-            header_done = True
-        if block.kind is Kind.MOVE:
-            previous_modal, previous_mm = block.modal, block.position_mm
-            # the next copied line runs at or after the sample nearest the end of this motion
-            motion_until(line_time_s - 1.0 / fs, soft=True)
-            continue
-        if not is_stop and not block.raw.endswith((b"\n", b"\r")):
-            last_line = block  # the file's last line has no ending: after the motion (of a settle margin)
-            break
-        copied_sample = _copied_sample(line_time_s, is_stop, fs, copied_sample)
-        t = copied_sample / fs
-        motion_until(t, previous_mm)  # the motion before the line ends where the program was before it
+class _ProgramWriter:
+    """The output program (``write_program``): the program's lines in order, the copied ones at
+    their times with the blocks before them (``_RunWriter``), the header comments before the
+    first line of code, the modes and the firmware's settings where the copied lines need them."""
+
+    def __init__(self, plan: PlanStream, samples: SampleWindow, options: WriteOptions, out, executed=None):
+        self._plan, self._samples, self._options, self._executed = plan, samples, options, executed
+        self._fs = plan.sample_rate_hz
+        self._settings = None if options.firmware is None else \
+            Transparency(options.flavor, options.firmware, options.tolerance_mm)
+        self._out = _Output(out, options.flavor)
+        self._motion = _RunWriter(plan, samples, options, self._out, self._settings, executed)
+        self._previous_modal, self._previous_mm = Modal(), np.full(len(AXES), np.nan)
+
+    def write(self) -> WriteStats:
+        header_done = False
+        last_line = None
+        motion, out = self._motion, self._out
+        for block, line_time_s, is_stop in self._plan.blocks():
+            if motion.emitter is None:
+                out.newline = b"\r\n" if block.raw.endswith(b"\r\n") else b"\n"  # (only the last line has no ending)
+                steps = None if self._options.steps_per_mm is None else np.asarray(self._options.steps_per_mm)
+                motion.emitter = _Emitter(self._samples.rows(0, 1)[0], out.newline, steps,
+                                          self._options.min_steps_per_segment,
+                                          math.inf if self._settings is None else self._settings.ramp_mm_s2)
+            if not header_done and _is_code(block):
+                self._header()
+                header_done = True
+            if block.kind is Kind.MOVE:
+                self._previous_modal, self._previous_mm = block.modal, block.position_mm
+                # the next copied line runs at or after the sample nearest the end of this motion
+                motion.until(line_time_s - 1.0 / self._fs, soft=True)
+                continue
+            if not is_stop and not block.raw.endswith((b"\n", b"\r")):
+                last_line = block  # the file's last line has no ending: after the motion (of a settle margin)
+                break
+            self._copy(block, line_time_s, is_stop)
+        self._finish(last_line)
+        return out.stats
+
+    def _header(self) -> None:
+        settings, options = self._settings, self._options
+        comment = ("(", ")") if options.flavor == "linuxcnc" else ("; ", "")
+        notes = settings.header() if settings is not None and self._motion.runs_from(0) else []
+        header = [f"{comment[0]}{text}{comment[1]}" for text in options.header + tuple(notes)]
+        self._out.text(b"".join(x.encode() + self._out.newline for x in header), len(header))  # (comments: not sent)
+
+    def _copy(self, block: Block, line_time_s: float, is_stop: bool) -> None:
+        """A line that does not move the machine, at its time, after the motion before it."""
+        out, motion, settings, samples, fs = self._out, self._motion, self._settings, self._samples, self._fs
+        previous_mm, follows_plan = self._previous_mm, samples.follows_plan
+        motion.copied_sample = _copied_sample(line_time_s, is_stop, fs, motion.copied_sample)
+        t = motion.copied_sample / fs
+        motion.until(t, previous_mm)  # the motion before the line ends where the program was before it
         if settings is not None and is_stop and _may_move(previous_mm, block.position_mm, slice(None)):
             # a move fbspost copies runs under the program's own settings (shaping: where it moves X or Y)
             moves_xy = _may_move(previous_mm, block.position_mm, slice(0, 2))
-            emit(*settings.restore(shaping=moves_xy))
-            if emitter.speed_mm_s > 0 and latency_s is None:
-                emit(dwell_line(options.flavor, 0.0)[0])  # from rest, as planned: the last block's speed would carry into it
+            out.lines(*settings.restore(shaping=moves_xy))
+            if motion.emitter.speed_mm_s > 0 and motion.latency_s is None:
+                # from rest, as planned: the last block's speed would carry into it
+                out.lines(dwell_line(self._options.flavor, 0.0)[0])
             # (Marlin: no G4. Its junction caps the move's entry at the slow last block's speed, and a G4
             # would leave the move alone in the buffer before the next run's G4, held 100 ms: _start_dwell)
-            if latency_s is not None and not moves_xy and run_index == 0:
+            if motion.latency_s is not None and not moves_xy and motion.run_index == 0:
                 # Marlin's M593 waits for the buffer to empty: at the first run, after this move, it would
                 # leave the move alone in the buffer (held 100 ms, see _start_dwell); X Y shaping does not touch it
-                emit(*settings.shaping_off_lines())
-        reached = samples.at(np.array([t]), fs, planned=True)[0]  # where the program is: the plan where the line does not say
+                out.lines(*settings.shaping_off_lines())
+        # where the program is: the plan where the line does not say
+        reached = samples.at(np.array([t]), fs, planned=True)[0]
         reached = np.where(np.isnan(block.position_mm), reached, block.position_mm)
         commanded = samples.at(np.array([t]), fs)[0]
-        emit(*mode_lines(options.flavor, emitter.modal, previous_modal))
+        out.lines(*mode_lines(self._options.flavor, motion.emitter.modal, self._previous_modal))
         if _is_code(block):
-            rate.add(t)
-        out.write(block.raw)
-        unterminated = not block.raw.endswith((b"\n", b"\r"))
-        stats.lines_out += 1
-        stats.passthrough_lines += 1
+            out.rate.add(t)
+        out.copy(block.raw)
         commanded[follows_plan] = reached[follows_plan]  # the last block ended exactly there
-        emitter.passthrough(block, commanded, reached)
+        motion.emitter.passthrough(block, commanded, reached)
         if is_stop:
-            dwelt_s += block.dwell_s
-        previous_modal, previous_mm = block.modal, block.position_mm
+            motion.dwelt_s += block.dwell_s
+        self._previous_modal, self._previous_mm = block.modal, block.position_mm
         if settings is not None:
             settings.note(block)  # the program's settings, and whether the firmware still has ours
-    if emitter is None:
-        emitter = _Emitter(np.zeros(len(AXES)), newline)
-    samples.ensure(samples.n_samples)
-    motion_until(np.inf, samples.planned[-1])
-    deviation.rest_until(samples.n_samples)
-    if executed is not None:
-        executed.finish(samples.planned[-1])
-    emit(*mode_lines(options.flavor, emitter.modal, previous_modal))
-    if last_line is not None:
-        out.write(last_line.raw)
-        stats.lines_out += 1
-        stats.passthrough_lines += 1
-    stats.max_line_rate_hz = float(rate.max_per_s)
-    stats.max_deviation_mm, stats.max_deviation_s, stats.loosened_s = deviation.max_mm, deviation.at_s, deviation.loosened_s
-    stats.rms_deviation_mm = math.sqrt(deviation.sum_squares_mm2 / max(deviation.count, 1))
-    return stats
+
+    def _finish(self, last_line: Block | None) -> None:
+        """The motion after the last copied line, the modes restored, the last line if it has no ending."""
+        out, motion, samples = self._out, self._motion, self._samples
+        if motion.emitter is None:
+            motion.emitter = _Emitter(np.zeros(len(AXES)), out.newline)
+        samples.ensure(samples.n_samples)
+        motion.until(np.inf, samples.planned[-1])
+        motion.deviation.rest_until(samples.n_samples)
+        if self._executed is not None:
+            self._executed.finish(samples.planned[-1])
+        out.lines(*mode_lines(self._options.flavor, motion.emitter.modal, self._previous_modal))
+        if last_line is not None:
+            out.copy(last_line.raw)
+        stats, deviation = out.stats, motion.deviation
+        stats.max_line_rate_hz = float(out.rate.max_per_s)
+        stats.max_deviation_mm, stats.max_deviation_s = deviation.max_mm, deviation.at_s
+        stats.loosened_s = deviation.loosened_s
+        stats.rms_deviation_mm = math.sqrt(deviation.sum_squares_mm2 / max(deviation.count, 1))
+
+
+def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions, out, executed=None) -> WriteStats:
+    """Write the output program to the binary stream ``out``. The program's blocks come from
+    ``plan`` as it settles them. With ``options.firmware``, the firmware is made transparent
+    before the written blocks and given back the program's settings (as its copied lines change
+    them) before every copied line that may move the machine and after the last run
+    (``transparency``). ``executed`` (``pipeline.ExecutedError``) is given the written program's
+    motion as the firmware runs it, sample by sample.
+    """
+    refusal = format_refusal(options.flavor, options.output_format)
+    if refusal:
+        raise ValueError(refusal)
+    return _ProgramWriter(plan, samples, options, out, executed).write()
 
 
 _FEED = 1 << 14  # samples given to the block-end search at once

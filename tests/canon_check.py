@@ -117,7 +117,9 @@ def _off_move(point, start, end, arc) -> float:
     r0 = math.hypot(start[a] - centre[a], start[b] - centre[b])
     r1 = math.hypot(end[a] - centre[a], end[b] - centre[b])
     r = math.hypot(point[a] - centre[a], point[b] - centre[b])
-    radial = max(0.0, min(abs(r - r0), abs(r - r1)) if min(r0, r1) <= r <= max(r0, r1) else min(abs(r - r0), abs(r - r1)))
+    radial = max(
+        0.0, min(abs(r - r0), abs(r - r1)) if min(r0, r1) <= r <= max(r0, r1) else min(abs(r - r0), abs(r - r1))
+    )
     # the arc's axis and A B C move linearly: within their ranges
     lo, hi = np.minimum(start, end)[[c, 3, 4, 5]], np.maximum(start, end)[[c, 3, 4, 5]]
     linear = np.nan_to_num(np.maximum(np.maximum(lo - point[[c, 3, 4, 5]], point[[c, 3, 4, 5]] - hi), 0.0))
@@ -191,7 +193,7 @@ def command_problems(original: str | Path, output: str | Path, tool_table: str |
         return [f"the program ends in {modes[0]}, the output in {modes[1]}"]
     want, got = ([c for c in calls if c[0] != "SET_MOTION_CONTROL_MODE"] for calls in (want, got))
     got = _without_added_dwells(want, got)
-    for i, (w, g) in enumerate(zip(want, got)):
+    for i, (w, g) in enumerate(zip(want, got, strict=True)):
         if w != g:
             return [f"non-motion command {i + 1}: expected {w}, got {g}"]
     if len(want) != len(got):

@@ -104,7 +104,8 @@ def load_klippy(directory: Path) -> types.SimpleNamespace:
             sys.modules[f"klippy.{name}"] = sys.modules.setdefault(name, stub)  # idex_modes imports chelper bare
             setattr(package, name, sys.modules[f"klippy.{name}"])
         sys.modules["klippy.stepper"].LookupMultiRail.side_effect = lambda config: _Rail()
-        sys.modules["klippy.kinematics.stepper"] = sys.modules["klippy.stepper"]  # the sdist's cartesian.py imports it there
+        # the sdist's cartesian.py imports it there
+        sys.modules["klippy.kinematics.stepper"] = sys.modules["klippy.stepper"]
         sys.modules["klippy.chelper"].get_ffi.return_value = (mock.MagicMock(), mock.MagicMock())
     import importlib
     return types.SimpleNamespace(toolhead=importlib.import_module("klippy.toolhead"),

@@ -187,7 +187,7 @@ def execute(path, sample_rate_hz: float = 10000.0, dwell_p_seconds: bool = False
                 xy = bezier_points(p0, p1, p2, p3, u)
                 z0, z3 = pos["Z"] or 0.0, target["Z"] or 0.0
                 run.path += [(ti, x, y, z0 + (z3 - z0) * ui, pos["E"] + (target["E"] - pos["E"]) * ui)
-                             for ti, (x, y), ui in zip(inside, xy, u)]
+                             for ti, (x, y), ui in zip(inside, xy, u, strict=True)]
                 run.g5_blocks += 1
             elif codes and codes[0][0] == b"G" and codes[0][1] in (2.0, 3.0):
                 assert plane == 17 and not unknown, f"an arc outside G17 or from an unknown start: {raw!r}"
@@ -272,8 +272,29 @@ def unbudgeted(profile):
 
 # What fbspost adds to a program: its header, the firmware's settings (transparency), dwells (a run's
 # unused settle margin), mode lines.
-INSERTED = (b"; fbspost", b"(fbspost", b"M201", b"M204", b"M205", b"M566", b"M593", b"SET_VELOCITY_LIMIT",
-            b"SET_INPUT_SHAPER", b"G4 P", b"G64", b"G61", b"G90", b"G91", b"M82", b"M83", b"G20", b"G21", b"G17", b"G18", b"G19")
+INSERTED = (
+    b"; fbspost",
+    b"(fbspost",
+    b"M201",
+    b"M204",
+    b"M205",
+    b"M566",
+    b"M593",
+    b"SET_VELOCITY_LIMIT",
+    b"SET_INPUT_SHAPER",
+    b"G4 P",
+    b"G64",
+    b"G61",
+    b"G90",
+    b"G91",
+    b"M82",
+    b"M83",
+    b"G20",
+    b"G21",
+    b"G17",
+    b"G18",
+    b"G19",
+)
 
 
 def kept_lines(original: list[bytes], output: list[bytes]) -> list[int]:
@@ -287,7 +308,9 @@ def kept_lines(original: list[bytes], output: list[bytes]) -> list[int]:
             where.append(j)
             i += 1
         else:
-            assert line.startswith(INSERTED), f"output line {j}: {line!r} is not the original's {i}: {original[i:i + 1]!r}"
+            assert line.startswith(INSERTED), (
+                f"output line {j}: {line!r} is not the original's {i}: {original[i : i + 1]!r}"
+            )
     assert i == len(original), f"original line {original[i]!r} missing from the output"
     return where
 
@@ -318,7 +341,7 @@ def segments_distance(seg_starts, seg_ends, points, piece_mm=0.5, candidates=16)
     from scipy.spatial import cKDTree
 
     starts, ends = [], []
-    for a, b in zip(np.asarray(seg_starts, dtype=float), np.asarray(seg_ends, dtype=float)):
+    for a, b in zip(np.asarray(seg_starts, dtype=float), np.asarray(seg_ends, dtype=float), strict=True):
         n = max(1, int(np.ceil(np.linalg.norm(b - a) / piece_mm)))
         f = np.linspace(0.0, 1.0, n + 1)[:, None]
         pts = a + f * (b - a)

@@ -174,7 +174,9 @@ def test_feed_beyond_the_machine_is_clamped_as_the_controller_does(tmp_path):
     ends = np.array(execute(tmp_path / "out.gcode").ends)
     margins = RunMargins.for_profile(load_profile("bedslinger-example"))
     # (the output's F times each block by its whole steps, as Marlin does; the executor by its length)
-    assert ends[-1, 0] - ends[0, 0] == pytest.approx(100 / 300 + 300 / 3000 + margins.lead_s + margins.settle_s, rel=6e-3)
+    assert ends[-1, 0] - ends[0, 0] == pytest.approx(
+        100 / 300 + 300 / 3000 + margins.lead_s + margins.settle_s, rel=6e-3
+    )
     dt = np.diff(ends[:, 0])
     assert (np.abs(np.diff(ends[:, 1])[dt > 0] / dt[dt > 0]) <= 300 * (1 + 1e-3)).all()
 

@@ -57,7 +57,8 @@ def independent_errors(command: np.ndarray, blocks) -> np.ndarray:
     against its linear interpolation in that point's parameter (Marlin). G1 blocks: every
     column linear in time."""
     out = []
-    for start, end, p1, p2, curve in zip(blocks.starts, blocks.ends, blocks.p1_mm, blocks.p2_mm, blocks.curve):
+    columns = (blocks.starts, blocks.ends, blocks.p1_mm, blocks.p2_mm, blocks.curve)
+    for start, end, p1, p2, curve in zip(*columns, strict=True):
         control = np.array([command[start, :2], p1, p2, command[end, :2]])
         length = arc_length(control, 1.0)
         worst = 0.0

@@ -32,7 +32,7 @@ def move_csv(path, sample_rate_hz=10000.0, seconds=0.25):
     t = np.arange(n) / sample_rate_hz
     s = np.clip(t / (0.6 * seconds), 0, 1)
     x = 2.0 * (10 * s**3 - 15 * s**4 + 6 * s**5)
-    rows = [(f"{ti:.4f}", f"{xi:.9f}", f"{-xi / 2:.9f}", "0.200") for ti, xi in zip(t, x)]
+    rows = [(f"{ti:.4f}", f"{xi:.9f}", f"{-xi / 2:.9f}", "0.200") for ti, xi in zip(t, x, strict=True)]
     return write_csv(path, "time_s,X,Y,Z", rows)
 
 
@@ -211,8 +211,10 @@ def test_unexpected_exception_is_one_line_naming_the_file(tmp_path, programs, mo
     monkeypatch.setattr(pipeline, "compensate_file", broken)
     result = run("compensate", first, second, "-m", "patent-xy-stage", "-q")
     assert result.exit_code == 1
-    assert result.stderr.splitlines() == [f"error: {second}: internal error: RuntimeError: solver exploded on two lines",
-                                          f"error: 1 of 2 files failed: {second}"]
+    assert result.stderr.splitlines() == [
+        f"error: {second}: internal error: RuntimeError: solver exploded on two lines",
+        f"error: 1 of 2 files failed: {second}",
+    ]
     assert first.read_bytes() == programs[first.name][1] and second.read_bytes() == programs[second.name][0]
 
 

@@ -34,7 +34,9 @@ PRINTER = unbudgeted(load_profile("bedslinger-example"))  # (the line budget's c
 
 
 def modelled_xy(profile, commands_xy, period_s):
-    return np.column_stack([simulate_lsim(profile.axes[a].modes, period_s, commands_xy[:, i]) for i, a in enumerate("XY")])
+    return np.column_stack(
+        [simulate_lsim(profile.axes[a].modes, period_s, commands_xy[:, i]) for i, a in enumerate("XY")]
+    )
 
 
 @pytest.fixture(scope="module")
@@ -49,6 +51,7 @@ def butterfly_runs(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name, duration_tolerance", [("butterfly-dense", 0.005), ("butterfly-polyline", 0.03)])
 def test_butterfly_programs_on_patent_stage(butterfly_runs, name, duration_tolerance):
     source, target, report = butterfly_runs[name]
@@ -145,7 +148,11 @@ def test_sliced_nonmotion_lines_and_extrusion_exact(sliced):
     for line in inserted:  # what fbspost adds: its header, the firmware's settings, mode lines
         assert line.startswith(INSERTED), line
     # E at every non-motion line of the original, matched in order, within 1e-4 mm.
-    e_out = [e for line, e in zip(compensated.nonmotion, compensated.e_at_lines) if line in set(original.nonmotion)]
+    e_out = [
+        e
+        for line, e in zip(compensated.nonmotion, compensated.e_at_lines, strict=True)
+        if line in set(original.nonmotion)
+    ]
     assert np.abs(np.array(e_out) - np.array(original.e_at_lines)).max() <= 1e-4
     assert abs(compensated.extruded - original.extruded) <= 1e-4
 

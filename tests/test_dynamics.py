@@ -177,7 +177,10 @@ def test_poles_closed_form(profile_name, axis):
     truth = np.concatenate([[complex(-m.damping * w, s * w * math.sqrt(1 - m.damping**2)) for s in (1, -1)]
                             for m in modes for w in [2 * math.pi * m.frequency_hz]])
     got = AxisDynamics(modes, 1e-4).poles()
-    key = lambda p: (round(p.real, 6), round(p.imag, 6))
+
+    def key(p):
+        return round(p.real, 6), round(p.imag, 6)
+
     np.testing.assert_allclose(sorted(got, key=key), sorted(truth, key=key), rtol=1e-12)
 
 
@@ -266,7 +269,9 @@ def test_zeros_ignore_cancelled_leading_coefficient():
     assert np.abs(zeros).max() < 1e4
 
     def g(s):
-        return sum((m.alpha + m.beta * s) / (s * s + 2 * m.damping * m.omega_rad_s * s + m.omega_rad_s**2) for m in modes)
+        return sum(
+            (m.alpha + m.beta * s) / (s * s + 2 * m.damping * m.omega_rad_s * s + m.omega_rad_s**2) for m in modes
+        )
 
     for z in zeros:
         assert abs(g(z)) < 1e-8 * abs(g(0.0))
@@ -290,5 +295,5 @@ def test_response_in_pieces_is_the_simulation():
     command = np.cumsum(np.random.default_rng(5).normal(size=5000)) * 1e-3 + 3.0
     step = dynamics.response(command[0])
     cuts = [0, 0, 17, 17, 1000, 1001, 4321, 5000]
-    pieces = np.concatenate([step(command[a:b]) for a, b in zip(cuts[:-1], cuts[1:])])
+    pieces = np.concatenate([step(command[a:b]) for a, b in zip(cuts[:-1], cuts[1:], strict=True)])
     assert np.array_equal(pieces, dynamics.simulate(command))

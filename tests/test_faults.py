@@ -252,6 +252,7 @@ def test_signal_while_computing(tmp_path, signum, status):
 
 @pytest.mark.parametrize("signum, status", [(signal.SIGINT, 130), (signal.SIGTERM, 143)],
                          ids=["SIGINT", "SIGTERM"])
+@pytest.mark.slow
 def test_signal_while_writing_in_place(tmp_path, signum, status):
     """The signal arrives once the temporary file exists (G5 output: seconds of writing)."""
     program = tmp_path / "part.gcode"

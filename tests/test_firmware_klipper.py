@@ -58,7 +58,7 @@ def assert_same_motion(blocks, profile, klippy) -> None:
     blocks around them at rest): klippy is given a stop before and after each (where its
     neighbours would let it keep some speed, a Z move after a travel, at most a few ms apart)."""
     planned = [b for b, _, _ in PlanStream(blocks, profile, firmware="klipper").blocks()]
-    rests = {i for i, (b, given) in enumerate(zip(planned, blocks)) if b.kind is not given.kind}
+    rests = {i for i, (b, given) in enumerate(zip(planned, blocks, strict=True)) if b.kind is not given.kind}
     rests_s = [planned[i].dwell_s for i in sorted(rests)]
     stopped = []
     for i, block in enumerate(blocks):
@@ -82,7 +82,8 @@ def assert_same_motion(blocks, profile, klippy) -> None:
     column = {name: np.array([getattr(m, name) for m in moves]) for name in
               ("start_v", "cruise_v", "end_v", "accel_t", "cruise_t", "decel_t", "accel_mm_s2")}
     np.testing.assert_allclose(pieces.accel_mm_s2, column["accel_mm_s2"], rtol=1e-15)
-    for mine, name in ((pieces.start_v_mm_s, "start_v"), (pieces.peak_v_mm_s, "cruise_v"), (pieces.end_v_mm_s, "end_v")):
+    speeds = ((pieces.start_v_mm_s, "start_v"), (pieces.peak_v_mm_s, "cruise_v"), (pieces.end_v_mm_s, "end_v"))
+    for mine, name in speeds:
         # (squared speeds: where klippy decides on exact equality fbspost allows CLOSE_V2, 1e-6 (mm/s)^2)
         np.testing.assert_allclose(mine**2, column[name] ** 2, rtol=1e-9, atol=2e-6, err_msg=name)
     accel_t = (pieces.peak_v_mm_s - pieces.start_v_mm_s) / pieces.accel_mm_s2  # a trapezoid's phases
@@ -130,6 +131,7 @@ def compensated(tmp_path_factory) -> Path:
 
 
 @pytest.mark.parametrize("smoothing", ["fixed", "ratio"])
+@pytest.mark.slow
 def test_plan_of_dense_output_is_klippys(klippy, compensated, smoothing):
     """fbspost's own dense output (its SET_VELOCITY_LIMIT lines included): klippy's plan."""
     blocks = list(read_gcode(compensated, "klipper"))
@@ -140,7 +142,9 @@ def test_plan_of_dense_output_is_klippys(klippy, compensated, smoothing):
 @pytest.mark.parametrize("batch", [13, 211])
 def test_klipper_plan_streams_exactly(tmp_path, batch):
     """The plan with Klipper's rules is bit for bit the same however the program is cut."""
-    path = program(tmp_path, "tests/data/gear-marlin2.gcode", 2500, TRANSPARENT["ratio"].replace("ACCEL=1000000", "ACCEL=2500"))
+    path = program(
+        tmp_path, "tests/data/gear-marlin2.gcode", 2500, TRANSPARENT["ratio"].replace("ACCEL=1000000", "ACCEL=2500")
+    )
     blocks = list(read_gcode(path, "klipper"))
     whole = plan_blocks(blocks, load_profile("printer-two-mode"), firmware="klipper")
     cut = plan_blocks(blocks, load_profile("printer-two-mode"), batch_blocks=batch, firmware="klipper")

@@ -8,6 +8,7 @@ accumulated here; and the extrusion total of the real slicer files from a regex 
 """
 from __future__ import annotations
 
+import itertools
 import math
 import re
 import types
@@ -80,7 +81,7 @@ def test_linear_absolute_and_relative(tmp_path):
         (Kind.MOVE, (15, 7, 0.7, 1.5), 50.0),  # G91: E relative too (Marlin)
         (Kind.MOVE, (15, 7, 0.2, 1.5), 50.0),
     ]
-    for block, (kind, pos, feed) in zip(blocks[2:], expected):
+    for block, (kind, pos, feed) in zip(blocks[2:], expected, strict=True):
         assert block.kind is kind
         close(block.position_mm, pos)
         if kind is Kind.MOVE:
@@ -129,7 +130,7 @@ def test_random_linear_programs(tmp_path, moves):
             lines.append("G91" if rel else "G90")
             expected.append((Kind.PASS, list(pos)))
             relative = rel
-        words = [(a, v) for a, v in zip("XYZE", (x, y, z, e)) if v is not None]
+        words = [(a, v) for a, v in zip("XYZE", (x, y, z, e), strict=True) if v is not None]
         lower, space = style == 1, style != 1
         body = "".join(word_text(a, v, lower, space) for a, v in words)
         feed = word_text("F", 1200.0, lower, space) if with_feed else ""
@@ -137,13 +138,13 @@ def test_random_linear_programs(tmp_path, moves):
         line = ["{}", "{}", "N{} {}*77".format(len(lines) + 3, "{}"), "{} ; note", "/{}"][style].format(line)
         lines.append(line)
         start = list(pos)
-        for i, (a, v) in enumerate(zip("XYZE", (x, y, z, e))):
+        for i, v in enumerate((x, y, z, e)):
             if v is not None:
                 pos[i] = pos[i] + v if relative else v  # Marlin: G91 makes E relative too
         expected.append((Kind.PASS if pos == start else Kind.MOVE, list(pos)))
     blocks = read(tmp_path, HOME + "\n".join(lines) + "\n")
     assert len(blocks) == 2 + len(expected)
-    for block, (kind, position) in zip(blocks[2:], expected):
+    for block, (kind, position) in zip(blocks[2:], expected, strict=True):
         assert block.kind is kind, block.raw
         close(block.position_mm, position, atol=1e-9)
         if kind is Kind.MOVE:
@@ -265,7 +266,7 @@ def test_line_numbers_checksums_comments_case_and_spaces(tmp_path):
         (Kind.PASS, (13, 7, 0, 1.5)),
     ]
     assert len(blocks) == 2 + len(expected)
-    for block, (kind, pos) in zip(blocks[2:], expected):
+    for block, (kind, pos) in zip(blocks[2:], expected, strict=True):
         assert block.kind is kind, block.raw
         close(block.position_mm, pos)
     assert blocks[10].feed_mm_s == 20.0
@@ -320,7 +321,7 @@ def test_block_arrays_are_copies(tmp_path):
     before = [b.position_mm.copy() for b in blocks]
     blocks[2].position_mm[:] = 99.0
     blocks[2].points_mm[:] = 77.0
-    for b, p in zip(blocks[3:], before[3:]):
+    for b, p in zip(blocks[3:], before[3:], strict=True):
         close(b.position_mm, p)
     close(blocks[2].position_mm, np.full(len(blocks[2].position_mm), 99.0))
 
@@ -448,7 +449,11 @@ def test_bezier(tmp_path, flavor):
     curve = bezier(grid, p0, p1, p2, p3)
     t = grid[cKDTree(curve).query(points[:, :2])[1]]
     for _ in range(8):
-        d1 = 3 * (1 - t[:, None]) ** 2 * (p1 - p0) + 6 * (1 - t[:, None]) * t[:, None] * (p2 - p1) + 3 * t[:, None] ** 2 * (p3 - p2)
+        d1 = (
+            3 * (1 - t[:, None]) ** 2 * (p1 - p0)
+            + 6 * (1 - t[:, None]) * t[:, None] * (p2 - p1)
+            + 3 * t[:, None] ** 2 * (p3 - p2)
+        )
         d2 = 6 * (1 - t[:, None]) * (p2 - 2 * p1 + p0) + 6 * t[:, None] * (p3 - 2 * p2 + p1)
         r = bezier(t, p0, p1, p2, p3) - points[:, :2]
         t = np.clip(t - (r * d1).sum(1) / ((d1 * d1).sum(1) + (r * d2).sum(1)), 0, 1)
@@ -469,7 +474,13 @@ def test_bezier(tmp_path, flavor):
     assert worst <= TOL + 1e-12
     assert worst > 0.2 * TOL  # not needlessly fine
     if e_words:  # E in proportion to the arc length
-        speed = np.hypot(*(3 * (1 - grid[:, None]) ** 2 * (p1 - p0) + 6 * (1 - grid[:, None]) * grid[:, None] * (p2 - p1) + 3 * grid[:, None] ** 2 * (p3 - p2)).T)
+        speed = np.hypot(
+            *(
+                3 * (1 - grid[:, None]) ** 2 * (p1 - p0)
+                + 6 * (1 - grid[:, None]) * grid[:, None] * (p2 - p1)
+                + 3 * grid[:, None] ** 2 * (p3 - p2)
+            ).T
+        )
         length = cumulative_trapezoid(speed, grid, initial=0.0)
         expected_e = 2.0 * np.interp(t, grid, length) / length[-1]
         close(points[:, 3], expected_e, atol=1e-8)
@@ -490,7 +501,8 @@ def test_planner_limits(tmp_path):
         "M203 X300 Y250 Z10 E60\n"
         "M205 J0.02\n"
         "M205 X8 Y10 Z0.4 E5\n"
-        "SET_VELOCITY_LIMIT VELOCITY=200 ACCEL=3000 SQUARE_CORNER_VELOCITY=5 ACCEL_TO_DECEL=1500 MINIMUM_CRUISE_RATIO=0.5\n"
+        "SET_VELOCITY_LIMIT VELOCITY=200 ACCEL=3000 SQUARE_CORNER_VELOCITY=5 "
+        "ACCEL_TO_DECEL=1500 MINIMUM_CRUISE_RATIO=0.5\n"
         "SET_VELOCITY_LIMIT ACCEL_TO_DECEL=100\n"
     )
     blocks = read(tmp_path, program, "marlin")
@@ -517,15 +529,60 @@ def test_planner_limits(tmp_path):
 
 
 PASS_LINES = [
-    "", "; comment", "M104 S200", "M106 S255", "M107", "M140 S60", "M141 S40", "M73 P10 R5",
-    "M117 Printing X...", "M118 E1 hello", "M82", "G90", "G21", "G17", "G90.1", "G91.1", "M221 S100",
-    "M900 K0.04", "M486 S1", "M104 S200 T1", 'M862.3 P "MK3S"', "M862.1 P0.4", "M115 U3.9.0", "M84", "M18",
-    "SET_FAN_SPEED FAN=part SPEED=0.5", "SET_PRESSURE_ADVANCE ADVANCE=0.04",
-    "SET_HEATER_TEMPERATURE HEATER=heater_bed TARGET=60", "EXCLUDE_OBJECT_DEFINE NAME=a CENTER=1,2 POLYGON=[[0,0],[1,1]]",
-    "EXCLUDE_OBJECT_START NAME=a", "EXCLUDE_OBJECT_END NAME=a", "F1200", "S100", "M204 S500", "M201 X100",
-    "M203 X100", "M205 X10", "G92 E0", "SET_VELOCITY_LIMIT ACCEL=500",
+    "",
+    "; comment",
+    "M104 S200",
+    "M106 S255",
+    "M107",
+    "M140 S60",
+    "M141 S40",
+    "M73 P10 R5",
+    "M117 Printing X...",
+    "M118 E1 hello",
+    "M82",
+    "G90",
+    "G21",
+    "G17",
+    "G90.1",
+    "G91.1",
+    "M221 S100",
+    "M900 K0.04",
+    "M486 S1",
+    "M104 S200 T1",
+    'M862.3 P "MK3S"',
+    "M862.1 P0.4",
+    "M115 U3.9.0",
+    "M84",
+    "M18",
+    "SET_FAN_SPEED FAN=part SPEED=0.5",
+    "SET_PRESSURE_ADVANCE ADVANCE=0.04",
+    "SET_HEATER_TEMPERATURE HEATER=heater_bed TARGET=60",
+    "EXCLUDE_OBJECT_DEFINE NAME=a CENTER=1,2 POLYGON=[[0,0],[1,1]]",
+    "EXCLUDE_OBJECT_START NAME=a",
+    "EXCLUDE_OBJECT_END NAME=a",
+    "F1200",
+    "S100",
+    "M204 S500",
+    "M201 X100",
+    "M203 X100",
+    "M205 X10",
+    "G92 E0",
+    "SET_VELOCITY_LIMIT ACCEL=500",
 ]
-STOP_KEEP_LINES = ["G4 P10", "M400", "M0", "M1", "M109 S200", "M190 S60", "M191 S40", "M116", "T1", "M600", "G10", "G11"]
+STOP_KEEP_LINES = [
+    "G4 P10",
+    "M400",
+    "M0",
+    "M1",
+    "M109 S200",
+    "M190 S60",
+    "M191 S40",
+    "M116",
+    "T1",
+    "M600",
+    "G10",
+    "G11",
+]
 STOP_HOME_LINES = [("G28 X", "X"), ("G28 Y0 Z0", "YZ"), ("G28", "XYZ"), ("G28 W", "XYZ")]  # (line, axes homed)
 STOP_UNKNOWN_LINES = [  # (line, axes unknown afterwards)
     ("G29", "XYZ"), ("G30", "XYZ"),
@@ -555,7 +612,7 @@ def test_stop_lines_lose_the_position(tmp_path, line, unknown):
     blocks = read(tmp_path, HOME + "M83\nG1 X1 Y2 Z3 E1\n" + line + "\nG1 X4 Y5 Z6 E1\nG1 X7\n")
     stop, after, last = blocks[-3:]
     assert stop.kind is Kind.STOP
-    expected = [NAN if a in unknown else v for a, v in zip("XYZ", (1, 2, 3))] + [1]  # E (relative) kept
+    expected = [NAN if a in unknown else v for a, v in zip("XYZ", (1, 2, 3), strict=True)] + [1]  # E (relative) kept
     close(stop.position_mm, expected)
     assert after.kind is Kind.STOP and after.points_mm is None  # passes through: the controller plans it
     close(after.position_mm, (4, 5, 6, 2))  # absolute words: known again
@@ -569,7 +626,7 @@ def test_homing_puts_the_axes_at_home(tmp_path, line, homed):
     blocks = read(tmp_path, HOME + "M83\nG1 X1 Y2 Z3 E1\n" + line + "\nG1 X4 Y5 Z6 E1\n")
     stop, after = blocks[-2:]
     assert stop.kind is Kind.STOP
-    close(stop.position_mm, [0.0 if a in homed else v for a, v in zip("XYZ", (1, 2, 3))] + [1])
+    close(stop.position_mm, [0.0 if a in homed else v for a, v in zip("XYZ", (1, 2, 3), strict=True)] + [1])
     assert after.kind is Kind.MOVE
     close(after.points_mm, [(4, 5, 6, 2)])
 
@@ -735,12 +792,13 @@ def scan_extrusion(path):
 
 
 @pytest.mark.parametrize("path", [GEAR, BLOB], ids=["absolute-e", "relative-e"])
+@pytest.mark.slow
 def test_total_extrusion_of_real_files(path):
     deltas = scan_extrusion(path)
     blocks = list(read_gcode(path, detect_flavor(path)))
     assert len(blocks) == sum(1 for _ in open(path, "rb"))
     moved, passed_through = 0.0, []
-    for prev, block in zip(blocks, blocks[1:]):
+    for prev, block in itertools.pairwise(blocks):
         if block.line_no in deltas:
             assert block.position_mm[3] - prev.position_mm[3] == pytest.approx(deltas[block.line_no], abs=1e-9)
         if block.kind is Kind.MOVE:
@@ -804,7 +862,7 @@ def test_cnc_program_against_pygcode(tmp_path):
     assert len(blocks) == len(lines)
     pos, motion, feed = [NAN, NAN, NAN], None, None
     moves = arcs = 0
-    for text, block in zip(lines, blocks):
+    for text, block in zip(lines, blocks, strict=True):
         parsed = pygcode.Line(text).block
         words = None
         for g in parsed.gcodes:
@@ -817,7 +875,7 @@ def test_cnc_program_against_pygcode(tmp_path):
         if not words:
             continue
         start = list(pos)
-        pos = [words.get(a, p) for a, p in zip("XYZ", pos)]
+        pos = [words.get(a, p) for a, p in zip("XYZ", pos, strict=True)]
         close(block.position_mm[:3], pos, atol=1e-3)
         if block.kind is not Kind.MOVE:
             assert np.isnan(start).any()  # only moves from an unknown start pass through

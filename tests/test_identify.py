@@ -65,7 +65,7 @@ def noisy_frf_csv(path, modes, band, seed):
     g = true_frf(modes, f)
     rng = np.random.default_rng(seed)
     g_noisy = g * (1 + 0.01 * (rng.standard_normal(f.size) + 1j * rng.standard_normal(f.size)) / np.sqrt(2))
-    rows = "".join(f"{fi:.4f},{gi.real:.9g},{gi.imag:.9g}\n" for fi, gi in zip(f, g_noisy))
+    rows = "".join(f"{fi:.4f},{gi.real:.9g},{gi.imag:.9g}\n" for fi, gi in zip(f, g_noisy, strict=True))
     path.write_text("frequency_hz,real,imag\n" + rows)
     return f
 
@@ -115,10 +115,10 @@ def butterfly_errors(tmp_path_factory):
         true_axis = PATENT.axes[axis_name]
         limits = AxisLimits.from_profile(true_axis)
 
-        def error(command):
+        def error(command, desired=desired, true_axis=true_axis):
             return rms((desired - simulate_lsim(true_axis.modes, period_s, command))[skip:])
 
-        def compensated_error(modes):
+        def compensated_error(modes, desired=desired, limits=limits):
             return error(compensate_axis(desired, AxisDynamics(modes, period_s), limits).command_mm)
 
         fitted = []
@@ -177,8 +177,10 @@ def simulated_recording(program: Path, log: Path, modes, offset_s=1234.5678, rat
     t_log = start_s + np.arange(int((t[-1] - start_s) * rate_hz)) / rate_hz
     rng = np.random.default_rng(seed)
     measured = np.interp(t_log, t, accel) + 200.0 * rng.standard_normal(t_log.size)
-    rows = "".join(f"{ti:.6f},{a:.3f},{n:.3f},9810.000\n"
-                   for ti, a, n in zip(t_log - start_s + offset_s, measured, rng.standard_normal(t_log.size)))
+    rows = "".join(
+        f"{ti:.6f},{a:.3f},{n:.3f},9810.000\n"
+        for ti, a, n in zip(t_log - start_s + offset_s, measured, rng.standard_normal(t_log.size), strict=True)
+    )
     log.write_text("#time,accel_x,accel_y,accel_z\n" + rows)
     return offset_s + 1.0 + dwells_s(program.read_text().split(excite_module._BEGIN)[0]) - start_s
 
@@ -238,7 +240,9 @@ def test_klipper_csv_peak_and_half_power_damping(tmp_path):
     r = f / 48.0
     psd_x = 1e6 * r**4 / ((1 - r**2) ** 2 + (2 * 0.05 * r) ** 2)
     psd_y = 0.1 * psd_x[::-1]
-    rows = "".join(f"{fi:.3f},{a:.6e},{b:.6e},{1:.3e},{a + b:.6e},75.0,0.5,0.4\n" for fi, a, b in zip(f, psd_x, psd_y))
+    rows = "".join(
+        f"{fi:.3f},{a:.6e},{b:.6e},{1:.3e},{a + b:.6e},75.0,0.5,0.4\n" for fi, a, b in zip(f, psd_x, psd_y, strict=True)
+    )
     csv = tmp_path / "calibration_data_x.csv"
     csv.write_text("freq,psd_x,psd_y,psd_z,psd_xyz,accel_per_hz,zv(47.0),mzv(45.2)\n" + rows)
     result = run("identify", "--klipper-csv", csv, "--axis", "X", "-o", tmp_path / "p.toml")
@@ -306,9 +310,15 @@ def test_merge_keeps_the_other_axes_and_settings(tmp_path):
     assert merged.axes["Y"].max_acceleration_mm_s2 == base.axes["Y"].max_acceleration_mm_s2
     for name in ("X", "Z", "E"):
         a, b = merged.axes[name], base.axes[name]
-        assert (a.max_velocity_mm_s, a.max_acceleration_mm_s2, len(a.modes)) == (b.max_velocity_mm_s, b.max_acceleration_mm_s2, len(b.modes))
-        for m, n in zip(a.modes, b.modes):
-            assert np.allclose([m.frequency_hz, m.damping, m.alpha, m.beta], [n.frequency_hz, n.damping, n.alpha, n.beta], rtol=1e-14)
+        assert (a.max_velocity_mm_s, a.max_acceleration_mm_s2, len(a.modes)) == (
+            b.max_velocity_mm_s,
+            b.max_acceleration_mm_s2,
+            len(b.modes),
+        )
+        for m, n in zip(a.modes, b.modes, strict=True):
+            assert np.allclose(
+                [m.frequency_hz, m.damping, m.alpha, m.beta], [n.frequency_hz, n.damping, n.alpha, n.beta], rtol=1e-14
+            )
     assert (merged.name, merged.sample_rate_hz) == (base.name, base.sample_rate_hz)
 
 
@@ -363,6 +373,8 @@ def test_written_profile_reads_back_exactly(tmp_path):
         back = load_profile(tmp_path / "p.toml")
         assert back.sample_rate_hz == profile.sample_rate_hz and back.axes.keys() == profile.axes.keys()
         for axis in profile.axes:
-            for m, n in zip(back.axes[axis].modes, profile.axes[axis].modes):
+            for m, n in zip(back.axes[axis].modes, profile.axes[axis].modes, strict=True):
                 assert (m.frequency_hz, m.damping) == (n.frequency_hz, n.damping)
-                assert m.alpha == pytest.approx(n.alpha, rel=1e-14) and m.beta == pytest.approx(n.beta, rel=1e-14, abs=1e-300)
+                assert m.alpha == pytest.approx(n.alpha, rel=1e-14) and m.beta == pytest.approx(
+                    n.beta, rel=1e-14, abs=1e-300
+                )

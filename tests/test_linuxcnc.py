@@ -52,7 +52,9 @@ def off_polyline(points, line):
     return np.hypot(*(points[:, None] - a - t[..., None] * d).transpose(2, 0, 1)).min(axis=1)
 
 
-CTRL = np.array([[1.0, 2.0, 1.0], [4.0, 6.0, 2.5], [7.0, 1.0, 0.5], [9.0, 5.0, 1.0], [12.0, 3.0, 3.0], [14.0, 8.0, 1.0]])
+CTRL = np.array(
+    [[1.0, 2.0, 1.0], [4.0, 6.0, 2.5], [7.0, 1.0, 0.5], [9.0, 5.0, 1.0], [12.0, 3.0, 3.0], [14.0, 8.0, 1.0]]
+)
 
 
 @pytest.mark.parametrize("order", [3, 4, 5, 6])
@@ -369,6 +371,7 @@ def test_remapped_code_fbspost_writes_is_refused(tmp_path, remap):
 
 
 @needs_rs274
+@pytest.mark.slow
 def test_g5_splines_expand_as_rs274_evaluates_them(tmp_path):
     """rs274 prints G5/G5.1 without their control points: the program reports the values it
     evaluates (rs274_splines), and the expansion writes the same splines in mm: here the words

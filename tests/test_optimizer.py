@@ -375,8 +375,13 @@ def test_dual_active_set_step_is_the_qp_optimum(seed, solver, equalities):
     window, H, g, A, offset, E, e, p_free = random_window(seed, equalities)
     ours = getattr(_Stretch, solver)(window, p_free, offset)
     assert kkt_certified(H, g, A, offset, ours, E, e)
-    objective = lambda p: 0.5 * p @ H @ p - g @ p
-    rows_of = lambda p: np.concatenate([1 - (A @ p + offset), 1 + (A @ p + offset)])
+
+    def objective(p):
+        return 0.5 * p @ H @ p - g @ p
+
+    def rows_of(p):
+        return np.concatenate([1 - (A @ p + offset), 1 + (A @ p + offset)])
+
     constraints = [{"type": "ineq", "fun": rows_of, "jac": lambda p: np.vstack([-A, A])}]
     if equalities:
         constraints.append({"type": "eq", "fun": lambda p: E @ p - e, "jac": lambda p: E})
@@ -407,14 +412,19 @@ def test_daqp_is_the_optimum_of_the_hard_cases_corner_windows(monkeypatch):
     constrained = _Stretch.constrained
     monkeypatch.setattr(_Stretch, "constrained", lambda self, target, p_fixed, offset, end_values, warm: windows.append(
         (self, target, offset, warm)) or constrained(self, target, p_fixed, offset, end_values, warm))
-    result = AxisCompensator(dynamics, AxisLimits.from_profile(axis), FBSSettings(knot_spacing_samples=1))(corner_moves(1e-3))
+    result = AxisCompensator(dynamics, AxisLimits.from_profile(axis), FBSSettings(knot_spacing_samples=1))(
+        corner_moves(1e-3)
+    )
     regular = [w for w in windows if w[0].E is None]
     assert len(regular) >= 8 and not result.warnings
     for window, target, offset, warm in regular[:8]:
         A, g = window.A_free.toarray(), window.gradient(target)
         daqp_p, exact_p = window._least_distance(warm, offset), window._active_set(warm, offset)
         assert kkt_certified(window.H, g, A, offset, daqp_p, residual_tol=1e-6)
-        objective = lambda p: 0.5 * p @ window.H @ p - g @ p
+
+        def objective(p, window=window, g=g):
+            return 0.5 * p @ window.H @ p - g @ p
+
         assert abs(objective(daqp_p) - objective(exact_p)) <= 1e-9 * abs(objective(exact_p))
 
 
@@ -436,7 +446,7 @@ def test_stream_in_pieces_equals_the_whole_run_bit_for_bit(seed):
     cuts = np.concatenate([[0], cuts, cuts[:2], [cuts[3] + 1], [desired.size]])
     cuts.sort()
     stream, pieces = compensator.stream(), []
-    for a, b in zip(cuts[:-1], cuts[1:]):
+    for a, b in zip(cuts[:-1], cuts[1:], strict=True):
         pieces.append(stream.push(desired[a:b]))
         assert sum(p.size for p in pieces) <= b
     result = stream.finish()

@@ -39,7 +39,8 @@ def blocks(path):
     end of its motion; the step_event_count of a G0/G1 that moves, else None; X Y Z there). Program positions
     (G90, M82/M83, G92), rounded to steps per axis; a block takes the length of its whole steps
     over F, XYZ's, or E's where no XYZ axis moves the minimum steps (planner.cpp), a line of Z or E
-    alone (copied) from rest to rest at the profile's limits; G4 P waits; homing puts the axes it homes at 0 and a move from an unknown place is instant (an
+    alone (copied) from rest to rest at the profile's limits; G4 P waits; homing puts the axes it
+    homes at 0 and a move from an unknown place is instant (an
     axis it does not name may be unknown)."""
     spm = np.array([PROFILE.firmware.steps_per_mm[a] for a in "XYZE"])
     position, feed, t, relative_e, out = np.full(4, np.nan), np.nan, 0.0, False, []
@@ -49,7 +50,7 @@ def blocks(path):
         if not words:
             continue
         values = {w[0]: float(w[1:]) for w in words[1:] if w[0] in "XYZEFPS"}
-        target = np.array([values.get(a, p) for a, p in zip("XYZE", position)])
+        target = np.array([values.get(a, p) for a, p in zip("XYZE", position, strict=True)])
         steps = None
         if relative_e and "E" in values:
             target[3] = position[3] + values["E"]
@@ -125,7 +126,8 @@ def test_line_rate_within_budget(marlin_output):
     times = np.array([t for t, _, _ in blocks(target)])
     in_second = np.arange(len(times)) + 1 - np.searchsorted(times, times - 1.0, "right")
     assert in_second.max() <= 300
-    assert abs(report.max_line_rate_hz - in_second.max()) <= 2  # (its times: the plan's, a line may cross a second's edge)
+    # (its times: the plan's, a line may cross a second's edge)
+    assert abs(report.max_line_rate_hz - in_second.max()) <= 2
 
 
 def test_accuracy_cost_reported(marlin_output):

@@ -99,7 +99,7 @@ class RefMove:
     """klippy/toolhead.py's Move, re-stated: limits, junction, trapezoid."""
 
     def __init__(self, start, end, speed, accel, jd, axis_v, axis_a, max_velocity=math.inf, rest_before=False):
-        self.d_axes = [e - s for s, e in zip(start, end)]
+        self.d_axes = [e - s for s, e in zip(start, end, strict=True)]
         self.move_d = math.sqrt(sum(x * x for x in self.d_axes[:3]))
         self.kinematic = self.move_d >= 1e-9
         if not self.kinematic:
@@ -142,7 +142,7 @@ class RefMove:
 
 def reference_plan(moves):
     """Junctions in order, then Klipper's backward flush (no accel_to_decel smoothing)."""
-    for prev, move in zip([None, *moves[:-1]], moves):
+    for prev, move in zip([None, *moves[:-1]], moves, strict=True):
         if prev is not None:
             move.calc_junction(prev)
     next_end_v2 = 0.0
@@ -546,8 +546,10 @@ def test_unknown_axis_found_after_the_prologue_is_planned_at_0_until_then(monkey
     assert plan.line_time_s[known] - plan.move_start_s[known] > 0.4 / 5.0  # a real Z move, at most 5 mm/s
     monkeypatch.setattr(planner, "PROLOGUE_ROWS", 5)  # known within (the start is a waypoint): there from the start
     assert np.all(plan_blocks(prog.blocks, BED, batch_blocks=2).positions_mm[:, 2] == 0.4)
-    assert any(note.startswith(f"Z: position not known in the first 3 waypoints, planned at 0 mm until line {known + 1}")
-               for note in plan.notes)
+    assert any(
+        note.startswith(f"Z: position not known in the first 3 waypoints, planned at 0 mm until line {known + 1}")
+        for note in plan.notes
+    )
 
 
 def mixed_program(rng, n_blocks):

@@ -51,7 +51,7 @@ def assert_matches_raw(profile, raw: dict) -> None:
         if not raw_modes:
             continue
         dc = raw_dc_gain(raw_modes)
-        for mode, rm in zip(axis.modes, raw_modes):
+        for mode, rm in zip(axis.modes, raw_modes, strict=True):
             # frequency and damping unchanged; alpha and beta all scaled by the same 1/dc
             assert mode.frequency_hz == rm["frequency"]
             assert mode.damping == rm["damping"]
@@ -103,7 +103,7 @@ def test_patent_raw_dc_gain_offsets():
     assert raw_dc_gain(raw["axes"]["Y"]["modes"]) - 1 == pytest.approx(2.85e-4, abs=1e-5)
     p = load_profile("patent-xy-stage")
     for ax in "XY":
-        ratio = [m.alpha / rm["alpha"] for m, rm in zip(p.axes[ax].modes, raw["axes"][ax]["modes"])]
+        ratio = [m.alpha / rm["alpha"] for m, rm in zip(p.axes[ax].modes, raw["axes"][ax]["modes"], strict=True)]
         assert ratio == pytest.approx([1 / raw_dc_gain(raw["axes"][ax]["modes"])] * 4, rel=1e-14)
         assert ratio[0] != 1.0  # the rescaling really happened
 
@@ -276,7 +276,7 @@ def test_normalization_property(tmp_path_factory, modes):
     path.write_text(text, encoding="utf-8")
     axis = load_profile(path).axes["Z"]
     dc = sum(a / (2 * math.pi * f) ** 2 for f, z, a, b in modes)
-    for mode, (f, z, a, b) in zip(axis.modes, modes):
+    for mode, (f, z, a, b) in zip(axis.modes, modes, strict=True):
         assert (mode.frequency_hz, mode.damping) == (f, z)
         assert mode.alpha == pytest.approx(a / dc, rel=1e-13)
         assert mode.beta == pytest.approx(b / dc, rel=1e-13, abs=1e-300)

@@ -104,7 +104,9 @@ def programs(draw, stops: bool = True) -> bytes:
                 line += extrusion()
             lines.append(line.encode())
         elif kind == "dwell":
-            lines.append(draw(st.sampled_from([f"G4 P{draw(st.integers(0, 300))}", f"G4 S0.{draw(st.integers(0, 3))}"])).encode())
+            lines.append(
+                draw(st.sampled_from([f"G4 P{draw(st.integers(0, 300))}", f"G4 S0.{draw(st.integers(0, 3))}"])).encode()
+            )
         elif kind == "e-mode":
             abs_e = draw(st.booleans())
             lines.append(b"M82" if abs_e else b"M83")
@@ -128,7 +130,7 @@ def programs(draw, stops: bool = True) -> bytes:
     endings = [draw(st.sampled_from([b"\n", b"\r\n"])) for _ in lines]
     if draw(st.booleans()):
         endings[-1] = b""
-    return b"".join(line + ending for line, ending in zip(lines, endings))
+    return b"".join(line + ending for line, ending in zip(lines, endings, strict=True))
 
 
 def compensated(program: bytes):
@@ -251,7 +253,8 @@ def test_lines_at_rest_run_where_the_motion_ended(program):
          b"G4 P5\nG3 X-4.693 Y-1.533 I-2.337 J-6.494\n")  # lasted 43 ms (6 %) longer (fixed)
 @example(b"G21\nG90\nM82\r\nG92 E0\nG1 X0.000 Y11.253 Z0.200 F2119\nM104 S205\r\nM82\r\nG2 X-2.468 Y8.439 I-1.480 "
          b"J-1.191\r\nG1 X0.000 Y19.428 Z0.400 E0.0736\nG2 X3.015 Y18.167 R-3.393 E1.1586\r\nM400\r\nG92 X-0.737 "
-         b"Y-3.039\nG2 X-2.527 Y-3.552 R-2.500\nG2 X5.737 Y-9.183 R5.050\nM400\nG1 X14.783 Y20.000")  # Y RMS 35.9 -> 40.1 um
+         # Y RMS 35.9 -> 40.1 um
+         b"Y-3.039\nG2 X-2.527 Y-3.552 R-2.500\nG2 X5.737 Y-9.183 R5.050\nM400\nG1 X14.783 Y20.000")
 @example(b'G21\r\nG90\nM83\nG92 E0\nG1 X13.831 Y1.844 Z0.200 F1901\r\nG1 X11.989 Y4.994 Z0.000\r\nG3 X13.73'
          b'6 Y2.274 R4.477\nG4 P168\nG2 X11.043 Y8.735 R8.112 E0.9312\nG1 X19.177 Y0.000 E0.5000 F2679 ; O'
          b'\nG1 X18.044 Y1.523 E0.0000 F1999\nG0 X16.546 Y9.159 E0.9347 F4095\r\nG1 X5.286 Y0.000 F1968\r\n'
@@ -286,7 +289,9 @@ def test_with_stops_command_never_worse(program):
     for column, name in ((0, "X"), (1, "Y")):
         before, after = modelled_error(plan.positions_mm[:, column], command[:, column],
                                        PRINTER.axes[name].modes, 1.0 / PRINTER.sample_rate_hz)
-        assert rms(after) <= rms(before) * (1 + 1e-9) + 1e-9, f"{name}: {rms(before) * 1e3:.3f} -> {rms(after) * 1e3:.3f}"
+        assert rms(after) <= rms(before) * (1 + 1e-9) + 1e-9, (
+            f"{name}: {rms(before) * 1e3:.3f} -> {rms(after) * 1e3:.3f}"
+        )
         check_largest_error(before, after, warnings, name)
     for axis in report.axes.values():
         assert axis.rms_error_after_um <= axis.rms_error_before_um * (1 + 1e-9)

@@ -113,7 +113,7 @@ def carried_outputs(stream, compensator):
     """Each model's output at the first sample the stream has not decided, from the carried state."""
     models = compensator.model_set(stream.level).models
     states = np.split(compensator.carry.state(stream.z), np.cumsum([d.n_states for d in models])[:-1])
-    return np.array([d.C @ x for d, x in zip(models, states)])
+    return np.array([d.C @ x for d, x in zip(models, states, strict=True)])
 
 
 @pytest.mark.parametrize("varying", [False, True])
@@ -162,7 +162,7 @@ def test_remap_keeps_every_modes_output_and_rate():
         modes = [m for d in models.models for m in d.modes]
         return np.array([[m.alpha * a + m.beta * b,
                           m.alpha * b + m.beta * (u - m.omega_rad_s**2 * a - 2 * m.damping * m.omega_rad_s * b)]
-                         for m, (a, b) in zip(modes, q)])
+                         for m, (a, b) in zip(modes, q, strict=True)])
     assert np.allclose(physical(new, x_new), physical(old, x), rtol=1e-12, atol=1e-9)
 
 
@@ -181,16 +181,19 @@ def nominal_sim(gear_head):
     return simulate_program(gear_head, NOMINAL)
 
 
+@pytest.mark.slow
 def test_robust_fbs_at_most_the_best_shaper_on_every_perturbed_machine(gear_head, nominal_sim):
     robust = model_error(simulate_program(gear_head, ROBUST))
     nominal = model_error(nominal_sim)
-    for (f, d, errors), (_, _, plain) in zip(robust, nominal):
+    for (f, d, errors), (_, _, plain) in zip(robust, nominal, strict=True):
         best = min(v for k, v in errors.items() if k not in ("original", "fbs"))
         assert errors["fbs"] <= best, (f, d, errors)
         if (f, d) == (1.0, 1.0):  # the gain (RMS contour error removed) at the nominal model
             assert errors["fbs"] > plain["fbs"]  # robustness costs something there ...
             assert errors["original"] - errors["fbs"] >= 0.8 * (plain["original"] - plain["fbs"])  # ... at most 20%
-    assert any(plain["fbs"] > min(v for k, v in plain.items() if k not in ("original", "fbs")) for _, _, plain in nominal)
+    assert any(
+        plain["fbs"] > min(v for k, v in plain.items() if k not in ("original", "fbs")) for _, _, plain in nominal
+    )
 
 
 @pytest.mark.slow
@@ -213,6 +216,7 @@ def test_robust_fbs_as_klipper_runs_it_at_most_the_best_shaper(tmp_path, gear_he
         assert fbs <= best, (f, d, fbs, best)
 
 
+@pytest.mark.slow
 def test_load_dependent_profile_keeps_the_gain_on_a_bed_whose_frequency_falls(gear_head, nominal_sim):
     """Y carries the print: its frequency falls 15% over the program (a bed of 0.46 g: the whole
     print's mass growth in its first 26 s), simulated exactly per sample (reference.simulate_varying)."""
@@ -243,6 +247,7 @@ def test_load_dependent_profile_keeps_the_gain_on_a_bed_whose_frequency_falls(ge
     assert fixed_gain < load_gain - 0.05  # the fixed model loses what the load-dependent one keeps
 
 
+@pytest.mark.slow
 def test_model_error_cli_table_and_json(gear_head, nominal_sim):
     """The nominal row is the simulation's own contour error; one row per perturbed machine."""
     result = CliRunner().invoke(main, ["simulate", str(gear_head), "-m", "printer-two-mode", "--shapers", "zv,mzv",
@@ -253,7 +258,9 @@ def test_model_error_cli_table_and_json(gear_head, nominal_sim):
     nominal = next(r for r in rows if (r["frequency_scale"], r["damping_scale"]) == (1.0, 1.0))
     for method in nominal_sim.methods:
         if method.name in nominal["rms_contour_error_um"]:
-            assert nominal["rms_contour_error_um"][method.name] == pytest.approx(method.path.rms_contour_error_um, rel=1e-9)
+            assert nominal["rms_contour_error_um"][method.name] == pytest.approx(
+                method.path.rms_contour_error_um, rel=1e-9
+            )
     text = CliRunner().invoke(main, ["simulate", str(gear_head), "-m", "printer-two-mode", "--shapers", "zv",
                                      "--model-error"]).output.splitlines()
     table = text[text.index(next(t for t in text if t.startswith("frequency damping"))) + 1:]
@@ -269,6 +276,8 @@ def test_zero_tolerances_write_the_same_bytes_as_none(tmp_path, gear_head):
     outputs = []
     for machine in ("printer-two-mode", zero):
         out = tmp_path / f"out{len(outputs)}.gcode"
-        assert CliRunner().invoke(main, ["compensate", str(head), "-m", str(machine), "-o", str(out), "-q"]).exit_code == 0
+        assert (
+            CliRunner().invoke(main, ["compensate", str(head), "-m", str(machine), "-o", str(out), "-q"]).exit_code == 0
+        )
         outputs.append(out.read_bytes())
     assert outputs[0] == outputs[1]

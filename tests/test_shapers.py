@@ -20,7 +20,7 @@ def residual_ratio(shaper, frequency_hz, damping):
     mode = Mode(frequency_hz, damping, w * w, 0.0)
     t = np.arange(int(0.3 / FINE_S)) * FINE_S
     start = 0.05
-    shaped = sum(a * (t >= start + tau) for a, tau in zip(shaper.amplitudes, shaper.times_s))
+    shaped = sum(a * (t >= start + tau) for a, tau in zip(shaper.amplitudes, shaper.times_s, strict=True))
     plain = (t >= start + shaper.lag_s).astype(float)
     after = t > start + shaper.lag_s + 1e-3
     # After the last impulse both are exp(-d w t) (C cos w_d t + S sin w_d t): fit C and S.
@@ -104,7 +104,7 @@ def test_shaping_a_ramp_is_exact():
     t = np.arange(400) * period
     ramp = lambda time: np.clip((time - 0.1) / 0.2, 0, 1) * 5.0  # noqa: E731
     shaper = klipper_shaper("ei", 37.3, 0.05)
-    expected = sum(a * ramp(t - tau) for a, tau in zip(shaper.amplitudes, shaper.times_s))
+    expected = sum(a * ramp(t - tau) for a, tau in zip(shaper.amplitudes, shaper.times_s, strict=True))
     both = shape(np.column_stack([ramp(t), -ramp(t)]), period, shaper)
     np.testing.assert_allclose(both[:, 0], expected, atol=1e-12)
     np.testing.assert_allclose(both[:, 1], -expected, atol=1e-12)

@@ -44,7 +44,7 @@ def shaped(x, period_s, amplitudes, times_s):
     periods is the 2-tap filter (1 - f) x[k - m] + f x[k - m - 1], x held beyond its ends."""
     out = np.zeros_like(x)
     k = np.arange(len(x))
-    for a, t in zip(amplitudes, times_s):
+    for a, t in zip(amplitudes, times_s, strict=True):
         m = math.floor(t / period_s)
         f = t / period_s - m
         out += a * ((1 - f) * x[np.clip(k - m, 0, len(x) - 1)] + f * x[np.clip(k - m - 1, 0, len(x) - 1)])
@@ -64,7 +64,11 @@ def resimulate(program, profile, report, compensated=None):
     lead = max([-s["times_s"][0] for row in shapers.values() for s in row.values()], default=0.0)
     lag = max([s["times_s"][-1] for row in shapers.values() for s in row.values()], default=0.0)
     if compensated:  # (the written program may end a little after the plan: its dwells are whole ms)
-        lag = max(lag, execute(compensated, profile.sample_rate_hz, seconds, rest_limits(profile)).ends[-1][0] - (len(plan.positions_mm) - 1) * period_s)
+        lag = max(
+            lag,
+            execute(compensated, profile.sample_rate_hz, seconds, rest_limits(profile)).ends[-1][0]
+            - (len(plan.positions_mm) - 1) * period_s,
+        )
     settle_s = SETTLE_PERIODS / min(m.frequency_hz for a in modelled for m in profile.axes[a].modes)
     before = math.ceil(lead / period_s - 1e-9)
     after = math.ceil(lag / period_s - 1e-9) + math.ceil(settle_s / period_s)
@@ -89,7 +93,9 @@ def resimulate(program, profile, report, compensated=None):
             optimizer = AxisCompensator(AxisDynamics(profile.axes[axis].modes, period_s), limits,
                                         CompensateOptions().settings, "limited")
             for first, last in plan.runs:
-                fbs[before + first:before + last + 1, column] = optimizer(plan.positions_mm[first:last + 1, column]).command_mm
+                fbs[before + first : before + last + 1, column] = optimizer(
+                    plan.positions_mm[first : last + 1, column]
+                ).command_mm
     commands = {"original": desired, "fbs": fbs}
     for name, row in shapers.items():
         command = desired.copy()
@@ -160,7 +166,9 @@ def shaper_timing_checks(report, desired, modelled, period_s):
     and last impulse), so the program's motion starts and ends by the most of these; FBS neither."""
     moving = np.abs(np.diff(desired, axis=0)) > 1e-9
     first = {a: np.argmax(moving[:, i]) * period_s for i, a in enumerate("XYZE") if moving[:, i].any()}
-    last = {a: (len(moving) - np.argmax(moving[::-1, i])) * period_s for i, a in enumerate("XYZE") if moving[:, i].any()}
+    last = {
+        a: (len(moving) - np.argmax(moving[::-1, i])) * period_s for i, a in enumerate("XYZE") if moving[:, i].any()
+    }
     for m in report["methods"]:
         if m["shaper"]:
             shift = {a: (-s["times_s"][0], s["times_s"][-1]) for a, s in m["shaper"].items()}
@@ -182,7 +190,16 @@ def shaper_timing_checks(report, desired, modelled, period_s):
 def test_patent_stage_butterfly():
     profile = load_profile("patent-xy-stage")
     report = simulate_json(BUTTERFLY, "--machine", "patent-xy-stage")
-    assert [m["name"] for m in report["methods"]] == ["original", "fbs", "zv", "mzv", "zvd", "ei", "2hump_ei", "3hump_ei"]
+    assert [m["name"] for m in report["methods"]] == [
+        "original",
+        "fbs",
+        "zv",
+        "mzv",
+        "zvd",
+        "ei",
+        "2hump_ei",
+        "3hump_ei",
+    ]
     assert report["contour_moves"] == "feed"
     rows, desired, *rest = resimulate(BUTTERFLY, profile, report)
     # The butterfly crosses itself some 40 times at its centre: the reference needs many candidates.
@@ -234,6 +251,7 @@ def test_executing_a_compensated_program(tube_head, tmp_path):
     check_rows(report, rows, *rest, 1 / profile.sample_rate_hz, ["fbs"])
 
 
+@pytest.mark.slow
 def test_given_shaper_frequency_and_damping(tube_head):
     report = simulate_json(tube_head, "--machine", "bedslinger-example", "--shapers", "zv",
                            "--shaper-freq", "X=50,y=30", "--shaper-damping", "Y=0.2")

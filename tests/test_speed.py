@@ -32,9 +32,15 @@ def test_axes_on_threads_write_the_serial_output_byte_for_byte(tmp_path, program
     profile, outputs = load_profile(machine), {}
     for parallel in (True, False):
         outputs[parallel] = tmp_path / f"parallel-{parallel}.gcode"
-        report = compensate_file(source, outputs[parallel], profile, replace(CompensateOptions(), parallel_axes=parallel))
+        report = compensate_file(
+            source, outputs[parallel], profile, replace(CompensateOptions(), parallel_axes=parallel)
+        )
         assert len(report.axes) == 2 and report.print_time_s > 20.0
-        assert 0 < sum(axis.qp_windows for axis in report.axes.values()) < sum(axis.windows for axis in report.axes.values())
+        assert (
+            0
+            < sum(axis.qp_windows for axis in report.axes.values())
+            < sum(axis.windows for axis in report.axes.values())
+        )
     assert outputs[True].read_bytes() == outputs[False].read_bytes()
 
 

@@ -18,7 +18,8 @@ WHOLE = 10**9  # blocks or samples: more than any program here has
 
 @pytest.mark.parametrize("name, profile, output_format, streams", [
     ("tests/data/tube-marlin2.gcode", "bedslinger-example", "dense", True),
-    ("tests/data/pocket-klipper.gcode", "bedslinger-example", "dense", True),  # Klipper macros, the raise as SET_VELOCITY_LIMIT
+    # Klipper macros, the raise as SET_VELOCITY_LIMIT
+    ("tests/data/pocket-klipper.gcode", "bedslinger-example", "dense", True),
     # 10 kHz, limits binding at corners; 3 s, shorter than the optimizer's last window: held whole
     ("samples/butterfly-dense.gcode", "patent-xy-stage", "dense", False),
     ("samples/butterfly-polyline.gcode", "patent-xy-stage", "g5", False),  # g5 holds each run

@@ -45,8 +45,10 @@ def test_lines_per_flavor(flavor):
                                      axis_max_acceleration_mm_s2={"X": 4000.0}), b"G61\n"))
     assert t.apply(False, Modal()) == TRANSPARENT[flavor]
     restored = {
-        "klipper": ["SET_VELOCITY_LIMIT ACCEL=1500 ACCEL_TO_DECEL=900 MINIMUM_CRUISE_RATIO=0.4 SQUARE_CORNER_VELOCITY=5",
-                    "SET_INPUT_SHAPER SHAPER_FREQ_X=52 SHAPER_FREQ_Y=34.5"],
+        "klipper": [
+            "SET_VELOCITY_LIMIT ACCEL=1500 ACCEL_TO_DECEL=900 MINIMUM_CRUISE_RATIO=0.4 SQUARE_CORNER_VELOCITY=5",
+            "SET_INPUT_SHAPER SHAPER_FREQ_X=52 SHAPER_FREQ_Y=34.5",
+        ],
         "marlin": ["M201 X4000", "M204 P1500 T2500", "M205 B20000 J0.02 X5 Y5", "M593 X F52", "M593 Y F34.5"],
         "reprap": ["M201 X4000", "M204 P1500 T2500", "M566 X300 Y300"],  # (its shaper type is not known)
         "linuxcnc": ["G61"],
@@ -132,8 +134,8 @@ def written_blocks(text: bytes) -> tuple[list[Fraction], list[Fraction]]:
     for line in text.decode().splitlines():
         words = {w[0]: Fraction(w[1:]) for w in line.split()[1:]}
         feed = words.get("F", feed)
-        target = [words.get(a, p) for a, p in zip("XYZE", position)]
-        d = [b - a for a, b in zip(position, target)]
+        target = [words.get(a, p) for a, p in zip("XYZE", position, strict=True)]
+        d = [b - a for a, b in zip(position, target, strict=True)]
         squared = sum(x * x for x in d[:3]) or d[3] * d[3]
         times.append(Fraction(float(np.sqrt(float(squared)))) * 60 / feed)
         feeds.append(feed)
@@ -162,15 +164,17 @@ def test_written_time_carries_the_feed_rounding():
     moving = np.flatnonzero(np.abs(np.diff(units, axis=0)).sum(axis=1) > 0)
     assert len(times) == len(moving) > 0.95 * n
     exact = np.cumsum([Fraction(float(d)) for d in durations])[moving]  # up to each written block
-    drift_s = np.array([float(w - e) for w, e in zip(np.cumsum(times), exact)])
+    drift_s = np.array([float(w - e) for w, e in zip(np.cumsum(times), exact, strict=True)])
     # |L/F - L/F*| <= (L/F) (half a unit) / F*, F* >= F - half a unit: the ideal F
     half = Fraction(1, 2000)
-    own_rounding_s = np.array([float(t * half / (f - half)) for t, f in zip(times, feeds)]) * (1 + 1e-9) + 1e-15
+    own_rounding_s = (
+        np.array([float(t * half / (f - half)) for t, f in zip(times, feeds, strict=True)]) * (1 + 1e-9) + 1e-15
+    )
     assert np.all(np.abs(drift_s) <= own_rounding_s)
     assert np.abs(drift_s[own_rounding_s < 1e-6]).max() < 1e-6  # (F rounds to 0.001 mm/min: a block of
     # 0.1 um in 0.3 s at F0.02 is off by 7 ms, given on to the next)
     # each block's F rounded on its own, no carry: the drift adds up
-    lengths = np.array([float(t * f / 60) for t, f in zip(times, feeds)])  # mm
+    lengths = np.array([float(t * f / 60) for t, f in zip(times, feeds, strict=True)])  # mm
     owed_s = np.diff(np.array([0.0] + [float(e) for e in exact]))
     alone_s = lengths * 60000 / np.maximum(np.rint(lengths * 60000 / owed_s), 1)
     assert abs(np.sum(alone_s - owed_s)) > 100 * abs(drift_s[-1])
@@ -181,7 +185,9 @@ def test_profile_shaper_frequencies_reach_the_restore(tmp_path):
     text = format_profile(PRINTER).replace("[firmware]", "[firmware]\nshaper_frequency = { X = 51.5, Y = 33.0 }")
     profile = parse_profile(tomllib.loads(text), "p.toml")
     assert profile.firmware.shaper_frequency_hz == {"X": 51.5, "Y": 33.0}
-    assert parse_profile(tomllib.loads(format_profile(profile)), "q.toml") == dataclasses.replace(profile, source="q.toml")
+    assert parse_profile(tomllib.loads(format_profile(profile)), "q.toml") == dataclasses.replace(
+        profile, source="q.toml"
+    )
     t = Transparency("klipper", FirmwareSettings.from_profile(profile), 1e-3)
     t.apply(True, Modal())
     assert t.restore()[-1] == "SET_INPUT_SHAPER SHAPER_FREQ_X=51.5 SHAPER_FREQ_Y=33"

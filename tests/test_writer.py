@@ -24,7 +24,15 @@ def square(e_relative: bool, xyz_relative: bool = False, inches: bool = False) -
     lines = ["; test square", "G21" if not inches else "G20", "M83" if e_relative else "M82", "G92 E0",
              "G1 X10 Y10 Z0.2 F6000" if not xyz_relative else "G1 X0 Y0 Z0.2 F6000"]
     if xyz_relative:
-        lines = ["; test square", "G21", "G90", "G1 X10 Y10 Z0.2 F6000", "G91", "M83" if e_relative else "M82", "G92 E0"]
+        lines = [
+            "; test square",
+            "G21",
+            "G90",
+            "G1 X10 Y10 Z0.2 F6000",
+            "G91",
+            "M83" if e_relative else "M82",
+            "G92 E0",
+        ]
     corners = [(30, 10), (30, 30), (10, 30), (10, 10)]
     e = 0.0
     for layer in range(2):
@@ -62,7 +70,11 @@ def test_lines_and_extrusion_exact(tmp_path, e_relative, xyz_relative, inches, n
     original, compensated = execute(source), execute(target)
     kept = [line for line in compensated.nonmotion if line in set(original.nonmotion)]
     assert kept == original.nonmotion
-    e_out = [e for line, e in zip(compensated.nonmotion, compensated.e_at_lines) if line in set(original.nonmotion)]
+    e_out = [
+        e
+        for line, e in zip(compensated.nonmotion, compensated.e_at_lines, strict=True)
+        if line in set(original.nonmotion)
+    ]
     assert np.abs(np.array(e_out) - np.array(original.e_at_lines)).max() <= 1e-9
     assert abs(compensated.extruded - original.extruded) <= 1e-9
     # The last motion ends exactly where the original's does.
@@ -73,12 +85,18 @@ def test_lines_and_extrusion_exact(tmp_path, e_relative, xyz_relative, inches, n
     # them (Marlin's: the profile's planner acceleration and corner speed as jerk, its default 20 ms).
     tail = out[out.rindex(b"M107"):].split(newline.encode())
     settling = [line for line in tail[1:] if line.startswith((b"G1 ", b"G4 P"))]
-    assert [line for line in tail[1:] if line and line not in settling] in ([], [b"M204 P3000 T3000", b"M205 B20000 X5 Y5"])
+    assert [line for line in tail[1:] if line and line not in settling] in (
+        [],
+        [b"M204 P3000 T3000", b"M205 B20000 X5 Y5"],
+    )
     assert tail[0] == b"M107" and (tail[-1] == b"" or not final_newline and len(tail) == 1)
     for line in settling:
         for word in line.split()[1:]:
             if word[:1] in b"XY":
-                assert abs(float(word[1:]) * (25.4 if inches else 1.0) - original.ends[-1][1 + b"XY".index(word[:1])]) <= 2e-3
+                assert (
+                    abs(float(word[1:]) * (25.4 if inches else 1.0) - original.ends[-1][1 + b"XY".index(word[:1])])
+                    <= 2e-3
+                )
     if newline == "\r\n":
         assert out.count(b"\n") == out.count(b"\r\n")
 
@@ -112,6 +130,7 @@ def assert_g5_where_dense_is(dense, g5, period_s, tolerance_mm=1e-3, rounding_mm
     assert abs(g5.ends[-1][0] - dense.ends[-1][0]) <= settle_s + 2 * period_s
 
 
+@pytest.mark.slow
 def test_g5_in_inches_relative_xyz_and_e(tmp_path):
     """G20, G91, M83 and a G92 mid-program: G5 words in inches (one more decimal), relative X Y E
     whose rounding residues do not accumulate (the end is exact), E exact at every copied line,
@@ -127,7 +146,7 @@ def test_g5_in_inches_relative_xyz_and_e(tmp_path):
     form = rf"G5 I{xy} J{xy} P{xy} Q{xy} X{xy} Y{xy}( E{e})?( F{f})?"
     assert all(re.fullmatch(form, line) for line in curves), curves[:5]
     assert [line for line in g5.nonmotion if line in set(original.nonmotion)] == original.nonmotion
-    e_out = [e for line, e in zip(g5.nonmotion, g5.e_at_lines) if line in set(original.nonmotion)]
+    e_out = [e for line, e in zip(g5.nonmotion, g5.e_at_lines, strict=True) if line in set(original.nonmotion)]
     assert np.abs(np.array(e_out) - np.array(original.e_at_lines)).max() <= 1e-9
     assert abs(g5.extruded - original.extruded) <= 1e-9
     assert np.allclose(g5.ends[-1][1:], original.ends[-1][1:], atol=1e-9)
@@ -176,7 +195,7 @@ def test_breakpoints_keep_chords_within_tolerance():
     points = breakpoints(command, 1e-3, 2)
     assert points[0] == 0 and points[-1] == len(command) - 1
     assert np.all(np.diff(points)[:-1] >= 2)
-    for a, b in zip(points[:-1], points[1:]):
+    for a, b in zip(points[:-1], points[1:], strict=True):
         frac = np.linspace(0.0, 1.0, b - a + 1)[:, None]
         chord = command[a] + frac * (command[b] - command[a])
         if b - a > 2:
@@ -205,8 +224,8 @@ def test_bulk_formatting_matches_decimal_text(digits, newline, letters):
     expected = b"".join(
         (("G5" if curve else "G1") + "".join(
             f" {letter}{format(Decimal(int(v)).scaleb(-d).normalize(), 'f')}"
-            for letter, v, d, s in zip(letters, row, digits, show) if s)).encode() + newline
-        for row, show, curve in zip(values, shown, g5))
+            for letter, v, d, s in zip(letters, row, digits, show, strict=True) if s)).encode() + newline
+        for row, show, curve in zip(values, shown, g5, strict=True))
     assert _lines(values, shown, np.array(digits), letters, newline, g5) == expected
 
 

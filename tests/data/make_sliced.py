@@ -53,7 +53,7 @@ def rectangle(x0, y0, x1, y1):
 def _walls(loop, z0, z1, outward=True):
     """Side quads of a counter-clockwise loop, facing out (outer wall) or in (hole wall)."""
     tris = []
-    for a, b in zip(loop, np.roll(loop, -1, axis=0)):
+    for a, b in zip(loop, np.roll(loop, -1, axis=0), strict=True):
         if not outward:
             a, b = b, a
         pa0, pb0, pa1, pb1 = [*a, z0], [*b, z0], [*a, z1], [*b, z1]
@@ -89,7 +89,7 @@ def write_stl(path, triangles):
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
     with open(path, "w") as f:
         f.write(f"solid {Path(path).stem}\n")
-        for n, t in zip(normals, tri):
+        for n, t in zip(normals, tri, strict=True):
             f.write(f" facet normal {n[0]:.6f} {n[1]:.6f} {n[2]:.6f}\n  outer loop\n")
             for v in t:
                 f.write(f"   vertex {v[0]:.6f} {v[1]:.6f} {v[2]:.6f}\n")
@@ -107,7 +107,9 @@ def tube():
 def pocket():
     """A 24 x 18 x 3 mm block with a 14 x 8 mm pocket 2 mm deep: sharp corners, solid and sparse
     infill, top surfaces on two levels."""
-    return prism(rectangle(-12, -9, 12, 9), 0.0, 1.0) + ring(rectangle(-12, -9, 12, 9), rectangle(-7, -4, 7, 4), 1.0, 3.0)
+    return prism(rectangle(-12, -9, 12, 9), 0.0, 1.0) + ring(
+        rectangle(-12, -9, 12, 9), rectangle(-7, -4, 7, 4), 1.0, 3.0
+    )
 
 
 def bracket():
