@@ -424,7 +424,7 @@ def _merged(start: np.ndarray, ints: np.ndarray, steps_per_unit: np.ndarray, min
         i = bisect.bisect_right(near, k, i)
     kept = np.flatnonzero(kept).tolist()
     if exact_last and kept[-1] != len(ints):  # the kept rows near the last end go instead
-        while len(kept) > 1 and max(abs(a - b) for a, b in zip(rows[kept[-1]], rows[-1])) < min_steps:
+        while len(kept) > 1 and max(abs(a - b) for a, b in zip(rows[kept[-1]], rows[-1], strict=True)) < min_steps:
             kept.pop()
         kept.append(len(ints))
     source = np.repeat(kept, np.diff(np.append(kept, len(ends))))  # each row: the last kept at or before it

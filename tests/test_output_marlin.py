@@ -11,13 +11,12 @@ import re
 import numpy as np
 import pytest
 
-from fbspost.gcode import Kind, read_gcode
+from fbspost.gcode import AXES, Kind, read_gcode
 from fbspost.marlin import run_marlin
 from fbspost.pipeline import CompensateOptions, compensate_file, compensated_samples
 from fbspost.planner import RunMargins, plan_blocks
 from fbspost.profile import load_profile
 from fbspost.writer import _Emitter
-from fbspost.gcode import AXES
 from reference import serial
 
 PROFILE = serial(load_profile("printer-two-mode"), 300.0)  # 80 steps/mm on X Y, 400 Z, 415 E; 300 lines/s
@@ -102,7 +101,7 @@ def test_step_rounding_is_noise_shaped_across_calls():
     steps, written = [0, 0], np.zeros((400, 2))
     for line, row in zip(text.decode().splitlines(), rows, strict=True):
         words = {w[0]: float(w[1:]) for w in line.split()[1:]}
-        steps = [math.floor(words[a] * 80.0 + 0.5) if a in words else s for a, s in zip("XY", steps)]
+        steps = [math.floor(words[a] * 80.0 + 0.5) if a in words else s for a, s in zip("XY", steps, strict=True)]
         written[row - 1:] = steps  # a target not written rounds to the steps written before it
     wanted = targets[:, :2] * 80.0
     error = written - wanted
