@@ -221,6 +221,7 @@ class _Emitter:
         # axis, 0 where not known): such blocks are merged here, where their time can go with them
         self.steps_per_mm, self.min_steps = steps_per_mm, min_steps
         self.held = None  # (targets, durations, ends) of blocks that wait for the next call
+        self.step_error = np.zeros(3)  # Marlin: X Y Z steps written minus wanted, fed back (``_shaped``)
         self.shift_mm = np.zeros(len(AXES))  # controller frame minus program frame, per axis (G92 mid-motion)
         self.written = self.to_program(start_mm)
         self.feed = -1  # the last F written, in units of its last digit (none yet: feeds are >= 0)
@@ -280,6 +281,38 @@ class _Emitter:
             jump = np.sqrt(0.5 * self.ramp_mm_s2 * length / np.abs(step_counts).max(axis=1, initial=0))
         return length, np.nan_to_num(jump)
 
+    def _shaped(self, units: np.ndarray, ints: np.ndarray, scale: np.ndarray,
+                exact_last: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Block ends (``units``: wanted, in written units; ``ints``: those rounded) at whole steps
+        of X Y Z that Marlin rounds back to those steps, each step count rounded with the error
+        of the one before fed back (noise shaping): the sum of the step errors stays within half a
+        step, so the rounding drifts nowhere and its error is at the block rate, far above the
+        modes (plain rounding of a slow curve errs the same way over many blocks). Returns them
+        and the fed-back error before each row and after the last (``step_error`` carries it
+        across calls); with ``exact_last`` the last end is plain-rounded and the error restarts.
+        Marlin with MIN_STEPS_PER_SEGMENT 1 only (else: plain rounding)."""
+        spu = (self.steps_per_mm * self.unit_mm / scale)[:3]  # steps per written unit
+        # only where every step is a block: a merge moves the ends again, and the error fed back
+        # would be the wrong one (on the gear at 6 steps: RMS 10.9 -> 13.0 um, the model's)
+        if self.min_steps > 1 or not (spu > 0).any():
+            return ints, np.zeros((len(ints) + 1, 3))
+        axes = np.flatnonzero(spu > 0)
+        wanted = units[:, axes] * spu[axes]
+        steps, errors = np.empty_like(wanted), np.empty((len(wanted) + 1, len(axes)))
+        error = errors[0] = self.step_error[axes]
+        for k, row in enumerate(wanted.tolist()):
+            shifted = np.subtract(row, error)
+            steps[k] = np.rint(shifted)
+            error = errors[k + 1] = steps[k] - shifted
+        ints = ints.copy()
+        ints[:, axes] = np.rint(steps / spu[axes])
+        full = np.zeros((len(errors), 3))
+        full[:, axes] = errors
+        if exact_last and len(ints):
+            ints[-1] = np.rint(units[-1])
+            full[-1] = 0.0
+        return ints, full
+
     def blocks(self, targets_mm: np.ndarray, durations_s: np.ndarray, ends_s: np.ndarray | None = None,
                curves: Curves | None = None, exact_last: bool = True) -> tuple[bytes, int]:
         """G1 lines (G5 where ``curves`` says so) reaching each target (machine mm) in its
@@ -304,10 +337,13 @@ class _Emitter:
         ints = np.rint(self.to_program(targets_mm) * scale).astype(np.int64)
         marlin = self.min_steps and curves is None
         if marlin:
+            ints, step_errors = self._shaped(self.to_program(targets_mm) * scale, ints, scale, exact_last)
             ints = _merged(start, ints, self.steps_per_mm * self.unit_mm / scale, self.min_steps, exact_last)
+            self.step_error = step_errors[-1]
             if not exact_last:
                 kept = np.flatnonzero((np.diff(np.vstack([start, ints]), axis=0) != 0).any(axis=1))
                 last = kept[-1] if len(kept) else 0
+                self.step_error = step_errors[last]
                 self.held = (targets_mm[last:], durations_s[last:], ends_s[last:])
                 targets_mm, durations_s, ends_s, ints = (x[:last] for x in (targets_mm, durations_s, ends_s, ints))
         steps = np.diff(np.vstack([start, ints]), axis=0)
@@ -367,7 +403,7 @@ def _merged(start: np.ndarray, ints: np.ndarray, steps_per_unit: np.ndarray, min
     that Marlin would merge (fewer than ``min_steps`` steps on every axis from the last block
     kept, steps as Marlin rounds the positions) moved back onto that block's end: a block of no
     motion, whose time the next block takes. With ``exact_last`` the last end is kept, merging
-    the last kept block before it instead."""
+    instead the kept blocks before it that are near it."""
     ends = np.vstack([start, ints])
     stepped = steps_per_unit > 0  # (the other columns never step)
     at_steps = np.rint(ends[:, stepped] * steps_per_unit[stepped])
@@ -387,8 +423,10 @@ def _merged(start: np.ndarray, ints: np.ndarray, steps_per_unit: np.ndarray, min
             k += 1
         i = bisect.bisect_right(near, k, i)
     kept = np.flatnonzero(kept).tolist()
-    if exact_last and kept[-1] != len(ints):
-        kept[-1 if len(kept) > 1 else len(kept):] = [len(ints)]
+    if exact_last and kept[-1] != len(ints):  # the kept rows near the last end go instead
+        while len(kept) > 1 and max(abs(a - b) for a, b in zip(rows[kept[-1]], rows[-1], strict=True)) < min_steps:
+            kept.pop()
+        kept.append(len(ints))
     source = np.repeat(kept, np.diff(np.append(kept, len(ends))))  # each row: the last kept at or before it
     return ends[source[1:]]
 
@@ -921,9 +959,11 @@ class _ProgramWriter:
             # a move fbspost copies runs under the program's own settings (shaping: where it moves X or Y)
             moves_xy = _may_move(previous_mm, block.position_mm, slice(0, 2))
             out.lines(*settings.restore(shaping=moves_xy))
-            if motion.emitter.speed_mm_s > 0:
+            if motion.emitter.speed_mm_s > 0 and motion.latency_s is None:
                 # from rest, as planned: the last block's speed would carry into it
                 out.lines(dwell_line(self._options.flavor, 0.0)[0])
+            # (Marlin: no G4. Its junction caps the move's entry at the slow last block's speed, and a G4
+            # would leave the move alone in the buffer before the next run's G4, held 100 ms: _start_dwell)
             if motion.latency_s is not None and not moves_xy and motion.run_index == 0:
                 # Marlin's M593 waits for the buffer to empty: at the first run, after this move, it would
                 # leave the move alone in the buffer (held 100 ms, see _start_dwell); X Y shaping does not touch it
