@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import bisect
 import math
+import re
 from collections.abc import Iterable
 from dataclasses import dataclass
 
@@ -973,6 +974,7 @@ class _ProgramWriter:
         reached = np.where(np.isnan(block.position_mm), reached, block.position_mm)
         commanded = samples.at(np.array([t]), fs)[0]
         out.lines(*mode_lines(self._options.flavor, motion.emitter.modal, self._previous_modal))
+        out.lines(*_program_feed(self._options.flavor, block, motion.emitter.feed != -1))
         if _is_code(block):
             out.rate.add(t)
         out.copy(block.raw)
@@ -1054,6 +1056,21 @@ def _may_move(before_mm: np.ndarray, after_mm: np.ndarray, axes: slice) -> bool:
     unknown) may have moved one of ``axes`` (columns of AXES): a copied move, homing, a macro."""
     before, after = before_mm[axes], after_mm[axes]
     return bool(np.any(np.isnan(before) | np.isnan(after) | (before != after)))
+
+
+_F_WORD = re.compile(rb"[Ff]\s*[-+.0-9]")
+_COMMENT = re.compile(rb"\([^)]*\)|;.*")
+
+
+def _program_feed(flavor: str, block: Block, feed_written: bool) -> list[str]:
+    """The line that gives a copied move its program's F back, where the move does not say its
+    own and the output has written other feeds since the program's last: the firmware would run
+    it at the last written block's F (a Z hop at a creeping block's 0.3 mm/s)."""
+    feed = block.feed_mm_s
+    if not feed_written or feed is None or not math.isfinite(feed) or _F_WORD.search(_COMMENT.sub(b"", block.raw)):
+        return []
+    value = f"{feed * 60.0 / (25.4 if block.modal.inches else 1.0):.4f}".rstrip("0").rstrip(".")
+    return [f"F{value}" if flavor == "linuxcnc" else f"G1 F{value}"]
 
 
 def _is_code(block: Block) -> bool:

@@ -239,8 +239,9 @@ def execute(path, sample_rate_hz: float = 10000.0, dwell_p_seconds: bool = False
                     a = kk.decode()
                     if a in "XYZE" and pos[a] is not None:
                         offset[a] = pos[a] - vv * scale
+        sets_feed = all(k == b"G" and v in (0.0, 1.0) for k, v in codes)  # F alone, "G1 F1800"
         for k, v in words:
-            if k == b"F" and not codes:
+            if k == b"F" and sets_feed:
                 feed = v * scale / 60.0
         run.nonmotion.append(raw)
         run.nonmotion_s.append(t)
@@ -271,7 +272,7 @@ def unbudgeted(profile):
 
 
 # What fbspost adds to a program: its header, the firmware's settings (transparency), dwells (a run's
-# unused settle margin), mode lines.
+# unused settle margin), mode lines, the program's feed.
 INSERTED = (
     b"; fbspost",
     b"(fbspost",
@@ -294,6 +295,8 @@ INSERTED = (
     b"G17",
     b"G18",
     b"G19",
+    b"G1 F",  # the program's feed back before a copied move without its own
+    b"F",
 )
 
 

@@ -305,6 +305,21 @@ def test_largest_error_bounded_outside_the_fallback(program):
     check_program_kept(program, largest_error=True)
 
 
+def test_copied_move_without_its_feed_runs_at_the_programs():
+    """Found by test_fuzz: in G91, "G0 X0 Y0 Z0.2" without F after compensated motion ran at the
+    last written block's F (0.3 mm/s: 0.67 s for 0.2 mm) instead of the program's F880."""
+    check_program_kept(
+        b'G21\nG90\nM83\r\nG92 E0\nG1 X15.826 Y0.000 Z0.200 F1696\r\n'
+        b'G3 X14.222 Y-2.619 I-1.895 J-0.640\nG3 X15.201 Y-2.417 R-0.534\nG92 E0\n'
+        b'G1 X5.289 Y2.572 E0.8185 F1024\r\nG0 X1.282 Y12.868 F5948\nG90\nM83\n'
+        b'G3 X4.404 Y17.715 R-5.859\nG2 X0.828 Y12.826 I-0.345 J-3.500\r\nG90\nM83\r\n'
+        b'G3 X3.212 Y14.139 I2.584 J-1.872 E-0.7577\r\nG91\nM221 S95\n'
+        b'G0 X-1.271 Y-5.134 E0.5000 F880 ; \nG1 X-1.941 Y-6.908 Z0.200 ; \nM83\r\n'
+        b'G1 X0.000 Y-2.097\r\nM83\nG0 X0.000 Y0.000 Z0.200 ; \r\nG1 X0.000 Y0.000 Z0.200 F600 ; \n'
+        b'M82\r\nG1 X5.462 Y17.321\nM83\nG3 X2.784 Y2.305 R-3.737\nG1 X-4.006 Y-16.962\nG90'
+    )
+
+
 def test_g92_in_mid_motion():
     """G92 Y0 where the original is at Y0 but the compensated command 55 um further: the output
     must end at the original's machine Y, not 55 um off."""
