@@ -39,7 +39,7 @@ from fbspost.gcode import detect_flavor, read_gcode  # noqa: E402
 from fbspost.marlin import MarlinConfig, run_marlin  # noqa: E402
 from fbspost.profile import load_profile  # noqa: E402
 from fbspost.simulate import PathDistance  # noqa: E402
-from firmware_results import contour_um, klippy_run, modelled, printed_path, shaped_plans  # noqa: E402
+from firmware_results import contour_um, klippy_run, modelled, move_ends, printed_path, shaped_plans  # noqa: E402
 
 SERIAL_LINES_PER_S = 300.0  # a serial host's budget where the profile gives none
 DEFAULT = [("tests/data/gear-marlin2.gcode", "printer-two-mode", 8000),
@@ -60,23 +60,19 @@ class Run:
 def klippy_as_run(path: Path, profile, flavor: str) -> Run:
     """``path`` through klippy's own planner."""
     seconds, moves, samples = klippy_run(path, profile, flavor)
-    return Run(seconds, samples, *printed_path(moves))
+    return Run(seconds, samples, *printed_path(*move_ends(moves)))
 
 
 def marlin_run(path: Path, profile, line_rate_hz: float | None) -> Run:
     """``path`` through the model of Marlin's planner, the host sending at ``line_rate_hz``."""
     run = run_marlin(list(read_gcode(path, "marlin", profile.home_mm)), profile,
                      MarlinConfig.from_profile(profile, line_rate_hz=line_rate_hz))
-    delta = run.end_mm - run.start_mm
-    printer = bool((delta[:, 3] > 0).any())
-    chosen = (delta[:, 3] > 0) | (not printer)
-    chosen &= np.abs(delta[:, :3]).max(axis=1) > 0
     rests = np.array(run.starved).reshape(-1, 2)
     taken = np.sort(run.taken_s[np.isfinite(run.taken_s)])
     rate = (np.arange(taken.size) + 1 - np.searchsorted(taken, taken - 1.0, "right")).max(initial=0)
     notes = f"buffer dry {len(rests)}x, {rests[:, 1].sum():.3f} s; at most {rate} lines/s"
     return Run(run.duration_s, run.positions_mm(profile.sample_rate_hz)[:, :4],
-               PathDistance(run.start_mm[chosen, :3], run.end_mm[chosen, :3]), printer, notes)
+               *printed_path(run.start_mm[:, :4], run.end_mm[:, :4]), notes)
 
 
 def compensated(original: Path, machine: str, flavor: str, line_rate_hz: float | None = None) -> Path:

@@ -38,7 +38,7 @@ from fbspost.gcode import AXES  # noqa: E402
 from fbspost.profile import load_profile  # noqa: E402
 from fbspost.shapers import SHAPERS  # noqa: E402
 from fbspost.simulate import MODEL_ERRORS, PathDistance, model_error, simulate_program  # noqa: E402
-from firmware_results import contour_um, klippy_run, modelled, printed_path, shaped_plans  # noqa: E402
+from firmware_results import contour_um, klippy_run, modelled, move_ends, printed_path, shaped_plans  # noqa: E402
 from reference import simulate_varying  # noqa: E402
 
 PROGRAM = "tests/data/gear-marlin2.gcode"
@@ -73,7 +73,7 @@ def firmware(program: Path) -> None:
                             str(output), "--flavor", "klipper", "-q"], cwd=ROOT, check=True)
             plans[f"fbs {name}"] = klippy_run(output, profile, "klipper")[2]
         _, moves, original = klippy_run(program, profile, "klipper")
-    path, _ = printed_path(moves)
+    path, _ = printed_path(*move_ends(moves))
     commands = {"original": (original, original), **{n: (p, p) for n, p in plans.items()},
                 **{n: (c, padded) for n, (c, padded, _) in shaped_plans(original, profile).items()}}
     rows = []

@@ -39,11 +39,20 @@ def modelled(command: np.ndarray, profile) -> np.ndarray:
     return actual
 
 
-def printed_path(moves) -> tuple[PathDistance, bool]:
-    """(the original's path, whether it is a printer's): its extruding moves, else all its moves."""
-    printer = any(m.is_kinematic and m.axes_r[3] > 0 for m in moves)
-    chosen = [m for m in moves if m.is_kinematic and (m.axes_r[3] > 0 or not printer)]
-    return PathDistance(np.array([m.start_pos[:3] for m in chosen]), np.array([m.end_pos[:3] for m in chosen])), printer
+def move_ends(moves) -> tuple[np.ndarray, np.ndarray]:
+    """(starts, ends): X Y Z E of klippy's moves, one row each."""
+    return np.array([m.start_pos[:4] for m in moves]), np.array([m.end_pos[:4] for m in moves])
+
+
+def printed_path(start_mm: np.ndarray, end_mm: np.ndarray) -> tuple[PathDistance, bool]:
+    """(the original's path, whether it is a printer's) from its moves' X Y Z E starts and ends:
+    the moves of X Y Z (klippy's kinematic moves: 1 nm or more) that extrude, else all of them."""
+    delta = end_mm - start_mm
+    moves = np.linalg.norm(delta[:, :3], axis=1) >= 1e-9
+    extrudes = moves & (delta[:, 3] > 0)
+    printer = bool(extrudes.any())
+    chosen = extrudes if printer else moves
+    return PathDistance(start_mm[chosen, :3], end_mm[chosen, :3]), printer
 
 
 def contour_um(actual: np.ndarray, command: np.ndarray, path: PathDistance, printer: bool) -> tuple[float, float]:

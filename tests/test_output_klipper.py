@@ -16,7 +16,7 @@ from fbspost.gcode import read_gcode
 from fbspost.pipeline import CompensateOptions, compensate_file, compensated_samples
 from fbspost.planner import RunMargins, plan_blocks
 from fbspost.profile import load_profile
-from firmware_results import contour_um, klippy_run, modelled, printed_path, shaped_plans
+from firmware_results import contour_um, klippy_run, modelled, move_ends, printed_path, shaped_plans
 from klippy_motion import executed
 from klippy_planner import klippy_or_skip
 from reference import rms, serial, simulate_lsim, unbudgeted
@@ -49,7 +49,7 @@ def beats_the_shapers(source, profile, written):
     written program as klippy runs it) through the same modes: FBS's RMS contour error at most half
     the best shaper's, its largest below the original's largest."""
     _, moves, original = klippy_run(source, profile, "klipper")
-    path, printer = printed_path(moves)
+    path, printer = printed_path(*move_ends(moves))
     _, original_max = contour_um(modelled(original, profile), original, path, printer)
     fbs_rms, fbs_max = contour_um(modelled(written, profile), written, path, printer)
     best = min(contour_um(modelled(command, profile), padded, path, printer)[0]

@@ -20,7 +20,7 @@ from fbspost.pipeline import CompensateOptions, compensate_file
 from fbspost.profile import Mode, ProfileError, format_profile, load_profile, parse_profile
 from fbspost.simulate import MODEL_ERRORS, PathDistance, model_error, simulate_program
 from fbspost.varying import LoadModes
-from firmware_results import contour_um, klippy_run, modelled, printed_path, shaped_plans
+from firmware_results import contour_um, klippy_run, modelled, move_ends, printed_path, shaped_plans
 from klippy_planner import klippy_or_skip
 from reference import simulate_lsim, simulate_varying, unbudgeted
 from test_optimizer import brute_force_problem, smooth_move
@@ -206,7 +206,7 @@ def test_robust_fbs_as_klipper_runs_it_at_most_the_best_shaper(tmp_path, gear_he
     compensate_file(gear_head, target, unbudgeted(ROBUST), CompensateOptions(flavor="klipper"))
     _, moves, original = klippy_run(gear_head, NOMINAL, "klipper")
     written = klippy_run(target, NOMINAL, "klipper")[2]
-    path, _ = printed_path(moves)
+    path, _ = printed_path(*move_ends(moves))
     shaped = shaped_plans(original, NOMINAL)
     for f, d in MODEL_ERRORS:
         machine = dataclasses.replace(NOMINAL, axes={a: dataclasses.replace(
