@@ -39,7 +39,7 @@ from fbspost.gcode import detect_flavor, read_gcode  # noqa: E402
 from fbspost.marlin import MarlinConfig, run_marlin  # noqa: E402
 from fbspost.profile import load_profile  # noqa: E402
 from fbspost.simulate import PathDistance  # noqa: E402
-from firmware_results import contour_um, klippy_run, modelled, move_ends, printed_path, shaped_plans  # noqa: E402
+from firmware_results import contour_um, klippy_run, modelled, move_ends, printed_path, program_ends, shaped_plans  # noqa: E402
 
 SERIAL_LINES_PER_S = 300.0  # a serial host's budget where the profile gives none
 DEFAULT = [("tests/data/gear-marlin2.gcode", "printer-two-mode", 8000),
@@ -99,8 +99,13 @@ def bench(program: str, machine: str, lines: int | None, output_flavor: str = "k
             with tempfile.TemporaryDirectory() as tmp:
                 original = excerpt(program, lines, Path(tmp))
                 output = compensated(original, machine, "marlin", budget)
+                run_a = marlin_run(original, profile, budget)
+                # Marlin moves the original between whole steps, its short segments merged: measured
+                # against that path, and against the program's own (the part as designed)
+                exact = printed_path(*program_ends(original, flavor, profile.home_mm))[0]
                 table(program, lines, flavor, machine, f"through the model of Marlin's planner, {name}", profile,
-                      marlin_run(original, profile, budget), marlin_run(output, profile, budget))
+                      run_a, marlin_run(output, profile, budget),
+                      {"Marlin's path": run_a.path, "the program's": exact})
         return
     with tempfile.TemporaryDirectory() as tmp:
         original = excerpt(program, lines, Path(tmp))
@@ -117,20 +122,28 @@ def excerpt(program: str, lines: int | None, folder: Path) -> Path:
     return original
 
 
-def table(program: str, lines, flavor: str, machine: str, how: str, profile, run_a: Run, run_b: Run) -> None:
-    """Print time, RMS and max contour error of the original, fbspost's output and the best input shaper."""
-    time_a, plan_a, path, printer = run_a.seconds, run_a.samples, run_a.path, run_a.printer
-    rows = [("original", time_a, contour_um(modelled(plan_a, profile), plan_a, path, printer)),
-            ("fbspost", run_b.seconds, contour_um(modelled(run_b.samples, profile), run_b.samples, path, printer))]
-    shaped = {name: (contour_um(modelled(command, profile), padded, path, printer), lag_s)
-              for name, (command, padded, lag_s) in shaped_plans(plan_a, profile).items()}
-    best = min(shaped, key=lambda name: shaped[name][0][0])
-    rows.append((f"{best} shaper (best)", time_a + shaped[best][1], shaped[best][0]))
+def table(program: str, lines, flavor: str, machine: str, how: str, profile, run_a: Run, run_b: Run,
+          paths: dict[str, PathDistance] | None = None) -> None:
+    """Print time, RMS and max contour error of the original, fbspost's output and the best input
+    shaper (the best against the first of ``paths``, by default the original's path as run)."""
+    time_a, plan_a, printer = run_a.seconds, run_a.samples, run_a.printer
+    paths = paths or {"": run_a.path}
+    shaped = shaped_plans(plan_a, profile)
+    runs = {"original": (modelled(plan_a, profile), plan_a),
+            "fbspost": (modelled(run_b.samples, profile), run_b.samples),
+            **{name: (modelled(command, profile), padded) for name, (command, padded, _) in shaped.items()}}
+    errors = {name: [contour_um(*run, path, printer) for path in paths.values()] for name, run in runs.items()}
+    best = min(shaped, key=lambda name: errors[name][0][0])
+    rows = [("original", time_a), ("fbspost", run_b.seconds), (best, time_a + shaped[best][2])]
     print(f"{program} ({lines or 'all'} lines, {flavor}) on {machine}, {how} (firmware results):")
-    print(f"  {'run':24} {'print s':>9} {'vs original':>12} {'RMS contour um':>15} {'max um':>9} {'RMS gain':>9}")
-    for name, seconds, (rms, peak) in rows:
-        print(f"  {name:24} {seconds:9.3f} {100 * (seconds / time_a - 1):+11.2f}% {rms:15.3f} {peak:9.1f} "
-              f"{rows[0][2][0] / rms:8.2f}x")
+    print(f"  {'run':24} {'print s':>9} {'vs original':>12}" + "".join(
+        f" {'RMS contour um':>15} {'max um':>9} {'RMS gain':>9}" + (f"  (to {name})" if name else "")
+        for name in paths))
+    for name, seconds in rows:
+        cells = "".join(f" {rms:15.3f} {peak:9.1f} {original[0] / rms:8.2f}x"
+                        for (rms, peak), original in zip(errors[name], errors["original"], strict=True))
+        print(f"  {name + (' shaper (best)' if name == best else ''):24} {seconds:9.3f} "
+              f"{100 * (seconds / time_a - 1):+11.2f}%{cells}")
     for name, run in (("original", run_a), ("fbspost", run_b)):
         if run.notes:
             print(f"  {name}: {run.notes}")

@@ -237,7 +237,8 @@ def _marlin_steps(profile: MachineProfile, flavor: str) -> dict:
     if flavor != "marlin" or not steps:
         return {}
     return {"steps_per_mm": tuple(steps.get(a, 0.0) for a in AXES),
-            "min_steps_per_segment": profile.firmware.min_steps_per_segment}
+            "min_steps_per_segment": profile.firmware.min_steps_per_segment,
+            "axis_modes": tuple(tuple(profile.axes[a].modes) if a in profile.axes else () for a in "XYZ")}
 
 
 def _compensators(profile: MachineProfile, options: CompensateOptions) -> dict[int, AxisCompensator]:

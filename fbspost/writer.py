@@ -27,6 +27,7 @@ from scipy.ndimage import maximum_filter1d
 from .bezier import curve_lengths, fit_g5
 from .gcode import AXES, Block, Kind, Modal, feed_lengths
 from .planner import PlanStream
+from .steps import rounding_for
 from .transparency import FirmwareSettings, Transparency
 
 _DECIMALS = {**dict.fromkeys(AXES, 4), "E": 5}  # mm: 0.1 um (A B C: 1e-4 degree), E: 10 nm of filament
@@ -51,6 +52,7 @@ class WriteOptions:
     max_line_rate_hz: float | None = None  # the most lines the machine takes per second
     steps_per_mm: tuple[float, ...] | None = None  # X Y Z E (0: not known): blocks Marlin would merge are merged here
     min_steps_per_segment: int = 0
+    axis_modes: tuple = ()  # X Y Z: each axis' profile modes, for the rounding to whole steps (``steps``)
 
 
 @dataclass
@@ -214,7 +216,7 @@ class _Emitter:
     """
 
     def __init__(self, start_mm: np.ndarray, newline: bytes, steps_per_mm: np.ndarray | None = None,
-                 min_steps: int = 0, ramp_mm_s2: float = math.inf):
+                 min_steps: int = 0, ramp_mm_s2: float = math.inf, axis_modes: tuple = ()):
         self.modal = Modal()  # the controller starts in its defaults
         # the firmware ramps each speed step at this acceleration, losing time the next blocks make up
         self.ramp_mm_s2, self.speed_mm_s = ramp_mm_s2, 0.0
@@ -222,7 +224,9 @@ class _Emitter:
         # axis, 0 where not known): such blocks are merged here, where their time can go with them
         self.steps_per_mm, self.min_steps = steps_per_mm, min_steps
         self.held = None  # (targets, durations, ends) of blocks that wait for the next call
-        self.step_error = np.zeros(3)  # Marlin: X Y Z steps written minus wanted, fed back (``_shaped``)
+        # Marlin: X Y Z block ends in whole steps, rounded where the axis feels it least (``steps``)
+        self.rounding = [rounding_for(axis_modes[i] if i < len(axis_modes) else ()) for i in range(3)]
+        self.rounding_state = [np.zeros(r.size) for r in self.rounding]
         self.shift_mm = np.zeros(len(AXES))  # controller frame minus program frame, per axis (G92 mid-motion)
         self.written = self.to_program(start_mm)
         self.feed = -1  # the last F written, in units of its last digit (none yet: feeds are >= 0)
@@ -236,6 +240,10 @@ class _Emitter:
     def to_program(self, machine_mm: np.ndarray, axes=slice(None)) -> np.ndarray:
         """Program coordinates of machine positions, of the ``axes`` (columns) given."""
         return (machine_mm - (np.asarray(self.modal.offsets_mm) + self.shift_mm)[axes]) / self.unit_mm
+
+    def to_machine(self, program: np.ndarray) -> np.ndarray:
+        """Machine mm of program coordinates (rows of every axis): ``to_program``'s inverse."""
+        return program * self.unit_mm + np.asarray(self.modal.offsets_mm) + self.shift_mm
 
     def passthrough(self, block: Block, command_mm: np.ndarray, planned_mm: np.ndarray) -> None:
         """Follow what a copied line does to the controller. A G92 sets the frame where the command
@@ -282,37 +290,33 @@ class _Emitter:
             jump = np.sqrt(0.5 * self.ramp_mm_s2 * length / np.abs(step_counts).max(axis=1, initial=0))
         return length, np.nan_to_num(jump)
 
-    def _shaped(self, units: np.ndarray, ints: np.ndarray, scale: np.ndarray,
-                exact_last: bool) -> tuple[np.ndarray, np.ndarray]:
-        """Block ends (``units``: wanted, in written units; ``ints``: those rounded) at whole steps
-        of X Y Z that Marlin rounds back to those steps, each step count rounded with the error
-        of the one before fed back (noise shaping): the sum of the step errors stays within half a
-        step, so the rounding drifts nowhere and its error is at the block rate, far above the
-        modes (plain rounding of a slow curve errs the same way over many blocks). Returns them
-        and the fed-back error before each row and after the last (``step_error`` carries it
-        across calls); with ``exact_last`` the last end is plain-rounded and the error restarts.
-        Marlin with MIN_STEPS_PER_SEGMENT 1 only (else: plain rounding)."""
+    def _shaped(self, units: np.ndarray, ints: np.ndarray, scale: np.ndarray, durations_s: np.ndarray,
+                exact_last: bool) -> tuple[np.ndarray, list[np.ndarray | None] | None]:
+        """Block ends (``units``: wanted, in written units; ``ints``: those rounded) with X Y Z at
+        whole steps that Marlin rounds back to those steps, chosen by ``steps``, and per
+        axis the rounding's state before each row and after the last (``rounding_state`` carries
+        it across calls). With ``exact_last`` the last end is the exact one and the rounding
+        restarts. Marlin with MIN_STEPS_PER_SEGMENT 1 only (else: plain rounding): a merge
+        moves the ends again, and the rounding would go on from the wrong ones (on the gear at
+        6 steps, the model's RMS, exact path: 9.2 -> 9.9 um without a line budget)."""
         spu = (self.steps_per_mm * self.unit_mm / scale)[:3]  # steps per written unit
-        # only where every step is a block: a merge moves the ends again, and the error fed back
-        # would be the wrong one (on the gear at 6 steps: RMS 10.9 -> 13.0 um, the model's)
-        if self.min_steps > 1 or not (spu > 0).any():
-            return ints, np.zeros((len(ints) + 1, 3))
-        axes = np.flatnonzero(spu > 0)
-        wanted = units[:, axes] * spu[axes]
-        steps, errors = np.empty_like(wanted), np.empty((len(wanted) + 1, len(axes)))
-        error = errors[0] = self.step_error[axes]
-        for k, row in enumerate(wanted.tolist()):
-            shifted = np.subtract(row, error)
-            steps[k] = np.rint(shifted)
-            error = errors[k + 1] = steps[k] - shifted
-        ints = ints.copy()
-        ints[:, axes] = np.rint(steps / spu[axes])
-        full = np.zeros((len(errors), 3))
-        full[:, axes] = errors
-        if exact_last and len(ints):
+        if self.min_steps > 1 or not (spu > 0).any() or not len(ints):
+            return ints, None
+        ints, states = ints.copy(), [None] * 3
+        for i in np.flatnonzero(spu > 0):
+            counts, states[i] = self.rounding[i].round(units[:, i] * spu[i], durations_s, self.rounding_state[i])
+            ints[:, i] = np.rint(counts / spu[i])
+            if exact_last:
+                states[i][-1] = 0.0
+        if exact_last:
             ints[-1] = np.rint(units[-1])
-            full[-1] = 0.0
-        return ints, full
+        return ints, states
+
+    def _keep_rounding(self, states: list[np.ndarray | None] | None, row: int) -> None:
+        """The rounding's state before block ``row`` (of ``_shaped``'s), for the next call."""
+        if states is not None:
+            self.rounding_state = [np.zeros(r.size) if st is None else st[row]
+                                   for r, st in zip(self.rounding, states, strict=True)]
 
     def blocks(self, targets_mm: np.ndarray, durations_s: np.ndarray, ends_s: np.ndarray | None = None,
                curves: Curves | None = None, exact_last: bool = True) -> tuple[bytes, int]:
@@ -338,13 +342,13 @@ class _Emitter:
         ints = np.rint(self.to_program(targets_mm) * scale).astype(np.int64)
         marlin = self.min_steps and curves is None
         if marlin:
-            ints, step_errors = self._shaped(self.to_program(targets_mm) * scale, ints, scale, exact_last)
+            ints, states = self._shaped(self.to_program(targets_mm) * scale, ints, scale, durations_s, exact_last)
             ints = _merged(start, ints, self.steps_per_mm * self.unit_mm / scale, self.min_steps, exact_last)
-            self.step_error = step_errors[-1]
+            self._keep_rounding(states, len(ints))
             if not exact_last:
                 kept = np.flatnonzero((np.diff(np.vstack([start, ints]), axis=0) != 0).any(axis=1))
                 last = kept[-1] if len(kept) else 0
-                self.step_error = step_errors[last]
+                self._keep_rounding(states, last)
                 self.held = (targets_mm[last:], durations_s[last:], ends_s[last:])
                 targets_mm, durations_s, ends_s, ints = (x[:last] for x in (targets_mm, durations_s, ends_s, ints))
         steps = np.diff(np.vstack([start, ints]), axis=0)
@@ -367,6 +371,8 @@ class _Emitter:
             moved[:, :2] |= curves.curve[:, None]  # G5 needs its end point, also where it closes a loop
         moving = moved.any(axis=1)
         self.written_s, self.written_mm = ends_s[moving], targets_mm[moving]
+        # where the firmware goes: Marlin's whole steps (else the targets: 0.1 um from them)
+        self.stepped_mm = self.to_machine(ints[moving] / scale) if marlin else self.written_mm
         rows = slice(None) if moving.all() else moving  # nearly always all of them: no copies
         feed, self.residue_s, self.speed_mm_s = _feeds(length, durations_s, moving, self.residue_s,
                                                        60.0 * 10 ** _FEED_DECIMALS / self.unit_mm,
@@ -666,15 +672,20 @@ class _Deviation:
         self.max_mm = self.at_s = self.loosened_s = self.sum_squares_mm2 = 0.0
         self.count = 0
 
-    def add(self, start_s: float | None, ends_s: np.ndarray, targets_mm: np.ndarray) -> None:
-        """Blocks from ``start_s`` (None: the last block's end) to each of ``ends_s``."""
+    def add(self, start_s: float | None, ends_s: np.ndarray, targets_mm: np.ndarray, stepped_mm: np.ndarray) -> None:
+        """Blocks from ``start_s`` (None: the last block's end) to each of ``ends_s``: ``targets_mm``
+        as written, ``stepped_mm`` where the firmware puts them (its whole steps: executed)."""
         if not len(ends_s):
             return
         start_s = self.last_s if start_s is None else start_s
         knots_s = np.append(start_s, ends_s)
-        knots_mm = np.vstack([self.samples.at(knots_s[:1], self.fs), targets_mm])[:, :3]
         grid_s = np.arange(math.ceil(start_s * self.fs), math.floor(ends_s[-1] * self.fs) + 1) / self.fs
-        chord = np.column_stack([np.interp(grid_s, knots_s, knots_mm[:, c]) for c in range(3)])
+
+        def chords(ends_mm: np.ndarray) -> np.ndarray:
+            knots_mm = np.vstack([self.samples.at(knots_s[:1], self.fs), ends_mm])[:, :3]
+            return np.column_stack([np.interp(grid_s, knots_s, knots_mm[:, c]) for c in range(3)])
+
+        chord = chords(targets_mm)
         off_mm = np.linalg.norm(chord - self.samples.at(grid_s, self.fs)[:, :3], axis=1)
         self.sum_squares_mm2 += float(off_mm @ off_mm)
         self.count += len(off_mm)
@@ -690,7 +701,9 @@ class _Deviation:
             first = round(grid_s[0] * self.fs)
             self.rest_until(first)
             skip = max(self.executed.next - first, 0)  # (a block's start is the last one's end)
-            self.executed.add(first + skip, chord[skip:], self.samples.at(grid_s[skip:], self.fs, planned=True)[:, :3])
+            executed = chord if stepped_mm is targets_mm else chords(stepped_mm)
+            planned = self.samples.at(grid_s[skip:], self.fs, planned=True)[:, :3]
+            self.executed.add(first + skip, executed[skip:], planned)
 
     def rest_until(self, stop: int) -> None:
         """The executed program where the plan has it, from the last sample given up to ``stop``."""
@@ -816,7 +829,7 @@ class _RunWriter:
             text, count = emitter.blocks(targets, np.diff(np.append(from_s, ends)), ends, curves,
                                          exact_last=ends[-1] >= stop_s)
             out.text(text, count)
-            self.deviation.add(from_s if run_start else None, emitter.written_s, emitter.written_mm)
+            self.deviation.add(from_s if run_start else None, emitter.written_s, emitter.written_mm, emitter.stepped_mm)
             out.rate.add(emitter.written_s)
             out.stats.motion_blocks += count
             from_s = start_s = out.written_until_s = float(ends[-1])
@@ -926,7 +939,8 @@ class _ProgramWriter:
                 steps = None if self._options.steps_per_mm is None else np.asarray(self._options.steps_per_mm)
                 motion.emitter = _Emitter(self._samples.rows(0, 1)[0], out.newline, steps,
                                           self._options.min_steps_per_segment,
-                                          math.inf if self._settings is None else self._settings.ramp_mm_s2)
+                                          math.inf if self._settings is None else self._settings.ramp_mm_s2,
+                                          self._options.axis_modes)
             if not header_done and _is_code(block):
                 self._header()
                 header_done = True
