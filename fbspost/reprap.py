@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import math
 import re
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -133,15 +134,31 @@ class _Moves:
         return cls(*steps, np.array(rows["line"], dtype=int), length, accel, speed, junction2)
 
 
+def commanded_pieces(blocks: list[Block]) -> Iterator[tuple[int, Block, list[tuple[np.ndarray, np.ndarray]]]]:
+    """Every block with its index and the (start, end) of each of its pieces that changes a
+    position, as commanded (before any rounding to steps). An axis whose position is not known
+    is where RRF starts it: at 0, or where it was."""
+    position = np.zeros(_NA)
+    for index, block in enumerate(blocks):
+        if block.kind is Kind.STOP:
+            position = np.where(np.isnan(block.position_mm), position, block.position_mm)
+        pieces = []
+        for point in block.points_mm if block.kind is Kind.MOVE and block.points_mm is not None else ():
+            point = np.where(np.isnan(point), position, point)
+            if (point != position).any():
+                pieces.append((position, point))
+                position = point
+        yield index, block, pieces
+
+
 def _read(blocks: list[Block], profile: MachineProfile, config: ReprapConfig):
-    """The moves of ``blocks`` (rows of ``_Moves.of``) and per line (kind, sent, dwell s). An
-    axis whose position is not known is where RRF starts it: at 0, or where it was."""
+    """The moves of ``blocks`` (rows of ``_Moves.of``) and per line (kind, sent, dwell s)."""
     state = _LimitState(profile)
     jerk, policy = np.array(config.jerk_mm_s), config.jerk_policy
     rows = {k: [] for k in ("start", "end", "line", "feed", "print_a", "travel_a", "axis_a", "axis_v", "jerk",
                             "policy")}
-    lines, position = [], np.zeros(_NA)
-    for index, block in enumerate(blocks):
+    lines = []
+    for index, block, pieces in commanded_pieces(blocks):
         if block.limits is not None:
             state.apply(block.limits, block.line_no)
         m566 = _M566.match(block.raw)
@@ -152,19 +169,11 @@ def _read(blocks: list[Block], profile: MachineProfile, config: ReprapConfig):
                 elif letter.decode() in AXES:
                     jerk[AXES.index(letter.decode())] = float(value) / 60.0
         lines.append((block.kind, bool(block.raw.split(b";")[0].strip()), block.dwell_s))
-        if block.kind is Kind.STOP:
-            position = np.where(np.isnan(block.position_mm), position, block.position_mm)
-        if block.kind is not Kind.MOVE or block.points_mm is None:
-            continue
-        for point in block.points_mm:
-            point = np.where(np.isnan(point), position, point)
-            if not (point != position).any():
-                continue
-            travel = state.accel if math.isnan(state.travel_accel) else state.travel_accel
-            for key, value in zip(rows, (position, point, index, block.feed_mm_s, state.accel, travel, state.axis_a.copy(),
+        travel = state.accel if math.isnan(state.travel_accel) else state.travel_accel
+        for start, end in pieces:
+            for key, value in zip(rows, (start, end, index, block.feed_mm_s, state.accel, travel, state.axis_a.copy(),
                                          state.axis_v.copy(), jerk.copy(), policy)):
                 rows[key].append(value)
-            position = point
     return rows, lines
 
 
