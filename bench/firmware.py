@@ -9,7 +9,8 @@ once at the profile's max_line_rate, else at a serial host's 300 lines/s (the ho
 by line) and once without a line budget (an SD-card print; the output written from a copy of
 the profile with that max_line_rate, or without one); also where the buffer (ring) ran dry.
 The original's path is its commanded one (not the firmware's whole steps); on RepRapFirmware
-the output is also run with motors that take no whole steps (the cost of the steps). The shapers compared on RepRapFirmware are ideal ones of its M593 types (MZV, ZVD, EI2, EI3:
+the output is also run with motors that take no whole steps (the cost of the steps). The
+shapers compared on RepRapFirmware are ideal ones of its M593 types (MZV, ZVD, EI2, EI3:
 Klipper's impulses convolved with the whole motion), not RRF's own shaping of each move.
 
 For the program's first LINES lines (all by default) it runs (a) the original and (b) fbspost's

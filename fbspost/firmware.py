@@ -28,8 +28,8 @@ import numpy as np
 from .gcode import Block
 from .marlin import run_marlin
 from .planner import plan_blocks
-from .reprap import run_reprap
 from .profile import MachineProfile
+from .reprap import run_reprap
 
 
 @dataclass
@@ -41,7 +41,7 @@ class FirmwareMotion:
     line_time_s: np.ndarray  # (number of blocks,) see planner.Plan.line_time_s (Marlin: see marlin.MarlinRun)
     duration_s: float
     merged_lines: list[int]  # Marlin: lines whose segments were too short to be blocks (merged with the next)
-    starved: list[tuple[float, float]] = field(default_factory=list)  # Marlin, RRF: (when, rest s) where its buffer ran dry
+    starved: list[tuple[float, float]] = field(default_factory=list)  # Marlin, RRF: (when, rest s) the buffer ran dry
 
 
 def replan(blocks: list[Block], profile: MachineProfile, flavor: str) -> FirmwareMotion:

@@ -172,7 +172,7 @@ def _read(blocks: list[Block], profile: MachineProfile, config: ReprapConfig):
         travel = state.accel if math.isnan(state.travel_accel) else state.travel_accel
         for start, end in pieces:
             for key, value in zip(rows, (start, end, index, block.feed_mm_s, state.accel, travel, state.axis_a.copy(),
-                                         state.axis_v.copy(), jerk.copy(), policy)):
+                                         state.axis_v.copy(), jerk.copy(), policy), strict=True):
                 rows[key].append(value)
     return rows, lines
 
