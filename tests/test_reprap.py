@@ -130,3 +130,16 @@ def test_slow_host_runs_the_ring_dry(tmp_path):
     rests = np.array(motion.starved)
     assert len(rests) == 29
     np.testing.assert_allclose(rests[:, 1], 1 / rate - move_s, rtol=1e-9)
+
+
+@pytest.mark.parametrize(("rate", "exit_mm_s"), [(2.0, 0.0), (2.2, 100.0)])
+def test_move_prepared_100_ms_before_it_is_needed(tmp_path, rate, exit_mm_s):
+    """Three 100 mm moves at F6000, a line every 1 / rate s. Move 0 is read into an idle machine
+    (prepared after the 10 ms grace, before move 1 comes: it stops, 1 + 100 / 3000 s); move 1 is
+    prepared 100 ms before move 0 ends, at 2 / rate + 0.01 + 1.0333 - 0.1 s. At 2 lines/s move 2 comes
+    after that (4 / rate = 2.0 > 1.943): move 1 stops, although move 2 came before it started; at
+    2.2 lines/s move 2 is in the ring by then (1.818 < 1.852): move 1 leaves at 100 mm/s."""
+    motion = run(tmp_path, ["G1 X100 F6000", "G1 X200", "G1 X300"], line_rate_hz=rate)
+    assert motion.exit_mm_s[0] == 0.0
+    assert motion.exit_mm_s[1] == exit_mm_s
+    assert motion.start_s[1] == pytest.approx(2 / rate + GRACE + rest_to_rest_s(100.0, 100.0), rel=1e-12)
