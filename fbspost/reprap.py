@@ -36,7 +36,8 @@ M203, M204, M566, M595, "Motion system"):
 - lines: taken ``1 / max_line_rate`` apart (a USB host; an SD-card print: no limit); a line
   that stops the machine (``Kind.STOP``: G4, M400, homing...) waits for the ring to empty, then
   its dwell.
-Not modelled: CanAddMove's limit on unprepared time (2 s, or 0.5 s but the first), RRF's own
+Not modelled: CanAddMove's limit on unprepared time (2 s, or 0.5 s but the first), PrepareMoves'
+holding back a deceleration-only move until 50 ms are left (IsGoodToPrepare), RRF's own
 arc segmentation, pressure advance, step timing within a move, M593 input shaping (applied by
 RRF to each move's acceleration and deceleration: bench/firmware.py compares ideal shapers of
 RRF's types instead). Units: mm, s, mm/s, mm/s^2 (M566 and M203 are in mm/min on the line).
