@@ -3,11 +3,15 @@
 Run from the repository root:  python bench/firmware.py PROGRAM.gcode PROFILE [LINES [FLAVOR]]
 Without arguments: the first 8000 lines of tests/data/gear-marlin2.gcode on printer-two-mode,
 then samples/butterfly-polyline.gcode on patent-xy-stage.
-FLAVOR marlin: the program compensated as a Marlin program and both run through the model of
-Marlin's planner (fbspost/marlin.py), once at the profile's max_line_rate, else at a serial
-host's 300 lines/s (the host sending line by line) and once without a line budget (the output
-written from a copy of the profile with that max_line_rate, or without one); also where
-Marlin's buffer ran dry.
+FLAVOR marlin or reprap: the program compensated as a Marlin (RepRapFirmware) program and both
+run through the model of Marlin's planner (fbspost/marlin.py; RepRapFirmware's: fbspost/reprap.py),
+once at the profile's max_line_rate, else at a serial host's 300 lines/s (the host sending line
+by line) and once without a line budget (an SD-card print; the output written from a copy of
+the profile with that max_line_rate, or without one); also where the buffer (ring) ran dry.
+The original's path is its commanded one (not the firmware's whole steps); on RepRapFirmware
+the output is also run with motors that take no whole steps (the cost of the steps). The
+shapers compared on RepRapFirmware are ideal ones of its M593 types (MZV, ZVD, EI2, EI3:
+Klipper's impulses convolved with the whole motion), not RRF's own shaping of each move.
 
 For the program's first LINES lines (all by default) it runs (a) the original and (b) fbspost's
 output (``python -m fbspost.cli compensate``) through Klipper's own planner (klippy's
@@ -23,6 +27,7 @@ and applied to klippy's plan of the original. Print time is klippy's: moves and 
 from __future__ import annotations
 
 import itertools
+import math
 import re
 import subprocess
 import sys
@@ -35,13 +40,17 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
 
-from fbspost.gcode import detect_flavor, read_gcode  # noqa: E402
+from fbspost.gcode import AXES, detect_flavor, read_gcode  # noqa: E402
 from fbspost.marlin import MarlinConfig, run_marlin  # noqa: E402
 from fbspost.profile import load_profile  # noqa: E402
+from fbspost.reprap import ReprapConfig, commanded_pieces, run_reprap  # noqa: E402
 from fbspost.simulate import PathDistance  # noqa: E402
-from firmware_results import contour_um, klippy_run, modelled, move_ends, printed_path, program_ends, shaped_plans  # noqa: E402
+from firmware_results import contour_um, klippy_run, modelled, move_ends, printed_path, shaped_plans  # noqa: E402
 
 SERIAL_LINES_PER_S = 300.0  # a serial host's budget where the profile gives none
+MODELS = {"marlin": (run_marlin, MarlinConfig, "Marlin's planner"),
+          "reprap": (run_reprap, ReprapConfig, "RepRapFirmware's planner")}
+RRF_SHAPERS = ("mzv", "zvd", "2hump_ei", "3hump_ei")  # M593 P"mzv" "zvd" "ei2" "ei3" (fbspost.shapers' names)
 DEFAULT = [("tests/data/gear-marlin2.gcode", "printer-two-mode", 8000),
            ("samples/butterfly-polyline.gcode", "patent-xy-stage", None)]
 
@@ -63,16 +72,19 @@ def klippy_as_run(path: Path, profile, flavor: str) -> Run:
     return Run(seconds, samples, *printed_path(*move_ends(moves)))
 
 
-def marlin_run(path: Path, profile, line_rate_hz: float | None) -> Run:
-    """``path`` through the model of Marlin's planner, the host sending at ``line_rate_hz``."""
-    run = run_marlin(list(read_gcode(path, "marlin", profile.home_mm)), profile,
-                     MarlinConfig.from_profile(profile, line_rate_hz=line_rate_hz))
+def model_run(path: Path, profile, flavor: str, line_rate_hz: float | None, **config_changes) -> Run:
+    """``path`` through the model of ``flavor``'s planner, the host sending at ``line_rate_hz``."""
+    run_model, config, _ = MODELS[flavor]
+    blocks = list(read_gcode(path, flavor, profile.home_mm))
+    run = run_model(blocks, profile, config.from_profile(profile, line_rate_hz=line_rate_hz, **config_changes))
     rests = np.array(run.starved).reshape(-1, 2)
     taken = np.sort(run.taken_s[np.isfinite(run.taken_s)])
     rate = (np.arange(taken.size) + 1 - np.searchsorted(taken, taken - 1.0, "right")).max(initial=0)
     notes = f"buffer dry {len(rests)}x, {rests[:, 1].sum():.3f} s; at most {rate} lines/s"
-    return Run(run.duration_s, run.positions_mm(profile.sample_rate_hz)[:, :4],
-               *printed_path(run.start_mm[:, :4], run.end_mm[:, :4]), notes)
+    pieces = np.array([piece for _, _, block_pieces in commanded_pieces(blocks) for piece in block_pieces])
+    ends = pieces.reshape(-1, 2, pieces.shape[-1] if pieces.size else 4)[:, :, :4]
+    return Run(run.duration_s, run.positions_mm(profile.sample_rate_hz)[:, :4], *printed_path(ends[:, 0], ends[:, 1]),
+               notes)
 
 
 def compensated(original: Path, machine: str, flavor: str, line_rate_hz: float | None = None) -> Path:
@@ -93,19 +105,19 @@ def compensated(original: Path, machine: str, flavor: str, line_rate_hz: float |
 def bench(program: str, machine: str, lines: int | None, output_flavor: str = "klipper") -> None:
     profile = load_profile(machine)
     flavor = detect_flavor(ROOT / program)
-    if output_flavor == "marlin":
+    if output_flavor in MODELS:
+        shapers = RRF_SHAPERS if output_flavor == "reprap" else None
         for budget in (profile.firmware.max_line_rate_hz or SERIAL_LINES_PER_S, None):
             name = f"at {budget:g} lines/s" if budget else "without a line budget"
             with tempfile.TemporaryDirectory() as tmp:
                 original = excerpt(program, lines, Path(tmp))
-                output = compensated(original, machine, "marlin", budget)
-                run_a = marlin_run(original, profile, budget)
-                # Marlin moves the original between whole steps, its short segments merged: measured
-                # against that path, and against the program's own (the part as designed)
-                exact = printed_path(*program_ends(original, flavor, profile.home_mm))[0]
-                table(program, lines, flavor, machine, f"through the model of Marlin's planner, {name}", profile,
-                      run_a, marlin_run(output, profile, budget),
-                      {"Marlin's path": run_a.path, "the program's": exact})
+                output = compensated(original, machine, output_flavor, budget)
+                more = [("fbspost, no whole steps",
+                         model_run(output, profile, output_flavor, budget, steps_per_mm=(math.nan,) * len(AXES)))]
+                table(program, lines, flavor, machine, f"through the model of {MODELS[output_flavor][2]}, {name}",
+                      profile, model_run(original, profile, output_flavor, budget),
+                      model_run(output, profile, output_flavor, budget), shapers,
+                      more if output_flavor == "reprap" else [])
         return
     with tempfile.TemporaryDirectory() as tmp:
         original = excerpt(program, lines, Path(tmp))
@@ -123,27 +135,22 @@ def excerpt(program: str, lines: int | None, folder: Path) -> Path:
 
 
 def table(program: str, lines, flavor: str, machine: str, how: str, profile, run_a: Run, run_b: Run,
-          paths: dict[str, PathDistance] | None = None) -> None:
-    """Print time, RMS and max contour error of the original, fbspost's output and the best input
-    shaper (the best against the first of ``paths``, by default the original's path as run)."""
-    time_a, plan_a, printer = run_a.seconds, run_a.samples, run_a.printer
-    paths = paths or {"": run_a.path}
-    shaped = shaped_plans(plan_a, profile)
-    runs = {"original": (modelled(plan_a, profile), plan_a),
-            "fbspost": (modelled(run_b.samples, profile), run_b.samples),
-            **{name: (modelled(command, profile), padded) for name, (command, padded, _) in shaped.items()}}
-    errors = {name: [contour_um(*run, path, printer) for path in paths.values()] for name, run in runs.items()}
-    best = min(shaped, key=lambda name: errors[name][0][0])
-    rows = [("original", time_a), ("fbspost", run_b.seconds), (best, time_a + shaped[best][2])]
+          shapers: tuple[str, ...] | None = None, more: list[tuple[str, Run]] = ()) -> None:
+    """Print time, RMS and max contour error of the original, fbspost's output (and ``more`` runs)
+    and the best input shaper (of ``shapers``, by default every one)."""
+    time_a, plan_a, path, printer = run_a.seconds, run_a.samples, run_a.path, run_a.printer
+    rows = [(name, run.seconds, contour_um(modelled(run.samples, profile), run.samples, path, printer))
+            for name, run in [("original", run_a), ("fbspost", run_b), *more]]
+    shaped = {name: (contour_um(modelled(command, profile), padded, path, printer), lag_s)
+              for name, (command, padded, lag_s) in shaped_plans(plan_a, profile).items()
+              if shapers is None or name in shapers}
+    best = min(shaped, key=lambda name: shaped[name][0][0])
+    rows.append((f"{best} shaper (best)", time_a + shaped[best][1], shaped[best][0]))
     print(f"{program} ({lines or 'all'} lines, {flavor}) on {machine}, {how} (firmware results):")
-    print(f"  {'run':24} {'print s':>9} {'vs original':>12}" + "".join(
-        f" {'RMS contour um':>15} {'max um':>9} {'RMS gain':>9}" + (f"  (to {name})" if name else "")
-        for name in paths))
-    for name, seconds in rows:
-        cells = "".join(f" {rms:15.3f} {peak:9.1f} {original[0] / rms:8.2f}x"
-                        for (rms, peak), original in zip(errors[name], errors["original"], strict=True))
-        print(f"  {name + (' shaper (best)' if name == best else ''):24} {seconds:9.3f} "
-              f"{100 * (seconds / time_a - 1):+11.2f}%{cells}")
+    print(f"  {'run':24} {'print s':>9} {'vs original':>12} {'RMS contour um':>15} {'max um':>9} {'RMS gain':>9}")
+    for name, seconds, (rms, peak) in rows:
+        print(f"  {name:24} {seconds:9.3f} {100 * (seconds / time_a - 1):+11.2f}% {rms:15.3f} {peak:9.1f} "
+              f"{rows[0][2][0] / rms:8.2f}x")
     for name, run in (("original", run_a), ("fbspost", run_b)):
         if run.notes:
             print(f"  {name}: {run.notes}")

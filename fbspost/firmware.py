@@ -11,9 +11,13 @@ line's time and the print time, as that firmware plans them.
   program line by line at the profile's ``max_line_rate``: whole steps and the short-segment
   merge, the block buffer and its look-ahead, SLOWDOWN (M205 B), junction deviation (M205 J) or
   classic jerk, the minimum planner speed, the first-move delay; where the buffer runs dry.
-- RepRapFirmware and LinuxCNC: the planner module's plan (jerk as M566 gives it, junction
-  deviation); not modelled: RRF's M593 input shaping, LinuxCNC's G64 P blending tolerance
-  (its corners are planned as junction-deviation corners).
+- RepRapFirmware 3.5: ``reprap.run_reprap``, a model of its DDA ring read from a file (or from a
+  host at ``max_line_rate``): whole-step targets timed over the commanded length, M201/M203/M204
+  limits, M566 jerk per drive and its jerk policy, look-ahead over the moves in the ring when a
+  move is prepared, RecalculateMove's short-ramp rule; where the ring runs dry. Not modelled:
+  M593 input shaping.
+- LinuxCNC: the planner module's plan (junction deviation); not modelled: its G64 P blending
+  tolerance (its corners are planned as junction-deviation corners).
 """
 from __future__ import annotations
 
@@ -25,6 +29,7 @@ from .gcode import Block
 from .marlin import run_marlin
 from .planner import plan_blocks
 from .profile import MachineProfile
+from .reprap import run_reprap
 
 
 @dataclass
@@ -36,13 +41,13 @@ class FirmwareMotion:
     line_time_s: np.ndarray  # (number of blocks,) see planner.Plan.line_time_s (Marlin: see marlin.MarlinRun)
     duration_s: float
     merged_lines: list[int]  # Marlin: lines whose segments were too short to be blocks (merged with the next)
-    starved: list[tuple[float, float]] = field(default_factory=list)  # Marlin: (when, rest s) where its buffer ran dry
+    starved: list[tuple[float, float]] = field(default_factory=list)  # Marlin, RRF: (when, rest s) the buffer ran dry
 
 
 def replan(blocks: list[Block], profile: MachineProfile, flavor: str) -> FirmwareMotion:
     """``blocks`` planned as the firmware of ``flavor`` plans them (see the module docstring)."""
-    if flavor == "marlin":
-        run = run_marlin(blocks, profile)
+    if flavor in ("marlin", "reprap"):
+        run = (run_marlin if flavor == "marlin" else run_reprap)(blocks, profile)
         return FirmwareMotion(flavor, run.positions_mm(profile.sample_rate_hz), run.line_time_s, run.duration_s,
                               run.merged_lines, run.starved)
     plan = plan_blocks(blocks, profile, firmware="klipper" if flavor == "klipper" else None)

@@ -74,6 +74,7 @@ class FirmwareProfile:
     nozzle_diameter_mm: float = 0.4
     min_segment_time_s: float = 0.02  # Marlin MIN_SEGMENT_TIME (M205 B) while the buffer is under half full
     min_steps_per_segment: int = 6  # Marlin MIN_STEPS_PER_SEGMENT: shorter blocks are merged with the next
+    dda_ring_length: int = 50  # RepRapFirmware's DDA ring (M595 P; Move.h DdaRingLength on Duet 3)
 
     @property
     def extrude_ratio(self) -> float:
@@ -138,7 +139,8 @@ _FIRMWARE_NUMBERS = {
     "filament_diameter": "filament_diameter_mm", "nozzle_diameter": "nozzle_diameter_mm",
 }
 _FIRMWARE_KEYS = {*_FIRMWARE_NUMBERS, "steps_per_mm", "shaper_frequency", "block_buffer", "minimum_cruise_ratio",
-                  "instantaneous_corner_velocity", "min_segment_time", "min_steps_per_segment"}
+                  "instantaneous_corner_velocity", "min_segment_time", "min_steps_per_segment",
+                  "dda_ring_length"}
 
 
 def bundled_profiles() -> dict[str, Path]:
@@ -328,7 +330,8 @@ def _parse_firmware(raw: dict, fail, number) -> FirmwareProfile:
                 "min_segment_time_s": segment_time}
     values.update({attr: value for attr, value in optional.items() if value is not None})
     return FirmwareProfile(steps_per_mm=steps, shaper_frequency_hz=shaper, block_buffer=integer("block_buffer", 16),
-                           min_steps_per_segment=integer("min_steps_per_segment", 6), **values)
+                           min_steps_per_segment=integer("min_steps_per_segment", 6),
+                           dda_ring_length=integer("dda_ring_length", 50), **values)
 
 
 def _axis_table(raw: dict, key: str, what: str, fail, number) -> dict[str, float]:
@@ -388,7 +391,8 @@ def _format_firmware(firmware: FirmwareProfile, number) -> list[str]:
     for key, table in (("steps_per_mm", firmware.steps_per_mm), ("shaper_frequency", firmware.shaper_frequency_hz)):
         if table:
             lines.append(f"{key} = {{ {', '.join(f'{axis} = {number(value)}' for axis, value in table.items())} }}")
-    lines += [f"block_buffer = {firmware.block_buffer}", f"min_steps_per_segment = {firmware.min_steps_per_segment}"]
+    lines += [f"block_buffer = {firmware.block_buffer}", f"min_steps_per_segment = {firmware.min_steps_per_segment}",
+              f"dda_ring_length = {firmware.dda_ring_length}"]
     values = {"minimum_cruise_ratio": firmware.minimum_cruise_ratio,
               "instantaneous_corner_velocity": firmware.instantaneous_corner_velocity_mm_s,
               "min_segment_time": firmware.min_segment_time_s,

@@ -2,8 +2,7 @@
 machine's modes, its contour error, and the input shapers on the same plan.
 
 Takes program files and a profile; gives klippy's plan sampled on the profile's grid
-(``klippy_run``), the program's own pieces (``program_ends``), the modelled motion of any
-command (``modelled``), the contour error as
+(``klippy_run``), the modelled motion of any command (``modelled``), the contour error as
 ``fbspost simulate`` measures it (``contour_um``: the distance from the modelled position to the
 original's path, its extruding moves for a printer, at the samples where the executed E rises on
 both sides; every move for a machine without E, while it moves) and every shaper of ``fbspost
@@ -17,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from fbspost.dynamics import AxisDynamics
-from fbspost.gcode import AXES, Kind, read_gcode
+from fbspost.gcode import AXES, read_gcode
 from fbspost.shapers import SHAPERS, klipper_shaper, shape
 from fbspost.simulate import PathDistance, shaper_settings
 from klippy_planner import KlippyPlanner, sample_moves
@@ -43,20 +42,6 @@ def modelled(command: np.ndarray, profile) -> np.ndarray:
 def move_ends(moves) -> tuple[np.ndarray, np.ndarray]:
     """(starts, ends): X Y Z E of klippy's moves, one row each."""
     return np.array([m.start_pos[:4] for m in moves]), np.array([m.end_pos[:4] for m in moves])
-
-
-def program_ends(path: Path, flavor: str, home_mm=None) -> tuple[np.ndarray, np.ndarray]:
-    """(starts, ends): X Y Z E of the program's own linear pieces, as written (Marlin's planner
-    moves between whole steps instead, and merges short segments: a path of its own)."""
-    starts, ends, position = [], [], np.full(4, np.nan)
-    for block in read_gcode(path, flavor, home_mm):
-        for point in block.points_mm if block.kind is Kind.MOVE and block.points_mm is not None else ():
-            starts.append(position)
-            ends.append(position := point[:4])
-        position = block.position_mm[:4]
-    starts, ends = np.array(starts).reshape(-1, 4), np.array(ends).reshape(-1, 4)
-    known = ~np.isnan(starts).any(axis=1) & ~np.isnan(ends).any(axis=1)
-    return starts[known], ends[known]
 
 
 def printed_path(start_mm: np.ndarray, end_mm: np.ndarray) -> tuple[PathDistance, bool]:
