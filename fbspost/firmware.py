@@ -11,9 +11,11 @@ line's time and the print time, as that firmware plans them.
   program line by line at the profile's ``max_line_rate``: whole steps and the short-segment
   merge, the block buffer and its look-ahead, SLOWDOWN (M205 B), junction deviation (M205 J) or
   classic jerk, the minimum planner speed, the first-move delay; where the buffer runs dry.
-- RepRapFirmware and LinuxCNC: the planner module's plan (jerk as M566 gives it, junction
-  deviation); not modelled: RRF's M593 input shaping, LinuxCNC's G64 P blending tolerance
-  (its corners are planned as junction-deviation corners).
+- LinuxCNC 2.9: ``linuxcnc_tp.run_linuxcnc``, a model of its trajectory planner (tp.c, tc.c,
+  blendmath.c): the servo period's short-segment cap, G64 P blend arcs, tangent and parabolic
+  blends, G61 / G61.1, the look-ahead, ramps and split cycles.
+- RepRapFirmware: the planner module's plan (jerk as M566 gives it, junction deviation); not
+  modelled: M593 input shaping.
 """
 from __future__ import annotations
 
@@ -22,6 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .gcode import Block
+from .linuxcnc_tp import run_linuxcnc
 from .marlin import run_marlin
 from .planner import plan_blocks
 from .profile import MachineProfile
@@ -45,5 +48,8 @@ def replan(blocks: list[Block], profile: MachineProfile, flavor: str) -> Firmwar
         run = run_marlin(blocks, profile)
         return FirmwareMotion(flavor, run.positions_mm(profile.sample_rate_hz), run.line_time_s, run.duration_s,
                               run.merged_lines, run.starved)
+    if flavor == "linuxcnc":
+        run = run_linuxcnc(blocks, profile)
+        return FirmwareMotion(flavor, run.positions_mm(profile.sample_rate_hz), run.line_time_s, run.duration_s, [])
     plan = plan_blocks(blocks, profile, firmware="klipper" if flavor == "klipper" else None)
     return FirmwareMotion(flavor, plan.positions_mm, plan.line_time_s, plan.duration_s, [])
