@@ -8,6 +8,9 @@ Marlin's planner (fbspost/marlin.py), once at the profile's max_line_rate, else 
 host's 300 lines/s (the host sending line by line) and once without a line budget (the output
 written from a copy of the profile with that max_line_rate, or without one); also where
 Marlin's buffer ran dry.
+FLAVOR linuxcnc: the program compensated as a LinuxCNC program (its G64 P<tolerance> Q0) and both
+run through the model of LinuxCNC 2.9's trajectory planner (fbspost/linuxcnc_tp.py); also how far
+the model's motion of the output departs from its blocks run exactly as written (each at its F).
 
 For the program's first LINES lines (all by default) it runs (a) the original and (b) fbspost's
 output (``python -m fbspost.cli compensate``) through Klipper's own planner (klippy's
@@ -23,6 +26,7 @@ and applied to klippy's plan of the original. Print time is klippy's: moves and 
 from __future__ import annotations
 
 import itertools
+import math
 import re
 import subprocess
 import sys
@@ -35,7 +39,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
 
-from fbspost.gcode import detect_flavor, read_gcode  # noqa: E402
+from fbspost.gcode import Kind, detect_flavor, read_gcode  # noqa: E402
+from fbspost.linuxcnc_tp import run_linuxcnc  # noqa: E402
 from fbspost.marlin import MarlinConfig, run_marlin  # noqa: E402
 from fbspost.profile import load_profile  # noqa: E402
 from fbspost.simulate import PathDistance  # noqa: E402
@@ -75,6 +80,47 @@ def marlin_run(path: Path, profile, line_rate_hz: float | None) -> Run:
                *printed_path(run.start_mm[:, :4], run.end_mm[:, :4]), notes)
 
 
+def linuxcnc_run(path: Path, profile) -> Run:
+    """``path`` through the model of LinuxCNC's trajectory planner; notes: how far its motion is from
+    the blocks run as written."""
+    blocks = list(read_gcode(path, "linuxcnc", profile.home_mm))
+    run = run_linuxcnc(blocks, profile)
+    samples = run.positions_mm(profile.sample_rate_hz)[:, :4]
+    written_s, starts, ends = as_written(blocks, profile.sample_rate_hz)
+    n = min(len(samples), len(written_s))
+    off_um = 1e3 * np.linalg.norm(samples[:n, :3] - written_s[:n, :3], axis=1)
+    notes = (f"{1e3 * (run.duration_s - len(written_s) / profile.sample_rate_hz):+.1f} ms vs its blocks as written; "
+             f"from them {off_um.max():.2f} um at most, {np.sqrt(np.mean(off_um ** 2)):.3f} um RMS")
+    return Run(run.duration_s, samples, *printed_path(starts, ends), notes)
+
+
+def as_written(blocks, sample_rate_hz: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(X Y Z E on the sample grid, move starts, move ends) of ``blocks`` run exactly as written:
+    every piece at its F, at rest for a dwell; a move that stops the machine (from an unknown
+    place) takes no time."""
+    times, points, starts, ends = [0.0], [np.zeros(4)], [], []
+    for block in blocks:
+        here = points[-1]
+        if block.kind is Kind.STOP:
+            here = np.where(np.isnan(block.position_mm[:4]), here, block.position_mm[:4])
+            times += [times[-1], times[-1] + block.dwell_s]
+            points += [here, here]
+        elif block.kind is Kind.MOVE and block.points_mm is not None:
+            for point in block.points_mm[:, :4]:
+                point = np.where(np.isnan(point), here, point)
+                times.append(times[-1] + np.linalg.norm(point[:3] - here[:3]) / block.feed_mm_s)
+                points.append(point)
+                starts.append(here)
+                ends.append(point)
+                here = point
+    times, points = np.array(times), np.array(points)
+    t = np.arange(math.floor(times[-1] * sample_rate_hz) + 2) / sample_rate_hz
+    k = np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 2)
+    span = np.maximum(times[k + 1] - times[k], 1e-300)
+    frac = np.clip((t - times[k]) / span, 0.0, 1.0)[:, None]
+    return points[k] + (points[k + 1] - points[k]) * frac, np.array(starts), np.array(ends)
+
+
 def compensated(original: Path, machine: str, flavor: str, line_rate_hz: float | None = None) -> Path:
     """fbspost's output of ``original``, written for ``line_rate_hz`` lines/s (None: no budget)."""
     text = re.sub(r"(?m)^max_line_rate\s*=.*$", "", Path(load_profile(machine).source).read_text())
@@ -101,6 +147,13 @@ def bench(program: str, machine: str, lines: int | None, output_flavor: str = "k
                 output = compensated(original, machine, "marlin", budget)
                 table(program, lines, flavor, machine, f"through the model of Marlin's planner, {name}", profile,
                       marlin_run(original, profile, budget), marlin_run(output, profile, budget))
+        return
+    if output_flavor == "linuxcnc":
+        with tempfile.TemporaryDirectory() as tmp:
+            original = excerpt(program, lines, Path(tmp))
+            output = compensated(original, machine, "linuxcnc", profile.firmware.max_line_rate_hz)
+            table(program, lines, flavor, machine, "through the model of LinuxCNC's trajectory planner", profile,
+                  linuxcnc_run(original, profile), linuxcnc_run(output, profile))
         return
     with tempfile.TemporaryDirectory() as tmp:
         original = excerpt(program, lines, Path(tmp))

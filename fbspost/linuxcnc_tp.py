@@ -126,6 +126,7 @@ class _Tc:
     vel_at_blend_start: float = 0.0
     blend_vel: float = 0.0
     lengths: np.ndarray = field(default_factory=lambda: np.zeros(1))
+    circle: tuple | None = None  # blend arc: (center, u, w, length of the consumed line before it)
 
     def set_path(self, path: np.ndarray) -> None:
         self.path = path
@@ -140,8 +141,13 @@ class _Tc:
         """The NA position at progress ``s`` (XYZ along the path, other axes in proportion)."""
         frac = s / self.target if self.target > 0 else 1.0
         out = self.start + (self.end - self.start) * frac
-        xyz = np.array([np.interp(s, self.lengths, self.path[:, i]) for i in range(3)])
-        out[_XYZ] = xyz
+        if self.circle is not None:  # a blend arc, after the line it consumed
+            center, u, w, line_mm = self.circle
+            if s >= line_mm:
+                angle = (s - line_mm) / self.arc_radius
+                out[_XYZ] = center + self.arc_radius * (math.cos(angle) * u + math.sin(angle) * w)
+                return out
+        out[_XYZ] = [np.interp(s, self.lengths, self.path[:, i]) for i in range(3)]
         return out
 
     def start_unit(self) -> np.ndarray:
@@ -315,13 +321,15 @@ class _Queue:
         center = corner + normal * radius / math.sin(theta)
         rest = prev.target - d_plan
         consume = rest / v_plan < self.config.gap_cycles * self.config.servo_period_s
-        points = _arc_points(center, arc_start, arc_end, radius, phi)
-        if consume:
-            points = np.vstack([prev.path[:1], points])
+        u = _unit(arc_start - center)
+        w = _unit(arc_end - center - u * float(u @ (arc_end - center)))
+        points = np.vstack([prev.path[:1], arc_start, arc_end]) if consume else np.vstack([arc_start, arc_end])
         arc = _Tc(prev.at(prev.target - (prev.target if consume else d_plan)), tc.at(d_plan), points, prev.line,
                   v_req, v_plan, a_max, TANGENT, prev.tolerance, arc_radius=radius)
-        arc.set_path(points)
-        arc.nominal = arc.target
+        line_mm = rest if consume else 0.0
+        arc.circle = (center, u, w, line_mm)
+        arc.lengths = np.array([0.0, line_mm, line_mm + radius * phi])[-len(points):]
+        arc.target = arc.nominal = line_mm + radius * phi
         self._finalize(arc)
         if self._choose(prev, tc, arc) != "arc":
             return None
@@ -378,15 +386,6 @@ def _blend_tolerance(prev: _Tc, tc: _Tc) -> float:
     t1 = prev.tolerance or 0.25 * prev.nominal
     t2 = tc.tolerance or 0.25 * tc.nominal
     return min(t1, t2, 0.25 * prev.nominal, 0.25 * tc.nominal)
-
-
-def _arc_points(center, start, end, radius, phi, per_rad: int = 64) -> np.ndarray:
-    """XYZ points on the blend arc from ``start`` to ``end`` (chords well under a nanometre)."""
-    a, b = start - center, end - center
-    k = max(2, int(math.ceil(phi * per_rad * max(1.0, math.sqrt(radius)))))
-    angle = np.linspace(0.0, phi, k + 1)
-    u, w = _unit(a), _unit(b - a * float(a @ b) / float(a @ a))
-    return center + radius * (np.cos(angle)[:, None] * u + np.sin(angle)[:, None] * w)
 
 
 def _trim(tc: _Tc, point: np.ndarray, at_end: bool) -> None:
