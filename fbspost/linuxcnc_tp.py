@@ -565,7 +565,7 @@ def _segment(block: Block, index: int, start: np.ndarray, mode: tuple[str, float
     rest = float(np.linalg.norm((points[-1] - start)[3:]))
     if lengths.sum() < 1e-12 and rest < 1e-12:
         return []
-    moving = [_unit(p) for p, n in zip(pieces, lengths) if n > 1e-12] or [np.ones(3) / math.sqrt(3)]
+    moving = [_unit(p) for p, n in zip(pieces, lengths, strict=True) if n > 1e-12] or [np.ones(3) / math.sqrt(3)]
     vel = min(_along(np.array(config.axis_velocity_mm_s), u) for u in moving)
     acc = min(_along(np.array(config.axis_acceleration_mm_s2), u) for u in moving)
     rapid = math.isinf(block.feed_mm_s)
