@@ -238,7 +238,7 @@ class _Queue:
 
     def _tangent(self, prev: _Tc, tc: _Tc) -> str:
         """tpSetupTangent: 'ok' (tangent), 'fail' (no blend) or 'try' (kink too large)."""
-        if prev.term == STOP:
+        if prev.term == STOP or self.config.optimization_depth < 2:
             return "fail"
         u1, u2 = prev.end_unit(), tc.start_unit()
         if float(np.sum((u1 + u2) ** 2)) < _SHARP_CORNER:  # pmCartCartAntiParallel

@@ -34,6 +34,18 @@ def run(tmp_path, lines: list[str], **config):
     return run_linuxcnc(blocks(tmp_path, lines), STAGE, LinuxCNCConfig.from_profile(STAGE, **config))
 
 
+def queued(tmp_path, lines: list[str], **config) -> list:
+    """The TP's queue once the G64 P0.01 moves of ``lines`` are added (before any runs)."""
+    config = LinuxCNCConfig.from_profile(STAGE, **config)
+    queue, start = _Queue(config), np.zeros(10)
+    for index, block in enumerate(blocks(tmp_path, lines)):
+        if block.points_mm is not None and block.kind.name == "MOVE":
+            for tc in _segment(block, index, start, ("parabolic", 0.01), config):
+                queue.add(tc)
+                start = tc.end
+    return queue.items
+
+
 def speeds(run) -> np.ndarray:
     return np.linalg.norm(np.diff(run.cycle_positions_mm[:, :2], axis=0), axis=1) / run.servo_period_s
 
@@ -46,6 +58,22 @@ def test_a_long_line_cruises_at_f_and_ramps_at_half_the_acceleration_in_g64(tmp_
     assert done.duration_s == pytest.approx(20.0 / 100.0 + 100.0 / (A / 2), abs=2 * T)
     assert run(tmp_path, ["G61.1", "G1 X20 F6000"]).duration_s == pytest.approx(0.2 + 100.0 / A, abs=2 * T)
     assert done.cycle_positions_mm[-1, 0] == pytest.approx(20.0, abs=1e-12)
+
+
+@pytest.mark.parametrize("depth", [2, 50])
+def test_the_look_ahead_depth_bounds_the_speed_of_short_segments(tmp_path, depth):
+    """0.05 mm segments at F3000 in G64: each new (not finalized, parabolic: a/2) segment lets the
+    one before end at sqrt(a/2 L) (findVPeak); the backward pass adds 2 a L a segment, over
+    depth + 1 junctions: depth 2 gives sqrt(a/2 L + 2 (2 a L)) = 42.4 mm/s; depth 50 reaches the
+    short-segment cap, L / 1.02 ms = 49.0 mm/s."""
+    chain = [f"G1 X{0.05 * k:.2f} F3000" for k in range(1, 201)]
+    L = 0.05
+    expected = math.sqrt(A / 2 * L + 2 * 2 * A * L) if depth == 2 else L / (1.02 * T)
+    segments = queued(tmp_path, ["G64 P0.01", *chain], optimization_depth=depth)
+    assert [tc.finalvel for tc in segments[50:150]] == pytest.approx([expected] * 100, rel=1e-12)
+    # each segment's first (split) part of a period is trapezoidal, the rest a ramp (tpActivateSegment)
+    middle = speeds(run(tmp_path, ["G64 P0.01", *chain], optimization_depth=depth))[80:120]
+    assert expected - 0.01 < middle.min() and middle.mean() < expected + A * T / 2
 
 
 def test_segments_shorter_than_a_servo_period_are_capped_at_length_over_1_02_periods(tmp_path):
@@ -68,15 +96,7 @@ def test_an_exact_stop_corner_stops_and_each_line_is_a_trapezoid(tmp_path, mode,
 
 def test_a_g64_p_corner_gets_the_blend_arc_of_blendmath(tmp_path):
     P, theta = 0.01, math.pi / 4  # a 90 degree corner: half the interior angle
-    config = LinuxCNCConfig.from_profile(STAGE)
-    queue = _Queue(config)
-    start = np.zeros(10)
-    for index, block in enumerate(blocks(tmp_path, ["G64 P0.01", "G1 X10 F6000", "G1 X10 Y10"])):
-        if block.points_mm is not None and block.kind.name == "MOVE":
-            for tc in _segment(block, index, start, ("parabolic", P), config):
-                queue.add(tc)
-                start = tc.end
-    first, arc, second = queue.items
+    first, arc, second = queued(tmp_path, ["G64 P0.01", "G1 X10 F6000", "G1 X10 Y10"])
     d = P * math.cos(theta) / (1 - math.sin(theta))
     radius = math.tan(theta) * d  # the parabolic-equivalent radius is no larger here
     v_plan = math.sqrt(math.sqrt(0.75) * A * radius)
