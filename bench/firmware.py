@@ -11,6 +11,9 @@ Marlin's buffer ran dry.
 FLAVOR linuxcnc: the program compensated as a LinuxCNC program (its G64 P<tolerance> Q0) and both
 run through the model of LinuxCNC 2.9's trajectory planner (fbspost/linuxcnc_tp.py); also how far
 the model's motion of the output departs from its blocks run exactly as written (each at its F).
+Where LinuxCNC is installed (Debian's linuxcnc-uspace), both are also run by LinuxCNC itself:
+headless, its own task, interpreter and TP on a sim config with the profile's limits
+(bench/linuxcnc_sim: the joints' commands every servo period, from the program's first point).
 
 For the program's first LINES lines (all by default) it runs (a) the original and (b) fbspost's
 output (``python -m fbspost.cli compensate``) through Klipper's own planner (klippy's
@@ -27,7 +30,9 @@ from __future__ import annotations
 
 import itertools
 import math
+import os
 import re
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -94,6 +99,38 @@ def linuxcnc_run(path: Path, profile) -> Run:
     return Run(run.duration_s, samples, *printed_path(starts, ends), notes)
 
 
+def linuxcnc_own_run(path: Path, profile) -> Run | None:
+    """``path`` run by LinuxCNC itself (None where it is not installed): the joint commands every
+    servo period (1 ms), from the program's first point, to the 10 kHz grid linearly."""
+    if not shutil.which("linuxcnc"):
+        return None
+    blocks = list(read_gcode(path, "linuxcnc", profile.home_mm))
+    first = next(b.position_mm[:2] for b in blocks if not np.isnan(b.position_mm[:2]).any())
+    limits = {f"{kind}{a}": getattr(profile.axes[a], f"max_{name}") if a in profile.axes else 1000.0
+              for a in "XYZ" for kind, name in (("v", "velocity_mm_s"), ("a", "acceleration_mm_s2"))}
+    sim = ROOT / "bench" / "linuxcnc_sim"
+    with tempfile.TemporaryDirectory() as tmp:
+        ini = Path(tmp) / "sim.ini"
+        ini.write_text((sim / "sim.ini.in").read_text().format(here=sim, tmp=tmp, **limits))
+        (Path(tmp) / "sim.var").touch()
+        (Path(tmp) / "tool.tbl").touch()
+        env = {**os.environ, "TP_PROGRAM": str(path), "TP_OUT": f"{tmp}/joints.txt",
+               "TP_START": f"{first[0]!r} {first[1]!r}", "RTAPI_FIFO_PATH": f"{tmp}/.rtapi_fifo"}
+        if os.geteuid() == 0:  # rtapi_app refuses root without a user to drop to
+            env["RTAPI_UID"] = "65534"
+            os.chmod(tmp, 0o777)
+        subprocess.run(["linuxcnc", str(ini)], env=env, cwd=tmp, capture_output=True, timeout=900)
+        joints = np.loadtxt(f"{tmp}/joints.txt", ndmin=2)[:, :3]
+    moving = np.flatnonzero(np.any(np.diff(joints, axis=0) != 0.0, axis=1))
+    joints = joints[moving[0]:moving[-1] + 2]
+    period_s = 1e-3
+    t = np.arange(math.floor((len(joints) - 1) * period_s * profile.sample_rate_hz) + 1) / profile.sample_rate_hz
+    samples = np.column_stack([np.interp(t, np.arange(len(joints)) * period_s, joints[:, i]) for i in range(3)]
+                              + [np.zeros(len(t))])
+    _, starts, ends = as_written(blocks, profile.sample_rate_hz)
+    return Run((len(joints) - 1) * period_s, samples, *printed_path(starts, ends), "LinuxCNC's own planner")
+
+
 def as_written(blocks, sample_rate_hz: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(X Y Z E on the sample grid, move starts, move ends) of ``blocks`` run exactly as written:
     every piece at its F, at rest for a dwell; a move that stops the machine (from an unknown
@@ -154,6 +191,9 @@ def bench(program: str, machine: str, lines: int | None, output_flavor: str = "k
             output = compensated(original, machine, "linuxcnc", profile.firmware.max_line_rate_hz)
             table(program, lines, flavor, machine, "through the model of LinuxCNC's trajectory planner", profile,
                   linuxcnc_run(original, profile), linuxcnc_run(output, profile))
+            own = linuxcnc_own_run(original, profile), linuxcnc_own_run(output, profile)
+            if own[0] is not None:
+                table(program, lines, flavor, machine, "run by LinuxCNC itself (its own task and TP)", profile, *own)
         return
     with tempfile.TemporaryDirectory() as tmp:
         original = excerpt(program, lines, Path(tmp))

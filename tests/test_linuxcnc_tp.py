@@ -11,6 +11,7 @@ segment slows under 2 sqrt(a/2 P / cos(t)), and passes the corner at sqrt(2) v0^
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -138,3 +139,18 @@ def test_a_tangent_junction_keeps_the_speed_and_replan_uses_the_model(tmp_path):
     motion = replan(blocks(tmp_path, lines), STAGE, "linuxcnc")
     assert motion.duration_s == done.duration_s
     assert motion.positions_mm[-1, :2] == pytest.approx([20.0, 0.0001], abs=1e-12)
+
+
+def test_the_model_against_linuxcnc_s_own_trajectory_planner(tmp_path):
+    """LinuxCNC 2.9's own TP ran the G64 P0.01 corner (tests/data/linuxcnc-corner-joints.txt, its
+    joint commands every servo period). Its joints get the TP's positions through the motion
+    controller's interpolation: (1, 5, 5, 1) / 12 of consecutive TP positions (the average of two
+    consecutive B-spline points of cubic.c), 2 periods later, as measured on that output; the
+    model's positions so filtered are within 3 um of LinuxCNC's (printed to 1 nm) all the way."""
+    real = np.loadtxt(Path(__file__).parent / "data" / "linuxcnc-corner-joints.txt")
+    model = run(tmp_path, ["G64 P0.01", "G1 X10 F6000", "G1 X10 Y10"]).cycle_positions_mm[:, :2]
+    # the record starts 3 periods before the motion, the joints trail the TP by 2 more
+    model = np.vstack([np.zeros((5, 2)), model, np.repeat(model[-1:], 8, axis=0)])
+    joints = (model[:-3] + 5 * model[1:-2] + 5 * model[2:-1] + model[3:]) / 12
+    assert np.abs(real - joints[:len(real)]).max() < 0.003
+    assert np.abs(joints[len(real):] - [10.0, 10.0]).max() < 1e-12  # and at rest when LinuxCNC is
