@@ -12,6 +12,12 @@ The original's path is its commanded one (not the firmware's whole steps); on Re
 the output is also run with motors that take no whole steps (the cost of the steps). The
 shapers compared on RepRapFirmware are ideal ones of its M593 types (MZV, ZVD, EI2, EI3:
 Klipper's impulses convolved with the whole motion), not RRF's own shaping of each move.
+FLAVOR linuxcnc: the program compensated as a LinuxCNC program (its G64 P<tolerance> Q0) and both
+run through the model of LinuxCNC 2.9's trajectory planner (fbspost/linuxcnc_tp.py); also how far
+the model's motion of the output departs from its blocks run exactly as written (each at its F).
+Where LinuxCNC is installed (Debian's linuxcnc-uspace), both are also run by LinuxCNC itself:
+headless, its own task, interpreter and TP on a sim config with the profile's limits
+(bench/linuxcnc_sim: the joints' commands every servo period, from the program's first point).
 
 For the program's first LINES lines (all by default) it runs (a) the original and (b) fbspost's
 output (``python -m fbspost.cli compensate``) through Klipper's own planner (klippy's
@@ -28,7 +34,9 @@ from __future__ import annotations
 
 import itertools
 import math
+import os
 import re
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -40,7 +48,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
 
-from fbspost.gcode import AXES, detect_flavor, read_gcode  # noqa: E402
+from fbspost.gcode import AXES, Kind, detect_flavor, read_gcode  # noqa: E402
+from fbspost.linuxcnc_tp import run_linuxcnc  # noqa: E402
 from fbspost.marlin import MarlinConfig, run_marlin  # noqa: E402
 from fbspost.profile import load_profile  # noqa: E402
 from fbspost.reprap import ReprapConfig, commanded_pieces, run_reprap  # noqa: E402
@@ -87,6 +96,79 @@ def model_run(path: Path, profile, flavor: str, line_rate_hz: float | None, **co
                notes)
 
 
+def linuxcnc_run(path: Path, profile) -> Run:
+    """``path`` through the model of LinuxCNC's trajectory planner; notes: how far its motion is from
+    the blocks run as written."""
+    blocks = list(read_gcode(path, "linuxcnc", profile.home_mm))
+    run = run_linuxcnc(blocks, profile)
+    samples = run.positions_mm(profile.sample_rate_hz)[:, :4]
+    written_s, starts, ends = as_written(blocks, profile.sample_rate_hz)
+    n = min(len(samples), len(written_s))
+    off_um = 1e3 * np.linalg.norm(samples[:n, :3] - written_s[:n, :3], axis=1)
+    notes = (f"{1e3 * (run.duration_s - len(written_s) / profile.sample_rate_hz):+.1f} ms vs its blocks as written; "
+             f"from them {off_um.max():.2f} um at most, {np.sqrt(np.mean(off_um ** 2)):.3f} um RMS")
+    return Run(run.duration_s, samples, *printed_path(starts, ends), notes)
+
+
+def linuxcnc_own_run(path: Path, profile) -> Run | None:
+    """``path`` run by LinuxCNC itself (None where it is not installed): the joint commands every
+    servo period (1 ms), from the program's first point, to the 10 kHz grid linearly."""
+    if not shutil.which("linuxcnc"):
+        return None
+    blocks = list(read_gcode(path, "linuxcnc", profile.home_mm))
+    first = next(b.position_mm[:2] for b in blocks if not np.isnan(b.position_mm[:2]).any())
+    limits = {f"{kind}{a}": getattr(profile.axes[a], f"max_{name}") if a in profile.axes else 1000.0
+              for a in "XYZ" for kind, name in (("v", "velocity_mm_s"), ("a", "acceleration_mm_s2"))}
+    sim = ROOT / "bench" / "linuxcnc_sim"
+    with tempfile.TemporaryDirectory() as tmp:
+        ini = Path(tmp) / "sim.ini"
+        ini.write_text((sim / "sim.ini.in").read_text().format(here=sim, tmp=tmp, **limits))
+        (Path(tmp) / "sim.var").touch()
+        (Path(tmp) / "tool.tbl").touch()
+        env = {**os.environ, "TP_PROGRAM": str(path), "TP_OUT": f"{tmp}/joints.txt",
+               "TP_START": f"{first[0]!r} {first[1]!r}", "RTAPI_FIFO_PATH": f"{tmp}/.rtapi_fifo"}
+        if os.geteuid() == 0:  # rtapi_app refuses root without a user to drop to
+            env["RTAPI_UID"] = "65534"
+            os.chmod(tmp, 0o777)
+        subprocess.run(["linuxcnc", str(ini)], env=env, cwd=tmp, capture_output=True, timeout=900)
+        joints = np.loadtxt(f"{tmp}/joints.txt", ndmin=2)[:, :3]
+    moving = np.flatnonzero(np.any(np.diff(joints, axis=0) != 0.0, axis=1))
+    joints = joints[moving[0]:moving[-1] + 2]
+    period_s = 1e-3
+    t = np.arange(math.floor((len(joints) - 1) * period_s * profile.sample_rate_hz) + 1) / profile.sample_rate_hz
+    samples = np.column_stack([np.interp(t, np.arange(len(joints)) * period_s, joints[:, i]) for i in range(3)]
+                              + [np.zeros(len(t))])
+    _, starts, ends = as_written(blocks, profile.sample_rate_hz)
+    return Run((len(joints) - 1) * period_s, samples, *printed_path(starts, ends), "LinuxCNC's own planner")
+
+
+def as_written(blocks, sample_rate_hz: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(X Y Z E on the sample grid, move starts, move ends) of ``blocks`` run exactly as written:
+    every piece at its F, at rest for a dwell; a move that stops the machine (from an unknown
+    place) takes no time."""
+    times, points, starts, ends = [0.0], [np.zeros(4)], [], []
+    for block in blocks:
+        here = points[-1]
+        if block.kind is Kind.STOP:
+            here = np.where(np.isnan(block.position_mm[:4]), here, block.position_mm[:4])
+            times += [times[-1], times[-1] + block.dwell_s]
+            points += [here, here]
+        elif block.kind is Kind.MOVE and block.points_mm is not None:
+            for point in block.points_mm[:, :4]:
+                point = np.where(np.isnan(point), here, point)
+                times.append(times[-1] + np.linalg.norm(point[:3] - here[:3]) / block.feed_mm_s)
+                points.append(point)
+                starts.append(here)
+                ends.append(point)
+                here = point
+    times, points = np.array(times), np.array(points)
+    t = np.arange(math.floor(times[-1] * sample_rate_hz) + 2) / sample_rate_hz
+    k = np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 2)
+    span = np.maximum(times[k + 1] - times[k], 1e-300)
+    frac = np.clip((t - times[k]) / span, 0.0, 1.0)[:, None]
+    return points[k] + (points[k + 1] - points[k]) * frac, np.array(starts), np.array(ends)
+
+
 def compensated(original: Path, machine: str, flavor: str, line_rate_hz: float | None = None) -> Path:
     """fbspost's output of ``original``, written for ``line_rate_hz`` lines/s (None: no budget)."""
     text = re.sub(r"(?m)^max_line_rate\s*=.*$", "", Path(load_profile(machine).source).read_text())
@@ -118,6 +200,16 @@ def bench(program: str, machine: str, lines: int | None, output_flavor: str = "k
                       profile, model_run(original, profile, output_flavor, budget),
                       model_run(output, profile, output_flavor, budget), shapers,
                       more if output_flavor == "reprap" else [])
+        return
+    if output_flavor == "linuxcnc":
+        with tempfile.TemporaryDirectory() as tmp:
+            original = excerpt(program, lines, Path(tmp))
+            output = compensated(original, machine, "linuxcnc", profile.firmware.max_line_rate_hz)
+            table(program, lines, flavor, machine, "through the model of LinuxCNC's trajectory planner", profile,
+                  linuxcnc_run(original, profile), linuxcnc_run(output, profile))
+            own = linuxcnc_own_run(original, profile), linuxcnc_own_run(output, profile)
+            if own[0] is not None:
+                table(program, lines, flavor, machine, "run by LinuxCNC itself (its own task and TP)", profile, *own)
         return
     with tempfile.TemporaryDirectory() as tmp:
         original = excerpt(program, lines, Path(tmp))

@@ -16,8 +16,9 @@ line's time and the print time, as that firmware plans them.
   limits, M566 jerk per drive and its jerk policy, look-ahead over the moves in the ring when a
   move is prepared, RecalculateMove's short-ramp rule; where the ring runs dry. Not modelled:
   M593 input shaping.
-- LinuxCNC: the planner module's plan (junction deviation); not modelled: its G64 P blending
-  tolerance (its corners are planned as junction-deviation corners).
+- LinuxCNC 2.9: ``linuxcnc_tp.run_linuxcnc``, a model of its trajectory planner (tp.c, tc.c,
+  blendmath.c): the servo period's short-segment cap, G64 P blend arcs, tangent and parabolic
+  blends, G61 / G61.1, the look-ahead, ramps and split cycles.
 """
 from __future__ import annotations
 
@@ -26,6 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .gcode import Block
+from .linuxcnc_tp import run_linuxcnc
 from .marlin import run_marlin
 from .planner import plan_blocks
 from .profile import MachineProfile
@@ -50,5 +52,8 @@ def replan(blocks: list[Block], profile: MachineProfile, flavor: str) -> Firmwar
         run = (run_marlin if flavor == "marlin" else run_reprap)(blocks, profile)
         return FirmwareMotion(flavor, run.positions_mm(profile.sample_rate_hz), run.line_time_s, run.duration_s,
                               run.merged_lines, run.starved)
+    if flavor == "linuxcnc":
+        run = run_linuxcnc(blocks, profile)
+        return FirmwareMotion(flavor, run.positions_mm(profile.sample_rate_hz), run.line_time_s, run.duration_s, [])
     plan = plan_blocks(blocks, profile, firmware="klipper" if flavor == "klipper" else None)
     return FirmwareMotion(flavor, plan.positions_mm, plan.line_time_s, plan.duration_s, [])

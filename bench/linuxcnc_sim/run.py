@@ -1,0 +1,48 @@
+#!/usr/bin/python3
+"""The headless "display" of bench/firmware.py's LinuxCNC runs: moves to $TP_START (X Y) by MDI,
+then records joint.0/1/2.motor-pos-cmd every servo period (halsampler, sim.hal's sampler) to
+$TP_OUT while $TP_PROGRAM runs in auto mode, and stops recording once the machine is at rest."""
+import os
+import subprocess
+import sys
+import time
+
+import linuxcnc
+
+stat, command = linuxcnc.stat(), linuxcnc.command()
+
+
+def wait(done, timeout_s=600.0):
+    end = time.time() + timeout_s
+    while time.time() < end:
+        stat.poll()
+        if done():
+            return True
+        time.sleep(0.01)
+    return False
+
+
+def idle():
+    return stat.interp_state == linuxcnc.INTERP_IDLE and stat.queue == 0 and stat.inpos
+
+
+for state in (linuxcnc.STATE_ESTOP_RESET, linuxcnc.STATE_ON):
+    command.state(state)
+    command.wait_complete()
+command.mode(linuxcnc.MODE_MDI)
+command.wait_complete()
+x, y = os.environ["TP_START"].split()
+command.mdi(f"G21 G90 G0 X{x} Y{y}")
+wait(idle)
+time.sleep(0.1)
+sampler = subprocess.Popen(["halsampler", "-c", "0"], stdout=open(os.environ["TP_OUT"], "w"))
+command.mode(linuxcnc.MODE_AUTO)
+command.wait_complete()
+command.program_open(os.environ["TP_PROGRAM"])
+command.wait_complete()
+command.auto(linuxcnc.AUTO_RUN, 0)
+wait(lambda: not idle(), 10.0)
+finished = wait(idle)
+time.sleep(0.1)
+sampler.terminate()
+print("LinuxCNC run " + ("done" if finished else "timed out"), file=sys.stderr)
