@@ -42,9 +42,10 @@ STEPPED_ACCEL_MM_S2 = 1e6  # Marlin, RepRapFirmware
 MARLIN_JUNCTION_DEVIATION_MM = 0.3
 JERK_MM_S = 1000.0  # Marlin M205 X Y, RepRapFirmware M566 (mm/min there)
 _SHAPED_AXES = "XY"
-# Marlin limits a printing block's acceleration by M201 E / (E per mm) too (planner.cpp
-# LIMIT_ACCEL): about 5000 / 0.033 mm/s^2, whose ramps would slow every block by microseconds
-_M201_AXES = {"marlin": "XYE", "reprap": "XY"}
+# Marlin and RRF limit a printing block's acceleration by M201 E / (E per mm) too (planner.cpp
+# LIMIT_ACCEL; RRF: per drive, E included): about 5000 / 0.033 mm/s^2, whose ramps would slow
+# every block by microseconds
+_M201_AXES = {"marlin": "XYE", "reprap": "XYE"}
 _BLEND = re.compile(rb"[Gg]\s*0*6\s*(?:4(?:\s*[PpQq]\s*[-+]?[\d.]+)*|1(?:\s*\.\s*1)?)(?![\d.])")
 
 
@@ -175,12 +176,11 @@ def _transparent_limits(flavor: str, tolerance: float) -> list[str]:
         return [f"SET_VELOCITY_LIMIT ACCEL={_num(KLIPPER_ACCEL_MM_S2)} ACCEL_TO_DECEL={_num(KLIPPER_ACCEL_MM_S2)} "
                 f"MINIMUM_CRUISE_RATIO=0 SQUARE_CORNER_VELOCITY={_num(KLIPPER_SCV_MM_S)}"]
     accel = _num(STEPPED_ACCEL_MM_S2)
+    stepped = [f"M201 X{accel} Y{accel} E{accel}", f"M204 P{accel} T{accel}"]
     if flavor == "marlin":
-        return [f"M201 X{accel} Y{accel} E{accel}", f"M204 P{accel} T{accel}",
-                f"M205 B0 J{_num(MARLIN_JUNCTION_DEVIATION_MM, 3)} X{_num(JERK_MM_S)} Y{_num(JERK_MM_S)}"]
+        return stepped + [f"M205 B0 J{_num(MARLIN_JUNCTION_DEVIATION_MM, 3)} X{_num(JERK_MM_S)} Y{_num(JERK_MM_S)}"]
     if flavor == "reprap":
-        return [f"M201 X{accel} Y{accel}", f"M204 P{accel} T{accel}",
-                f"M566 X{_num(JERK_MM_S * 60)} Y{_num(JERK_MM_S * 60)}"]
+        return stepped + [f"M566 X{_num(JERK_MM_S * 60)} Y{_num(JERK_MM_S * 60)}"]
     # LinuxCNC: blend within the tolerance, never stop; Q0: no naive-CAM merging of the blocks
     # (Q is P when not given, and merged blocks would lose their speeds)
     return [f"G64 P{_num(tolerance, 6)} Q0"]
@@ -191,7 +191,7 @@ def _program_limits(flavor: str, program: FirmwareSettings) -> list[str]:
     travel = _num(_first(program.travel_acceleration_mm_s2, program.acceleration_mm_s2))
     scv = program.square_corner_velocity_mm_s
     axes = program.axis_max_acceleration_mm_s2
-    # Marlin and RRF: M201 for X and Y (Marlin: and E), as the program or the profile gave them (else they stay raised)
+    # Marlin and RRF: M201 for X, Y and E, as the program or the profile gave them (else they stay raised)
     m201 = " ".join(f"{a}{_num(axes[a])}" for a in _M201_AXES.get(flavor, "") if a in axes)
     lines = [f"M201 {m201}"] if m201 and flavor in ("marlin", "reprap") else []
     if flavor == "klipper":
