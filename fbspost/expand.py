@@ -15,11 +15,17 @@ the machine's INI, rs274 runs in the INI's directory, as LinuxCNC does (relative
 paths, remaps).
 
 G5/G5.1 splines, which rs274 prints without their control points, are run in a copy of the
-program that reports them (``rs274_splines``) and written back as G5/G5.1 in mm.
+program that reports them (``rs274_splines``) and written back as G5/G5.1 in mm. Probes are written
+back as the program's G38 (its code reported the same way, ``rs274_probes``) to rs274's target at
+the program's feed; the next move writes X Y Z; a program whose later motion depends on where a
+probe stops is refused (``rs274_probes``: rs274 run again with every probe's target moved).
+Spindle-synchronized moves (START_SPEED_FEED_SYNC ... STOP_SPEED_FEED_SYNCH: G33, G76) are
+written as G33 with rs274's pitch K in mm (6 printed digits of it: 1e-6 of the unit per revolution).
 
 Refused (``InputError``): what rs274 reports without its data (G5.2 NURBS: ``NURBS_FEED`` gives
-no control points; M66 waits), probing, spindle-synchronized motion, feed per revolution,
-coordinate rotation, U V W, and rs274's own errors (with the line it names; for G6.2, that this
+no control points; M66 waits), probes that later motion depends on, an arc, spline or inverse
+time move right after a probe, synchronized arcs, feed per revolution, coordinate rotation,
+U V W, and rs274's own errors (with the line it names; for G6.2, that this
 install's rs274, LinuxCNC 2.9, does not run it). ``check_remaps``: a machine INI that remaps a
 code fbspost writes itself.
 """

@@ -58,9 +58,12 @@ the first 2000 and last 300 lines. How lines are read:
   unknown: an axis' first move is a STOP, as a move from an unknown XYZ is. (In the printers'
   flavors they stay at 0 and their words are errors.) E, P, Q, L in M62..M68 are the I/O
   command's words.
+- LinuxCNC's G33 (spindle-synchronized, K the distance along the move per revolution) is a
+  STOP, copied as written, lasting its X Y Z length over K S / 60 (S from the last S word, the
+  spindle on after M3/M4 until M5/M19/M2/M30; without it, under G96 or without K, an error).
 - Errors: cutter compensation, rotation, scaling, canned cycles, inverse-time or per-revolution
   feed, parameters and expressions, O-word subroutines and control flow, and in LinuxCNC G7,
-  G33 and the lathe cycles (``NeedsInterpreter``
+  G33.1 and the lathe cycles (``NeedsInterpreter``
   in LinuxCNC programs: ``--expand`` runs them through LinuxCNC's interpreter), unknown motion
   codes, G6.2 in G91, A B C U V W outside LinuxCNC, missing or non-numeric values, arcs without
   a radius or with R shorter than half the chord, feeds <= 0.
