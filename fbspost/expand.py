@@ -73,6 +73,7 @@ _SIMPLE = {  # canonical call -> G-code, {0}, {1} its arguments
     "ENABLE_FEED_OVERRIDE": "M50 P1", "DISABLE_FEED_OVERRIDE": "M50 P0", "ENABLE_SPEED_OVERRIDE": "M51 P1{s0}",
     "DISABLE_SPEED_OVERRIDE": "M51 P0{s0}", "ENABLE_ADAPTIVE_FEED": "M52 P1", "DISABLE_ADAPTIVE_FEED": "M52 P0",
     "ENABLE_FEED_HOLD": "M53 P1", "DISABLE_FEED_HOLD": "M53 P0", "FINISH": "", "PALLET_SHUTTLE": "",
+    "TURN_PROBE_ON": "", "TURN_PROBE_OFF": "",  # around every G38: LinuxCNC's interpreter does it
 }
 _REFUSED = {
     "NURBS_FEED": "G5.2 NURBS (or a G5/G5.1 line without its G code, or in a subroutine file) in a program "
@@ -375,11 +376,6 @@ class _Expander:
         self.feed_written = self.feed * self.scale  # the probe's own F: the output's last F may be another
         yield self.move(args[0], target, f" F{_mm(self.feed_written)}", arc=True)
         self.pos[:3] = [math.nan] * 3
-
-    def on_turn_probe_on(self, args):
-        return ()  # rs274 prints it around every G38, LinuxCNC's interpreter does it
-
-    on_turn_probe_off = on_turn_probe_on
 
     def on_start_speed_feed_sync(self, args):
         if float(args[1]) != 0.0:

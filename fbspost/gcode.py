@@ -427,8 +427,8 @@ class _Words:
 
 class _Commands:
     """The reader's commands that set limits or the position, and the flavors' own commands:
-    Klipper's extended commands and macros, M201/M203/M204/M205/M566 per flavor, G4, G92.
-    Part of ``_Reader``, whose state they change."""
+    Klipper's extended commands and macros, M201/M203/M204/M205/M566 per flavor, G4, G92,
+    LinuxCNC's G33 (timed by the spindle). Part of ``_Reader``, whose state they change."""
 
     def extended(self, n, raw, code) -> Block:
         """Klipper extended commands and macros, RRF meta commands: a name, then NAME=VALUE."""
@@ -549,6 +549,22 @@ class _Commands:
                 off[i] = pos[i] - v
         return tuple(values)
 
+    def synced(self, n, raw, params, start, target, scale) -> Block:
+        """LinuxCNC's G33: a move at K (distance along its path) per spindle revolution. A rest of
+        the compensated motion, copied as written (never compensated): a STOP at its end that
+        lasts its length over K S / 60 (0 from an unknown start; the wait for the spindle's
+        index, up to a revolution, is not counted)."""
+        pitch_mm = self.number(n, "K", params.get("K")) * scale
+        if pitch_mm <= 0.0:
+            raise self.error(n, "G33 needs K > 0 (the distance per spindle revolution)")
+        if not self.spindle_on or self.css or not (self.spindle_rpm or 0.0) > 0.0:
+            raise self.error(n, "G33 needs the spindle turning at a known speed (M3/M4 and S, not G96)")
+        self.pos = target
+        # along X Y Z (unnamed axes hold the very same floats, NaN included; NaN: an unknown start)
+        length_mm = math.hypot(*(t - s for s, t in zip(start[:3], target[:3], strict=True) if s is not t))
+        dwell_s = length_mm / (pitch_mm * self.spindle_rpm / 60.0) if length_mm == length_mm else 0.0
+        return Block(n, raw, Kind.STOP, self.modal, np.array(target), dwell_s=dwell_s)
+
 
 class _Motion:
     """The reader's motion: G0/G1 (``fast_move`` for the common line), G2/G3 arcs and G5
@@ -668,22 +684,6 @@ class _Motion:
         elif points is None:
             return Block(n, raw, Kind.PASS, self.modal, np.array(target))
         return Block(n, raw, Kind.MOVE, self.modal, np.array(target), points, feed)
-
-    def synced(self, n, raw, params, start, target, scale) -> Block:
-        """LinuxCNC's G33: a move at K (distance along its path) per spindle revolution. A rest of
-        the compensated motion, copied as written (never compensated): a STOP at its end that
-        lasts its length over K S / 60 (0 from an unknown start; the wait for the spindle's
-        index, up to a revolution, is not counted)."""
-        pitch_mm = self.number(n, "K", params.get("K")) * scale
-        if pitch_mm <= 0.0:
-            raise self.error(n, "G33 needs K > 0 (the distance per spindle revolution)")
-        if not self.spindle_on or self.css or not (self.spindle_rpm or 0.0) > 0.0:
-            raise self.error(n, "G33 needs the spindle turning at a known speed (M3/M4 and S, not G96)")
-        self.pos = target
-        # along X Y Z (unnamed axes hold the very same floats, NaN included; NaN: an unknown start)
-        length_mm = math.hypot(*(t - s for s, t in zip(start[:3], target[:3], strict=True) if s is not t))
-        dwell_s = length_mm / (pitch_mm * self.spindle_rpm / 60.0) if length_mm == length_mm else 0.0
-        return Block(n, raw, Kind.STOP, self.modal, np.array(target), dwell_s=dwell_s)
 
     def arc(self, n, motion, params, start, target, scale, known):
         """The pieces of a G2/G3 arc (None when nothing moves); checks the words even if unknown."""
