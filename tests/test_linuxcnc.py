@@ -410,21 +410,22 @@ def test_g33_is_a_copied_rest_at_the_spindles_speed(tmp_path):
             moves(tmp_path / "t.ngc", text)
 
 
-PROBING = """G21 G90 F600
+PROBING = """G21 G90 F3000
 #<safe> = 5
 (PROBEOPEN results.txt)
 G0 X0 Y0 Z#<safe>
 G38.2 Z-3 F50
 G0 Z#<safe>
-G1 X10 Y5
+G1 X10 Y5 F3000
 G38.3 X20 F40
 G0 X10 Y5 Z#<safe>
-G1 X0 Y0 F600
+G1 X0 Y0 F3000
 (PROBECLOSE)
 M2
 """
 
 
+@pytest.mark.slow
 @needs_rs274
 def test_probing_program_compensates_and_follows_rs274(tmp_path):
     """The probes written back as the program's (code, target, feed: by hand), the moves after
