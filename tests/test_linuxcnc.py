@@ -486,10 +486,9 @@ def test_probing_program_calling_subroutine_files_is_refused(tmp_path):
 
 @needs_rs274
 def test_g76_is_written_back_as_g33_with_rs274s_pitch(tmp_path):
-    """LinuxCNC's G76 (pitch P0.05 in, 29.5 degree compound: rs274 expands it) comes back as
-    G33 moves, one per synchronized feed of rs274, with K in mm: 0.05 in = 1.27 mm, and the
-    last pass's 45 degree exit... here none (E0), so all at K1.27; rs274 on the output gives
-    the same synchronized calls and path."""
+    """LinuxCNC's G76 (pitch P0.05 in, 29.5 degree compound, no taper: rs274 expands it) comes
+    back as G33 moves, one per synchronized feed of rs274, each with K 0.05 in = 1.27 mm; rs274
+    on the output gives the same synchronized calls and path, and catches a pitch 0.1 um off."""
     program, expanded = tmp_path / "g76.ngc", tmp_path / "x.ngc"
     program.write_text("G20 G18 G90\nS500 M3\nG0 X0.6 Z0.5\nG76 P0.05 Z-0.5 I-0.075 J0.008 R1.0 K0.045 Q29.5 L0 "
                        "H3\nG0 X1\nM5\nM2\n")
