@@ -10,7 +10,8 @@ directory, the INI's tool table), for its subroutine paths and remapped codes. P
 runs without any motion (remaps that end the program without LinuxCNC's HAL) are counted apart.
 For every compensated program: the program fbspost compensated, re-read by fbspost with
 compensation off, follows rs274's canonical path within the tolerance (1 um, plus rs274's printed
-rounding), and rs274 run on fbspost's output gives the same non-motion commands, in order.
+rounding), and rs274 run on fbspost's output gives the same non-motion commands (G33's pitch
+among them), in order, and the same probe targets.
 
     python bench/linuxcnc.py [--limit N] [-v]
 """

@@ -15,16 +15,23 @@ the machine's INI, rs274 runs in the INI's directory, as LinuxCNC does (relative
 paths, remaps).
 
 G5/G5.1 splines, which rs274 prints without their control points, are run in a copy of the
-program that reports them (``rs274_splines``) and written back as G5/G5.1 in mm.
+program that reports them (``rs274_splines``) and written back as G5/G5.1 in mm. Probes are written
+back as the program's G38 (its code reported the same way, ``rs274_probes``) to rs274's target at
+the program's feed; the next move writes X Y Z; a program whose later motion depends on where a
+probe stops is refused (``rs274_probes``: rs274 run again with every probe's target moved).
+Spindle-synchronized moves (START_SPEED_FEED_SYNC ... STOP_SPEED_FEED_SYNCH: G33, G76) are
+written as G33 with rs274's pitch K in mm (6 printed digits of it: 1e-6 of the unit per revolution).
 
 Refused (``InputError``): what rs274 reports without its data (G5.2 NURBS: ``NURBS_FEED`` gives
-no control points; M66 waits), probing, spindle-synchronized motion, feed per revolution,
-coordinate rotation, U V W, and rs274's own errors (with the line it names; for G6.2, that this
+no control points; M66 waits), probes that later motion depends on, an arc, spline or inverse
+time move right after a probe, synchronized arcs, feed per revolution, coordinate rotation,
+U V W, and rs274's own errors (with the line it names; for G6.2, that this
 install's rs274, LinuxCNC 2.9, does not run it). ``check_remaps``: a machine INI that remaps a
 code fbspost writes itself.
 """
 from __future__ import annotations
 
+import functools
 import math
 import os
 import re
@@ -34,6 +41,7 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
+from .rs274_probes import DELTA, check_probes, check_static, probe_calls, probe_lines
 from .rs274_splines import instrumented, spline_calls
 from .trajectory import InputError
 
@@ -65,12 +73,11 @@ _SIMPLE = {  # canonical call -> G-code, {0}, {1} its arguments
     "ENABLE_FEED_OVERRIDE": "M50 P1", "DISABLE_FEED_OVERRIDE": "M50 P0", "ENABLE_SPEED_OVERRIDE": "M51 P1{s0}",
     "DISABLE_SPEED_OVERRIDE": "M51 P0{s0}", "ENABLE_ADAPTIVE_FEED": "M52 P1", "DISABLE_ADAPTIVE_FEED": "M52 P0",
     "ENABLE_FEED_HOLD": "M53 P1", "DISABLE_FEED_HOLD": "M53 P0", "FINISH": "", "PALLET_SHUTTLE": "",
+    "TURN_PROBE_ON": "", "TURN_PROBE_OFF": "",  # around every G38: LinuxCNC's interpreter does it
 }
 _REFUSED = {
     "NURBS_FEED": "G5.2 NURBS (or a G5/G5.1 line without its G code, or in a subroutine file) in a program "
                   "that needs LinuxCNC's interpreter (rs274 does not print their control points)",
-    "STRAIGHT_PROBE": "probing (G38)", "TURN_PROBE_ON": "probing (G38)",
-    "START_SPEED_FEED_SYNC": "spindle-synchronized motion (G33, G76)",
 }
 
 
@@ -96,9 +103,11 @@ def _canonical_code(code: str) -> str:
 
 
 def canonical_calls(program: str | Path, tool_table: str | Path | None = None, ini: str | Path | None = None,
-                    timeout_s: float | None = None) -> list[tuple[str, list[str]]]:
-    """rs274's canonical calls for ``program``: (name, arguments as text), in order. InputError
-    when rs274 is missing or reports an error (naming the program's line it shows)."""
+                    timeout_s: float | None = None, probe_delta: float = 0.0) -> list[tuple[str, list[str]]]:
+    """rs274's canonical calls for ``program``: (name, arguments as text), in order, with G5/G5.1
+    as SPLINE_FEED and probes' codes (``rs274_probes``; every probe's target moved by
+    ``probe_delta``). InputError when rs274 is missing or reports an error (naming the
+    program's line it shows)."""
     rs274 = shutil.which("rs274")
     if rs274 is None:
         raise InputError(program, None, INSTALL_HINT)
@@ -106,7 +115,9 @@ def canonical_calls(program: str | Path, tool_table: str | Path | None = None, i
         table = Path(tool_table).resolve() if tool_table else Path(work, "empty.tbl")
         table.touch(exist_ok=True)
         out = Path(work, "canon.txt")
-        run = instrumented(program, Path(work, "program").mkdir() or Path(work, "program")) or program
+        folder = Path(work, "program")
+        folder.mkdir()
+        run = instrumented(program, folder, functools.partial(probe_lines, delta=probe_delta)) or program
         args = [rs274, "-t", str(table), "-v", str(Path(work, "rs274ngc.var")), "-g", str(Path(run).resolve()),
                 str(out)]
         if ini:  # LinuxCNC runs in the INI's directory: its relative paths (SUBROUTINE_PATH, ...) are from there
@@ -126,7 +137,7 @@ def canonical_calls(program: str | Path, tool_table: str | Path | None = None, i
                     calls.append((m.group(1), _arguments(m.group(2))))
     if proc.returncode != 0:
         raise _rs274_error(program, (proc.stdout + proc.stderr).replace("executing", "").strip().splitlines())
-    return spline_calls(calls)
+    return probe_calls(spline_calls(calls))
 
 
 def _arguments(text: str) -> list[str]:
@@ -159,6 +170,9 @@ def expand(program: str | Path, output: str | Path, reason: str, tool_table: str
             if _M66.search(text):
                 raise InputError(program, line_no, "M66 (wait for an input) with --expand: rs274 does not report it")
     calls = canonical_calls(program, tool_table, ini, timeout_s)
+    if any(name == "STRAIGHT_PROBE" for name, _ in calls):
+        check_static(program, ini)
+        check_probes(program, calls, canonical_calls(program, tool_table, ini, timeout_s, probe_delta=DELTA))
     header = [f"; fbspost: expanded by LinuxCNC's interpreter rs274 from {Path(program).name}: {reason}",
               "; fbspost: in mm, absolute; the program's G92 and tool length offsets added into the coordinates",
               "G21 G90 G91.1 G17 G94 G40 G49 G80 G54 G92.1"]
@@ -231,6 +245,7 @@ class _Expander:
         self.fresh = True  # the controller's position is not known to the output's reader: write XYZ
         self.mode = None  # CANON_CONTINUOUS tolerance, waiting for its naive-CAM tolerance
         self.last_pq = None  # P Q (mm) of a G5 just before: a G5 without I J starts with -P -Q
+        self.pitch = None  # mm per spindle revolution of the synchronized moves (G33), None: not synchronized
 
     def lines(self, calls) -> Iterator[str]:
         for name, args in calls:
@@ -345,11 +360,35 @@ class _Expander:
 
     def on_straight_feed(self, args):
         target = self.target(args)
+        if self.pitch is not None:  # spindle-synchronized (G33, G76): its pitch, never compensated
+            yield self.move("G33", target, f" K{_mm(self.pitch)}")
+            return
         # LinuxCNC's feed is along XYZ, along A B C for a move of them alone
         length = math.dist(self.pos[:3], target[:3]) or math.dist(self.pos[3:], target[3:])
         yield self.move("G1", target, self.feed_word(length))
 
+    def on_straight_probe(self, args):
+        """A probe (``rs274_probes``): the program's G38 to its target at its feed; where it stops is
+        unknown (X Y Z NaN: the next move writes them all, an arc from there is refused)."""
+        if self.inverse_time:
+            raise InputError(self.program, None, "probing (G38) in inverse time feed (G93): not supported")
+        target = self.target(args[2:])
+        self.feed_written = self.feed * self.scale  # the probe's own F: the output's last F may be another
+        yield self.move(args[0], target, f" F{_mm(self.feed_written)}", arc=True)
+        self.pos[:3] = [math.nan] * 3
+
+    def on_start_speed_feed_sync(self, args):
+        if float(args[1]) != 0.0:
+            raise InputError(self.program, None, "feed per revolution (G95) is not supported by --expand")
+        self.pitch = float(args[0]) * self.scale
+        return ()
+
+    def on_stop_speed_feed_synch(self, args):
+        self.pitch = None
+        return ()
+
     def on_arc_feed(self, args):
+        self.from_known("an arc")
         first, second, axis, _ = _PLANES[self.plane]
         values = [float(a) for a in args]
         canon = [math.nan] * 6
@@ -372,6 +411,7 @@ class _Expander:
 
     def on_spline_feed(self, args):
         """A G5/G5.1 as rs274 evaluated it (``rs274_splines``): the same spline, in mm, X Y only."""
+        self.from_known("a G5/G5.1 spline")
         if self.plane != "CANON_PLANE_XY" or self.inverse_time:
             raise InputError(self.program, None, "G5/G5.1 outside G17 or in inverse time (G93): not supported "
                                                  "by --expand")
@@ -392,6 +432,15 @@ class _Expander:
         self.pos = target
         yield f"{code} {words}{self.feed_word(None)}"
 
+    def from_known(self, what: str) -> None:
+        """InputError for ``what`` from a probe's unknown end (its path is from where the tool
+        is) or synchronized with the spindle (only straight G33 moves are)."""
+        if any(math.isnan(p) for p in self.pos[:3]):
+            raise InputError(self.program, None, f"{what} right after a probe (G38), from where it stopped: not "
+                                                 "supported by --expand")
+        if self.pitch is not None:
+            raise InputError(self.program, None, f"{what} synchronized with the spindle: not supported by --expand")
+
     def target(self, args) -> list[float]:
         if any(float(a) != 0.0 for a in args[6:9]):
             raise InputError(self.program, None, "U V W axes are not supported by --expand")
@@ -407,6 +456,9 @@ class _Expander:
         if self.feed is None or self.feed <= 0.0:
             raise InputError(self.program, None, "a feed move without a feed rate")
         inverse = self.inverse_time and length_mm is not None
+        if inverse and math.isnan(length_mm):
+            raise InputError(self.program, None, "an inverse time (G93) move right after a probe (G38), from where it "
+                                                 "stopped: not supported by --expand")
         feed = length_mm * self.feed if inverse else self.feed * self.scale
         if feed == self.feed_written and not inverse:
             return ""

@@ -58,9 +58,12 @@ the first 2000 and last 300 lines. How lines are read:
   unknown: an axis' first move is a STOP, as a move from an unknown XYZ is. (In the printers'
   flavors they stay at 0 and their words are errors.) E, P, Q, L in M62..M68 are the I/O
   command's words.
+- LinuxCNC's G33 (spindle-synchronized, K the distance along the move per revolution) is a
+  STOP, copied as written, lasting its X Y Z length over K S / 60 (S from the last S word, the
+  spindle on after M3/M4 until M5/M19/M2/M30; without it, under G96 or without K, an error).
 - Errors: cutter compensation, rotation, scaling, canned cycles, inverse-time or per-revolution
   feed, parameters and expressions, O-word subroutines and control flow, and in LinuxCNC G7,
-  G33 and the lathe cycles (``NeedsInterpreter``
+  G33.1 and the lathe cycles (``NeedsInterpreter``
   in LinuxCNC programs: ``--expand`` runs them through LinuxCNC's interpreter), unknown motion
   codes, G6.2 in G91, A B C U V W outside LinuxCNC, missing or non-numeric values, arcs without
   a radius or with R shorter than half the chord, feeds <= 0.
@@ -207,7 +210,7 @@ _UNSUPPORTED_G = {
 }
 _LINUXCNC_PASS_G = {40.0, 49.0, 61.0, 61.1, 64.0, 80.0, 94.0}
 _LINUXCNC_INTERPRETED_G = {  # path-changing LinuxCNC codes that only its interpreter runs (--expand)
-    7.0: "lathe diameter mode (G7)", 33.0: "spindle-synchronized motion (G33)", 33.1: "rigid tapping (G33.1)",
+    7.0: "lathe diameter mode (G7)", 33.1: "rigid tapping (G33.1)",
     70.0: "lathe cycles (G70)", 71.0: "lathe cycles (G71)", 72.0: "lathe cycles (G72)",
     74.0: "canned cycles (G74)", 71.1: "lathe cycles (G71.1)", 71.2: "lathe cycles (G71.2)",
     72.1: "lathe cycles (G72.1)", 72.2: "lathe cycles (G72.2)",
@@ -424,8 +427,8 @@ class _Words:
 
 class _Commands:
     """The reader's commands that set limits or the position, and the flavors' own commands:
-    Klipper's extended commands and macros, M201/M203/M204/M205/M566 per flavor, G4, G92.
-    Part of ``_Reader``, whose state they change."""
+    Klipper's extended commands and macros, M201/M203/M204/M205/M566 per flavor, G4, G92,
+    LinuxCNC's G33 (timed by the spindle). Part of ``_Reader``, whose state they change."""
 
     def extended(self, n, raw, code) -> Block:
         """Klipper extended commands and macros, RRF meta commands: a name, then NAME=VALUE."""
@@ -546,6 +549,22 @@ class _Commands:
                 off[i] = pos[i] - v
         return tuple(values)
 
+    def synced(self, n, raw, params, start, target, scale) -> Block:
+        """LinuxCNC's G33: a move at K (distance along its path) per spindle revolution. A rest of
+        the compensated motion, copied as written (never compensated): a STOP at its end that
+        lasts its length over K S / 60 (0 from an unknown start; the wait for the spindle's
+        index, up to a revolution, is not counted)."""
+        pitch_mm = self.number(n, "K", params.get("K")) * scale
+        if pitch_mm <= 0.0:
+            raise self.error(n, "G33 needs K > 0 (the distance per spindle revolution)")
+        if not self.spindle_on or self.css or not (self.spindle_rpm or 0.0) > 0.0:
+            raise self.error(n, "G33 needs the spindle turning at a known speed (M3/M4 and S, not G96)")
+        self.pos = target
+        # along X Y Z (unnamed axes hold the very same floats, NaN included; NaN: an unknown start)
+        length_mm = math.hypot(*(t - s for s, t in zip(start[:3], target[:3], strict=True) if s is not t))
+        dwell_s = length_mm / (pitch_mm * self.spindle_rpm / 60.0) if length_mm == length_mm else 0.0
+        return Block(n, raw, Kind.STOP, self.modal, np.array(target), dwell_s=dwell_s)
+
 
 class _Motion:
     """The reader's motion: G0/G1 (``fast_move`` for the common line), G2/G3 arcs and G5
@@ -636,6 +655,8 @@ class _Motion:
         else:
             feed = self.feed
 
+        if motion == 33:
+            return self.synced(n, raw, params, start, target, scale)
         if motion >= 2:
             if not named and motion == 5:
                 raise self.error(n, "G5 needs an end point")
@@ -904,6 +925,9 @@ class _Reader(_Words, _Commands, _Motion, _Splines):
         self.tool_length = False  # G43 active (LinuxCNC)
         self.last_bezier_pq = None  # (P, Q) of the previous G5, mm
         self.spline = None  # an open G5.2 or G6.2 NURBS: its lines are held until its end
+        self.spindle_rpm = None  # LinuxCNC's S (rev/min; under G96 a surface speed: css)
+        self.spindle_on = False  # M3/M4 (until M5, M19, M2/M30)
+        self.css = False  # G96 constant surface speed
 
     def e_absolute(self) -> bool:
         if self.flavor == "klipper":  # Klipper: E is relative under G91 or M83
@@ -939,6 +963,8 @@ class _Reader(_Words, _Commands, _Motion, _Splines):
                 if a in params:
                     self.number(n, a, params[a])
 
+        if self.cnc and "S" in params:
+            self.spindle_rpm = self.number(n, "S", params["S"])
         # feed
         f = params.get("F")
         if f is not None and (self.cnc or fx.motion is not None or not (gcodes or mcodes or tool is not None)):
@@ -976,6 +1002,10 @@ class _Reader(_Words, _Commands, _Motion, _Splines):
                 fx.modal_changed = True
             elif g == 90.1 or g == 91.1:
                 self.abs_ijk = g == 90.1
+            elif self.cnc and g == 33.0:
+                if fx.motion is not None:
+                    raise self.error(n, "two motion commands on one line")
+                fx.motion = 33
             elif g in _UNSUPPORTED_G or (self.cnc and g in _LINUXCNC_INTERPRETED_G):
                 if self.cnc:
                     what = _UNSUPPORTED_G.get(g) or _LINUXCNC_INTERPRETED_G[g]
@@ -998,11 +1028,15 @@ class _Reader(_Words, _Commands, _Motion, _Splines):
                     self.forget((2,))
                     fx.kind = Kind.STOP
             else:
+                if self.cnc and (g == 96.0 or g == 97.0):
+                    self.css = g == 96.0
                 others.append(g)
         return others
 
     def _mcodes(self, n, mcodes, params, junk, scale, fx: _Effects) -> None:
         for m in mcodes:
+            if self.cnc and m in (2.0, 3.0, 4.0, 5.0, 19.0, 30.0):  # the spindle, for G33's speed
+                self.spindle_on = m == 3.0 or m == 4.0
             if m == 82.0 or m == 83.0:
                 self.abs_e = m == 82.0
                 fx.modal_changed = True
@@ -1102,7 +1136,7 @@ class _Reader(_Words, _Commands, _Motion, _Splines):
                 block.kind = Kind.STOP
                 block.points_mm = None
                 block.feed_mm_s = None
-            block.dwell_s = fx.dwell
+            block.dwell_s += fx.dwell
             block.limits = fx.limits
             return block
 

@@ -14,6 +14,7 @@ or a line without its G code) is left as it is.
 from __future__ import annotations
 
 import re
+from collections.abc import Callable
 from pathlib import Path
 
 from .trajectory import InputError
@@ -75,15 +76,22 @@ def _words(code: str) -> dict[str, str]:
     return words
 
 
-def instrumented(program: str | Path, folder: str | Path) -> Path | None:
-    """A copy of ``program`` in ``folder`` that reports its G5/G5.1 lines (None: it has none).
-    InputError when such a line cannot be read."""
+def instrumented(program: str | Path, folder: str | Path,
+                 other: Callable[[str], list[str] | None] | None = None) -> Path | None:
+    """A copy of ``program`` in ``folder`` that reports its G5/G5.1 lines and replaces the lines
+    ``other`` gives lines for (None: it has no such lines). InputError when such a line cannot
+    be read."""
     lines = Path(program).read_text(encoding="latin-1").split("\n")  # latin-1: every byte kept as it is
     out, found = [], False
     for line_no, text in enumerate(lines, 1):
         m = _SPLINE_LINE.search(_code(text))
         if m is None:
-            out.append(text)
+            try:
+                replaced = other(text) if other else None
+            except (ValueError, IndexError) as exc:
+                raise InputError(program, line_no, f"cannot read the words of this line for rs274: {exc}") from None
+            out.extend([text] if replaced is None else replaced)
+            found |= replaced is not None
             continue
         found = True
         try:

@@ -7,8 +7,9 @@ radius and its axis' travel, or a G5/G5.1 spline as rs274 evaluates it, ``rs274_
 Bezier curve in Bernstein form), moving forward through them, and every canonical move's end is
 among the reader's points, in order.
 ``command_problems``: rs274 run on fbspost's output gives the same non-motion canonical calls
-(spindle, coolant, tools, dwells, I/O, messages, stops, program end), in order, as on the original,
-besides the dwells fbspost adds (the unused end of a run's settle margin).
+(spindle, coolant, tools, dwells, I/O, messages, stops, program end, probe on/off, spindle
+synchronization with its pitch), in order, as on the original, besides the dwells fbspost adds
+(the unused end of a run's settle margin), and the same probes' targets.
 The canonical geometry here is evaluated on its own (not with fbspost.expand's code).
 """
 from __future__ import annotations
@@ -24,12 +25,13 @@ from fbspost.gcode import AXES, Kind, read_gcode
 _PLANE_AXES = {"CANON_PLANE_XY": (0, 1, 2), "CANON_PLANE_YZ": (1, 2, 0), "CANON_PLANE_XZ": (2, 0, 1)}
 
 
-def canonical_moves(calls, with_tool: bool) -> tuple[list[tuple], float]:
+def canonical_moves(calls, with_tool: bool) -> tuple[list[tuple], float, list[np.ndarray]]:
     """rs274's moves as (start, end, arc) in mm (degrees), X Y Z A B C, with the G92 (and tool
     length) offsets added; arc = (centre, first, second, axis, turns) or None. Also the largest
-    unit (mm) seen."""
+    unit (mm) seen and the probes' targets (a probe ends where it stops: the next move's start
+    is not compared)."""
     scale, unit, g92, tool = 1.0, 1.0, np.zeros(6), np.zeros(6)
-    plane, pos, moves, last_pq = "CANON_PLANE_XY", np.zeros(6), [], None
+    plane, pos, moves, last_pq, probes = "CANON_PLANE_XY", np.zeros(6), [], None, []
 
     def values(args):  # X Y Z in the program's unit, A B C in degrees
         return np.array([float(a) for a in args[:6]] + [0.0] * (6 - len(args[:6]))) * ([scale] * 3 + [1.0] * 3)
@@ -46,6 +48,9 @@ def canonical_moves(calls, with_tool: bool) -> tuple[list[tuple], float]:
             pos = None  # a new frame: the next move's start is not compared
         elif name == "SELECT_PLANE":
             plane = args[0]
+        elif name == "STRAIGHT_PROBE":  # (code, axes, x, y, z, ...): rs274_probes
+            probes.append(values(args[2:]) + g92 + tool)
+            pos = None
         elif name in ("STRAIGHT_TRAVERSE", "STRAIGHT_FEED"):
             end = values(args) + g92 + tool
             moves.append((pos, end, None))
@@ -70,7 +75,7 @@ def canonical_moves(calls, with_tool: bool) -> tuple[list[tuple], float]:
             end, centre = end * ([scale] * 3 + [1.0] * 3) + g92 + tool, centre * scale + g92 + tool
             moves.append((pos, end, (centre, a, b, c, int(v[4]))))
             pos = end
-    return moves, unit
+    return moves, unit, probes
 
 
 _XYZABC = [AXES.index(a) for a in "XYZABC"]
@@ -131,7 +136,7 @@ def path_problems(original: str | Path, compensated_input: str | Path, expanded:
                   ini: str | Path | None = None) -> list[str]:
     """Where the reader's path of ``compensated_input`` leaves rs274's path of ``original`` by more
     than ``tolerance_mm`` (plus rs274's printed rounding, 0.0001 of the program's unit)."""
-    moves, unit = canonical_moves(canonical_calls(original, tool_table, ini), with_tool=expanded)
+    moves, unit, _ = canonical_moves(canonical_calls(original, tool_table, ini), with_tool=expanded)
     tol = tolerance_mm + 1.5e-4 * unit
     points = reader_points(compensated_input)
     k = 0  # every point on a canonical move, in order
@@ -152,12 +157,16 @@ def path_problems(original: str | Path, compensated_input: str | Path, expanded:
 
 
 def _normalized(calls):
-    out = []
+    out, scale = [], 1.0
     for name, args in calls:
+        if name == "USE_LENGTH_UNITS":
+            scale = 25.4 if args[0] == "CANON_UNITS_INCHES" else 1.0
         if name in MOTION_CALLS or name in STATE_CALLS or name in ("START_CHANGE", "CHANGE_TOOL"):
             continue
         if name == "SET_MOTION_CONTROL_MODE":
             args = args[:1]  # its tolerance is in the program's units
+        if name == "START_SPEED_FEED_SYNC":  # G33's pitch, in the program's units: mm per revolution, 0.1 um
+            args = [f"{float(args[0]) * scale:.4f}", *args[1:]]
         out.append((name, [round(float(a), 6) if _is_number(a) else a for a in args]))
     return out
 
@@ -187,7 +196,15 @@ def command_problems(original: str | Path, output: str | Path, tool_table: str |
     """Differences between the non-motion canonical calls of ``original`` and of ``output``.
     The blending mode (SET_MOTION_CONTROL_MODE) is compared where the programs end: the output
     sets its own around the compensated blocks (transparency) and gives back the program's."""
-    want, got = (_normalized(canonical_calls(path, tool_table, ini)) for path in (original, output))
+    calls = [canonical_calls(path, tool_table, ini) for path in (original, output)]
+    probes = [canonical_moves(c, with_tool=True) for c in calls]
+    if len(probes[0][2]) != len(probes[1][2]):
+        return [f"{len(probes[0][2])} probes expected, {len(probes[1][2])} written"]
+    tol = 1e-3 + 1.5e-4 * probes[0][1]
+    for i, (w, g) in enumerate(zip(probes[0][2], probes[1][2], strict=True)):
+        if np.abs(w - g).max() > tol:
+            return [f"probe {i + 1}: expected the target {np.round(w, 4)}, got {np.round(g, 4)}"]
+    want, got = (_normalized(c) for c in calls)
     modes = [[c for c in calls if c[0] == "SET_MOTION_CONTROL_MODE"][-1:] for calls in (want, got)]
     if modes[0] and modes[0] != modes[1]:
         return [f"the program ends in {modes[0]}, the output in {modes[1]}"]

@@ -16,10 +16,11 @@ from scipy.spatial import cKDTree
 
 from canon_check import command_problems, path_problems
 from fbspost.cli import main
-from fbspost.expand import expand
+from fbspost.expand import canonical_calls, expand
 from fbspost.gcode import AXES, CHORD_TOLERANCE_MM, Kind, nurbs_points, read_gcode
 from fbspost.planner import RunMargins, plan_blocks
 from fbspost.profile import load_profile
+from fbspost.rs274_probes import check_static
 from fbspost.trajectory import InputError
 
 needs_rs274 = pytest.mark.skipif(shutil.which("rs274") is None,
@@ -388,3 +389,114 @@ def test_g5_splines_expand_as_rs274_evaluates_them(tmp_path):
     assert command_problems(program, expanded) == []
     expanded.write_text(expanded.read_text().replace("I25.4 J-38.1", "I25.45 J-38.1"))
     assert path_problems(program, expanded, True) != []
+
+
+def test_g33_is_a_copied_rest_at_the_spindles_speed(tmp_path):
+    """G33 K is the distance along the move per spindle revolution: 10 mm at K2 and S600 (10
+    rev/s) take 0.5 s; the 45 degree exit, sqrt(2) inches at K0.1 in and S300, 1/0.1/5 * sqrt(2)
+    = 2.828 s; copied as written (STOP, nothing compensated), the plan's time is their sum.
+    Without the spindle turning, or under G96, one line as LinuxCNC refuses it."""
+    blocks = moves(tmp_path / "t.ngc", "G21 G90 G18\nG0 X0 Y0 Z0\nS600 M3\nG33 Z-10 K2\nG20 S300\n"
+                                       "G33 X1 Z-1.3937 K0.1\nM5\nM2\n")
+    assert [b.kind for b in blocks[3:6]] == [Kind.STOP, Kind.PASS, Kind.STOP]
+    assert blocks[3].dwell_s == pytest.approx(0.5, abs=1e-12)
+    assert blocks[5].dwell_s == pytest.approx(math.sqrt(2.0) / 0.5, rel=1e-4)  # from Z -10 mm = -0.3937 in
+    assert np.allclose(blocks[5].position_mm[[0, 2]], [25.4, -1.3937 * 25.4])
+    plan = plan_blocks(blocks, load_profile("patent-xy-stage"), margins=RunMargins(0.0, 0.0))
+    assert plan.duration_s == pytest.approx(0.5 + blocks[5].dwell_s, abs=1e-9)
+    for text in ("G21\nG0 X0 Z0\nG33 Z-10 K2\n", "G21 G0 X0 Z0\nS600 M3 G96\nG33 Z-10 K2\n",
+                 "G21 G0 X0 Z0\nS600 M3\nG33 Z-10\n"):
+        with pytest.raises(InputError, match="t.ngc:3: (G33 needs|K needs)"):
+            moves(tmp_path / "t.ngc", text)
+
+
+PROBING = """G21 G90 F3000
+#<safe> = 5
+(PROBEOPEN results.txt)
+G0 X0 Y0 Z#<safe>
+G38.2 Z-3 F50
+G0 Z#<safe>
+G1 X10 Y5 F3000
+G38.3 X20 F40
+G0 X10 Y5 Z#<safe>
+G1 X0 Y0 F3000
+(PROBECLOSE)
+M2
+"""
+
+
+@pytest.mark.slow
+@needs_rs274
+def test_probing_program_compensates_and_follows_rs274(tmp_path):
+    """The probes written back as the program's (code, target, feed: by hand), the moves after
+    them copied from where they stop, the rest compensated; rs274's path (but the probes' ends)
+    and its non-motion calls (probe on/off, PROBEOPEN) and probe targets on the output."""
+    program, out, expanded = tmp_path / "p.ngc", tmp_path / "out.ngc", tmp_path / "x.ngc"
+    program.write_text(PROBING)
+    result = CliRunner().invoke(main, ["compensate", str(program), "-m", "patent-xy-stage", "--flavor", "linuxcnc",
+                                       "-o", str(out), "-q"])
+    assert result.exit_code == 0, result.stderr
+    lines = out.read_text().splitlines()
+    probes = [i for i, line in enumerate(lines) if line.startswith("G38")]
+    assert [lines[i] for i in probes] == ["G38.2 X0 Y0 Z-3 F50", "G38.3 X20 Y5 Z5 F40"]
+    assert [lines[i + 1] for i in probes] == ["G0 X0 Y0 Z5", "G0 X10 Y5 Z5"]  # copied from the unknown end
+    assert "(PROBEOPEN results.txt)" in lines and "(PROBECLOSE)" in lines
+    assert command_problems(program, out) == []
+    expand(program, expanded, "test")
+    assert path_problems(program, expanded, True) == []
+    out.write_text(out.read_text().replace("G38.3 X20 Y5", "G38.3 X20.01 Y5"))
+    assert command_problems(program, out)[0].startswith("probe 2: expected the target")
+
+
+@needs_rs274
+@pytest.mark.parametrize("lines, message", [
+    ("G38.2 Z-3\nG91 G0 Z1\nG90", "depends on where a probe (G38) stops (STRAIGHT_TRAVERSE"),  # relative
+    ("G38.2 Z-3\nG92 Z0", "stops (SET_G92_OFFSET"),
+    ("G38.2 Z-3\nG10 L20 P1 Z0", "stops (SET_G5X_OFFSET"),
+    ("G38.2 Z-3\nG0 X5", "stops (STRAIGHT_TRAVERSE"),  # leaves Z where the probe stopped
+    ("G38.2 Z-3\nG91 G38.4 Z1\nG90", "stops (the target of a probe (G38.4)"),
+    ("G38.2 Z-3\nG0 Z[#5063 + 1]", "uses the probe's result (#5063)"),
+    ("G38.3 Z-3\nO1 if [#5070 EQ 0]\nG0 Z6\nO1 endif", "uses the probe's result (#5070)"),
+    ("G38.2 Z-3\n(LOG,#5061)", "uses the probe's result (#5061)"),
+])
+def test_motion_from_the_probes_result_is_refused(tmp_path, lines, message):
+    """Each way a later move (or message) depends on where the probe stops: one line, nothing written."""
+    program, out = tmp_path / "p.ngc", tmp_path / "out.ngc"
+    program.write_text(f"G21 G90 F100\nG0 X0 Y0 Z5\n{lines}\nG0 X0 Y0 Z5\nM2\n")
+    result = CliRunner().invoke(main, ["compensate", str(program), "-m", "patent-xy-stage", "--flavor", "linuxcnc",
+                                       "--expand", "-o", str(out), "-q"])
+    assert result.exit_code == 1
+    assert result.stderr.startswith(f"error: {program}") and message in result.stderr
+    assert result.stderr.count("\n") == 1 and not out.exists()
+
+
+def test_probing_program_calling_subroutine_files_is_refused(tmp_path):
+    """Their use of #5061..#5070 is not read: refused (the INI's remaps likewise); a subroutine
+    of the program's own file is read with it."""
+    program, ini = tmp_path / "p.ngc", tmp_path / "m.ini"
+    program.write_text("o<here> sub\nG0 X1\no<here> endsub\nG38.2 Z-3\no<here> call\nO<elsewhere> call\nM2\n")
+    with pytest.raises(InputError, match=r"p.ngc: a probing program that calls subroutine files \(<elsewhere>\)"):
+        check_static(program, None)
+    program.write_text("o<here> sub\nG0 X1\no<here> endsub\nG38.2 Z-3\no<here> call\nM2\n")
+    check_static(program, None)
+    ini.write_text("[RS274NGC]\nREMAP=M6 modalgroup=6 ngc=change\n")
+    with pytest.raises(InputError, match="calls the INI's remapped codes"):
+        check_static(program, ini)
+
+
+@needs_rs274
+def test_g76_is_written_back_as_g33_with_rs274s_pitch(tmp_path):
+    """LinuxCNC's G76 (pitch P0.05 in, 29.5 degree compound, no taper: rs274 expands it) comes
+    back as G33 moves, one per synchronized feed of rs274, each with K 0.05 in = 1.27 mm; rs274
+    on the output gives the same synchronized calls and path, and catches a pitch 0.1 um off."""
+    program, expanded = tmp_path / "g76.ngc", tmp_path / "x.ngc"
+    program.write_text("G20 G18 G90\nS500 M3\nG0 X0.6 Z0.5\nG76 P0.05 Z-0.5 I-0.075 J0.008 R1.0 K0.045 Q29.5 L0 "
+                       "H3\nG0 X1\nM5\nM2\n")
+    expand(program, expanded, "test")
+    g33 = [line for line in expanded.read_text().splitlines() if line.startswith("G33")]
+    synced = sum(name == "START_SPEED_FEED_SYNC" for name, _ in canonical_calls(program))
+    assert len(g33) == synced > 5 and all(line.endswith(" K1.27") for line in g33)
+    assert path_problems(program, expanded, True) == []
+    assert command_problems(program, expanded) == []
+    expanded.write_text(expanded.read_text().replace(" K1.27", " K1.2701", 1))
+    assert command_problems(program, expanded)[0].startswith("non-motion command")
