@@ -502,6 +502,7 @@ class ExecutedError:
         self.settle = {c: compensators[c].settings.settle_samples for c in self.axes}
         self.stats = {c: (_ErrorStats(), _ErrorStats()) for c in self.axes}
         self.steps: dict | None = None  # per axis: the modelled original's and the executed program's
+        self.last_planned_mm = None  # the last sample's
         self.next = 0  # the next sample
         self.run = 0  # the first run whose settling may include it
 
@@ -512,21 +513,43 @@ class ExecutedError:
         n = len(planned_mm)
         if not n:
             return
-        if self.steps is None:
-            self.steps = {
-                c: (m.response(planned_mm[0, c]), m.response(executed_mm[0, c])) for c, m in self.models.items()
-            }
-        for c in self.axes:
-            counted = self._counted(first, n, self.settle[c])
-            original, written = self.steps[c]
-            before, after = self.stats[c]
-            before.add((planned_mm[:, c] - original(planned_mm[:, c]))[counted])
-            after.add((planned_mm[:, c] - written(executed_mm[:, c]))[counted])
+        # A jump (G28, a move from an unknown position: motion fbspost does not model) starts
+        # both models anew at rest where it lands: its error is not the program's.
+        restarts = set(self._jumps(first, planned_mm)) | ({0} if self.steps is None else set())
+        for a, b in itertools.pairwise(sorted(restarts | {0, n})):
+            if a in restarts:
+                self.steps = {c: (m.response(planned_mm[a, c]), m.response(executed_mm[a, c]))
+                              for c, m in self.models.items()}
+            self._count(first + a, executed_mm[a:b], planned_mm[a:b])
+        self.last_planned_mm = planned_mm[-1]
         self.next = first + n
         longest = max(self.settle.values(), default=0)
         while self.run < len(self.runs) and self.runs[self.run][1] is not None and \
                 self.runs[self.run][1] + longest < self.next:
             self.run += 1  # its settling is over on every axis
+
+    def _count(self, first: int, executed_mm: np.ndarray, planned_mm: np.ndarray) -> None:
+        for c in self.axes:
+            counted = self._counted(first, len(planned_mm), self.settle[c])
+            original, written = self.steps[c]
+            before, after = self.stats[c]
+            before.add((planned_mm[:, c] - original(planned_mm[:, c]))[counted])
+            after.add((planned_mm[:, c] - written(executed_mm[:, c]))[counted])
+
+    def _jumps(self, first: int, planned_mm: np.ndarray) -> list[int]:
+        """Where in the samples from ``first`` the plan jumps: the sample after a run's last
+        (runs start and end at rest) that is not where that last one is on a compensated axis
+        (Z alone moves between runs at layer changes: the ringing of X Y goes on)."""
+        jumps = []
+        for _, last in itertools.islice(self.runs, self.run, None):
+            if last is None or last + 1 >= first + len(planned_mm):
+                break
+            i = last + 1 - first
+            if i >= 0:
+                before = planned_mm[i - 1] if i else self.last_planned_mm
+                if before is not None and (planned_mm[i, self.axes] != before[self.axes]).any():
+                    jumps.append(i)
+        return jumps
 
     def finish(self, end_mm: np.ndarray) -> None:
         """The settling after the program's end (``end_mm``, X Y Z), at rest there."""

@@ -236,6 +236,22 @@ def test_summary_and_json_report(tmp_path):
     assert "axis X: predicted RMS error" in result.stderr and "lines in" in result.stderr
 
 
+def test_homing_after_the_motion_is_not_an_error(tmp_path):
+    """The tube ends with G28 X0 after its last move: the plan jumps home there (homing is not
+    modelled). The report's errors must stay those of the program's own motion, as without that
+    line (they were the whole 105 mm jump, once)."""
+    source = DATA / "tube-marlin2.gcode"
+    unhomed = tmp_path / "unhomed.gcode"
+    unhomed.write_bytes(source.read_bytes().replace(b"\nG28 X0 ", b"\n;G28 X0 "))
+    homed, plain = (compensate_file(p, tmp_path / f"{p.stem}-out.gcode", PRINTER) for p in (source, unhomed))
+    for axis in "XY":
+        a, b = plain.axes[axis], homed.axes[axis]
+        assert b.max_error_before_um == pytest.approx(a.max_error_before_um, rel=1e-6)
+        assert b.max_error_after_um == pytest.approx(a.max_error_after_um, rel=1e-6)
+        assert b.rms_error_before_um == pytest.approx(a.rms_error_before_um, rel=0.01)
+        assert b.rms_error_after_um == pytest.approx(a.rms_error_after_um, rel=0.01)
+
+
 def test_bad_program_is_one_line_error_and_leaves_no_output(tmp_path):
     program = tmp_path / "bad.gcode"
     program.write_text("G21 G90\nG0 X0 Y0\nG1 X10 Y0 F600\nG2 X20 Y0 I0 J0\nG1 X0\n")
