@@ -54,7 +54,8 @@ from fbspost.marlin import MarlinConfig, run_marlin  # noqa: E402
 from fbspost.profile import load_profile  # noqa: E402
 from fbspost.reprap import ReprapConfig, commanded_pieces, run_reprap  # noqa: E402
 from fbspost.simulate import PathDistance  # noqa: E402
-from firmware_results import contour_um, klippy_run, modelled, move_ends, printed_path, shaped_plans  # noqa: E402
+from fbspost.verify import contour_um, modelled, printed_path  # noqa: E402
+from firmware_results import klippy_run, move_ends, shaped_plans  # noqa: E402
 
 SERIAL_LINES_PER_S = 300.0  # a serial host's budget where the profile gives none
 MODELS = {"marlin": (run_marlin, MarlinConfig, "Marlin's planner"),

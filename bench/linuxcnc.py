@@ -94,11 +94,13 @@ def needs_expansion(program: Path) -> bool:
 
 
 def outcome(program: Path, profile, work: Path, table: Path, ini: Path | None) -> str:
-    """'compensated', 'WRONG: ...' or the refusal's reason (its message without file, line, numbers)."""
+    """'compensated', 'WRONG: ...' or the refusal's reason (its message without file, line, numbers);
+    verified on the model of LinuxCNC's planner as the command line does by default: where the
+    original was kept, or the model failed, the outcome says so."""
     output = work / "out.ngc"
-    options = CompensateOptions(flavor="linuxcnc", tool_table=table, ini=ini)
+    options = CompensateOptions(flavor="linuxcnc", tool_table=table, ini=ini, verify=None)
     try:
-        compensate_file(program, output, profile, options)
+        report = compensate_file(program, output, profile, options)
     except InputError as exc:
         message = str(exc).split(": ", 1)[1] if ": " in str(exc) else str(exc)
         message = re.sub(r"^line \d+ of its expansion: ", "", message)
@@ -115,7 +117,12 @@ def outcome(program: Path, profile, work: Path, table: Path, ini: Path | None) -
                     + command_problems(program, output, table, ini))
     except InputError as exc:
         problems = [f"rs274 or the reader refuses what fbspost wrote: {exc}"]
-    return "WRONG: " + "; ".join(problems) if problems else "compensated"
+    if problems:
+        return "WRONG: " + "; ".join(problems)
+    if report.original_kept:
+        return "the original kept: the output no better on LinuxCNC's planner (model)"
+    failed = [w for w in report.warnings if "its model failed" in w]
+    return f"compensated, not verified: {re.sub(r'-?[0-9.]+', 'N', failed[0])}" if failed else "compensated"
 
 
 def main() -> None:

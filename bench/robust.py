@@ -38,7 +38,8 @@ from fbspost.gcode import AXES  # noqa: E402
 from fbspost.profile import load_profile  # noqa: E402
 from fbspost.shapers import SHAPERS  # noqa: E402
 from fbspost.simulate import MODEL_ERRORS, PathDistance, model_error, simulate_program  # noqa: E402
-from firmware_results import contour_um, klippy_run, modelled, move_ends, printed_path, shaped_plans  # noqa: E402
+from fbspost.verify import contour_um, modelled, printed_path  # noqa: E402
+from firmware_results import klippy_run, move_ends, shaped_plans  # noqa: E402
 from reference import simulate_varying  # noqa: E402
 
 PROGRAM = "tests/data/gear-marlin2.gcode"

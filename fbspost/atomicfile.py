@@ -1,11 +1,12 @@
 """Write a file so that readers see either the old file or the complete new one, never a part.
 
-Takes a destination path and a writer callback; writes a temporary file beside the destination,
+Takes a destination path and a writer callback (and a check, given the temporary file's path
+once it is written, which may still change it); writes a temporary file beside the destination,
 flushes it to disk, renames it over the destination (keeping an existing file's permissions and,
 where allowed, its owner; through a symbolic link, the file it points to is replaced) and
 flushes the directory, so the rename survives a power cut. On any error, or an interrupt, the
-temporary file is removed and the destination is untouched; an ``OSError`` names the
-destination (``filename``) and says what failed (``strerror``: ``cannot write: ...``).
+temporary file is removed and the destination is untouched; an ``OSError`` names the destination
+(``filename``) and says what failed (``strerror``: ``cannot write: ...``).
 """
 from __future__ import annotations
 
@@ -16,20 +17,24 @@ from pathlib import Path
 from typing import IO
 
 
-def atomic_write(path: str | Path, write: Callable[[IO[bytes]], None]) -> None:
+def atomic_write(path: str | Path, write: Callable[[IO[bytes]], None],
+                 check: Callable[[Path], None] | None = None) -> None:
     path = Path(os.path.realpath(path))
     try:
-        _replace(path, write)
+        _replace(path, write, check)
     except OSError as exc:
         raise OSError(exc.errno, f"cannot write: {exc.strerror or exc}", str(path)) from None
 
 
-def _replace(path: Path, write: Callable[[IO[bytes]], None]) -> None:
+def _replace(path: Path, write: Callable[[IO[bytes]], None], check: Callable[[Path], None] | None) -> None:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
             write(f)
             f.flush()
+        if check is not None:
+            check(Path(tmp))
+        with open(tmp, "rb") as f:
             os.fsync(f.fileno())
         try:
             old = path.stat()

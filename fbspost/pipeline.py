@@ -4,13 +4,16 @@ Takes an input G-code path, an output path, a machine profile and options; a Lin
 that needs LinuxCNC's interpreter (or any with ``expand=True``) is first expanded by it
 (``expand.py``) and the expanded program is compensated; writes the
 compensated program atomically (nothing is written if anything fails) and gives a ``Report``
-with the predicted tracking error of every compensated axis before and after, per the model.
+with the predicted tracking error of every compensated axis before and after, per the model;
+with ``verify``, both programs as the firmware's planner runs them (verify.py), and the original
+written instead where the output is no better there.
 """
 from __future__ import annotations
 
 import itertools
 import math
 import re
+import shutil
 import tempfile
 import time
 from collections import defaultdict
@@ -18,6 +21,7 @@ from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -34,6 +38,9 @@ from .trajectory import InputError
 from .transparency import FirmwareSettings
 from .varying import LoadModes
 from .writer import SampleWindow, WriteOptions, format_refusal, write_program
+
+if TYPE_CHECKING:
+    from .verify import Verdict
 
 
 @dataclass(frozen=True)
@@ -54,6 +61,9 @@ class CompensateOptions:
     tool_table: Path | None = None  # rs274's tool table (tool length offsets, cutter radii)
     ini: Path | None = None  # rs274's INI (subroutine paths)
     parallel_axes: bool = True  # each compensated axis on its own threads (same output, bit for bit)
+    # Re-plan both programs on the firmware's planner before committing (verify.py); None: for
+    # the firmware whose planner differs from the blocks as written, up to VERIFY_AUTO_S of print.
+    verify: bool | None = False
 
 
 @dataclass
@@ -106,13 +116,18 @@ class Report:
     tolerance_used_at_s: float = 0.0  # where
     rms_deviation_mm: float = 0.0  # of the written blocks from the command, over the samples inside them
     loosened_s: float = 0.0  # time in blocks beyond the tolerance (for the line rate, Marlin's merge)
-    stage_time_s: dict[str, float] = field(default_factory=dict)  # read, plan, optimize, fallback, write
+    stage_time_s: dict[str, float] = field(default_factory=dict)  # read, plan, optimize, fallback, write (, verify)
+    verified: Verdict | None = None  # with --verify: both programs as the firmware's planner runs them
+    original_kept: bool = False  # --verify found the output no better there: the original was written
 
     def as_dict(self) -> dict:
         return asdict(self)
 
 
 _CHUNK = 1 << 14  # samples planned, compensated and written at once
+# Verified by default up to an hour of print: a re-plan holds every sample of both programs
+# (about 0.3 GB an hour at 1 kHz, a moment); Klipper runs the blocks as written (proven on klippy).
+VERIFY_AUTO_S = 3600.0
 _E = AXES.index("E")  # the filament column, for modes that vary with the print
 
 
@@ -193,14 +208,16 @@ def _compensate(read_path, input_path, output_path, profile, options, flavor, pr
     stats = []
     executed = ExecutedError(compensators, plan.runs)
     clock = time.perf_counter()
+    verification = _Verification(read_path, input_path, profile, flavor, options.verify, plan, stages)
     try:
         atomic_write(output_path, lambda f: stats.append(write_program(
-            plan, SampleWindow(chunks, plan, follows_plan), write_options, f, executed)))
+            plan, SampleWindow(chunks, plan, follows_plan), write_options, f, executed)),
+            verification if verification.wanted else None)
     finally:
         if lanes:
             lanes.shutdown()
     stages["plan"] = plan.time_s - stages["read"]
-    stages["write"] = time.perf_counter() - clock - plan.time_s - stages["optimize"]
+    stages["write"] = time.perf_counter() - clock - plan.time_s - stages["optimize"] - stages.get("verify", 0.0)
     stages["optimize"] -= tally.fallback_s
     stages["fallback"] = tally.fallback_s
     written = stats[0]
@@ -210,6 +227,9 @@ def _compensate(read_path, input_path, output_path, profile, options, flavor, pr
                     max_line_rate_hz=written.max_line_rate_hz, line_rate_budget_hz=profile.firmware.max_line_rate_hz,
                     tolerance_used_mm=written.max_deviation_mm, tolerance_used_at_s=written.max_deviation_s,
                     loosened_s=written.loosened_s, rms_deviation_mm=written.rms_deviation_mm)
+    report.verified = verification.verdict
+    report.original_kept = verification.original_kept
+    report.warnings.extend(verification.warnings)
     for c, (before, after) in errors.items():
         if before.count and c in executed.stats:
             report.axes[AXES[c]] = executed.report(c, *tally.windows[c], after)
@@ -217,6 +237,45 @@ def _compensate(read_path, input_path, output_path, profile, options, flavor, pr
             report.axes[AXES[c]] = AxisReport.from_stats(before, after, *tally.windows[c])
     report.compute_time_s = time.perf_counter() - started
     return report
+
+
+class _Verification:
+    """``atomic_write``'s check for ``CompensateOptions.verify`` (verify.py): the written file and
+    the program read (``read_path``) re-planned on the firmware's planner; where the output is no
+    better there, the input (``input_path``) copied over the written file. Its time goes to
+    ``stages["verify"]``."""
+
+    def __init__(self, read_path, input_path, profile: MachineProfile, flavor: str, option: bool | None,
+                 plan: PlanStream, stages: dict[str, float]):
+        self.read_path, self.input_path, self.profile, self.flavor = read_path, input_path, profile, flavor
+        self.plan, self.stages = plan, stages
+        self.auto = option is None and flavor != "klipper"
+        self.wanted = bool(option) or self.auto
+        self.verdict: Verdict | None = None
+        self.warnings: list[str] = []
+
+    @property
+    def original_kept(self) -> bool:
+        return self.verdict is not None and not self.verdict.better
+
+    def __call__(self, written: Path) -> None:
+        from .verify import verify  # (simulate, which it measures with, compensates through this module)
+
+        if self.auto and self.plan.duration_s > VERIFY_AUTO_S:
+            self.warnings.append(f"not verified on the firmware's planner: over {VERIFY_AUTO_S / 3600:g} h of "
+                                 "print (--verify to do it anyway)")
+            return
+        started_s = time.perf_counter()
+        try:
+            self.verdict = verify(self.read_path, written, self.profile, self.flavor)
+        except Exception as exc:  # noqa: BLE001 (a model's gap must not cost the user the output)
+            self.warnings.append(f"not verified on the firmware's planner: its model failed "
+                                 f"({type(exc).__name__}: {' '.join(str(exc).split())})")
+        if self.original_kept:
+            shutil.copyfile(self.input_path, written)
+            self.warnings.append("the original was written unchanged: the output is no better on the firmware "
+                                 "(the verified line)")
+        self.stages["verify"] = time.perf_counter() - started_s
 
 
 def compensated_samples(plan: Plan, profile: MachineProfile, options: CompensateOptions = CompensateOptions(),

@@ -20,7 +20,8 @@ from fbspost.pipeline import CompensateOptions, compensate_file
 from fbspost.profile import Mode, ProfileError, format_profile, load_profile, parse_profile
 from fbspost.simulate import MODEL_ERRORS, PathDistance, model_error, simulate_program
 from fbspost.varying import LoadModes
-from firmware_results import contour_um, klippy_run, modelled, move_ends, printed_path, shaped_plans
+from fbspost.verify import contour_um, modelled, printed_path
+from firmware_results import klippy_run, move_ends, shaped_plans
 from klippy_planner import klippy_or_skip
 from reference import simulate_lsim, simulate_varying, unbudgeted
 from test_optimizer import brute_force_problem, smooth_move
