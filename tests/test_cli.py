@@ -158,7 +158,8 @@ def copy_programs(folder, programs):
 
 def assert_one_line_errors(stderr):
     assert "Traceback" not in stderr
-    assert all(line.startswith(("error: ", "fbspost ", "axis ", "verified ", "warning: ")) for line in stderr.splitlines())
+    starts = ("error: ", "fbspost ", "axis ", "verified ", "warning: ")
+    assert all(line.startswith(starts) for line in stderr.splitlines())
 
 
 def test_jobs_write_the_single_file_outputs_in_place(tmp_path, programs):
