@@ -171,10 +171,7 @@ def merge_short_segments(blocks: list[Block], profile: MachineProfile) -> tuple[
     last block's end on every axis (E included; an axis without steps_per_mm counts as many
     steps if it moves at all) is dropped, so the next point's block covers its distance.
     Returns the blocks (a MOVE whose points all went keeps none) and the lines of dropped points."""
-    steps = profile.firmware.steps_per_mm
-    scale = np.array([steps.get(a, np.nan) for a in AXES])
-    stepped = ~np.isnan(scale)
-    scale = np.where(stepped, scale, 1.0)
+    scale, stepped = _step_scale(profile)
     least = profile.firmware.min_steps_per_segment
     last = None  # the planner's position: (steps, mm) of the last block's end (NaN: unknown)
     out, merged = [], []
@@ -196,6 +193,20 @@ def merge_short_segments(blocks: list[Block], profile: MachineProfile) -> tuple[
             kept.append(np.where(stepped, target / scale, point))
         out.append(replace(block, points_mm=np.array(kept) if kept else None))
     return out, merged
+
+
+def _step_scale(profile: MachineProfile) -> tuple[np.ndarray, np.ndarray]:
+    """(steps per mm of every axis, 1 where it has none; whether it has steps)."""
+    steps = profile.firmware.steps_per_mm
+    scale = np.array([steps.get(a, np.nan) for a in AXES])
+    stepped = ~np.isnan(scale)
+    return np.where(stepped, scale, 1.0), stepped
+
+
+def _on_steps(position_mm: np.ndarray, profile: MachineProfile) -> np.ndarray:
+    """``position_mm`` where Marlin puts it: at whole steps of the axes with steps."""
+    scale, stepped = _step_scale(profile)
+    return np.where(stepped, _lround(position_mm * scale) / scale, position_mm)
 
 
 def _lround(x: np.ndarray) -> np.ndarray:
@@ -230,8 +241,8 @@ def _read(blocks: list[Block], profile: MachineProfile) -> tuple[_Segments, list
         if b_word:
             min_segment_us = float(b_word.group(1))
         lines.append((block.kind, bool(block.raw.split(b";")[0].strip()), block.dwell_s))
-        if block.kind is Kind.STOP:
-            position = np.where(np.isnan(block.position_mm), position, block.position_mm)
+        if block.kind is Kind.STOP:  # (in whole steps, as the merge left the points: a G4 moves nothing)
+            position = np.where(np.isnan(block.position_mm), position, _on_steps(block.position_mm, profile))
         if block.kind is not Kind.MOVE or block.points_mm is None:
             continue
         for point in block.points_mm:

@@ -123,3 +123,13 @@ def test_classic_jerk_corner(tmp_path, x, y, expected):
     step = max(abs(x / math.hypot(x, y) - 1.0), y / math.hypot(x, y))
     assert motion.exit_mm_s[0] == pytest.approx(10.0 / step, rel=1e-12)
     assert 10.0 / step == pytest.approx(expected if x == 0 else 10.0 / math.sqrt(0.5), rel=1e-12)
+
+
+def test_a_dwell_leaves_the_position_in_whole_steps(tmp_path):
+    """A G4 moves nothing: the block after it starts where the one before ended, at whole steps
+    (X 10.0063 is step 800.504 -> 801 at 80 steps/mm, E 1.00001 is 415.004 -> 415 at 415), not at
+    the program's position; so E does not creep while X Y travel (a creep counts as printing)."""
+    motion = run(tmp_path, ["M83", "G1 X0 Y0 F6000", "G1 X10.0063 E1.00001 F3000", "G4 P10", "G1 X20 F6000"])
+    after = np.flatnonzero(motion.line == 4)[0]
+    np.testing.assert_array_equal(motion.start_mm[after, :4], [801 / 80, 0.0, 0.0, 415 / 415])
+    np.testing.assert_array_equal(motion.end_mm[after, 3], motion.start_mm[after, 3])
