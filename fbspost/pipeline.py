@@ -62,7 +62,7 @@ class CompensateOptions:
     ini: Path | None = None  # rs274's INI (subroutine paths)
     parallel_axes: bool = True  # each compensated axis on its own threads (same output, bit for bit)
     # Re-plan both programs on the firmware's planner before committing (verify.py); None: for
-    # the firmware whose planner differs from the blocks as written, up to VERIFY_AUTO_S of print.
+    # the firmware whose planner differs from the blocks as written, up to VERIFY_AUTO_LINES.
     verify: bool | None = False
 
 
@@ -125,9 +125,10 @@ class Report:
 
 
 _CHUNK = 1 << 14  # samples planned, compensated and written at once
-# Verified by default up to an hour of print: a re-plan holds every sample of both programs
-# (about 0.3 GB an hour at 1 kHz, a moment); Klipper runs the blocks as written (proven on klippy).
-VERIFY_AUTO_S = 3600.0
+# Verified by default up to this many written lines: the firmware models hold every block and
+# sample of a program at once, about 4 kB a line (measured: 85k Marlin lines 0.35 GB, 353k
+# RepRapFirmware lines 1 GB); Klipper runs the blocks as written (proven on klippy).
+VERIFY_AUTO_LINES = 100_000
 _E = AXES.index("E")  # the filament column, for modes that vary with the print
 
 
@@ -261,10 +262,12 @@ class _Verification:
     def __call__(self, written: Path) -> None:
         from .verify import verify  # (simulate, which it measures with, compensates through this module)
 
-        if self.auto and self.plan.duration_s > VERIFY_AUTO_S:
-            self.warnings.append(f"not verified on the firmware's planner: over {VERIFY_AUTO_S / 3600:g} h of "
-                                 "print (--verify to do it anyway)")
-            return
+        if self.auto:
+            lines = _count_lines(written)
+            if lines > VERIFY_AUTO_LINES:
+                self.warnings.append(f"not verified on the firmware's planner: {lines} lines written, over "
+                                     f"{VERIFY_AUTO_LINES} (--verify to do it anyway: about 4 kB of memory a line)")
+                return
         started_s = time.perf_counter()
         try:
             self.verdict = verify(self.read_path, written, self.profile, self.flavor)

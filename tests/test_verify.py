@@ -84,9 +84,9 @@ def test_contour_error_is_the_distance_to_the_printed_path():
 
 
 def test_long_prints_are_not_verified_unless_asked(tmp_path, monkeypatch):
-    """By default a print over VERIFY_AUTO_S is not verified (every sample held at once), and the
-    summary says so; --verify does it anyway."""
-    monkeypatch.setattr(pipeline, "VERIFY_AUTO_S", 10.0)  # the 400 lines last 14 s
+    """By default an output over VERIFY_AUTO_LINES is not verified (every block held at once), and
+    the summary says so; --verify does it anyway."""
+    monkeypatch.setattr(pipeline, "VERIFY_AUTO_LINES", 1000)  # the 400 lines give about 3000
     source, target = gear(tmp_path), tmp_path / "out.gcode"
     auto = compensate_file(source, target, load_profile("printer-two-mode"), CompensateOptions(flavor="marlin",
                                                                                                 verify=None))
