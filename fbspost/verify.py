@@ -13,6 +13,7 @@ the writer commits the original instead.
 """
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -103,12 +104,18 @@ def printed_path(start_mm: np.ndarray, end_mm: np.ndarray) -> tuple[PathDistance
 
 def modelled(command_mm: np.ndarray, profile: MachineProfile) -> np.ndarray:
     """The actual positions of ``command_mm`` (rows of X Y Z E ...) through the profile's modes
-    (axes without modes: as commanded)."""
+    (axes without modes: as commanded). Where the command jumps (faster than twice the axis'
+    top speed: a move from an unknown position, which the firmware runs but no model plans),
+    the modes start anew at rest: that motion is not the program's to judge."""
     actual = command_mm.copy()
     for axis, spec in profile.axes.items():
         if spec.modes and axis in AXES:
             i = AXES.index(axis)
-            actual[:, i] = AxisDynamics(spec.modes, 1.0 / profile.sample_rate_hz).simulate(command_mm[:, i])
+            dynamics = AxisDynamics(spec.modes, 1.0 / profile.sample_rate_hz)
+            jumps = np.flatnonzero(np.abs(np.diff(command_mm[:, i])) > 2.0 * spec.max_velocity_mm_s
+                                   / profile.sample_rate_hz) + 1
+            for a, b in itertools.pairwise([0, *jumps, len(command_mm)]):
+                actual[a:b, i] = dynamics.simulate(command_mm[a:b, i])
     return actual
 
 

@@ -13,7 +13,7 @@ from fbspost.cli import main
 from fbspost.pipeline import CompensateOptions, compensate_file
 from fbspost.profile import load_profile
 from fbspost.simulate import PathDistance
-from fbspost.verify import MAX_TIME_INCREASE, contour_um, printed_path
+from fbspost.verify import MAX_TIME_INCREASE, contour_um, modelled, printed_path
 from reference import serial
 
 DATA = Path(__file__).resolve().parent / "data"
@@ -94,3 +94,13 @@ def test_long_prints_are_not_verified_unless_asked(tmp_path, monkeypatch):
     asked = compensate_file(source, target, load_profile("printer-two-mode"), CompensateOptions(flavor="marlin",
                                                                                                  verify=True))
     assert asked.verified is not None and not any("not verified" in w for w in asked.warnings)
+
+
+def test_a_jump_of_the_command_starts_the_modes_anew_at_rest():
+    """A move from an unknown position is a jump in the firmware's motion (no model plans it):
+    at rest on both sides, the modelled machine is where it is commanded (the modes' DC gain is
+    1), not ringing with a 100 mm step."""
+    profile = load_profile("printer-two-mode")
+    command = np.zeros((400, 4))
+    command[200:, :2] = [100.0, 50.0]
+    np.testing.assert_allclose(modelled(command, profile), command, atol=1e-9)
