@@ -270,7 +270,7 @@ class _Verification:
                 return
         started_s = time.perf_counter()
         try:
-            self.verdict = verify(self.read_path, written, self.profile, self.flavor)
+            self.verdict = verify(self.read_path, written, self.profile, self.flavor, self.plan.added_s)
         except Exception as exc:  # noqa: BLE001 (a model's gap must not cost the user the output)
             self.warnings.append(f"not verified on the firmware's planner: its model failed "
                                  f"({type(exc).__name__}: {' '.join(str(exc).split())})")
