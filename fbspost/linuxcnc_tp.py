@@ -82,9 +82,13 @@ class LinuxCNCConfig:
 
     @classmethod
     def from_profile(cls, profile: MachineProfile, **changes) -> LinuxCNCConfig:
+        # An axis the profile leaves out (Z on an XY stage) gets the slowest given axis' limits:
+        # the INI has finite ones, and without any a move of that axis alone never ends.
+        given = [profile.axes[a] for a in "XYZ" if a in profile.axes] or list(profile.axes.values())
         limits = [profile.axes.get(a) for a in "XYZ"]
-        velocity = tuple(a.max_velocity_mm_s if a else math.inf for a in limits)  # no such axis: no limit
-        acceleration = tuple(a.max_acceleration_mm_s2 if a else math.inf for a in limits)
+        velocity = tuple(a.max_velocity_mm_s if a else min(g.max_velocity_mm_s for g in given) for a in limits)
+        acceleration = tuple(a.max_acceleration_mm_s2 if a else min(g.max_acceleration_mm_s2 for g in given)
+                             for a in limits)
         return cls(**{"axis_velocity_mm_s": velocity, "axis_acceleration_mm_s2": acceleration, **changes})
 
 

@@ -9,8 +9,8 @@ on both sides; every piece for a machine without E, while it moves): what the pa
 
 The output is kept only if it is more accurate there (a lower RMS error, a largest error at
 most ``MAX_PEAK_RATIO`` of the original's) and lasts at most the margins fbspost added (its lead
-and settle time) and ``MAX_TIME_INCREASE`` of the original's time longer; else the writer commits
-the original instead.
+and settle time), ``MAX_TIME_INCREASE`` of the original's time and ``TIME_SLACK_S`` longer; else
+the writer commits the original instead.
 """
 from __future__ import annotations
 
@@ -30,6 +30,7 @@ from .simulate import PathDistance
 # Beyond the margins fbspost adds on purpose, more than this is the firmware falling behind the
 # written timing (a starved buffer, Marlin's merges, LinuxCNC's short-block cap).
 MAX_TIME_INCREASE = 0.01
+TIME_SLACK_S = 0.05  # (a program of a second: a few servo periods or ramps are not a slower print)
 # The largest error is one spot, often one neither program changes much (a corner after a copied
 # travel): a few percent there must not throw away a gain everywhere else.
 MAX_PEAK_RATIO = 1.1
@@ -61,7 +62,11 @@ class Verdict:
         """The output is more accurate on the firmware and not slower than allowed."""
         return (self.output.rms_um < self.original.rms_um
                 and self.output.max_um <= MAX_PEAK_RATIO * self.original.max_um
-                and self.output.duration_s <= (1.0 + MAX_TIME_INCREASE) * self.original.duration_s + self.margins_s)
+                and self.output.duration_s <= self.time_allowed_s)
+
+    @property
+    def time_allowed_s(self) -> float:
+        return (1.0 + MAX_TIME_INCREASE) * self.original.duration_s + self.margins_s + TIME_SLACK_S
 
     def summary(self) -> str:
         return (f"on {self.flavor}'s planner (model), original -> output: print time {self.original.duration_s:.1f} -> "

@@ -61,6 +61,15 @@ def test_a_long_line_cruises_at_f_and_ramps_at_half_the_acceleration_in_g64(tmp_
     assert done.cycle_positions_mm[-1, 0] == pytest.approx(20.0, abs=1e-12)
 
 
+def test_an_axis_the_profile_leaves_out_moves_at_the_slowest_given_limits(tmp_path):
+    """The patent stage has no Z: a plunge G1 Z-2 F100 alone (G61.1: ramps at the full
+    acceleration) is the trapezoid d / v + v / a with X's and Y's 8000 mm/s^2; it used to
+    never end (no limit: an infinite acceleration)."""
+    done = run(tmp_path, ["G0 Z0", "G61.1", "G1 Z-2 F100"])
+    v = 100.0 / 60.0
+    assert done.duration_s == pytest.approx(2.0 / v + v / A, abs=2 * T)
+
+
 @pytest.mark.parametrize("depth", [2, 50])
 def test_the_look_ahead_depth_bounds_the_speed_of_short_segments(tmp_path, depth):
     """0.05 mm segments at F3000 in G64: each new (not finalized, parabolic: a/2) segment lets the
