@@ -230,6 +230,8 @@ def _compensate(read_path, input_path, output_path, profile, options, flavor, pr
                     loosened_s=written.loosened_s, rms_deviation_mm=written.rms_deviation_mm)
     report.verified = verification.verdict
     report.original_kept = verification.original_kept
+    if report.original_kept:
+        report.lines_out = report.lines_in  # (the original, line for line)
     report.warnings.extend(verification.warnings)
     for c, (before, after) in errors.items():
         if before.count and c in executed.stats:

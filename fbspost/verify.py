@@ -48,6 +48,8 @@ class FirmwareResult:
 
 @dataclass
 class Verdict:
+    """The original and the output as the firmware of ``flavor`` runs them, and whether to keep the output."""
+
     flavor: str
     original: FirmwareResult
     output: FirmwareResult

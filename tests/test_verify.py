@@ -43,6 +43,7 @@ def test_the_original_is_kept_where_the_firmware_runs_the_output_worse(tmp_path)
     # Marlin's merge: the output runs long, beyond fbspost's margins
     assert verdict.output.duration_s > (1 + MAX_TIME_INCREASE) * verdict.original.duration_s + report.added_time_s + 1.0
     assert report.original_kept and target.read_bytes() == source.read_bytes()
+    assert report.lines_out == report.lines_in == 400
     assert "the original was written unchanged" in " ".join(report.warnings)
 
 
