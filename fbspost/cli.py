@@ -158,7 +158,7 @@ def machines():
 @click.option("--verify/--no-verify", default=None,
               help="Before committing, run the original and the output through the model of the firmware's planner "
                    "and the machine's modes; where the output is not more accurate there (a lower RMS contour "
-                   "error, a largest at most 10% above the original's) or lasts longer than its margins, 1% "
+                   "error, a largest at most 10% above the original's) or lasts longer than its margins, 2% "
                    "and 50 ms more, write the original unchanged. Default: on for Marlin, RepRapFirmware and LinuxCNC "
                    "outputs up to 100,000 lines (it holds about 4 kB a line), off for Klipper (which runs the "
                    "blocks as written).")
