@@ -407,6 +407,9 @@ class _Buffer:
         self.settle(np.inf)
         self.free_s, self.run_first = free_s, self.added
 
+    def last_end_s(self) -> float:
+        return self.end[self.added - 1] if self.added > self.run_first else self.free_s
+
     def settle(self, bound_s: float, through: int | None = None) -> None:
         """Start every block whose start and exit speed are decided, no block still to come
         arriving before ``bound_s``; at least through block ``through``."""
@@ -459,6 +462,35 @@ class _Buffer:
         self.done = k + 1
 
 
+def send_lines(lines: list[tuple[Kind, bool, float]], first_block: np.ndarray, queue,
+               line_rate_hz: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """A host sending ``lines`` (kind, sent, dwell s) one by one at ``line_rate_hz`` (None: at
+    once), each line's blocks ``first_block[i]`` .. ``first_block[i + 1] - 1`` into ``queue``
+    (Marlin's buffer, RepRapFirmware's ring) as their slots free; a STOP waits for the queue to
+    empty, then dwells. Gives per line when it was taken, and a STOP's time (else NaN); the
+    queue is left settled."""
+    line_s = 1.0 / line_rate_hz if line_rate_hz else 0.0
+    taken, line_time = np.full(len(lines), np.nan), np.full(len(lines), np.nan)
+    t = 0.0  # when the last line sent was taken
+    for index, (kind, sent, dwell_s) in enumerate(lines):
+        if not sent:
+            continue
+        t += line_s
+        if kind is Kind.STOP:  # waits for the queue to empty, then its dwell
+            queue.settle(np.inf)
+            line_time[index] = t = max(t, queue.last_end_s())
+            t += dwell_s
+            queue.idle(t)
+        for j in range(first_block[index], first_block[index + 1]):
+            slot = queue.slot_free_s(j, t)
+            queue.add(j, max(t, slot), slot >= t)
+            t = max(t, slot)
+        taken[index] = t
+        queue.settle(t + line_s)
+    queue.settle(np.inf)
+    return taken, line_time
+
+
 def run_marlin(blocks: list[Block], profile: MachineProfile, config: MarlinConfig | None = None) -> MarlinRun:
     """``blocks`` sent to Marlin line by line and run (see the module docstring)."""
     config = config or MarlinConfig.from_profile(profile)
@@ -466,26 +498,8 @@ def run_marlin(blocks: list[Block], profile: MachineProfile, config: MarlinConfi
     segments, lines = _read(blocks, profile)
     geo = _Geometry.of(segments, config)
     buffer = _Buffer(geo, config)
-    line_s = 1.0 / config.line_rate_hz if config.line_rate_hz else 0.0
     first_block = np.searchsorted(geo.line, np.arange(len(lines) + 1))
-    taken, line_time = np.full(len(lines), np.nan), np.full(len(lines), np.nan)
-    t = 0.0  # when the last line sent was acknowledged
-    for index, (kind, sent, dwell_s) in enumerate(lines):
-        if not sent:
-            continue
-        t += line_s
-        if kind is Kind.STOP:  # waits for the buffer to empty, then its dwell
-            buffer.settle(np.inf)
-            line_time[index] = t = max(t, buffer.end[buffer.added - 1] if buffer.added > buffer.run_first else t)
-            t += dwell_s
-            buffer.idle(t)
-        for j in range(first_block[index], first_block[index + 1]):
-            slot = buffer.slot_free_s(j, t)
-            buffer.add(j, max(t, slot), slot >= t)
-            t = max(t, slot)
-        taken[index] = t
-        buffer.settle(t + line_s)
-    buffer.settle(np.inf)
+    taken, line_time = send_lines(lines, first_block, buffer, config.line_rate_hz)
     ends = np.append(buffer.end, np.nan)
     moves = np.array([kind is Kind.MOVE for kind, _, _ in lines])
     owner = first_block[1:] - (first_block[1:] > first_block[:-1])  # its last block; merged away: the next

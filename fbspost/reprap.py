@@ -52,7 +52,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .gcode import AXES, Block, Kind
-from .marlin import MarlinRun, _axis_limited, _trapezoid_s
+from .marlin import MarlinRun, _axis_limited, _trapezoid_s, send_lines
 from .planner import _LimitState
 from .profile import MachineProfile
 
@@ -209,7 +209,8 @@ class _Ring:
         self.settle(bound_s, through=older)
         return self.end[older]
 
-    def add(self, j: int, arrive_s: float) -> None:
+    def add(self, j: int, arrive_s: float, slot_wait: bool) -> None:
+        """Move ``j`` taken at ``arrive_s`` (``slot_wait``, Marlin's stepper race: none here)."""
         self.arrive[j] = arrive_s
         self.added = j + 1
 
@@ -269,25 +270,8 @@ def run_reprap(blocks: list[Block], profile: MachineProfile, config: ReprapConfi
     rows, lines = _read(list(blocks), profile, config)
     moves = _Moves.of(rows, config)
     ring = _Ring(moves, config)
-    line_s = 1.0 / config.line_rate_hz if config.line_rate_hz else 0.0
     first_move = np.searchsorted(moves.line, np.arange(len(lines) + 1))
-    taken, line_time = np.full(len(lines), np.nan), np.full(len(lines), np.nan)
-    t = 0.0  # when the last line was taken
-    for index, (kind, sent, dwell_s) in enumerate(lines):
-        if not sent:
-            continue
-        t += line_s
-        if kind is Kind.STOP:  # waits for the ring to empty, then its dwell
-            ring.settle(np.inf)
-            line_time[index] = t = max(t, ring.last_end_s())
-            t += dwell_s
-            ring.idle(t)
-        for j in range(first_move[index], first_move[index + 1]):
-            t = max(t, ring.slot_free_s(j, t))
-            ring.add(j, t)
-        taken[index] = t
-        ring.settle(t + line_s)
-    ring.settle(np.inf)
+    taken, line_time = send_lines(lines, first_move, ring, config.line_rate_hz)
     ends = np.append(ring.end, np.nan)
     has_moves = first_move[1:] > first_move[:-1]
     line_time = np.where(has_moves, ends[first_move[1:] - 1], np.where(np.isnan(line_time), taken, line_time))
