@@ -414,28 +414,58 @@ def _merged(start: np.ndarray, ints: np.ndarray, steps_per_unit: np.ndarray, min
     ends = np.vstack([start, ints])
     stepped = steps_per_unit > 0  # (the other columns never step)
     at_steps = np.rint(ends[:, stepped] * steps_per_unit[stepped])
-    far = (np.abs(np.diff(at_steps, axis=0)) >= min_steps).any(axis=1)  # each row from the one before
-    if far.all():
+    following = _next_far(at_steps, min_steps)
+    if following == list(range(1, len(ends) + 1)):
         return ints
-    # After a kept row, a row far from it is kept; only after a merged one is a row compared
-    # with an earlier one (the last kept), until one is far from it.
-    kept = np.ones(len(ends), dtype=bool)
-    near, rows = (np.flatnonzero(~far) + 1).tolist(), at_steps.tolist()
-    i = 0
-    while i < len(near):
-        k = near[i]
-        last = rows[k - 1]
-        while k < len(rows) and max((abs(a - b) for a, b in zip(rows[k], last, strict=True)), default=0.0) < min_steps:
-            kept[k] = False
-            k += 1
-        i = bisect.bisect_right(near, k, i)
-    kept = np.flatnonzero(kept).tolist()
+    # The kept rows: the start, then from each kept row the next one far from it.
+    kept, k, n = [], 0, len(ends)
+    while k < n:
+        kept.append(k)
+        k = following[k]
+        if k < 0:
+            k = _next_far_of(at_steps, kept[-1], min_steps)
     if exact_last and kept[-1] != len(ints):  # the kept rows near the last end go instead
-        while len(kept) > 1 and max(abs(a - b) for a, b in zip(rows[kept[-1]], rows[-1], strict=True)) < min_steps:
+        while len(kept) > 1 and np.abs(at_steps[kept[-1]] - at_steps[-1]).max(initial=0.0) < min_steps:
             kept.pop()
         kept.append(len(ints))
-    source = np.repeat(kept, np.diff(np.append(kept, len(ends))))  # each row: the last kept at or before it
+    source = np.repeat(kept, np.diff(np.append(kept, n)))  # each row: the last kept at or before it
     return ends[source[1:]]
+
+
+_NEAR_ROWS = 16  # rows looked ahead at once for the next row far from each
+
+
+def _next_far(at_steps: np.ndarray, min_steps: int) -> list[int]:
+    """For each row, the first later row at least ``min_steps`` from it on some column (the
+    row count where there is none; -1 where it is more than ``_NEAR_ROWS`` ahead: see
+    ``_next_far_of``)."""
+    n = len(at_steps)
+    following = np.full(n, -1, dtype=np.int64)
+    open_rows = np.arange(n)
+    for ahead in range(1, _NEAR_ROWS + 1):
+        past_end = open_rows + ahead >= n
+        following[open_rows[past_end]] = n
+        open_rows = open_rows[~past_end]
+        gap = np.abs(at_steps[open_rows + ahead] - at_steps[open_rows]).max(axis=1, initial=0.0)
+        far = gap >= min_steps
+        following[open_rows[far]] = open_rows[far] + ahead
+        open_rows = open_rows[~far]
+        if not len(open_rows):
+            break
+    return following.tolist()
+
+
+def _next_far_of(at_steps: np.ndarray, row: int, min_steps: int) -> int:
+    """The first row after ``row`` at least ``min_steps`` from it on some column (the row count
+    where there is none), looked for in ever longer stretches."""
+    first, size = row + 1, 4 * _NEAR_ROWS
+    while first < len(at_steps):
+        gap = np.abs(at_steps[first:first + size] - at_steps[row]).max(axis=1, initial=0.0)
+        far = np.flatnonzero(gap >= min_steps)
+        if len(far):
+            return first + int(far[0])
+        first, size = first + size, 2 * size
+    return len(at_steps)
 
 
 def _feeds(length_mm: np.ndarray, durations_s: np.ndarray, moving: np.ndarray, residue_s: float,
