@@ -18,6 +18,7 @@ import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -256,7 +257,8 @@ def _compensate_many(pairs: list[tuple[Path, Path]], profile: MachineProfile, op
             for source, target in pairs:
                 finish(source, target, _compensate_one(source, target, profile, options))
         else:
-            _compensate_in_pool(pairs, profile, options, workers, finish)
+            # (every core busy with a file: no second processes for the axes)
+            _compensate_in_pool(pairs, profile, replace(options, second_process=False), workers, finish)
     except KeyboardInterrupt as exc:
         done = sum(not isinstance(o, str) for o in outcomes.values())
         click.echo(f"error: interrupted; {done} of {len(pairs)} files compensated, the others unchanged", err=True)

@@ -110,6 +110,7 @@ class NeedsInterpreter(InputError):
     def __init__(self, path: str | Path, line: int, feature: str, message: str):
         super().__init__(path, line, message)
         self.line, self.feature = line, feature
+        self._parts = (path, line, feature, message)
 
 
 class Kind(enum.Enum):

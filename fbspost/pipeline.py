@@ -16,7 +16,6 @@ import re
 import shutil
 import tempfile
 import time
-from collections import defaultdict
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
@@ -31,6 +30,7 @@ from .dynamics import AxisDynamics, ModelSet
 from .expand import check_remaps, expand
 from .fallback import FALLBACK, AxisGuard
 from .gcode import AXES, Block, NeedsInterpreter, detect_flavor, read_gcode
+from .offload import Offloaded
 from .optimizer import AxisCompensator, AxisLimits, FBSSettings
 from .planner import Plan, PlanStream, RunMargins
 from .profile import AxisProfile, MachineProfile
@@ -61,6 +61,9 @@ class CompensateOptions:
     tool_table: Path | None = None  # rs274's tool table (tool length offsets, cutter radii)
     ini: Path | None = None  # rs274's INI (subroutine paths)
     parallel_axes: bool = True  # each compensated axis on its own threads (same output, bit for bit)
+    # The optimizers and fallbacks in a second process, beside the writer (same output, bit for
+    # bit); None: for programs of _SECOND_PROCESS_BYTES and more, with parallel_axes
+    second_process: bool | None = None
     # Re-plan both programs on the firmware's planner before committing (verify.py); None: for
     # the firmware whose planner differs from the blocks as written, up to VERIFY_AUTO_LINES.
     verify: bool | None = False
@@ -130,6 +133,7 @@ _CHUNK = 1 << 14  # samples planned, compensated and written at once
 # RepRapFirmware lines 1 GB); Klipper runs the blocks as written (proven on klippy).
 VERIFY_AUTO_LINES = 100_000
 _E = AXES.index("E")  # the filament column, for modes that vary with the print
+_SECOND_PROCESS_BYTES = 256_000  # (a second process starts in about 0.5 s: a program this long takes 5 s)
 
 
 def compensate_file(input_path: str | Path, output_path: str | Path, profile: MachineProfile,
@@ -181,17 +185,18 @@ def _compensate(read_path, input_path, output_path, profile, options, flavor, pr
     blocks = _timed(read_gcode(read_path, flavor, profile.home_mm), stages, "read")
     if progress:
         blocks = _reported(blocks, _count_lines(read_path), progress)
-    margins = RunMargins.for_profile(profile, options.lead_time_s, options.settle_time_s)
-    plan = PlanStream(blocks, profile, margins=margins, firmware=flavor)
+    plan = _plan_stream(blocks, profile, options, flavor)
     compensators = _compensators(profile, options)
-    errors = {c: (_ErrorStats(), _ErrorStats()) for c in compensators}
     follows_plan = np.array([c not in compensators for c in range(len(AXES))])
-    optimizer_warnings: list[str] = []
-    lanes = _Lanes(compensators) if options.parallel_axes else None
-    tally = _Tally()
-    chunks = _timed(_compensated(plan, compensators, errors, optimizer_warnings, options.fallback, lanes, tally),
-                    stages, "optimize",
-                    exclude=lambda: plan.time_s)
+    elsewhere = _in_second_process(read_path, options) and bool(compensators)
+    if elsewhere:  # a process per axis (each reads and plans too: a plan is a few per cent of the work)
+        workers = {c: Offloaded(_offloaded_chunks, read_path, profile, options, flavor, c, i == 0)
+                   for i, c in enumerate(compensators)}
+        chunks = _received(workers, plan)
+    else:
+        outcome = _Outcome.of(compensators)
+        chunks = _compensation_chunks(plan, compensators, options, outcome)
+    chunks = _timed(chunks, stages, "optimize", exclude=lambda: plan.time_s)
     write_options = WriteOptions(
         flavor=flavor,
         output_format=options.output_format,
@@ -215,16 +220,20 @@ def _compensate(read_path, input_path, output_path, profile, options, flavor, pr
             plan, SampleWindow(chunks, plan, follows_plan), write_options, f, executed)),
             verification if verification.wanted else None)
     finally:
-        if lanes:
-            lanes.shutdown()
+        if elsewhere:
+            for worker in workers.values():
+                worker.close()
+    if elsewhere:
+        outcome = _Outcome.joined([worker.value for worker in workers.values()])
     stages["plan"] = plan.time_s - stages["read"]
+    # (optimize: the writer's wait for the chunks; the work's own time follows)
     stages["write"] = time.perf_counter() - clock - plan.time_s - stages["optimize"] - stages.get("verify", 0.0)
-    stages["optimize"] -= tally.fallback_s
-    stages["fallback"] = tally.fallback_s
+    stages["optimize"] = outcome.optimize_s - outcome.tally.fallback_s
+    stages["fallback"] = outcome.tally.fallback_s
     written = stats[0]
     report = Report(str(input_path), str(output_path), profile.name, flavor, plan.n_blocks, written.lines_out,
-                    plan.duration_s, 0.0, plan.added_s, margins.lead_s, margins.settle_s,
-                    warnings=plan.warnings + optimizer_warnings, stage_time_s=stages,
+                    plan.duration_s, 0.0, plan.added_s, plan.margins.lead_s, plan.margins.settle_s,
+                    warnings=plan.warnings + outcome.warnings, stage_time_s=stages,
                     max_line_rate_hz=written.max_line_rate_hz, line_rate_budget_hz=profile.firmware.max_line_rate_hz,
                     tolerance_used_mm=written.max_deviation_mm, tolerance_used_at_s=written.max_deviation_s,
                     loosened_s=written.loosened_s, rms_deviation_mm=written.rms_deviation_mm)
@@ -233,13 +242,112 @@ def _compensate(read_path, input_path, output_path, profile, options, flavor, pr
     if report.original_kept:
         report.lines_out = report.lines_in  # (the original, line for line)
     report.warnings.extend(verification.warnings)
-    for c, (before, after) in errors.items():
+    for c, (before, after) in outcome.errors.items():
+        windows = outcome.tally.windows.get(c, (0, 0))
         if before.count and c in executed.stats:
-            report.axes[AXES[c]] = executed.report(c, *tally.windows[c], after)
+            report.axes[AXES[c]] = executed.report(c, *windows, after)
         elif before.count:
-            report.axes[AXES[c]] = AxisReport.from_stats(before, after, *tally.windows[c])
+            report.axes[AXES[c]] = AxisReport.from_stats(before, after, *windows)
     report.compute_time_s = time.perf_counter() - started
     return report
+
+
+def _plan_stream(blocks: Iterable[Block], profile: MachineProfile, options: CompensateOptions,
+                 flavor: str) -> PlanStream:
+    margins = RunMargins.for_profile(profile, options.lead_time_s, options.settle_time_s)
+    return PlanStream(blocks, profile, margins=margins, firmware=flavor)
+
+
+def _in_second_process(read_path, options: CompensateOptions) -> bool:
+    """Whether the optimizers and fallbacks run in a second process (``second_process``)."""
+    if options.second_process is not None:
+        return options.second_process
+    return options.parallel_axes and Path(read_path).stat().st_size >= _SECOND_PROCESS_BYTES
+
+
+@dataclass
+class _Outcome:
+    """What compensating a program counts besides its chunks: per compensated axis (column) the
+    modelled errors before and after (``AxisGuard``), the optimizers' and fallbacks' warnings,
+    their windows and time, and the time of the whole (optimize and fallback, s)."""
+
+    errors: dict[int, tuple[_ErrorStats, _ErrorStats]]
+    warnings: list[str] = field(default_factory=list)
+    tally: _Tally = field(default_factory=lambda: _Tally())
+    optimize_s: float = 0.0
+
+    @classmethod
+    def of(cls, compensators: dict[int, AxisCompensator]) -> _Outcome:
+        return cls({c: (_ErrorStats(), _ErrorStats()) for c in compensators})
+
+    @classmethod
+    def joined(cls, outcomes: list[_Outcome]) -> _Outcome:
+        """The outcomes of the axes compensated apart, in their order (the times: the longest)."""
+        return cls({c: e for o in outcomes for c, e in o.errors.items()}, [w for o in outcomes for w in o.warnings],
+                   _Tally(max(o.tally.fallback_s for o in outcomes),
+                          {c: n for o in outcomes for c, n in o.tally.windows.items()}),
+                   max(o.optimize_s for o in outcomes))
+
+
+def _compensation_chunks(plan: PlanStream, compensators: dict[int, AxisCompensator], options: CompensateOptions,
+                         outcome: _Outcome) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """``_compensated``'s chunks of ``plan``, on threads per axis if ``parallel_axes``;
+    ``outcome`` counts the rest."""
+    lanes = _Lanes(compensators) if options.parallel_axes else None
+    stages = {"work": 0.0}
+    try:
+        yield from _timed(_compensated(plan, compensators, outcome.errors, outcome.warnings, options.fallback,
+                                       lanes, outcome.tally), stages, "work", exclude=lambda: plan.time_s)
+    finally:
+        if lanes:
+            lanes.shutdown()
+    outcome.optimize_s = stages["work"]
+
+
+def _offloaded_chunks(read_path, profile: MachineProfile, options: CompensateOptions, flavor: str, axis: int,
+                      planned_too: bool) -> Iterator[tuple[np.ndarray | None, np.ndarray]]:
+    """In a process of its own (offload.py): the program read and planned anew, and its chunks
+    as ``_compensation_chunks`` gives them with ``axis`` (a column) the only one compensated:
+    the planned samples (None unless ``planned_too``: every axis' process has the same) and the
+    axis' command. Returns the ``_Outcome``."""
+    plan = _plan_stream(read_gcode(read_path, flavor, profile.home_mm), profile, options, flavor)
+    compensators = {axis: _compensators(profile, options)[axis]}
+    outcome = _Outcome.of(compensators)
+    for planned, command in _compensation_chunks(plan, compensators, options, outcome):
+        plan.lines.clear()  # (the writer's blocks: the writer is in the first process)
+        yield (planned if planned_too else None), command[:, axis].copy()
+    return outcome
+
+
+def _received(workers: dict[int, Offloaded], plan: PlanStream) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """The chunks of the axes' processes (``workers``: by column, the first sending the planned
+    samples) joined, as far as every one has given them; ``plan``, the writer's, lets go of what
+    only the optimizers would use."""
+    streams = {c: iter(worker) for c, worker in workers.items()}
+    first = next(iter(workers))
+    held = {c: np.zeros(0) for c in workers}  # each axis' command
+    planned = np.zeros((0, len(AXES)))
+    received = 0
+    while True:
+        for c, stream in streams.items():
+            if not len(held[c]):
+                rows, column = next(stream, (None, np.zeros(0)))
+                held[c] = column
+                if c == first and rows is not None:
+                    planned = rows
+        n = min(len(column) for column in held.values())
+        if not n:
+            if any(len(column) for column in held.values()):
+                raise RuntimeError("the axes' processes gave different samples")
+            return
+        command = planned[:n].copy()
+        for c, column in held.items():
+            command[:, c], held[c] = column[:n], column[n:]
+        yield_planned, planned = planned[:n], planned[n:]
+        received += n
+        plan.release(received)
+        plan.moves.clear()  # (the fallback's warnings, found in the axes' processes)
+        yield yield_planned, command
 
 
 class _Verification:
@@ -429,7 +537,7 @@ def _optimized(plan: Plan | PlanStream, compensators: dict[int, AxisCompensator]
         # (The optimizer's warnings of limits not met are the fallback's to give: it falls back there.)
         results = _per_axis(lanes, lambda c, streams=streams: streams[c].finish(), streams)
         for c, result in results.items():
-            counts = tally.windows[c]
+            counts = tally.windows.setdefault(c, [0, 0])
             counts[0] += result.windows
             counts[1] += result.qp_windows
         commands = {c: np.concatenate([commands[c], results[c].command_mm]) for c in streams}
@@ -522,7 +630,7 @@ class _Tally:
     windows and those that needed the QP."""
 
     fallback_s: float = 0.0
-    windows: dict[int, list[int]] = field(default_factory=lambda: defaultdict(lambda: [0, 0]))
+    windows: dict[int, list[int]] = field(default_factory=dict)
 
 
 @dataclass

@@ -905,7 +905,7 @@ class PlanStream:
     def __init__(self, blocks: Iterable[Block], profile: MachineProfile, batch_blocks: int | None = None,
                  keep: bool = False, margins: RunMargins | None = None, firmware: str | None = None):
         self.sample_rate_hz = self._fs = float(profile.sample_rate_hz)
-        margins = margins or RunMargins()
+        self.margins = margins = margins or RunMargins()
         self._lead = round(margins.lead_s * self._fs)  # samples
         self._settle_s = round(margins.settle_s * self._fs) / self._fs
         self.added_s = 0.0  # the margins' time, over the runs settled

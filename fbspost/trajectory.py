@@ -24,6 +24,10 @@ class InputError(ValueError):
 
     def __init__(self, path: str | Path, line: int | None, message: str):
         super().__init__(f"{path}:{line}: {message}" if line is not None else f"{path}: {message}")
+        self._parts = (path, line, message)
+
+    def __reduce__(self):  # (pickled from the compensation's process: offload.py)
+        return type(self), self._parts
 
 
 @dataclass

@@ -1,6 +1,7 @@
 """Speed changes keep the output: the same program and settings give the same bytes however the
 work is spread (the compensated axes on threads or one after the other), on programs whose
 limits bind (windows that need the QP)."""
+import re
 import subprocess
 import sys
 from dataclasses import replace
@@ -9,11 +10,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fbspost import optimizer
+from fbspost import optimizer, pipeline
 from fbspost.dynamics import AxisDynamics
+from fbspost.fallback import FALLBACK
+from fbspost.offload import Offloaded, _portable
 from fbspost.optimizer import AxisCompensator, AxisLimits, FBSSettings
 from fbspost.pipeline import CompensateOptions, compensate_file
 from fbspost.profile import load_profile
+from fbspost.trajectory import InputError
 from fbspost.writer import _merged
 
 DATA = Path(__file__).parent / "data"
@@ -57,6 +61,73 @@ def test_final_windows_kept_or_built_anew_write_the_same_bytes(tmp_path, monkeyp
         outputs.append(tmp_path / f"kept-{budget}.gcode")
         compensate_file(source, outputs[-1], profile, replace(CompensateOptions(), parallel_axes=False))
     assert outputs[0].read_bytes() == outputs[1].read_bytes()
+
+
+def _head(tmp_path, program: str, lines: int) -> Path:
+    source = tmp_path / program
+    with open(DATA / program, "rb") as f:
+        source.write_bytes(b"".join(f.readline() for _ in range(lines)))
+    return source
+
+
+def _same_outcome(tmp_path, source: Path, machine: str, options: CompensateOptions) -> dict:
+    """The bytes written and the report, with the axes compensated in processes of their own
+    and on threads of this one: asserted equal; gives the report."""
+    profile, outputs, reports = load_profile(machine), {}, {}
+    for apart in (True, False):
+        outputs[apart] = tmp_path / f"apart-{apart}.gcode"
+        report = compensate_file(source, outputs[apart], profile, replace(options, second_process=apart)).as_dict()
+        reports[apart] = {k: v for k, v in report.items() if k not in ("output", "stage_time_s", "compute_time_s")}
+    assert outputs[True].read_bytes() == outputs[False].read_bytes()
+    assert reports[True] == reports[False]
+    return reports[True]
+
+
+@pytest.mark.slow
+def test_axes_in_processes_of_their_own_write_and_report_the_same(tmp_path):
+    """The gear's head, two modes on X and the QP at its corners: each axis compensated in a
+    process of its own (offload.py) gives the same bytes and the same report as on threads."""
+    report = _same_outcome(tmp_path, _head(tmp_path, "gear-marlin2.gcode", 1200), "printer-two-mode",
+                           CompensateOptions())
+    assert len(report["axes"]) == 2 and all(axis["qp_windows"] > 0 for axis in report["axes"].values())
+
+
+def test_fallback_warnings_come_back_from_the_axes_processes(tmp_path):
+    """A move whose compensation falls back (tests/test_fallback.py): the warning, found in the
+    axis' process with the program line it names, is the one found here."""
+    source = tmp_path / "in.gcode"
+    source.write_bytes(b"G1 X2.789 Y0 Z0.2 F1200\nG1 X0 Y0 Z0.4\n")
+    report = _same_outcome(tmp_path, source, "bedslinger-example",
+                           CompensateOptions(flavor="marlin", lead_time_s=0.0, settle_time_s=0.0))
+    assert any(w.startswith(FALLBACK) and "line 2" in w for w in report["warnings"]), report["warnings"]
+
+
+def test_bad_input_found_in_an_axis_process_is_the_one_line_error(tmp_path):
+    """The axes' processes read the program too: a bad line one of them reaches is raised here
+    as the same InputError (file and line), and compensating writes nothing."""
+    source = tmp_path / "bad.gcode"
+    source.write_bytes(b"G1 X1 Y1 F3000\nG1 X2 Y1\n" * 1000 + b"G1 X20 F0\n")
+    where = rf"{re.escape(str(source))}:2001: feed F0 must be positive"
+    profile, options = load_profile("printer-two-mode"), CompensateOptions(flavor="marlin", second_process=True)
+    with Offloaded(pipeline._offloaded_chunks, source, profile, options, "marlin", 0, True) as worker:
+        with pytest.raises(InputError, match=where):
+            list(worker)
+    output = tmp_path / "out.gcode"
+    with pytest.raises(InputError, match=where):
+        compensate_file(source, output, profile, options)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.gcode"]
+
+
+def test_an_exception_that_does_not_pickle_comes_back_as_its_traceback():
+    class Local(Exception):  # (a local class does not pickle)
+        pass
+
+    try:
+        raise Local("the optimizer failed")
+    except Local as error:
+        back = _portable(error)
+    assert isinstance(back, RuntimeError) and "Local: the optimizer failed" in str(back)
+    assert isinstance(_portable(InputError("a.gcode", 3, "bad")), InputError)
 
 
 def test_help_loads_no_scipy():
