@@ -441,17 +441,18 @@ def _next_far(at_steps: np.ndarray, min_steps: int) -> list[int]:
     ``_next_far_of``)."""
     n = len(at_steps)
     following = np.full(n, -1, dtype=np.int64)
-    open_rows = np.arange(n)
-    for ahead in range(1, _NEAR_ROWS + 1):
-        past_end = open_rows + ahead >= n
-        following[open_rows[past_end]] = n
-        open_rows = open_rows[~past_end]
-        gap = np.abs(at_steps[open_rows + ahead] - at_steps[open_rows]).max(axis=1, initial=0.0)
-        far = gap >= min_steps
-        following[open_rows[far]] = open_rows[far] + ahead
-        open_rows = open_rows[~far]
-        if not len(open_rows):
+    rows = np.arange(n)
+    columns = [np.ascontiguousarray(at_steps[:, j]) for j in range(at_steps.shape[1])]
+    # (whole columns a row apart: faster than gathering the rows still open, most of them are)
+    for ahead in range(1, min(_NEAR_ROWS, n - 1) + 1):
+        far = np.zeros(n - ahead, dtype=bool)
+        for column in columns:
+            far |= np.abs(column[ahead:] - column[:-ahead]) >= min_steps
+        found = far & (following[:-ahead] < 0)
+        following[:-ahead][found] = rows[:-ahead][found] + ahead
+        if (following[:-ahead] >= 0).all():
             break
+    following[(following < 0) & (rows >= n - 1 - _NEAR_ROWS)] = n  # every later row looked at
     return following.tolist()
 
 
