@@ -18,9 +18,11 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import resource
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from concurrent.futures import ProcessPoolExecutor
 from multiprocessing import get_context
@@ -100,21 +102,59 @@ def cnc_program(cache: Path, size_mb: float = 100.0) -> Path:
 
 
 def measure(program: Path, profile_name: str) -> tuple[dict, float, float, float]:
-    """Runs in a fresh process: (report, wall time s, CPU time s of all its threads, peak resident
-    memory MB of the process)."""
+    """Runs in a fresh process: (report, wall time s, CPU time s of all its threads and of the
+    axes' processes it starts, peak resident memory MB of it and them together)."""
     profile = load_profile(profile_name)
+    peak = _PeakMemory()
     with tempfile.TemporaryDirectory() as tmp:
-        started, cpu = time.perf_counter(), time.process_time()
+        started = time.perf_counter()
+        cpu = time.process_time(), resource.getrusage(resource.RUSAGE_CHILDREN)
         report = compensate_file(program, Path(tmp) / program.name, profile)
-        wall_s, cpu_s = time.perf_counter() - started, time.process_time() - cpu
-    peak_kb = next(int(line.split()[1]) for line in Path("/proc/self/status").read_text().splitlines()
-                   if line.startswith("VmHWM:"))
-    return report.as_dict(), wall_s, cpu_s, peak_kb / 1024
+        wall_s = time.perf_counter() - started
+        children = resource.getrusage(resource.RUSAGE_CHILDREN)
+        cpu_s = (time.process_time() - cpu[0] + children.ru_utime + children.ru_stime
+                 - cpu[1].ru_utime - cpu[1].ru_stime)
+    return report.as_dict(), wall_s, cpu_s, peak.stop() / 1024
+
+
+class _PeakMemory:
+    """The largest resident memory (kB) of this process and its children together, read from
+    /proc every 20 ms: each peaks at its own time, so adding their peaks would overstate it."""
+
+    def __init__(self):
+        self.peak_kb, self._done = 0, threading.Event()
+        self._thread = threading.Thread(target=self._watch, daemon=True)
+        self._thread.start()
+
+    def _watch(self) -> None:
+        own = os.getpid()
+        while not self._done.wait(0.02):
+            self.peak_kb = max(self.peak_kb, sum(_rss_kb(pid) for pid in [own, *_children(own)]))
+
+    def stop(self) -> int:
+        self._done.set()
+        self._thread.join()
+        return max(self.peak_kb, _rss_kb(os.getpid(), "VmHWM"))
+
+
+def _children(pid: int) -> list[int]:
+    try:
+        return [int(c) for c in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
+    except OSError:
+        return []
+
+
+def _rss_kb(pid: int, field: str = "VmRSS") -> int:
+    try:
+        return next(int(line.split()[1]) for line in Path(f"/proc/{pid}/status").read_text().splitlines()
+                    if line.startswith(field + ":"))
+    except (OSError, StopIteration):
+        return 0
 
 
 def pipeline_table(sizes: list[str], cache: Path) -> None:
-    print("Whole pipeline: wall time without interpreter start, CPU time (all threads: on two idle cores the\n"
-          "wall time is at least half of it), peak memory of the process; samples/s (S/s)\n"
+    print("Whole pipeline: wall time without interpreter start, CPU time (all threads and the axes' processes:\n"
+          "on two idle cores the wall time is at least half of it), peak memory of them all; samples/s (S/s)\n"
           "per stage, samples = print time x sample rate, once per compensated axis for optimize and\n"
           "fallback; QP %: the optimizer's windows that needed the QP; fallback %: its share of the wall time")
     print(f"{'program':16} {'profile':19} {'lines':>8} {'print s':>8} "

@@ -3,9 +3,9 @@
 Stages, one module each: ``gcode`` (reading programs), ``planner`` (the controller's plan),
 ``profile`` (machine profiles), ``dynamics`` (exact discrete axis models), ``splines``
 (B-spline bases), ``optimizer`` (the FBS solve), ``writer`` (the output program), ``pipeline``
-(the whole job on one file), ``trajectory`` (sampled trajectories as CSV), ``shapers``
-(Klipper's input shapers), ``simulate`` (methods compared through the model), ``plots`` (their
-plots), ``cli`` (the ``fbspost`` command).
+(the whole job on one file), ``offload`` (its axes in processes of their own), ``trajectory``
+(sampled trajectories as CSV), ``shapers`` (Klipper's input shapers), ``simulate`` (methods
+compared through the model), ``plots`` (their plots), ``cli`` (the ``fbspost`` command).
 """
 import os
 from importlib.metadata import PackageNotFoundError, version

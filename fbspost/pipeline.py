@@ -62,7 +62,7 @@ class CompensateOptions:
     ini: Path | None = None  # rs274's INI (subroutine paths)
     parallel_axes: bool = True  # each compensated axis on its own threads (same output, bit for bit)
     # The optimizers and fallbacks in a second process, beside the writer (same output, bit for
-    # bit); None: for programs of _SECOND_PROCESS_BYTES and more, with parallel_axes
+    # bit); None: for long programs of few blocks a second (_in_second_process), with parallel_axes
     second_process: bool | None = None
     # Re-plan both programs on the firmware's planner before committing (verify.py); None: for
     # the firmware whose planner differs from the blocks as written, up to VERIFY_AUTO_LINES.
@@ -134,6 +134,8 @@ _CHUNK = 1 << 14  # samples planned, compensated and written at once
 VERIFY_AUTO_LINES = 100_000
 _E = AXES.index("E")  # the filament column, for modes that vary with the print
 _SECOND_PROCESS_BYTES = 256_000  # (a second process starts in about 0.5 s: a program this long takes 5 s)
+_SECOND_PROCESS_LINES_S = 100.0  # blocks a second of the program's time
+_PROBE_S = 60.0  # the program's time the rate of its blocks is judged on
 
 
 def compensate_file(input_path: str | Path, output_path: str | Path, profile: MachineProfile,
@@ -188,7 +190,7 @@ def _compensate(read_path, input_path, output_path, profile, options, flavor, pr
     plan = _plan_stream(blocks, profile, options, flavor)
     compensators = _compensators(profile, options)
     follows_plan = np.array([c not in compensators for c in range(len(AXES))])
-    elsewhere = _in_second_process(read_path, options) and bool(compensators)
+    elsewhere = bool(compensators) and _in_second_process(read_path, options, plan)
     if elsewhere:  # a process per axis (each reads and plans too: a plan is a few per cent of the work)
         workers = {c: Offloaded(_offloaded_chunks, read_path, profile, options, flavor, c, i == 0)
                    for i, c in enumerate(compensators)}
@@ -258,11 +260,17 @@ def _plan_stream(blocks: Iterable[Block], profile: MachineProfile, options: Comp
     return PlanStream(blocks, profile, margins=margins, firmware=flavor)
 
 
-def _in_second_process(read_path, options: CompensateOptions) -> bool:
-    """Whether the optimizers and fallbacks run in a second process (``second_process``)."""
+def _in_second_process(read_path, options: CompensateOptions, plan: PlanStream) -> bool:
+    """Whether each compensated axis runs in a process of its own (``second_process``; None:
+    for a long program whose first blocks come at most ``_SECOND_PROCESS_LINES_S`` a second of
+    its time: each process reads and plans the program too, which costs more than it saves on a
+    CAM program of short segments)."""
     if options.second_process is not None:
         return options.second_process
-    return options.parallel_axes and Path(read_path).stat().st_size >= _SECOND_PROCESS_BYTES
+    if not options.parallel_axes or Path(read_path).stat().st_size < _SECOND_PROCESS_BYTES:
+        return False
+    plan.wait(lambda: plan.settled_s >= _PROBE_S or plan.done)
+    return bool(plan.n_blocks <= _SECOND_PROCESS_LINES_S * max(plan.settled_s, _PROBE_S))
 
 
 @dataclass

@@ -13,6 +13,7 @@ import pytest
 from fbspost import optimizer, pipeline
 from fbspost.dynamics import AxisDynamics
 from fbspost.fallback import FALLBACK
+from fbspost.gcode import read_gcode
 from fbspost.offload import Offloaded, _portable
 from fbspost.optimizer import AxisCompensator, AxisLimits, FBSSettings
 from fbspost.pipeline import CompensateOptions, compensate_file
@@ -100,6 +101,20 @@ def test_fallback_warnings_come_back_from_the_axes_processes(tmp_path):
     report = _same_outcome(tmp_path, source, "bedslinger-example",
                            CompensateOptions(flavor="marlin", lead_time_s=0.0, settle_time_s=0.0))
     assert any(w.startswith(FALLBACK) and "line 2" in w for w in report["warnings"]), report["warnings"]
+
+
+@pytest.mark.parametrize("segment_mm, elsewhere", [(10.0, True), (0.25, False)])
+def test_axes_go_to_processes_of_their_own_for_long_programs_of_few_lines_a_second(tmp_path, segment_mm,
+                                                                                  elsewhere):
+    """Over 256 kB: 10 mm moves at 50 mm/s (5 lines a second) are compensated in the axes' own
+    processes; 0.25 mm ones (200 a second, a CAM finishing pass), whose reading and planning
+    each process would repeat, on threads here."""
+    source = tmp_path / "long.gcode"
+    source.write_text("G1 F3000\n" + "".join(f"G1 X{i * segment_mm:.2f} Y{i % 2 * 1e-3:.3f}\n" for i in range(16_000)))
+    assert source.stat().st_size > pipeline._SECOND_PROCESS_BYTES
+    profile, options = load_profile("printer-two-mode"), CompensateOptions(flavor="marlin")
+    plan = pipeline._plan_stream(read_gcode(source, "marlin", profile.home_mm), profile, options, "marlin")
+    assert pipeline._in_second_process(source, options, plan) is elsewhere
 
 
 def test_bad_input_found_in_an_axis_process_is_the_one_line_error(tmp_path):
