@@ -321,7 +321,8 @@ def _offloaded_chunks(read_path, profile: MachineProfile, options: CompensateOpt
     plan = _plan_stream(read_gcode(read_path, flavor, profile.home_mm), profile, options, flavor)
     compensators = {axis: _compensators(profile, options)[axis]}
     outcome = _Outcome.of(compensators)
-    for planned, command in _compensation_chunks(plan, compensators, options, outcome):
+    # (one axis: threads would only hand the interpreter lock back and forth)
+    for planned, command in _compensation_chunks(plan, compensators, replace(options, parallel_axes=False), outcome):
         plan.lines.clear()  # (the writer's blocks: the writer is in the first process)
         yield (planned if planned_too else None), command[:, axis].copy()
     return outcome
