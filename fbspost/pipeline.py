@@ -405,9 +405,9 @@ def compensated_samples(plan: Plan, profile: MachineProfile, options: Compensate
     """The command for every sample of ``plan`` at once (n_samples, 4), as ``compensate_file``
     computes it (for programs that fit in memory); the optimizers' warnings added to ``warnings``."""
     compensators = _compensators(profile, options)
-    errors = {c: (_ErrorStats(), _ErrorStats()) for c in compensators}
-    chunks = _compensated(plan, compensators, errors, [] if warnings is None else warnings, options.fallback,
-                          None, _Tally())
+    outcome = _Outcome.of(compensators)
+    chunks = _compensated(plan, compensators, outcome.errors, [] if warnings is None else warnings, options.fallback,
+                          None, outcome.tally)
     return np.concatenate([command for _, command in chunks] or [np.zeros((0, len(AXES)))])
 
 

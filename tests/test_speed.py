@@ -31,31 +31,40 @@ DATA = Path(__file__).parent / "data"
 ])
 @pytest.mark.slow
 def test_axes_on_threads_write_the_serial_output_byte_for_byte(tmp_path, program, lines, machine):
+    here = replace(CompensateOptions(), second_process=False)
+    report = _same_outcome(tmp_path, _head(tmp_path, program, lines), machine,
+                           replace(here, parallel_axes=True), replace(here, parallel_axes=False))
+    assert len(report["axes"]) == 2 and report["print_time_s"] > 20.0
+    windows = [(axis["qp_windows"], axis["windows"]) for axis in report["axes"].values()]
+    assert 0 < sum(qp for qp, _ in windows) < sum(all_ for _, all_ in windows)
+
+
+def _head(tmp_path, program: str, lines: int) -> Path:
+    """The first ``lines`` lines of ``program`` (tests/data) as a file of their own."""
     source = tmp_path / program
     with open(DATA / program, "rb") as f:
         source.write_bytes(b"".join(f.readline() for _ in range(lines)))
-    profile, outputs = load_profile(machine), {}
-    for parallel in (True, False):
-        outputs[parallel] = tmp_path / f"parallel-{parallel}.gcode"
-        report = compensate_file(
-            source, outputs[parallel], profile, replace(CompensateOptions(), parallel_axes=parallel)
-        )
-        assert len(report.axes) == 2 and report.print_time_s > 20.0
-        assert (
-            0
-            < sum(axis.qp_windows for axis in report.axes.values())
-            < sum(axis.windows for axis in report.axes.values())
-        )
-    assert outputs[True].read_bytes() == outputs[False].read_bytes()
+    return source
+
+
+def _same_outcome(tmp_path, source: Path, machine: str, *variants: CompensateOptions) -> dict:
+    """The bytes written and the report (but its times), with each of the options ``variants``:
+    asserted equal; gives the report."""
+    profile, outputs, reports = load_profile(machine), [], []
+    for i, options in enumerate(variants):
+        outputs.append(tmp_path / f"variant-{i}.gcode")
+        report = compensate_file(source, outputs[-1], profile, options).as_dict()
+        reports.append({k: v for k, v in report.items() if k not in ("output", "stage_time_s", "compute_time_s")})
+    assert all(output.read_bytes() == outputs[0].read_bytes() for output in outputs[1:])
+    assert all(report == reports[0] for report in reports[1:])
+    return reports[0]
 
 
 @pytest.mark.slow
 def test_final_windows_kept_or_built_anew_write_the_same_bytes(tmp_path, monkeypatch):
     """The gear's head (corners on every layer: hundreds of runs, most of equal final-window
     lengths) with every final window kept for the next runs of its length, and with none kept."""
-    source = tmp_path / "gear.gcode"
-    with open(DATA / "gear-marlin2.gcode", "rb") as f:
-        source.write_bytes(b"".join(f.readline() for _ in range(1200)))
+    source = _head(tmp_path, "gear-marlin2.gcode", 1200)
     profile, outputs = load_profile("printer-two-mode"), []
     for budget in (optimizer._FINAL_CACHE_BYTES, 0):
         monkeypatch.setattr(optimizer, "_FINAL_CACHE_BYTES", budget)
@@ -64,32 +73,12 @@ def test_final_windows_kept_or_built_anew_write_the_same_bytes(tmp_path, monkeyp
     assert outputs[0].read_bytes() == outputs[1].read_bytes()
 
 
-def _head(tmp_path, program: str, lines: int) -> Path:
-    source = tmp_path / program
-    with open(DATA / program, "rb") as f:
-        source.write_bytes(b"".join(f.readline() for _ in range(lines)))
-    return source
-
-
-def _same_outcome(tmp_path, source: Path, machine: str, options: CompensateOptions) -> dict:
-    """The bytes written and the report, with the axes compensated in processes of their own
-    and on threads of this one: asserted equal; gives the report."""
-    profile, outputs, reports = load_profile(machine), {}, {}
-    for apart in (True, False):
-        outputs[apart] = tmp_path / f"apart-{apart}.gcode"
-        report = compensate_file(source, outputs[apart], profile, replace(options, second_process=apart)).as_dict()
-        reports[apart] = {k: v for k, v in report.items() if k not in ("output", "stage_time_s", "compute_time_s")}
-    assert outputs[True].read_bytes() == outputs[False].read_bytes()
-    assert reports[True] == reports[False]
-    return reports[True]
-
-
 @pytest.mark.slow
 def test_axes_in_processes_of_their_own_write_and_report_the_same(tmp_path):
     """The gear's head, two modes on X and the QP at its corners: each axis compensated in a
     process of its own (offload.py) gives the same bytes and the same report as on threads."""
     report = _same_outcome(tmp_path, _head(tmp_path, "gear-marlin2.gcode", 1200), "printer-two-mode",
-                           CompensateOptions())
+                           *(replace(CompensateOptions(), second_process=apart) for apart in (True, False)))
     assert len(report["axes"]) == 2 and all(axis["qp_windows"] > 0 for axis in report["axes"].values())
 
 
@@ -98,8 +87,9 @@ def test_fallback_warnings_come_back_from_the_axes_processes(tmp_path):
     axis' process with the program line it names, is the one found here."""
     source = tmp_path / "in.gcode"
     source.write_bytes(b"G1 X2.789 Y0 Z0.2 F1200\nG1 X0 Y0 Z0.4\n")
+    options = CompensateOptions(flavor="marlin", lead_time_s=0.0, settle_time_s=0.0)
     report = _same_outcome(tmp_path, source, "bedslinger-example",
-                           CompensateOptions(flavor="marlin", lead_time_s=0.0, settle_time_s=0.0))
+                           *(replace(options, second_process=apart) for apart in (True, False)))
     assert any(w.startswith(FALLBACK) and "line 2" in w for w in report["warnings"]), report["warnings"]
 
 
