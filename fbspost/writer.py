@@ -353,8 +353,12 @@ class _Emitter:
                 targets_mm, durations_s, ends_s, ints = (x[:last] for x in (targets_mm, durations_s, ends_s, ints))
         steps = np.diff(np.vstack([start, ints]), axis=0)
         moved = steps != 0
-        length, jump = (self._marlin_lengths(start, ints, scale) if marlin
-                        else (_lengths(steps / scale * self.unit_mm), np.zeros(len(steps))))
+        length, jump = np.zeros(len(steps)), np.zeros(len(steps))
+        if marlin:  # (of the blocks that move alone: two in three rows are merged away)
+            moves = moved.any(axis=1)
+            length[moves], jump[moves] = self._marlin_lengths(start, ints[moves], scale)
+        else:
+            length = _lengths(steps / scale * self.unit_mm)
         if curves is not None:
             # Control points rounded as written: I J (P Q) are the rounded point minus the rounded
             # start (end), as the controller adds them to the positions it has. The rounded curve

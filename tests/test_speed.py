@@ -1,6 +1,7 @@
 """Speed changes keep the output: the same program and settings give the same bytes however the
 work is spread (the compensated axes on threads or one after the other), on programs whose
 limits bind (windows that need the QP)."""
+import os
 import re
 import subprocess
 import sys
@@ -14,7 +15,7 @@ from fbspost import optimizer, pipeline
 from fbspost.dynamics import AxisDynamics
 from fbspost.fallback import FALLBACK
 from fbspost.gcode import read_gcode
-from fbspost.offload import Offloaded, _portable
+from fbspost.offload import NICENESS, Offloaded, _portable
 from fbspost.optimizer import AxisCompensator, AxisLimits, FBSSettings
 from fbspost.pipeline import CompensateOptions, compensate_file
 from fbspost.profile import load_profile
@@ -133,6 +134,19 @@ def test_an_exception_that_does_not_pickle_comes_back_as_its_traceback():
         back = _portable(error)
     assert isinstance(back, RuntimeError) and "Local: the optimizer failed" in str(back)
     assert isinstance(_portable(InputError("a.gcode", 3, "bad")), InputError)
+
+
+def _niceness():
+    yield os.nice(0)
+
+
+@pytest.mark.skipif(not hasattr(os, "nice"), reason="POSIX priorities")
+def test_the_offloaded_work_yields_the_cores_to_its_reader(monkeypatch):
+    monkeypatch.setenv("PYTHONPATH", str(Path(__file__).parent))  # (the child imports _niceness from here)
+    parent = os.nice(0)
+    with Offloaded(_niceness) as child:
+        (niceness,) = list(child)
+    assert niceness == min(parent + NICENESS, 19) and (niceness > parent or parent == 19)
 
 
 def test_help_loads_no_scipy():
