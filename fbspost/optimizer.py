@@ -35,7 +35,7 @@ from scipy import linalg, sparse
 from .dynamics import AxisDynamics, ModelSet
 from .profile import AxisProfile
 from .splines import basis_matrix, uniform_knots
-from .varying import LoadModes
+from .varying import LoadModes, PositionModes
 
 
 @dataclass(frozen=True)
@@ -496,20 +496,21 @@ class AxisCompensator:
 
     ``models``: the set whose mean squared error is minimized (robust compensation), the
     nominal ``dynamics`` first; by default ``dynamics`` alone. The carry holds every model's state.
-    ``varying``: modes that move with the filament printed (``stream().push``'s ``extruded_mm``):
-    each window uses the level in force at its start (level 0 is ``models``), the carry mapped
-    to it; every level's matrices are built on its first use.
+    ``varying``: modes that move with the machine's state (``stream().push``'s ``state``: the
+    filament printed, or an axis' position): each window uses the level in force at its start
+    (level 0 is ``models``), the carry mapped to it; every level's matrices are built on its first use.
     """
 
     def __init__(self, dynamics: AxisDynamics, limits: AxisLimits, settings: FBSSettings = FBSSettings(),
-                 lookahead: str = "limited", models: ModelSet | None = None, varying: LoadModes | None = None):
+                 lookahead: str = "limited", models: ModelSet | None = None,
+                 varying: LoadModes | PositionModes | None = None):
         if lookahead not in ("limited", "complete"):
             raise ValueError(f"lookahead must be 'limited' or 'complete', not {lookahead!r}")
         self.dynamics, self.limits, self.lookahead = dynamics, limits, lookahead
         self.models, self.varying = models or ModelSet([dynamics]), varying
         self.settings = settings.resolve(dynamics)
         self.carry = _Carry(self.models.n_states, self.settings.degree, limits.history)
-        self.extruded_from = None  # the first filament position pushed (mm), for ``varying``
+        self.state_from = None  # the first state pushed, for ``varying`` that counts from it (mm)
         self._sets = {0: self.models}
         self._rest_units, self._regulars, self._remaps = {}, {}, {}
         self._finals: OrderedDict[tuple[int, int], _Stretch] = OrderedDict()
@@ -586,25 +587,26 @@ class AxisStream:
 
     A window runs as a regular one once the samples after its kept spans are known to outlast
     the final window; the buffer holds the samples from the current window's start (and, with
-    varying modes, the filament extruded there).
+    varying modes, the state they follow there).
     """
 
     def __init__(self, compensator: AxisCompensator):
         self.owner = compensator
         self.result = AxisResult(np.empty(0), compensator.settings)
-        self.buffer = self.extruded = np.empty(0)
+        self.buffer = self.state = np.empty(0)
         self.first_sample = 0  # run sample at buffer[0]
         self.z = None  # the carry, once the first sample is known
         self.level = 0  # of the model in force (AxisCompensator.varying)
 
-    def push(self, desired_mm: np.ndarray, extruded_mm: np.ndarray | None = None) -> np.ndarray:
-        """``extruded_mm``: the filament position at the same samples, for varying modes (unknown: NaN)."""
+    def push(self, desired_mm: np.ndarray, state: np.ndarray | None = None) -> np.ndarray:
+        """``state``: what varying modes follow (``varying.column`` of the plan: the filament
+        position, an axis' position), at the same samples (unknown: NaN)."""
         desired_mm = np.asarray(desired_mm, dtype=float)
         if desired_mm.ndim != 1 or not np.all(np.isfinite(desired_mm)):
             raise ValueError("the desired trajectory must be a 1-D array of finite positions")
         self.buffer = np.concatenate([self.buffer, desired_mm])
         if self.owner.varying is not None:
-            self._note_extruded(desired_mm.size, extruded_mm)
+            self._note_state(desired_mm.size, state)
         if self.z is None and self.buffer.size:
             self.level = self._level_at(0)
             self.z = self.owner.rest_unit(self.level) * self.buffer[0]
@@ -628,18 +630,21 @@ class AxisStream:
         result.command_mm = np.concatenate([head, tail])
         return result
 
-    def _note_extruded(self, n: int, extruded_mm: np.ndarray | None) -> None:
-        """Keep the filament extruded since the compensator's first known position (0 where unknown)."""
+    def _note_state(self, n: int, state: np.ndarray | None) -> None:
+        """Keep the state, counted from the compensator's first known one where ``varying`` says so
+        (the filament extruded since then)."""
         owner = self.owner
-        extruded = np.full(n, np.nan) if extruded_mm is None else np.asarray(extruded_mm, dtype=float)
-        known = extruded[np.isfinite(extruded)]
-        if owner.extruded_from is None and known.size:
-            owner.extruded_from = float(known[0])
-        self.extruded = np.concatenate([self.extruded, np.nan_to_num(extruded - (owner.extruded_from or 0.0))])
+        state = np.full(n, np.nan) if state is None else np.asarray(state, dtype=float)
+        if owner.varying.since_first:
+            known = state[np.isfinite(state)]
+            if owner.state_from is None and known.size:
+                owner.state_from = float(known[0])
+            state = state - (owner.state_from or 0.0)
+        self.state = np.concatenate([self.state, state])
 
     def _level_at(self, sample: int) -> int:
         """The level in force at buffer sample ``sample``."""
-        return 0 if self.owner.varying is None else self.owner.varying.level(self.extruded[sample])
+        return 0 if self.owner.varying is None else self.owner.varying.level(float(self.state[sample]))
 
     def _regular_windows(self) -> np.ndarray:
         """Run every window known to be regular: followed by more than the final window needs
@@ -675,7 +680,7 @@ class AxisStream:
             start += rows
             self.result.windows += 1
         self.buffer = self.buffer[start:]
-        self.extruded = self.extruded[start:]
+        self.state = self.state[start:]
         self.first_sample += start
         return np.concatenate(out) if out else np.empty(0)
 

@@ -36,7 +36,7 @@ from .planner import Plan, PlanStream, RunMargins
 from .profile import AxisProfile, MachineProfile
 from .trajectory import InputError
 from .transparency import FirmwareSettings
-from .varying import LoadModes
+from .varying import LoadModes, PositionModes
 from .writer import SampleWindow, WriteOptions, format_refusal, write_program
 
 if TYPE_CHECKING:
@@ -132,7 +132,6 @@ _CHUNK = 1 << 14  # samples planned, compensated and written at once
 # sample of a program at once, about 4 kB a line (measured: 85k Marlin lines 0.35 GB, 353k
 # RepRapFirmware lines 1 GB); Klipper runs the blocks as written (proven on klippy).
 VERIFY_AUTO_LINES = 100_000
-_E = AXES.index("E")  # the filament column, for modes that vary with the print
 _SECOND_PROCESS_BYTES = 256_000  # (a second process starts in about 0.5 s: a program this long takes 5 s)
 _SECOND_PROCESS_LINES_S = 100.0  # blocks a second of the program's time
 _PROBE_S = 60.0  # the program's time the rate of its blocks is judged on
@@ -427,12 +426,17 @@ def _compensators(profile: MachineProfile, options: CompensateOptions) -> dict[i
     period_s = 1.0 / profile.sample_rate_hz
     axes = {c: profile.axes[name] for c, name in enumerate(AXES) if name in profile.axes and profile.axes[name].modes}
     return {c: AxisCompensator(AxisDynamics(axis.modes, period_s), AxisLimits.from_profile(axis), options.settings,
-                               options.lookahead, ModelSet.spread(axis.modes, period_s), load_modes(profile, axis))
+                               options.lookahead, ModelSet.spread(axis.modes, period_s), varying_modes(profile, axis))
             for c, axis in axes.items()}
 
 
-def load_modes(profile: MachineProfile, axis: AxisProfile) -> LoadModes | None:
-    """The axis' modes against the filament printed, if it carries the print (``moving_mass``)."""
+def varying_modes(profile: MachineProfile, axis: AxisProfile) -> LoadModes | PositionModes | None:
+    """The axis' modes against the filament printed, if it carries the print (``moving_mass``),
+    or against an axis' position (``modes_by_position``); None if they are fixed."""
+    table = axis.modes_by_position
+    if table is not None:
+        return PositionModes(axis.modes, 1.0 / profile.sample_rate_hz, AXES.index(table.axis), table.positions_mm,
+                             table.frequency_scales)
     if axis.moving_mass_kg is None:
         return None
     filament_mm2 = math.pi * (0.5 * profile.firmware.filament_diameter_mm) ** 2
@@ -532,8 +536,8 @@ def _optimized(plan: Plan | PlanStream, compensators: dict[int, AxisCompensator]
 
         follows, pending = False, None  # pending: the last piece and its pushes under way
         for planned in itertools.chain(pieces(first), [None]):
-            running = None if planned is None else {c: _submit(lanes, c, streams[c].push, planned[:, c], planned[:, _E])
-                                                    for c in streams}
+            running = None if planned is None else {c: _submit(lanes, c, streams[c].push, planned[:, c],
+                                                            _state(compensators[c], planned)) for c in streams}
             if pending is not None:
                 planned_rows = np.concatenate([planned_rows, pending[0]])
                 commands = {c: np.concatenate([commands[c], pending[1][c].result()]) for c in streams}
@@ -557,6 +561,11 @@ def _optimized(plan: Plan | PlanStream, compensators: dict[int, AxisCompensator]
     if next_sample < plan.n_samples:
         rest = plan.samples(next_sample, plan.n_samples)
         yield rest, rest, False, False
+
+
+def _state(compensator: AxisCompensator, planned: np.ndarray) -> np.ndarray | None:
+    """The column of the planned samples that the axis' varying modes follow (None: fixed modes)."""
+    return None if compensator.varying is None else planned[:, compensator.varying.column]
 
 
 class _Lanes:

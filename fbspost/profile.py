@@ -10,6 +10,7 @@ Errors are raised as ``ProfileError`` with a one-line message naming the file an
 """
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, field, replace
 from importlib import resources
@@ -44,6 +45,16 @@ class Mode:
 
 
 @dataclass(frozen=True)
+class PositionTable:
+    """An axis' modes against another axis' position: every frequency times ``frequency_scales``
+    at ``positions_mm`` (increasing), linear between them, flat beyond them."""
+
+    axis: str
+    positions_mm: tuple[float, ...]
+    frequency_scales: tuple[float, ...]
+
+
+@dataclass(frozen=True)
 class AxisProfile:
     name: str
     max_velocity_mm_s: float
@@ -52,6 +63,7 @@ class AxisProfile:
     modes: tuple[Mode, ...]  # DC gain normalized to 1; empty: the axis is not compensated
     moving_mass_kg: float | None = None  # the axis carries the print: the modes' mass, the print adds to it
     filament_density_g_cm3: float = 1.24  # of what is printed onto it (PLA)
+    modes_by_position: PositionTable | None = None  # the modes change along an axis
 
 
 @dataclass(frozen=True)
@@ -127,8 +139,10 @@ _AXIS_KEYS = {
     "modes",
     "moving_mass",
     "filament_density",
+    "modes_by_position",
     *_TOLERANCE_KEYS,
 }
+_POSITION_KEYS = {"axis", "position", "frequency_scale"}
 _MODE_KEYS = {"frequency", "damping", "alpha", "beta", *_TOLERANCE_KEYS}
 # [firmware] key -> FirmwareProfile field, for the optional positive numbers
 _FIRMWARE_NUMBERS = {
@@ -265,8 +279,40 @@ def _parse_axis(check: _Checker, axes_table: dict, axis_name: str, sample_rate: 
                                              optional=True)}
     if load["filament_density_g_cm3"] is not None and load["moving_mass_kg"] is None:
         raise fail(f"{where}.filament_density", "needs moving_mass (the mass the modes were measured with)")
+    if "modes_by_position" in axis:
+        if load["moving_mass_kg"] is not None:
+            raise fail(f"{where}.modes_by_position", "and moving_mass together: the modes follow one or the other")
+        load["modes_by_position"] = _parse_position_table(check, axis, f"{where}.modes_by_position", modes,
+                                                          sample_rate)
     return AxisProfile(axis_name, max_velocity, max_acceleration, max_jerk, tuple(modes),
                        **{k: v for k, v in load.items() if v is not None})
+
+
+def _parse_position_table(check: _Checker, axis: dict, where: str, modes: list[Mode],
+                          sample_rate: float) -> PositionTable:
+    """The axis' ``modes_by_position`` table: the axis, its positions (mm) and the factors there."""
+    fail = check.fail
+    table = check.table(axis, "modes_by_position", where, _POSITION_KEYS)
+    name, names = table.get("axis"), [a for a in AXIS_NAMES if a != "E"]
+    if name not in names:
+        raise fail(f"{where}.axis", f"must be one of {', '.join(names)}, got {name!r}")
+    columns = []
+    for key in ("position", "frequency_scale"):
+        values = table.get(key)
+        if not isinstance(values, list) or len(values) < 2:
+            raise fail(f"{where}.{key}", "must be a list of at least two numbers")
+        columns.append(tuple(check.number({key: v}, key, f"{where}.{key}[{i}]", positive=key != "position")
+                             for i, v in enumerate(values)))
+    positions, scales = columns
+    if len(positions) != len(scales):
+        raise fail(f"{where}.frequency_scale", f"has {len(scales)} values for {len(positions)} positions")
+    if any(b <= a for a, b in itertools.pairwise(positions)):
+        raise fail(f"{where}.position", "must increase")
+    top_hz = max((m.frequency_hz for m in modes), default=0.0) * max(scales)
+    if top_hz >= sample_rate / 2:
+        raise fail(f"{where}.frequency_scale", f"takes a mode to {top_hz:g} Hz, above the Nyquist frequency "
+                   f"{sample_rate / 2:g} Hz")
+    return PositionTable(name, positions, scales)
 
 
 def _parse_mode(check: _Checker, raw, where: str, sample_rate: float, axis_tolerances: list) -> Mode:
@@ -375,6 +421,11 @@ def format_profile(profile: MachineProfile) -> str:
                 f"moving_mass = {number(axis.moving_mass_kg)}",
                 f"filament_density = {number(axis.filament_density_g_cm3)}",
             ]
+        if axis.modes_by_position is not None:
+            table = axis.modes_by_position
+            lines.append(f"modes_by_position = {{ axis = {string(table.axis)}, position = "
+                         f"[{', '.join(map(number, table.positions_mm))}], frequency_scale = "
+                         f"[{', '.join(map(number, table.frequency_scales))}] }}")
         modes = [f"  {{ frequency = {number(m.frequency_hz)}, damping = {number(m.damping)}, "
                  f"alpha = {number(m.alpha)}, beta = {number(m.beta)}"
                  + "".join(f", {key} = {number(getattr(m, key))}" for key in _TOLERANCE_KEYS if getattr(m, key))

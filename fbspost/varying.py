@@ -1,10 +1,14 @@
-"""Modes that move with the machine's state (the patent's claim 11): an axis that carries the print.
+"""Modes that move with the machine's state (the patent's claim 11): an axis that carries the
+print, or whose modes change along another axis.
 
-Takes an axis' modes, the moving mass they were measured with (``moving_mass``, kg) and the
-filament (grams per mm of it); gives, for the filament extruded so far (mm), the level of the
-model in force: every mode's frequency scaled by sqrt(m0 / (m0 + printed mass)) (a spring's mode
-with a heavier load), rounded to steps of ``STEP`` (1%). Per level: the model set the optimizer
-uses (``dynamics.ModelSet.spread`` of the scaled modes, so a level keeps the profile's
+Takes an axis' modes and what moves them; gives, for the state they follow (one column of the
+planned samples, ``column``), the level of the model in force: every mode's frequency scaled by
+one factor, rounded to steps of ``STEP`` (1%). ``LoadModes``: the moving mass the modes were
+measured with (``moving_mass``, kg) and the filament (grams per mm of it); the factor
+sqrt(m0 / (m0 + printed mass)) (a spring's mode with a heavier load), for the filament extruded
+since the first known E position. ``PositionModes``: a table of factors against an axis'
+position (mm), linear between its points and flat beyond them. Per level: the model set the
+optimizer uses (``dynamics.ModelSet.spread`` of the scaled modes, so a level keeps the profile's
 tolerances), and the map of the carried state from one level to another that keeps each mode's
 output and its rate continuous: the machine does not jump when the model is switched.
 """
@@ -17,28 +21,23 @@ import numpy as np
 from scipy import linalg
 
 from .dynamics import ModelSet, scaled_mode
+from .gcode import AXES
 from .profile import Mode
 
 STEP = 0.01  # relative frequency step between levels: within a level the model is off by 0.5% at most
 
 
-@dataclass(frozen=True)
-class LoadModes:
-    """The modes of an axis whose moving mass grows by the filament printed onto it."""
+class _Levels:
+    """What both kinds share: ``scale`` (a state's factor) and ``modes``, ``sample_period_s``."""
 
-    modes: tuple[Mode, ...]
-    sample_period_s: float
-    moving_mass_kg: float
-    filament_g_per_mm: float
+    since_first = False  # the state counts from its first known value (else: as it is)
 
-    def scale(self, extruded_mm: float) -> float:
-        """Every frequency's factor after ``extruded_mm`` of filament (a negative amount: none)."""
-        printed_kg = max(0.0, extruded_mm) * self.filament_g_per_mm * 1e-3
-        return math.sqrt(self.moving_mass_kg / (self.moving_mass_kg + printed_kg))
-
-    def level(self, extruded_mm: float) -> int:
-        """The level in force: the frequency factor (1 + STEP)^level nearest to ``scale``."""
-        return round(math.log(self.scale(extruded_mm)) / math.log1p(STEP))
+    def level(self, state: float) -> int:
+        """The level in force: the frequency factor (1 + STEP)^level nearest to ``scale`` (0 where
+        the state is not known)."""
+        if math.isnan(state):
+            return 0
+        return round(math.log(self.scale(state)) / math.log1p(STEP))
 
     def modes_at(self, level: int) -> tuple[Mode, ...]:
         return tuple(scaled_mode(m, (1.0 + STEP) ** level) for m in self.modes)
@@ -57,6 +56,38 @@ class LoadModes:
                 blocks.append(linalg.solve(to_b, to_a))
                 offsets.append(linalg.solve(to_b, u_a - u_b))
         return linalg.block_diag(*blocks), np.concatenate(offsets)
+
+
+@dataclass(frozen=True)
+class LoadModes(_Levels):
+    """The modes of an axis whose moving mass grows by the filament printed onto it."""
+
+    modes: tuple[Mode, ...]
+    sample_period_s: float
+    moving_mass_kg: float
+    filament_g_per_mm: float
+    column = AXES.index("E")  # the state: the filament extruded
+    since_first = True
+
+    def scale(self, extruded_mm: float) -> float:
+        """Every frequency's factor after ``extruded_mm`` of filament (a negative amount: none)."""
+        printed_kg = max(0.0, extruded_mm) * self.filament_g_per_mm * 1e-3
+        return math.sqrt(self.moving_mass_kg / (self.moving_mass_kg + printed_kg))
+
+
+@dataclass(frozen=True)
+class PositionModes(_Levels):
+    """The modes of an axis that change along an axis (``column`` of AXES): every frequency's
+    factor at ``positions_mm`` (increasing) is ``scales``."""
+
+    modes: tuple[Mode, ...]
+    sample_period_s: float
+    column: int
+    positions_mm: tuple[float, ...]
+    scales: tuple[float, ...]
+
+    def scale(self, position_mm: float) -> float:
+        return float(np.interp(position_mm, self.positions_mm, self.scales))
 
 
 def _physical(mode: Mode) -> tuple[np.ndarray, np.ndarray]:

@@ -16,10 +16,10 @@ from fbspost.cli import main
 from fbspost.dynamics import AxisDynamics, ModelSet, modal_response, scaled_mode
 from fbspost.gcode import AXES
 from fbspost.optimizer import AxisCompensator, AxisLimits, FBSSettings
-from fbspost.pipeline import CompensateOptions, compensate_file
-from fbspost.profile import Mode, ProfileError, format_profile, load_profile, parse_profile
+from fbspost.pipeline import CompensateOptions, compensate_file, varying_modes
+from fbspost.profile import Mode, PositionTable, ProfileError, format_profile, load_profile, parse_profile
 from fbspost.simulate import MODEL_ERRORS, PathDistance, model_error, simulate_program
-from fbspost.varying import LoadModes
+from fbspost.varying import LoadModes, PositionModes
 from fbspost.verify import contour_um, modelled, printed_path
 from firmware_results import klippy_run, move_ends, shaped_plans
 from klippy_planner import klippy_or_skip
@@ -63,6 +63,36 @@ def test_tolerances_and_moving_mass_in_the_profile():
                           ("filament_density = 1.2", "axes.X.filament_density: needs moving_mass"),
                           ("moving_mass = 0", "axes.X.moving_mass: must be > 0")]:
         with pytest.raises(ProfileError, match="^" + re.escape(f"p.toml: {message}")):
+            parse_profile(profile_text(keys), "p.toml")
+
+
+def test_modes_by_position_in_the_profile():
+    """A table of frequency factors against an axis' position: linear between its points, flat
+    beyond them; the level in force is the nearest power of 1.01 (0 where the position is not known)."""
+    table = "modes_by_position = {{ axis = {}, position = {}, frequency_scale = {} }}"
+    profile = parse_profile(profile_text(table.format('"Y"', "[0, 100, 220]", "[1.0, 0.9, 0.85]")), "p.toml")
+    x = profile.axes["X"].modes_by_position
+    assert x == PositionTable("Y", (0.0, 100.0, 220.0), (1.0, 0.9, 0.85))
+    assert parse_profile(tomllib.loads(format_profile(profile)), "again.toml").axes["X"].modes_by_position == x
+    varying = varying_modes(profile, profile.axes["X"])
+    assert varying.column == AXES.index("Y") and varying.level(math.nan) == 0
+    for y, scale in [(-10.0, 1.0), (50.0, 0.95), (160.0, 0.875), (300.0, 0.85)]:
+        assert varying.scale(y) == pytest.approx(scale, abs=1e-12)
+        assert varying.level(y) == round(math.log(scale) / math.log(1.01))
+        assert varying.modes_at(varying.level(y))[1].frequency_hz == pytest.approx(96.0 * scale, rel=0.005)
+    where = "p.toml: axes.X.modes_by_position"
+    for keys, message in [
+        (table.format('"E"', "[0, 1]", "[1, 1]"), ".axis: must be one of X, Y, Z, A, B, C, U, V, W, got 'E'"),
+        (table.format('"Y"', "[0, 0]", "[1, 1]"), ".position: must increase"),
+        (table.format('"Y"', "[0]", "[1]"), ".position: must be a list of at least two numbers"),
+        (table.format('"Y"', "[0, 100, 200]", "[1, 0.9]"), ".frequency_scale: has 2 values for 3 positions"),
+        (table.format('"Y"', "[0, 100]", "[1, 0]"), ".frequency_scale[1]: must be > 0"),
+        (table.format('"Y"', "[0, 100]", "[1, 6]"), ".frequency_scale: takes a mode to 576 Hz, above the Nyquist"),
+        (table.format('"Y"', "[0, 100]", "[1, 1]") + "\nmoving_mass = 1", ": and moving_mass together"),
+        ('modes_by_position = { axis = "Y", position = [0, 1], frequency_scale = [1, 1], at = 2 }',
+         ".at: unknown key"),
+    ]:
+        with pytest.raises(ProfileError, match="^" + re.escape(where + message)):
             parse_profile(profile_text(keys), "p.toml")
 
 
@@ -117,25 +147,28 @@ def carried_outputs(stream, compensator):
     return np.array([d.C @ x for d, x in zip(models, states, strict=True)])
 
 
-@pytest.mark.parametrize("varying", [False, True])
+@pytest.mark.parametrize("varying", [None, "load", "position"])
 def test_limited_lookahead_carries_every_models_state(varying):
     """At every cut, the carry holds each model's state: its output is that of the command so far
     through the model (lsim), or with varying modes through the machine whose frequencies step to
-    each window's level at the window's start, simulated exactly (reference.simulate_varying)."""
+    each window's level at the window's start, simulated exactly (reference.simulate_varying).
+    The modes vary with the filament extruded or with another axis' position, going back and forth."""
     modes = with_tolerances(NOMINAL.axes["Y"].modes, 0.13, 0.2)
-    load = LoadModes(modes, T, 0.1, 0.25) if varying else None  # 30 g onto 100 g: 12% lower at the end
-    compensator = AxisCompensator(AxisDynamics(modes, T), AxisLimits.from_profile(NOMINAL.axes["Y"]),
-                                  models=ModelSet.spread(modes, T), varying=load)
     there_and_back = np.concatenate([smooth_move(20.0, 0.15, 0.1, T), 20.0 - smooth_move(20.0, 0.15, 0.1, T)[1:]])
     desired = np.tile(there_and_back, 3)
-    extruded = np.linspace(0.0, 120.0, desired.size)
+    state = {None: np.zeros(desired.size), "load": np.linspace(0.0, 120.0, desired.size),
+             "position": 100.0 + 90.0 * np.sin(np.linspace(0.0, 3.0 * np.pi, desired.size))}[varying]
+    load = {None: None, "load": LoadModes(modes, T, 0.1, 0.25),  # 30 g onto 100 g: 12% lower at the end
+            "position": PositionModes(modes, T, AXES.index("X"), (0.0, 50.0, 200.0), (1.1, 1.0, 0.8))}[varying]
+    compensator = AxisCompensator(AxisDynamics(modes, T), AxisLimits.from_profile(NOMINAL.axes["Y"]),
+                                  models=ModelSet.spread(modes, T), varying=load)
     rows = compensator.settings.commit_spans * compensator.settings.knot_spacing_samples
     starts = np.arange(0, desired.size, rows)
-    level = np.repeat([load.level(extruded[s]) for s in starts] if varying else np.zeros(starts.size), rows)
+    level = np.repeat([load.level(state[s]) for s in starts] if varying else np.zeros(starts.size), rows)
     variants = [d.modes for d in compensator.model_set(0).models]
     stream, pushed, cuts = compensator.stream(), [], []
     for piece in np.array_split(np.arange(desired.size), 9):
-        pushed.append(stream.push(desired[piece], extruded[piece]))
+        pushed.append(stream.push(desired[piece], state[piece]))
         done = sum(p.size for p in pushed)  # samples decided: nothing later changes them
         if done:
             assert stream.level == level[done - 1]  # the last window's; the next may switch
@@ -146,6 +179,8 @@ def test_limited_lookahead_carries_every_models_state(varying):
     for done, carried in cuts:
         assert np.allclose(carried, truth[:, done], rtol=0, atol=1e-9)
     assert level.min() <= -10 if varying else True
+    assert level.max() >= 5 if varying == "position" else True  # (up and down again)
+    assert len(np.flatnonzero(np.diff(level))) >= 10 if varying == "position" else True
 
 
 def test_remap_keeps_every_modes_output_and_rate():
@@ -246,6 +281,38 @@ def test_load_dependent_profile_keeps_the_gain_on_a_bed_whose_frequency_falls(ge
     fixed_gain = 1.0 - contour_rms(fbs, True) / before
     assert load_gain >= 0.9 * exact_gain
     assert fixed_gain < load_gain - 0.05  # the fixed model loses what the load-dependent one keeps
+
+
+@pytest.mark.slow
+def test_position_dependent_profile_keeps_the_gain_where_the_modes_change_along_an_axis(gear_head, nominal_sim):
+    """X's modes fall 15% from one side of the part to the other along Y (a gantry whose X
+    stiffness changes with Y, compressed onto this part), simulated exactly per sample at the
+    planned Y (reference.simulate_varying)."""
+    x, y, mask = AXES.index("X"), AXES.index("Y"), nominal_sim.contour_mask
+    along = nominal_sim.desired_mm[:, y]
+    low, high = float(np.nanmin(along[mask])), float(np.nanmax(along[mask]))
+    table = PositionTable("Y", (low, high), (1.0, 0.85))
+    scale = np.interp(np.nan_to_num(along, nan=low), table.positions_mm, table.frequency_scales)
+    axes = dict(NOMINAL.axes, X=dataclasses.replace(NOMINAL.axes["X"], modes_by_position=table))
+    varied = simulate_program(gear_head, dataclasses.replace(NOMINAL, axes=axes))
+    distance = PathDistance(nominal_sim.path_start_mm, nominal_sim.path_end_mm)
+
+    def contour_rms(method, varying):
+        actual = method.actual_mm.copy()
+        if varying:
+            actual[:, x] = simulate_varying(NOMINAL.axes["X"].modes, T, method.command_mm[:, x], scale)
+        return float(np.sqrt(np.mean(distance(actual[mask, :3])[0] ** 2)))
+
+    (original, fbs), position_fbs = nominal_sim.methods[:2], varied.methods[1]
+    assert np.array_equal(varied.desired_mm, nominal_sim.desired_mm)
+    assert scale[mask].min() < 0.86 and scale[mask].max() > 0.99
+    exact_gain = 1.0 - contour_rms(fbs, False) / contour_rms(original, False)  # FBS on the machine it models
+    before = contour_rms(original, True)
+    position_gain = 1.0 - contour_rms(position_fbs, True) / before
+    fixed_gain = 1.0 - contour_rms(fbs, True) / before
+    print(f"gain: exact model {exact_gain:.3f}, position-dependent {position_gain:.3f}, fixed {fixed_gain:.3f}")
+    assert position_gain >= 0.9 * exact_gain
+    assert fixed_gain < position_gain - 0.05  # the fixed model loses what the position-dependent one keeps
 
 
 @pytest.mark.slow
