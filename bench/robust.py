@@ -1,8 +1,9 @@
 """How fast FBS loses its gain as the machine drifts from its profile, robust or not, and with modes
 that move with the print (docs/robust.md).
 
-Run from the repository root:  python bench/robust.py [LINES]  (default: the first 8000 lines of
-tests/data/gear-marlin2.gcode, on printer-two-mode and tests/data/printer-two-mode-robust.toml).
+Run from the repository root:  python bench/robust.py [--tradeoff] [LINES]  (default: the first
+8000 lines of tests/data/gear-marlin2.gcode, on printer-two-mode and
+tests/data/printer-two-mode-robust.toml; 3000 lines with --tradeoff).
 
 1. Predictions (fbspost's model of the machine): ``fbspost simulate --model-error`` for the
    nominal and the robust profile; RMS contour error of FBS and of the best input shaper on every
@@ -16,6 +17,12 @@ tests/data/gear-marlin2.gcode, on printer-two-mode and tests/data/printer-two-mo
    load-dependent profile's FBS and the fixed profile's FBS on the varying machine.
 4. Speed: ``fbspost compensate`` of the program, its optimizer's time per window (--report),
    nominal and robust.
+5. With ``--tradeoff`` instead: the robust set's trade-off (predictions), on the gear and on two
+   prints it was not tuned on, the bracket and a twisted star (sliced here with PrusaSlicer): for
+   tolerances from none to 16% in frequency and 25% in damping, on how many of the 11 machines
+   FBS is at or below the best shaper, by how much it is above at worst, and how much of the
+   nominal FBS's gain it keeps at the nominal machine (as error removed and as a ratio). Two
+   processes; about 20 minutes at 3000 lines.
 """
 from __future__ import annotations
 
@@ -26,6 +33,7 @@ import math
 import subprocess
 import sys
 import tempfile
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -42,8 +50,13 @@ from fbspost.verify import contour_um, modelled, printed_path  # noqa: E402
 from firmware_results import klippy_run, move_ends, shaped_plans  # noqa: E402
 from reference import simulate_varying  # noqa: E402
 
+sys.path.insert(0, str(ROOT / "tests" / "data"))
+import make_sliced  # noqa: E402
+
 PROGRAM = "tests/data/gear-marlin2.gcode"
 MACHINES = {"nominal": "printer-two-mode", "robust": "tests/data/printer-two-mode-robust.toml"}
+TRADEOFF_PROGRAMS = {"gear": PROGRAM, "bracket": "tests/data/bracket-reprapfirmware-relative-e.gcode"}
+TOLERANCES = [(0.0, 0.0), (0.05, 0.1), (0.1, 0.16), (0.13, 0.2), (0.16, 0.25)]
 
 
 def perturbed(profile, frequency_scale, damping_scale):
@@ -129,6 +142,38 @@ def speed(program: Path) -> None:
                   f"optimize {optimize_s:7.2f} s  {1e3 * optimize_s / windows:6.2f} ms/window")
 
 
+def _tradeoff_rows(program: Path, frequency_tolerance: float, damping_tolerance: float) -> list[tuple]:
+    """(frequency x, damping x, original, FBS, best shaper) per perturbed machine, RMS contour um,
+    FBS made with every mode's tolerances set so."""
+    profile = load_profile(MACHINES["nominal"])
+    axes = {name: dataclasses.replace(axis, modes=tuple(
+        dataclasses.replace(m, frequency_tolerance=frequency_tolerance, damping_tolerance=damping_tolerance)
+        for m in axis.modes)) for name, axis in profile.axes.items()}
+    table = model_error(simulate_program(program, dataclasses.replace(profile, axes=axes)))
+    return [(f, d, e["original"], e["fbs"], min(v for k, v in e.items() if k in SHAPERS)) for f, d, e in table]
+
+
+def tradeoff(heads: dict[str, Path]) -> None:
+    print("5. the robust set's trade-off (predictions, fbspost's model): tolerances -> FBS against the best shaper "
+          "on the 11 machines, and the gain kept at the nominal machine")
+    with ProcessPoolExecutor(2) as pool:
+        jobs = {(name, f, d): pool.submit(_tradeoff_rows, head, f, d)
+                for name, head in heads.items() for f, d in TOLERANCES}
+        for name in heads:
+            print(f"  {name}: {'tol f':>6} {'tol d':>6} {'<= best':>8} {'worst x best':>12} {'nominal um':>10} "
+                  f"{'removed kept':>12} {'ratio kept':>10}")
+            plain = next(r for r in jobs[(name, *TOLERANCES[0])].result() if r[:2] == (1.0, 1.0))
+            for f, d in TOLERANCES:
+                rows = jobs[name, f, d].result()
+                at_or_below = sum(fbs <= best for *_, fbs, best in rows)
+                worst = max(fbs / best for *_, fbs, best in rows)
+                _, _, original, fbs, _ = next(r for r in rows if r[:2] == (1.0, 1.0))
+                removed = (original - fbs) / (original - plain[3])
+                ratio = (original / fbs) / (original / plain[3])
+                print(f"  {'':{len(name) + 1}} {f:6.3f} {d:6.2f} {at_or_below:5d}/11 {worst:12.3f} {fbs:10.3f} "
+                      f"{removed:12.1%} {ratio:10.1%}", flush=True)
+
+
 def _best(errors: dict) -> dict:
     best = min((n for n in errors if n in SHAPERS), key=errors.get)
     return {f"best shaper ({best})": errors[best]}
@@ -146,12 +191,47 @@ def _table(rows) -> None:
           f"nominal FBS's gain (RMS contour error removed)")
 
 
+def twisted_star(folder: str, points: int = 5, twist_deg: float = 40.0, height_mm: float = 4.0) -> Path:
+    """A 20 mm star of ``points`` points twisted by ``twist_deg`` over its height, sliced as Marlin 2:
+    every perimeter turns ten sharp corners, and they move from layer to layer."""
+    def loop(angle):
+        t = np.arange(2 * points) * np.pi / points + angle
+        r = np.where(np.arange(2 * points) % 2 == 0, 10.0, 4.5)
+        return np.column_stack([r * np.cos(t), r * np.sin(t), np.zeros(t.size)])
+
+    levels = np.linspace(0.0, height_mm, 9)
+    rings = [loop(np.radians(twist_deg) * z / height_mm) + [0.0, 0.0, z] for z in levels]
+    triangles = []
+    for low, high in itertools.pairwise(rings):
+        for i, j in zip(range(len(low)), np.roll(range(len(low)), -1), strict=True):
+            triangles += [[low[i], low[j], high[j]], [low[i], high[j], high[i]]]
+    for ring, up in ((rings[0], False), (rings[-1], True)):
+        centre = [0.0, 0.0, ring[0, 2]]
+        for i, j in zip(range(len(ring)), np.roll(range(len(ring)), -1), strict=True):
+            triangles.append([centre, ring[i], ring[j]] if up else [centre, ring[j], ring[i]])
+    stl, out = Path(folder) / "twisted-star.stl", Path(folder) / "twisted-star.gcode"
+    make_sliced.write_stl(stl, triangles)
+    subprocess.run(["prusa-slicer", "--export-gcode", *make_sliced.COMMON, "--gcode-flavor", "marlin2", "-o",
+                    str(out), str(stl)], check=True, stdout=subprocess.DEVNULL)
+    return out
+
+
+def _head(program: str | Path, lines: int, folder: str) -> Path:
+    head = Path(folder) / f"{Path(program).stem}-head-{lines}.gcode"
+    with open(ROOT / program, "rb") as f:
+        head.write_bytes(b"".join(itertools.islice(f, lines)))
+    return head
+
+
 if __name__ == "__main__":
-    lines = int(sys.argv[1]) if len(sys.argv) > 1 else 8000
+    arguments = [a for a in sys.argv[1:] if a != "--tradeoff"]
+    lines = int(arguments[0]) if arguments else (3000 if "--tradeoff" in sys.argv else 8000)
     with tempfile.TemporaryDirectory() as folder:
-        head = Path(folder) / f"gear-{lines}.gcode"
-        with open(ROOT / PROGRAM, "rb") as f:
-            head.write_bytes(b"".join(itertools.islice(f, lines)))
+        if "--tradeoff" in sys.argv:
+            programs = {**TRADEOFF_PROGRAMS, "twisted star": twisted_star(folder)}
+            tradeoff({name: _head(program, lines, folder) for name, program in programs.items()})
+            sys.exit()
+        head = _head(PROGRAM, lines, folder)
         sims = predictions(head)
         firmware(head)
         load_dependent(sims["nominal"])

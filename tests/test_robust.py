@@ -252,10 +252,31 @@ def test_robust_fbs_as_klipper_runs_it_at_most_the_best_shaper(tmp_path, gear_he
         assert fbs <= best, (f, d, fbs, best)
 
 
+def _varying_gains(sim, varied, column: int, scale: np.ndarray) -> tuple[float, float, float]:
+    """The contour error removed on the machine whose axis ``column`` has every frequency times
+    ``scale`` at each sample, simulated exactly (reference.simulate_varying): by ``sim``'s FBS on
+    the machine it models (constant), by ``varied``'s FBS (the varying profile), by ``sim``'s FBS
+    (the fixed profile)."""
+    assert np.array_equal(varied.desired_mm, sim.desired_mm)
+    distance, mask = PathDistance(sim.path_start_mm, sim.path_end_mm), sim.contour_mask
+    modes = NOMINAL.axes[AXES[column]].modes
+
+    def contour_rms(method, varying):
+        actual = method.actual_mm.copy()
+        if varying:
+            actual[:, column] = simulate_varying(modes, T, method.command_mm[:, column], scale)
+        return float(np.sqrt(np.mean(distance(actual[mask, :3])[0] ** 2)))
+
+    (original, fbs), varying_fbs = sim.methods[:2], varied.methods[1]
+    before = contour_rms(original, True)
+    return (1.0 - contour_rms(fbs, False) / contour_rms(original, False),
+            1.0 - contour_rms(varying_fbs, True) / before, 1.0 - contour_rms(fbs, True) / before)
+
+
 @pytest.mark.slow
 def test_load_dependent_profile_keeps_the_gain_on_a_bed_whose_frequency_falls(gear_head, nominal_sim):
     """Y carries the print: its frequency falls 15% over the program (a bed of 0.46 g: the whole
-    print's mass growth in its first 26 s), simulated exactly per sample (reference.simulate_varying)."""
+    print's mass growth in its first 26 s)."""
     e = nominal_sim.desired_mm[:, AXES.index("E")]
     extruded = e - e[np.isfinite(e)][0]
     g_per_mm = math.pi * 0.875**2 * 1.24e-3
@@ -264,21 +285,7 @@ def test_load_dependent_profile_keeps_the_gain_on_a_bed_whose_frequency_falls(ge
     assert scale[-1] == pytest.approx(0.85)
     axes = dict(NOMINAL.axes, Y=dataclasses.replace(NOMINAL.axes["Y"], moving_mass_kg=mass_kg))
     loaded = simulate_program(gear_head, dataclasses.replace(NOMINAL, axes=axes))
-    distance = PathDistance(nominal_sim.path_start_mm, nominal_sim.path_end_mm)
-    y, mask = AXES.index("Y"), nominal_sim.contour_mask
-
-    def contour_rms(method, varying):
-        actual = method.actual_mm.copy()
-        if varying:
-            actual[:, y] = simulate_varying(NOMINAL.axes["Y"].modes, T, method.command_mm[:, y], scale)
-        return float(np.sqrt(np.mean(distance(actual[mask, :3])[0] ** 2)))
-
-    (original, fbs), load_fbs = nominal_sim.methods[:2], loaded.methods[1]
-    assert np.array_equal(loaded.desired_mm, nominal_sim.desired_mm)
-    exact_gain = 1.0 - contour_rms(fbs, False) / contour_rms(original, False)  # FBS on the machine it models
-    before = contour_rms(original, True)
-    load_gain = 1.0 - contour_rms(load_fbs, True) / before
-    fixed_gain = 1.0 - contour_rms(fbs, True) / before
+    exact_gain, load_gain, fixed_gain = _varying_gains(nominal_sim, loaded, AXES.index("Y"), scale)
     assert load_gain >= 0.9 * exact_gain
     assert fixed_gain < load_gain - 0.05  # the fixed model loses what the load-dependent one keeps
 
@@ -286,30 +293,15 @@ def test_load_dependent_profile_keeps_the_gain_on_a_bed_whose_frequency_falls(ge
 @pytest.mark.slow
 def test_position_dependent_profile_keeps_the_gain_where_the_modes_change_along_an_axis(gear_head, nominal_sim):
     """X's modes fall 15% from one side of the part to the other along Y (a gantry whose X
-    stiffness changes with Y, compressed onto this part), simulated exactly per sample at the
-    planned Y (reference.simulate_varying)."""
-    x, y, mask = AXES.index("X"), AXES.index("Y"), nominal_sim.contour_mask
-    along = nominal_sim.desired_mm[:, y]
-    low, high = float(np.nanmin(along[mask])), float(np.nanmax(along[mask]))
+    stiffness changes with Y, compressed onto this part), at the planned Y."""
+    along = nominal_sim.desired_mm[:, AXES.index("Y")]
+    low, high = float(np.nanmin(along[nominal_sim.contour_mask])), float(np.nanmax(along[nominal_sim.contour_mask]))
     table = PositionTable("Y", (low, high), (1.0, 0.85))
     scale = np.interp(np.nan_to_num(along, nan=low), table.positions_mm, table.frequency_scales)
+    assert scale[nominal_sim.contour_mask].min() < 0.86
     axes = dict(NOMINAL.axes, X=dataclasses.replace(NOMINAL.axes["X"], modes_by_position=table))
     varied = simulate_program(gear_head, dataclasses.replace(NOMINAL, axes=axes))
-    distance = PathDistance(nominal_sim.path_start_mm, nominal_sim.path_end_mm)
-
-    def contour_rms(method, varying):
-        actual = method.actual_mm.copy()
-        if varying:
-            actual[:, x] = simulate_varying(NOMINAL.axes["X"].modes, T, method.command_mm[:, x], scale)
-        return float(np.sqrt(np.mean(distance(actual[mask, :3])[0] ** 2)))
-
-    (original, fbs), position_fbs = nominal_sim.methods[:2], varied.methods[1]
-    assert np.array_equal(varied.desired_mm, nominal_sim.desired_mm)
-    assert scale[mask].min() < 0.86 and scale[mask].max() > 0.99
-    exact_gain = 1.0 - contour_rms(fbs, False) / contour_rms(original, False)  # FBS on the machine it models
-    before = contour_rms(original, True)
-    position_gain = 1.0 - contour_rms(position_fbs, True) / before
-    fixed_gain = 1.0 - contour_rms(fbs, True) / before
+    exact_gain, position_gain, fixed_gain = _varying_gains(nominal_sim, varied, AXES.index("X"), scale)
     print(f"gain: exact model {exact_gain:.3f}, position-dependent {position_gain:.3f}, fixed {fixed_gain:.3f}")
     assert position_gain >= 0.9 * exact_gain
     assert fixed_gain < position_gain - 0.05  # the fixed model loses what the position-dependent one keeps
