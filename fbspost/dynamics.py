@@ -30,7 +30,7 @@ class AxisDynamics:
         self.modes = tuple(modes)
         self.sample_period_s = float(sample_period_s)
         blocks_a, blocks_b, blocks_c = [], [], []
-        self._mode_filters = []  # (b, a) per mode, for lfilter
+        self.mode_filters = []  # (b, a) per mode, for lfilter (b[0] = 0: no feedthrough)
         for mode in self.modes:
             w, z = mode.omega_rad_s, mode.damping
             a_c = np.array([[0.0, 1.0], [-w * w, -2.0 * z * w]])
@@ -43,7 +43,7 @@ class AxisDynamics:
             blocks_b.append(b_d[:, 0])
             blocks_c.append(c_d[0])
             num, den = signal.ss2tf(a_d, b_d, c_d, d_d)
-            self._mode_filters.append((num[0], den))
+            self.mode_filters.append((num[0], den))
         self.A = linalg.block_diag(*blocks_a)
         self.B = np.concatenate(blocks_b)
         self.C = np.concatenate(blocks_c)
@@ -64,7 +64,7 @@ class AxisDynamics:
     def filter(self, u: np.ndarray, axis: int = 0) -> np.ndarray:
         """Response to ``u`` from the zero state (u taken as zero before its first sample)."""
         u = np.asarray(u, dtype=float)
-        return sum(signal.lfilter(b, a, u, axis=axis) for b, a in self._mode_filters)
+        return sum(signal.lfilter(b, a, u, axis=axis) for b, a in self.mode_filters)
 
     def simulate(self, command_mm: np.ndarray) -> np.ndarray:
         """Actual position for ``command_mm``, starting at rest at the first commanded position."""
@@ -76,14 +76,14 @@ class AxisDynamics:
     def response(self, start_mm: float):
         """``simulate`` for a command given in pieces, from rest at ``start_mm``: a function
         taking each next piece of the command (mm) and giving that piece of the actual position."""
-        states = [np.zeros(len(a) - 1) for _, a in self._mode_filters]
+        states = [np.zeros(len(a) - 1) for _, a in self.mode_filters]
 
         def step(command_mm: np.ndarray) -> np.ndarray:
             u = np.asarray(command_mm, dtype=float) - start_mm
             if not u.size:
                 return u  # (lfilter gives a garbage final state for an empty input)
             total = 0.0
-            for i, (b, a) in enumerate(self._mode_filters):
+            for i, (b, a) in enumerate(self.mode_filters):
                 y, states[i] = signal.lfilter(b, a, u, zi=states[i])
                 total = total + y
             return start_mm + total

@@ -46,7 +46,7 @@ class Mode:
 
 @dataclass(frozen=True)
 class PositionTable:
-    """An axis' modes against another axis' position: every frequency times ``frequency_scales``
+    """An axis' modes against an axis' position: every frequency times ``frequency_scales``
     at ``positions_mm`` (increasing), linear between them, flat beyond them."""
 
     axis: str

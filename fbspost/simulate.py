@@ -19,6 +19,9 @@ path, and per method its command, its modelled actual positions and their ``Metr
   planned E rises on both sides; otherwise the path is its feed moves (every move but LinuxCNC's
   G0) and the samples those inside them. Command contour error: the same for the command itself
   (a shaper's smoothing, its corner rounding; FBS's deliberate pre-distortion).
+- Machine: each modelled axis' modes; where the profile makes them vary (``moving_mass``,
+  ``modes_by_position``), the modes in force at each sample of the plan (``varying``). The
+  perturbed machines of ``model_error`` are the profiled modes scaled, fixed.
 - Residual vibration: the largest |actual - final position| over ``settle_s`` after the
   command's last motion. Duration: from the command's first motion (of any axis) to its last.
 """
@@ -33,7 +36,7 @@ from scipy.spatial import cKDTree
 
 from .dynamics import AxisDynamics, scaled_mode
 from .gcode import AXES, Block, Kind, detect_flavor, feed_lengths, read_gcode
-from .pipeline import compensated_samples
+from .pipeline import compensated_samples, varying_modes
 from .planner import EXTRUDE_ONLY_MM, Plan, PlanStream, RunMargins, fill_unknown, plan_blocks
 from .profile import AxisProfile, MachineProfile, ProfileError
 from .shapers import SHAPERS, Shaper, klipper_shaper, shape
@@ -206,16 +209,27 @@ def simulate_program(program: str | Path, profile: MachineProfile, shapers: tupl
         label = f"{name}: " + ", ".join(f"{a} {s.frequency_hz:.4g} Hz damping {s.damping:.3g}" for a, s in row.items())
         rows.append((name, label, command))
 
-    dynamics = {a: AxisDynamics(profile.axes[a].modes, period_s) for a in modelled}
+    machines = {AXES.index(a): _machine(profile, a, desired) for a in modelled}
     distance = PathDistance(starts, ends)
     for name, label, command in rows:
         actual = command.copy()
-        for axis, model in dynamics.items():
-            actual[:, AXES.index(axis)] = model.simulate(command[:, AXES.index(axis)])
+        for column, machine in machines.items():
+            actual[:, column] = machine(command[:, column])
         error, nearest = distance(actual[mask, _XYZ])
         sim.methods.append(Method(name, label, shaper_rows.get(name, {}), command, actual, error, nearest))
     _measure(sim, period_s, distance)
     return sim
+
+
+def _machine(profile: MachineProfile, axis: str, desired_mm: np.ndarray):
+    """The axis' actual position as a function of its command (mm, every sample): its modes, or
+    where they vary with the print or along an axis, the modes in force at each sample of the
+    plan (``desired_mm``)."""
+    varying = varying_modes(profile, profile.axes[axis])
+    if varying is None:
+        return AxisDynamics(profile.axes[axis].modes, 1.0 / profile.sample_rate_hz).simulate
+    levels = varying.levels(desired_mm[:, varying.column])
+    return lambda command_mm: varying.simulate(command_mm, levels)
 
 
 def model_error(sim: Simulation, points=MODEL_ERRORS) -> list[tuple[float, float, dict[str, float]]]:

@@ -14,13 +14,14 @@ output and its rate continuous: the machine does not jump when the model is swit
 """
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import linalg
+from scipy import linalg, signal
 
-from .dynamics import ModelSet, scaled_mode
+from .dynamics import AxisDynamics, ModelSet, scaled_mode
 from .gcode import AXES
 from .profile import Mode
 
@@ -28,7 +29,8 @@ STEP = 0.01  # relative frequency step between levels: within a level the model 
 
 
 class _Levels:
-    """What both kinds share: ``scale`` (a state's factor) and ``modes``, ``sample_period_s``."""
+    """The levels, model sets and remaps of modes whose frequencies all scale by one factor of a
+    state; a kind gives ``modes``, ``sample_period_s``, ``column`` and ``scale`` (state -> factor)."""
 
     since_first = False  # the state counts from its first known value (else: as it is)
 
@@ -44,6 +46,42 @@ class _Levels:
 
     def models(self, level: int) -> ModelSet:
         return ModelSet.spread(self.modes_at(level), self.sample_period_s)
+
+    def levels(self, state: np.ndarray) -> np.ndarray:
+        """The level at each sample of ``state`` (the plan's ``column``; counted from its first
+        known value where ``since_first``), as ``level`` gives it."""
+        state = np.asarray(state, dtype=float)
+        if self.since_first and np.isfinite(state).any():
+            state = state - state[np.isfinite(state)][0]
+        with np.errstate(invalid="ignore"):
+            levels = np.rint(np.log(self.scale(state)) / math.log1p(STEP))
+        return np.nan_to_num(levels).astype(np.int64)
+
+    def simulate(self, command_mm: np.ndarray, levels: np.ndarray) -> np.ndarray:
+        """The axis' actual position for ``command_mm`` (held over each sample, from rest at the
+        first), its modes at each sample's level (``levels``): in each stretch of one level, each
+        mode's filter from the state it was left in, the state mapped where the level changes
+        (``remap``'s nominal block)."""
+        command_mm = np.asarray(command_mm, dtype=float)
+        u = command_mm - command_mm[0]
+        actual = np.zeros(u.size)
+        x, n_states = np.zeros(2 * len(self.modes)), 2 * len(self.modes)
+        for first, stop in itertools.pairwise([0, *(np.flatnonzero(np.diff(levels)) + 1).tolist(), u.size]):
+            level = int(levels[first])
+            if first:
+                to_new, from_command = self.remap(int(levels[first - 1]), level)
+                x = to_new[:n_states, :n_states] @ x + from_command[:n_states] * u[first - 1]
+            dynamics = AxisDynamics(self.modes_at(level), self.sample_period_s)
+            for i, (b, a) in enumerate(dynamics.mode_filters):
+                rows = slice(2 * i, 2 * i + 2)
+                c, c_a = dynamics.C[rows], dynamics.C[rows] @ dynamics.A[rows, rows]
+                # lfilter's state (direct form II transposed, b[0] = 0) holds the free response's
+                # next two outputs: C x and C A x + a1 C x
+                y0 = c @ x[rows]
+                y, (z0, z1) = signal.lfilter(b, a, u[first:stop], zi=[y0, c_a @ x[rows] + a[1] * y0])
+                actual[first:stop] += y
+                x[rows] = np.linalg.solve(np.array([c, c_a]), [z0, z1 - a[1] * z0])
+        return actual + command_mm[0]
 
     def remap(self, old: int, new: int) -> tuple[np.ndarray, np.ndarray]:
         """(R, r): the stacked state of level ``new``'s models is R x + r u for the state x of
@@ -69,10 +107,11 @@ class LoadModes(_Levels):
     column = AXES.index("E")  # the state: the filament extruded
     since_first = True
 
-    def scale(self, extruded_mm: float) -> float:
-        """Every frequency's factor after ``extruded_mm`` of filament (a negative amount: none)."""
-        printed_kg = max(0.0, extruded_mm) * self.filament_g_per_mm * 1e-3
-        return math.sqrt(self.moving_mass_kg / (self.moving_mass_kg + printed_kg))
+    def scale(self, extruded_mm):
+        """Every frequency's factor after ``extruded_mm`` of filament (a negative amount: none; a
+        number or an array)."""
+        printed_kg = np.maximum(0.0, extruded_mm) * self.filament_g_per_mm * 1e-3
+        return np.sqrt(self.moving_mass_kg / (self.moving_mass_kg + printed_kg))
 
 
 @dataclass(frozen=True)
@@ -86,8 +125,9 @@ class PositionModes(_Levels):
     positions_mm: tuple[float, ...]
     scales: tuple[float, ...]
 
-    def scale(self, position_mm: float) -> float:
-        return float(np.interp(position_mm, self.positions_mm, self.scales))
+    def scale(self, position_mm):
+        """Every frequency's factor at ``position_mm`` (a number or an array)."""
+        return np.interp(position_mm, self.positions_mm, self.scales)
 
 
 def _physical(mode: Mode) -> tuple[np.ndarray, np.ndarray]:

@@ -96,6 +96,27 @@ def test_modes_by_position_in_the_profile():
             parse_profile(profile_text(keys), "p.toml")
 
 
+@pytest.mark.parametrize("kind", ["load", "position"])
+def test_the_varying_machine_simulated_as_the_exact_stepped_machine(kind):
+    """``varying.simulate``: lfilter per stretch of one level, the state carried across the
+    switches, against the machine integrated exactly per sample at the same levels
+    (reference.simulate_varying); two modes, a command going back and forth."""
+    modes = NOMINAL.axes["X"].modes
+    there_and_back = np.concatenate([smooth_move(20.0, 0.15, 0.1, T), 20.0 - smooth_move(20.0, 0.15, 0.1, T)[1:]])
+    command = 5.0 + np.tile(there_and_back, 4)
+    if kind == "load":
+        varying, state = LoadModes(modes, T, 0.1, 0.25), np.linspace(3.0, 123.0, command.size)
+    else:
+        varying = PositionModes(modes, T, AXES.index("Y"), (0.0, 50.0, 200.0), (1.1, 1.0, 0.8))
+        state = 100.0 + 90.0 * np.sin(np.linspace(0.0, 3.0 * np.pi, command.size))
+    levels = varying.levels(state)
+    assert levels.tolist() == [varying.level(s - (3.0 if kind == "load" else 0.0)) for s in state.tolist()]
+    assert np.count_nonzero(np.diff(levels)) >= (12 if kind == "load" else 40)
+    truth = simulate_varying(modes, T, command, 1.01 ** levels)
+    assert np.abs(varying.simulate(command, levels) - truth).max() < 1e-9
+    assert np.abs(simulate_varying(modes, T, command, np.ones(command.size)) - truth).max() > 1e-2  # (it varies)
+
+
 def test_a_scaled_mode_is_the_mode_in_scaled_time_with_its_dc_gain():
     """G_s(j w) = G(j w / s): the closed form of a mode whose dynamics run s times faster."""
     mode = Mode(30.0, 0.08, 2.0e4, 35.0)
@@ -302,6 +323,10 @@ def test_position_dependent_profile_keeps_the_gain_where_the_modes_change_along_
     axes = dict(NOMINAL.axes, X=dataclasses.replace(NOMINAL.axes["X"], modes_by_position=table))
     varied = simulate_program(gear_head, dataclasses.replace(NOMINAL, axes=axes))
     exact_gain, position_gain, fixed_gain = _varying_gains(nominal_sim, varied, AXES.index("X"), scale)
+    # simulate models the varying machine: the original's X as the stepped machine runs it
+    stepped = simulate_varying(NOMINAL.axes["X"].modes, T, varied.desired_mm[:, 0],
+                               1.01 ** varying_modes(varied.profile, axes["X"]).levels(along))
+    assert np.abs(varied.methods[0].actual_mm[:, 0] - stepped).max() < 1e-9
     print(f"gain: exact model {exact_gain:.3f}, position-dependent {position_gain:.3f}, fixed {fixed_gain:.3f}")
     assert position_gain >= 0.9 * exact_gain
     assert fixed_gain < position_gain - 0.05  # the fixed model loses what the position-dependent one keeps
