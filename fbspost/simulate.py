@@ -20,15 +20,15 @@ path, and per method its command, its modelled actual positions and their ``Metr
   G0) and the samples those inside them. Command contour error: the same for the command itself
   (a shaper's smoothing, its corner rounding; FBS's deliberate pre-distortion).
 - Machine: each modelled axis' modes; where the profile makes them vary (``moving_mass``,
-  ``modes_by_position``), the modes in force at each sample of the plan (``varying``). The
-  perturbed machines of ``model_error`` are the profiled modes scaled, fixed.
+  ``modes_by_position``), the modes in force at each sample of the plan (``varying``);
+  ``model_error`` scales the modes of every level alike.
 - Residual vibration: the largest |actual - final position| over ``settle_s`` after the
   command's last motion. Duration: from the command's first motion (of any axis) to its last.
 """
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -234,19 +234,21 @@ def _machine(profile: MachineProfile, axis: str, desired_mm: np.ndarray):
 
 def model_error(sim: Simulation, points=MODEL_ERRORS) -> list[tuple[float, float, dict[str, float]]]:
     """Every method's command, as made for the nominal profile, run on machines whose every mode
-    has its frequency and damping scaled: per (frequency scale, damping scale) of ``points``, the
-    RMS contour error (um) by method name."""
-    period_s = 1.0 / sim.profile.sample_rate_hz
+    has its frequency and damping scaled (where the modes vary, at every level): per (frequency
+    scale, damping scale) of ``points``, the RMS contour error (um) by method name."""
     distance = PathDistance(sim.path_start_mm, sim.path_end_mm)
     table = []
     for frequency_scale, damping_scale in points:
-        machine = {AXES.index(a): AxisDynamics([scaled_mode(m, frequency_scale, damping_scale)
-                                                for m in sim.profile.axes[a].modes], period_s) for a in sim.modelled}
+        axes = {a: replace(sim.profile.axes[a], modes=tuple(scaled_mode(m, frequency_scale, damping_scale)
+                                                              for m in sim.profile.axes[a].modes))
+                for a in sim.modelled}
+        perturbed = replace(sim.profile, axes={**sim.profile.axes, **axes})
+        machines = {AXES.index(a): _machine(perturbed, a, sim.desired_mm) for a in sim.modelled}
         errors = {}
         for method in sim.methods:
             actual = method.command_mm[sim.contour_mask].copy()  # the contour samples' XYZ, once simulated
-            for column, model in machine.items():
-                actual[:, column] = model.simulate(method.command_mm[:, column])[sim.contour_mask]
+            for column, machine in machines.items():
+                actual[:, column] = machine(method.command_mm[:, column])[sim.contour_mask]
             errors[method.name] = _rms_um(distance(actual[:, _XYZ])[0])
         table.append((frequency_scale, damping_scale, errors))
     return table

@@ -327,6 +327,10 @@ def test_position_dependent_profile_keeps_the_gain_where_the_modes_change_along_
     stepped = simulate_varying(NOMINAL.axes["X"].modes, T, varied.desired_mm[:, 0],
                                1.01 ** varying_modes(varied.profile, axes["X"]).levels(along))
     assert np.abs(varied.methods[0].actual_mm[:, 0] - stepped).max() < 1e-9
+    # and so does --model-error: its unperturbed row is simulate's own figures
+    (_, _, unperturbed), = model_error(varied, [(1.0, 1.0)])
+    for method in varied.methods:
+        assert unperturbed[method.name] == pytest.approx(method.path.rms_contour_error_um, rel=1e-9)
     print(f"gain: exact model {exact_gain:.3f}, position-dependent {position_gain:.3f}, fixed {fixed_gain:.3f}")
     assert position_gain >= 0.9 * exact_gain
     assert fixed_gain < position_gain - 0.05  # the fixed model loses what the position-dependent one keeps
