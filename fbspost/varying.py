@@ -14,6 +14,7 @@ output and its rate continuous: the machine does not jump when the model is swit
 """
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 from dataclasses import dataclass
@@ -61,39 +62,57 @@ class _Levels:
         """The axis' actual position for ``command_mm`` (held over each sample, from rest at the
         first), its modes at each sample's level (``levels``): in each stretch of one level, each
         mode's filter from the state it was left in, the state mapped where the level changes
-        (``remap``'s nominal block)."""
+        (``remap`` of the nominal modes)."""
         command_mm = np.asarray(command_mm, dtype=float)
         u = command_mm - command_mm[0]
         actual = np.zeros(u.size)
-        x, n_states = np.zeros(2 * len(self.modes)), 2 * len(self.modes)
+        x = np.zeros(2 * len(self.modes))
         for first, stop in itertools.pairwise([0, *(np.flatnonzero(np.diff(levels)) + 1).tolist(), u.size]):
             level = int(levels[first])
             if first:
-                to_new, from_command = self.remap(int(levels[first - 1]), level)
-                x = to_new[:n_states, :n_states] @ x + from_command[:n_states] * u[first - 1]
-            dynamics = AxisDynamics(self.modes_at(level), self.sample_period_s)
-            for i, (b, a) in enumerate(dynamics.mode_filters):
+                to_new, from_command = _remap_modes(self.modes_at(int(levels[first - 1])), self.modes_at(level))
+                x = to_new @ x + from_command * u[first - 1]
+            for i, (b, a, observe) in enumerate(_mode_filters(self.modes_at(level), self.sample_period_s)):
                 rows = slice(2 * i, 2 * i + 2)
-                c, c_a = dynamics.C[rows], dynamics.C[rows] @ dynamics.A[rows, rows]
                 # lfilter's state (direct form II transposed, b[0] = 0) holds the free response's
                 # next two outputs: C x and C A x + a1 C x
-                y0 = c @ x[rows]
-                y, (z0, z1) = signal.lfilter(b, a, u[first:stop], zi=[y0, c_a @ x[rows] + a[1] * y0])
+                y0, y1 = observe @ x[rows]
+                y, (z0, z1) = signal.lfilter(b, a, u[first:stop], zi=[y0, y1 + a[1] * y0])
                 actual[first:stop] += y
-                x[rows] = np.linalg.solve(np.array([c, c_a]), [z0, z1 - a[1] * z0])
+                x[rows] = np.linalg.solve(observe, [z0, z1 - a[1] * z0])
         return actual + command_mm[0]
 
     def remap(self, old: int, new: int) -> tuple[np.ndarray, np.ndarray]:
         """(R, r): the stacked state of level ``new``'s models is R x + r u for the state x of
-        level ``old``'s and the command u held before it: every mode of every model keeps its
-        output y = alpha q + beta q' and its rate y' = alpha q' + beta q'' (q'' takes u)."""
-        blocks, offsets = [], []
-        for before, after in zip(self.models(old).models, self.models(new).models, strict=True):
-            for a, b in zip(before.modes, after.modes, strict=True):
-                (to_a, u_a), (to_b, u_b) = _physical(a), _physical(b)
-                blocks.append(linalg.solve(to_b, to_a))
-                offsets.append(linalg.solve(to_b, u_a - u_b))
-        return linalg.block_diag(*blocks), np.concatenate(offsets)
+        level ``old``'s and the command u held before it (``_remap_modes`` of every model)."""
+        maps = [_remap_modes(before.modes, after.modes)
+                for before, after in zip(self.models(old).models, self.models(new).models, strict=True)]
+        return linalg.block_diag(*(to_new for to_new, _ in maps)), np.concatenate([offset for _, offset in maps])
+
+
+@functools.lru_cache(maxsize=1024)
+def _remap_modes(before: tuple[Mode, ...], after: tuple[Mode, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """(R, r): the state of modes ``after`` is R x + r u for the state x of ``before`` and the
+    command u held before it: every mode keeps its output y = alpha q + beta q' and its rate
+    y' = alpha q' + beta q'' (q'' takes u)."""
+    blocks, offsets = [], []
+    for a, b in zip(before, after, strict=True):
+        (to_a, u_a), (to_b, u_b) = _physical(a), _physical(b)
+        blocks.append(linalg.solve(to_b, to_a))
+        offsets.append(linalg.solve(to_b, u_a - u_b))
+    return linalg.block_diag(*blocks), np.concatenate(offsets)
+
+
+@functools.lru_cache(maxsize=256)
+def _mode_filters(modes: tuple[Mode, ...], sample_period_s: float) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Per mode, discretized: its lfilter (b, a), and [C; C A], from its state (q, q') to its next
+    two outputs at rest."""
+    dynamics = AxisDynamics(modes, sample_period_s)
+    filters = []
+    for i, (b, a) in enumerate(dynamics.mode_filters):
+        rows = slice(2 * i, 2 * i + 2)
+        filters.append((b, a, np.array([dynamics.C[rows], dynamics.C[rows] @ dynamics.A[rows, rows]])))
+    return filters
 
 
 @dataclass(frozen=True)
