@@ -61,8 +61,9 @@ class CompensateOptions:
     tool_table: Path | None = None  # rs274's tool table (tool length offsets, cutter radii)
     ini: Path | None = None  # rs274's INI (subroutine paths)
     parallel_axes: bool = True  # each compensated axis on its own threads (same output, bit for bit)
-    # The optimizers and fallbacks in a second process, beside the writer (same output, bit for
-    # bit); None: for long programs of few blocks a second (_in_second_process), with parallel_axes
+    # Each compensated axis' optimizer and fallback in a process of its own, beside the writer (same
+    # output, bit for bit); None: for long programs of few blocks a second (_in_second_process),
+    # with parallel_axes
     second_process: bool | None = None
     # Re-plan both programs on the firmware's planner before committing (verify.py); None: for
     # the firmware whose planner differs from the blocks as written, up to VERIFY_AUTO_LINES.

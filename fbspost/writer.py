@@ -353,10 +353,11 @@ class _Emitter:
                 targets_mm, durations_s, ends_s, ints = (x[:last] for x in (targets_mm, durations_s, ends_s, ints))
         steps = np.diff(np.vstack([start, ints]), axis=0)
         moved = steps != 0
-        length, jump = np.zeros(len(steps)), np.zeros(len(steps))
-        if marlin:  # (of the blocks that move alone: two in three rows are merged away)
-            moves = moved.any(axis=1)
-            length[moves], jump[moves] = self._marlin_lengths(start, ints[moves], scale)
+        moving = moved.any(axis=1)
+        jump = np.zeros(len(steps))
+        if marlin:  # (of the moving blocks alone: two in three rows are merged away)
+            length = np.zeros(len(steps))
+            length[moving], jump[moving] = self._marlin_lengths(start, ints[moving], scale)
         else:
             length = _lengths(steps / scale * self.unit_mm)
         if curves is not None:
@@ -373,7 +374,7 @@ class _Emitter:
             length[g5_rows] = curve_lengths(p0 / xy_scale, (p0 + offsets[g5_rows, :2]) / xy_scale,
                                             (p3 + offsets[g5_rows, 2:]) / xy_scale, p3 / xy_scale) * self.unit_mm
             moved[:, :2] |= curves.curve[:, None]  # G5 needs its end point, also where it closes a loop
-        moving = moved.any(axis=1)
+            moving |= curves.curve
         self.written_s, self.written_mm = ends_s[moving], targets_mm[moving]
         # where the firmware goes: Marlin's whole steps (else the targets: 0.1 um from them)
         self.stepped_mm = self.to_machine(ints[moving] / scale) if marlin else self.written_mm
