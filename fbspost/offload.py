@@ -5,7 +5,9 @@ Takes a module-level generator function and its (picklable) arguments; gives its
 order, and at the end the value it returns (``value``). An exception in the child is raised
 here (as itself where it pickles, else as a RuntimeError with its traceback). The child runs
 at most ``ahead`` items ahead of the reader, at a lower priority (``NICENESS``); it is ended if
-the reader stops early.
+the reader stops early. With ``requests`` (a queue) the two talk: the generator gets a
+``Channel`` first, whose ``request()`` puts the worker's ``key`` in ``requests`` here, and whose
+``get()`` gives what the parent ``send``s.
 
 Python threads share one interpreter lock, so the axes' threads of one process overlap little
 (CPU time equals wall time on the gear); a process has its own.
@@ -22,7 +24,7 @@ import traceback
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
-_AHEAD = 8  # items the child may be ahead
+_AHEAD = 4  # items the child may be ahead (each holds the plan's blocks back in the writer's process)
 # The parent reads the items and is the slower (the writer): where both want a core, it gets it
 # first, and the child takes what is left (gear 6 h: wall time 1.16 -> 1.11 x the writer's CPU time).
 NICENESS = 10
@@ -35,51 +37,105 @@ class Offloaded:
     """``function(*args)``'s items, made in a child process (a context manager: leaving it ends
     the child if it still runs)."""
 
-    def __init__(self, function: Callable[..., Iterator], *args, ahead: int = _AHEAD):
+    def __init__(self, function: Callable[..., Iterator], *args, ahead: int = _AHEAD,
+                 requests: queue.Queue | None = None, key=None):
         env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [_PACKAGE_ROOT, os.environ.get("PYTHONPATH")]))}
         self._process = subprocess.Popen([sys.executable, "-m", "fbspost.offload"], stdin=subprocess.PIPE,
                                          stdout=subprocess.PIPE, env=env)
-        pickle.dump((function, args), self._process.stdin, protocol=pickle.HIGHEST_PROTOCOL)
-        self._process.stdin.close()
+        self._requests, self._key = requests, key
+        self.send((function, args, requests is not None))
+        if requests is None:
+            self._process.stdin.close()
         self._items: queue.Queue = queue.Queue(ahead)
         self._receiver = threading.Thread(target=self._receive, daemon=True)
         self._receiver.start()
+        self._ended = False
         self.value = None
+
+    def send(self, message) -> None:
+        """``message`` to the child's ``Channel.get``. (A child that ended tells why through its
+        items: a pipe it no longer reads is not an error here.)"""
+        try:
+            pickle.dump(message, self._process.stdin, protocol=pickle.HIGHEST_PROTOCOL)
+            self._process.stdin.flush()
+        except (BrokenPipeError, ValueError):  # (ValueError: closed by close())
+            pass
 
     def _receive(self) -> None:
         """Move the child's messages to the queue as they come (the child sends only while the
-        queue has room, so that it may compute the next items meanwhile)."""
+        queue has room, so that it may compute the next items meanwhile), its requests to
+        ``requests``."""
         try:
             while True:
                 message = pickle.load(self._process.stdout)
+                if message[0] == "request":
+                    self._requests.put(self._key)
+                    continue
                 self._items.put(message)
                 if message[0] != "item":
                     return
         except (EOFError, OSError, pickle.UnpicklingError):
             self._items.put(("error", RuntimeError("the compensation's process ended unexpectedly")))
 
+    def get(self, timeout: float | None = None):
+        """The next item: queue.Empty if none comes within ``timeout`` s, StopIteration after
+        the last (``value`` set)."""
+        if self._ended:
+            raise StopIteration
+        kind, payload = self._items.get(timeout=timeout)
+        if kind == "item":
+            return payload
+        self._ended = True
+        if kind == "done":
+            self.value = payload
+            raise StopIteration
+        raise payload
+
     def __iter__(self) -> Iterator:
         while True:
-            kind, payload = self._items.get()
-            if kind == "item":
-                yield payload
-            elif kind == "done":
-                self.value = payload
+            try:
+                yield self.get()
+            except StopIteration:
                 return
-            else:
-                raise payload
 
     def close(self) -> None:
         if self._process.poll() is None:
             self._process.kill()
         self._process.wait()
         self._process.stdout.close()
+        if not self._process.stdin.closed:
+            self._process.stdin.close()
 
     def __enter__(self) -> Offloaded:
         return self
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+class Channel:
+    """The child's side of the talk: ``request()`` asks the parent for something, ``get()`` waits
+    for what the parent sent next (read as it comes, so that the parent never waits to send)."""
+
+    def __init__(self, source, send: Callable):
+        self._send, self._inbox = send, queue.Queue()
+        threading.Thread(target=self._read, args=(source,), daemon=True).start()
+
+    def _read(self, source) -> None:
+        try:
+            while True:
+                self._inbox.put(("message", pickle.load(source)))
+        except (EOFError, OSError, pickle.UnpicklingError):
+            self._inbox.put(("end", None))
+
+    def request(self) -> None:
+        self._send(("request", None))
+
+    def get(self):
+        kind, message = self._inbox.get()
+        if kind == "end":
+            raise EOFError("the parent stopped sending")
+        return message
 
 
 def _serve(source, sink) -> None:
@@ -90,8 +146,8 @@ def _serve(source, sink) -> None:
         sink.flush()
 
     try:
-        function, args = pickle.load(source)
-        generator = function(*args)
+        function, args, talks = pickle.load(source)
+        generator = function(Channel(source, send), *args) if talks else function(*args)
         while True:
             try:
                 item = next(generator)

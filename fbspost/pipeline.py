@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import queue
 import re
 import shutil
 import tempfile
@@ -32,7 +33,8 @@ from .fallback import FALLBACK, AxisGuard
 from .gcode import AXES, Block, NeedsInterpreter, detect_flavor, read_gcode
 from .offload import Offloaded
 from .optimizer import AxisCompensator, AxisLimits, FBSSettings
-from .planner import Plan, PlanStream, RunMargins
+from .planfeed import PlanFeed, PlanProxy
+from .planner import BATCH_BLOCKS, Plan, PlanStream, RunMargins
 from .profile import AxisProfile, MachineProfile
 from .trajectory import InputError
 from .transparency import FirmwareSettings
@@ -61,9 +63,9 @@ class CompensateOptions:
     tool_table: Path | None = None  # rs274's tool table (tool length offsets, cutter radii)
     ini: Path | None = None  # rs274's INI (subroutine paths)
     parallel_axes: bool = True  # each compensated axis on its own threads (same output, bit for bit)
-    # Each compensated axis' optimizer and fallback in a process of its own, beside the writer (same
-    # output, bit for bit); None: for long programs of few blocks a second (_in_second_process),
-    # with parallel_axes
+    # Each compensated axis' optimizer and fallback in a process of its own, beside the writer, which
+    # plans for them (same output, bit for bit); None: for long programs (_in_second_process), with
+    # parallel_axes
     second_process: bool | None = None
     # Re-plan both programs on the firmware's planner before committing (verify.py); None: for
     # the firmware whose planner differs from the blocks as written, up to VERIFY_AUTO_LINES.
@@ -134,8 +136,8 @@ _CHUNK = 1 << 14  # samples planned, compensated and written at once
 # RepRapFirmware lines 1 GB); Klipper runs the blocks as written (proven on klippy).
 VERIFY_AUTO_LINES = 100_000
 _SECOND_PROCESS_BYTES = 256_000  # (a second process starts in about 0.5 s: a program this long takes 5 s)
-_SECOND_PROCESS_LINES_S = 100.0  # blocks a second of the program's time
-_PROBE_S = 60.0  # the program's time the rate of its blocks is judged on
+_EXECUTED_BATCH = 1 << 14  # samples (ExecutedError)
+_POLL_S = 0.002  # how often the writer, waiting for an axis' process, answers the others' requests
 
 
 def compensate_file(input_path: str | Path, output_path: str | Path, profile: MachineProfile,
@@ -184,17 +186,16 @@ def _compensate_expanded(input_path, output_path, profile, options, reason, prog
 def _compensate(read_path, input_path, output_path, profile, options, flavor, progress, started) -> Report:
     """Compensates the program at ``read_path`` (``input_path`` itself or its expansion)."""
     stages = dict.fromkeys(("read", "plan", "optimize", "fallback", "write"), 0.0)
-    blocks = _timed(read_gcode(read_path, flavor, profile.home_mm), stages, "read")
-    if progress:
-        blocks = _reported(blocks, _count_lines(read_path), progress)
-    plan = _plan_stream(blocks, profile, options, flavor)
+    plan = _plan_stream(_read(read_path, flavor, profile.home_mm, stages, progress), profile, options, flavor)
     compensators = _compensators(profile, options)
     follows_plan = np.array([c not in compensators for c in range(len(AXES))])
-    elsewhere = bool(compensators) and _in_second_process(read_path, options, plan)
-    if elsewhere:  # a process per axis (each reads and plans too: a plan is a few per cent of the work)
-        workers = {c: Offloaded(_offloaded_chunks, read_path, profile, options, flavor, c, i == 0)
-                   for i, c in enumerate(compensators)}
-        chunks = _received(workers, plan)
+    elsewhere = bool(compensators) and _in_second_process(read_path, options)
+    if elsewhere:  # a process per axis, sent the plan made here
+        requests: queue.Queue = queue.Queue()
+        feed = PlanFeed(plan, {c: _columns(c, compensator) for c, compensator in compensators.items()})
+        workers = {c: Offloaded(_proxied_chunks, profile, options, c, feed.columns[c], requests=requests, key=c)
+                   for c in compensators}
+        chunks = _received(workers, feed, requests)
     else:
         outcome = _Outcome.of(compensators)
         chunks = _compensation_chunks(plan, compensators, options, outcome)
@@ -260,17 +261,12 @@ def _plan_stream(blocks: Iterable[Block], profile: MachineProfile, options: Comp
     return PlanStream(blocks, profile, margins=margins, firmware=flavor)
 
 
-def _in_second_process(read_path, options: CompensateOptions, plan: PlanStream) -> bool:
+def _in_second_process(read_path, options: CompensateOptions) -> bool:
     """Whether each compensated axis runs in a process of its own (``second_process``; None:
-    for a long program whose first blocks come at most ``_SECOND_PROCESS_LINES_S`` a second of
-    its time: each process reads and plans the program too, which costs more than it saves on a
-    CAM program of short segments)."""
+    for a program long enough that the processes' start pays)."""
     if options.second_process is not None:
         return options.second_process
-    if not options.parallel_axes or Path(read_path).stat().st_size < _SECOND_PROCESS_BYTES:
-        return False
-    plan.wait(lambda: plan.settled_s >= _PROBE_S or plan.done)
-    return bool(plan.n_blocks <= _SECOND_PROCESS_LINES_S * max(plan.settled_s, _PROBE_S))
+    return options.parallel_axes and Path(read_path).stat().st_size >= _SECOND_PROCESS_BYTES
 
 
 @dataclass
@@ -312,51 +308,60 @@ def _compensation_chunks(plan: PlanStream, compensators: dict[int, AxisCompensat
     outcome.optimize_s = stages["work"]
 
 
-def _offloaded_chunks(read_path, profile: MachineProfile, options: CompensateOptions, flavor: str, axis: int,
-                      planned_too: bool) -> Iterator[tuple[np.ndarray | None, np.ndarray]]:
-    """In a process of its own (offload.py): the program read and planned anew, and its chunks
-    as ``_compensation_chunks`` gives them with ``axis`` (a column) the only one compensated:
-    the planned samples (None unless ``planned_too``: every axis' process has the same) and the
-    axis' command. Returns the ``_Outcome``."""
-    plan = _plan_stream(read_gcode(read_path, flavor, profile.home_mm), profile, options, flavor)
+def _columns(c: int, compensator: AxisCompensator) -> list[int]:
+    """The planned samples' columns that compensating column ``c`` uses: its own, and the one its
+    varying modes follow."""
+    varying = compensator.varying
+    return [c] if varying is None or varying.column == c else [c, varying.column]
+
+
+def _proxied_chunks(channel, profile: MachineProfile, options: CompensateOptions, axis: int,
+                    columns: list[int]) -> Iterator[np.ndarray]:
+    """In a process of its own (offload.py): the command of ``axis`` (a column), the only one
+    compensated, in ``_compensation_chunks``' chunks of the plan that the writer's process sends
+    (``PlanFeed``, the samples of ``columns``). Returns the ``_Outcome``."""
+    plan = PlanProxy(channel, profile.sample_rate_hz, columns)
     compensators = {axis: _compensators(profile, options)[axis]}
     outcome = _Outcome.of(compensators)
     # (one axis: threads would only hand the interpreter lock back and forth)
-    for planned, command in _compensation_chunks(plan, compensators, replace(options, parallel_axes=False), outcome):
-        plan.lines.clear()  # (the writer's blocks: the writer is in the first process)
-        yield (planned if planned_too else None), command[:, axis].copy()
+    for _, command in _compensation_chunks(plan, compensators, replace(options, parallel_axes=False), outcome):
+        yield command[:, axis].copy()
     return outcome
 
 
-def _received(workers: dict[int, Offloaded], plan: PlanStream) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-    """The chunks of the axes' processes (``workers``: by column, the first sending the planned
-    samples) joined, as far as every one has given them; ``plan``, the writer's, lets go of what
-    only the optimizers would use."""
-    streams = {c: iter(worker) for c, worker in workers.items()}
-    first = next(iter(workers))
+def _received(workers: dict[int, Offloaded], feed: PlanFeed,
+              requests: queue.Queue) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """The planned samples and the axes' processes' commands (``workers``: by column) joined,
+    as far as every one has given them; the processes' ``requests`` for more of the plan are
+    answered meanwhile, whenever they come."""
     held = {c: np.zeros(0) for c in workers}  # each axis' command
-    planned = np.zeros((0, len(AXES)))
-    received = 0
+
+    def command_of(worker: Offloaded) -> np.ndarray:
+        while True:
+            while not requests.empty():
+                key = requests.get()
+                feed.answer(key, workers[key].send)
+            try:
+                return worker.get(timeout=_POLL_S)
+            except queue.Empty:
+                continue
+            except StopIteration:
+                return np.zeros(0)
+
     while True:
-        for c, stream in streams.items():
+        for c, worker in workers.items():
             if not len(held[c]):
-                rows, column = next(stream, (None, np.zeros(0)))
-                held[c] = column
-                if c == first and rows is not None:
-                    planned = rows
+                held[c] = command_of(worker)
         n = min(len(column) for column in held.values())
         if not n:
             if any(len(column) for column in held.values()):
                 raise RuntimeError("the axes' processes gave different samples")
             return
-        command = planned[:n].copy()
+        planned = feed.take(n)
+        command = planned.copy()
         for c, column in held.items():
             command[:, c], held[c] = column[:n], column[n:]
-        yield_planned, planned = planned[:n], planned[n:]
-        received += n
-        plan.release(received)
-        plan.moves.clear()  # (the fallback's warnings, found in the axes' processes)
-        yield yield_planned, command
+        yield planned, command
 
 
 class _Verification:
@@ -684,7 +689,9 @@ class ExecutedError:
     run's and the settling after it (``settle_samples``), as the optimizer's report counts them.
 
     The writer gives it the executed positions (X Y Z) sample by sample in order (``add``), and
-    the rest to the program's end (``finish``)."""
+    the rest to the program's end (``finish``). They are modelled ``_EXECUTED_BATCH`` samples
+    at a time: the writer gives a few hundred at once, and the filters' calls cost more than
+    their work."""
 
     def __init__(self, compensators: dict[int, AxisCompensator], runs: list):
         self.axes = [c for c in compensators if c < 3]
@@ -696,14 +703,26 @@ class ExecutedError:
         self.last_planned_mm = None  # the last sample's
         self.next = 0  # the next sample
         self.run = 0  # the first run whose settling may include it
+        self._held: list[tuple[np.ndarray, np.ndarray]] = []  # (executed, planned) given, not yet modelled
+        self._modelled = 0  # samples
 
     def add(self, first: int, executed_mm: np.ndarray, planned_mm: np.ndarray) -> None:
         """Samples ``first`` on: the executed and the planned positions (rows X Y Z ...)."""
         if first != self.next:
             raise ValueError(f"samples from {first} given, {self.next} expected")
-        n = len(planned_mm)
-        if not n:
+        if len(planned_mm):
+            self._held.append((executed_mm[:, :3], planned_mm[:, :3]))
+            self.next = first + len(planned_mm)
+            if self.next - self._modelled >= _EXECUTED_BATCH:
+                self._model_held()
+
+    def _model_held(self) -> None:
+        if not self._held:
             return
+        first = self._modelled
+        executed_mm, planned_mm = (np.concatenate(column) for column in zip(*self._held, strict=True))
+        self._held, self._modelled = [], self.next
+        n = len(planned_mm)
         # A jump (G28, a move from an unknown position: motion fbspost does not model) starts
         # both models anew at rest where it lands: its error is not the program's.
         restarts = set(self._jumps(first, planned_mm)) | ({0} if self.steps is None else set())
@@ -713,10 +732,9 @@ class ExecutedError:
                               for c, m in self.models.items()}
             self._count(first + a, executed_mm[a:b], planned_mm[a:b])
         self.last_planned_mm = planned_mm[-1]
-        self.next = first + n
         longest = max(self.settle.values(), default=0)
         while self.run < len(self.runs) and self.runs[self.run][1] is not None and \
-                self.runs[self.run][1] + longest < self.next:
+                self.runs[self.run][1] + longest < self._modelled:
             self.run += 1  # its settling is over on every axis
 
     def _count(self, first: int, executed_mm: np.ndarray, planned_mm: np.ndarray) -> None:
@@ -746,6 +764,7 @@ class ExecutedError:
         """The settling after the program's end (``end_mm``, X Y Z), at rest there."""
         rest = np.repeat(end_mm[None, :3], max(self.settle.values(), default=0), axis=0)
         self.add(self.next, rest, rest)
+        self._model_held()
 
     def _counted(self, first: int, n: int, settle: int) -> np.ndarray:
         """Which of samples first .. first + n - 1 lie in a run or ``settle`` samples after it."""
@@ -767,13 +786,24 @@ def _count_lines(path: str | Path) -> int:
         return max(1, sum(chunk.count(b"\n") for chunk in iter(lambda: f.read(1 << 20), b"")))
 
 
-def _reported(blocks: Iterable[Block], total_lines: int, progress) -> Iterator[Block]:
-    """``blocks``, ``progress`` told the fraction of the lines read now and then."""
-    for i, block in enumerate(blocks):
-        if i % 4096 == 0:
-            progress(min(block.line_no / total_lines, 1.0))
-        yield block
-    progress(1.0)
+def _read(read_path, flavor: str, home_mm, stages: dict[str, float], progress=None) -> Iterator[Block]:
+    """The program's blocks, read a batch at a time: the time taken goes to ``stages["read"]``,
+    and ``progress`` is told the fraction of the lines read after each batch. (Timed block by
+    block, a CAM program's reading took a tenth longer.)"""
+    blocks, total_lines = read_gcode(read_path, flavor, home_mm), _count_lines(read_path) if progress else 1
+
+    def batches() -> Iterator[list[Block]]:
+        while True:
+            clock = time.perf_counter()
+            batch = list(itertools.islice(blocks, BATCH_BLOCKS))
+            stages["read"] += time.perf_counter() - clock
+            if progress:
+                progress(min(batch[-1].line_no / total_lines, 1.0) if batch else 1.0)
+            if not batch:
+                return
+            yield batch
+
+    return itertools.chain.from_iterable(batches())
 
 
 def _timed(items: Iterable, stages: dict[str, float], stage: str, exclude=lambda: 0.0) -> Iterator:

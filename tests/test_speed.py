@@ -11,10 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fbspost import optimizer, pipeline
+from fbspost import optimizer, pipeline, planfeed
 from fbspost.dynamics import AxisDynamics
 from fbspost.fallback import FALLBACK
-from fbspost.gcode import read_gcode
 from fbspost.offload import NICENESS, Offloaded, _portable
 from fbspost.optimizer import AxisCompensator, AxisLimits, FBSSettings
 from fbspost.pipeline import CompensateOptions, compensate_file
@@ -75,9 +74,13 @@ def test_final_windows_kept_or_built_anew_write_the_same_bytes(tmp_path, monkeyp
 
 
 @pytest.mark.slow
-def test_axes_in_processes_of_their_own_write_and_report_the_same(tmp_path):
+@pytest.mark.parametrize("batch_samples", [planfeed.BATCH_SAMPLES, 3000])
+def test_axes_in_processes_of_their_own_write_and_report_the_same(tmp_path, monkeypatch, batch_samples):
     """The gear's head, two modes on X and the QP at its corners: each axis compensated in a
-    process of its own (offload.py) gives the same bytes and the same report as on threads."""
+    process of its own (offload.py), sent the plan made here (planfeed.py) in batches of the
+    default size and in small ones (runs still open at most batches' ends), gives the same bytes
+    and the same report as on threads."""
+    monkeypatch.setattr(planfeed, "BATCH_SAMPLES", batch_samples)
     report = _same_outcome(tmp_path, _head(tmp_path, "gear-marlin2.gcode", 1200), "printer-two-mode",
                            *(replace(CompensateOptions(), second_process=apart) for apart in (True, False)))
     assert len(report["axes"]) == 2 and all(axis["qp_windows"] > 0 for axis in report["axes"].values())
@@ -94,33 +97,31 @@ def test_fallback_warnings_come_back_from_the_axes_processes(tmp_path):
     assert any(w.startswith(FALLBACK) and "line 2" in w for w in report["warnings"]), report["warnings"]
 
 
-@pytest.mark.parametrize("segment_mm, elsewhere", [(10.0, True), (0.25, False)])
-def test_axes_go_to_processes_of_their_own_for_long_programs_of_few_lines_a_second(tmp_path, segment_mm,
-                                                                                  elsewhere):
-    """Over 256 kB: 10 mm moves at 50 mm/s (5 lines a second) are compensated in the axes' own
-    processes; 0.25 mm ones (200 a second, a CAM finishing pass), whose reading and planning
-    each process would repeat, on threads here."""
+@pytest.mark.parametrize("segment_mm", [10.0, 0.25])
+def test_axes_go_to_processes_of_their_own_for_long_programs(tmp_path, segment_mm):
+    """Over 256 kB, 10 mm moves (5 lines a second) and 0.25 mm ones (200 a second, a CAM
+    finishing pass) alike: the axes' processes do not read or plan, so lines cost them nothing.
+    A short program stays here (a process takes about 0.5 s to start)."""
     source = tmp_path / "long.gcode"
     source.write_text("G1 F3000\n" + "".join(f"G1 X{i * segment_mm:.2f} Y{i % 2 * 1e-3:.3f}\n" for i in range(16_000)))
     assert source.stat().st_size > pipeline._SECOND_PROCESS_BYTES
-    profile, options = load_profile("printer-two-mode"), CompensateOptions(flavor="marlin")
-    plan = pipeline._plan_stream(read_gcode(source, "marlin", profile.home_mm), profile, options, "marlin")
-    assert pipeline._in_second_process(source, options, plan) is elsewhere
+    options = CompensateOptions(flavor="marlin")
+    assert pipeline._in_second_process(source, options)
+    assert not pipeline._in_second_process(source, replace(options, parallel_axes=False))
+    short = tmp_path / "short.gcode"
+    short.write_bytes(source.read_bytes()[:pipeline._SECOND_PROCESS_BYTES - 1])
+    assert not pipeline._in_second_process(short, options)
 
 
-def test_bad_input_found_in_an_axis_process_is_the_one_line_error(tmp_path):
-    """The axes' processes read the program too: a bad line one of them reaches is raised here
-    as the same InputError (file and line), and compensating writes nothing."""
+def test_bad_input_with_the_axes_in_processes_is_the_one_line_error(tmp_path):
+    """A bad line after the axes' processes started: the one-line InputError (file and line),
+    and compensating writes nothing."""
     source = tmp_path / "bad.gcode"
     source.write_bytes(b"G1 X1 Y1 F3000\nG1 X2 Y1\n" * 1000 + b"G1 X20 F0\n")
     where = rf"{re.escape(str(source))}:2001: feed F0 must be positive"
     profile, options = load_profile("printer-two-mode"), CompensateOptions(flavor="marlin", second_process=True)
-    with Offloaded(pipeline._offloaded_chunks, source, profile, options, "marlin", 0, True) as worker:
-        with pytest.raises(InputError, match=where):
-            list(worker)
-    output = tmp_path / "out.gcode"
     with pytest.raises(InputError, match=where):
-        compensate_file(source, output, profile, options)
+        compensate_file(source, tmp_path / "out.gcode", profile, options)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.gcode"]
 
 

@@ -1,0 +1,134 @@
+"""The plan shared with the axes' processes: planned once, here, and sent to each.
+
+``PlanFeed`` (the writer's process) takes the ``PlanStream`` that the writer reads and answers
+each axis process' request with what has settled since its last one: the samples of the columns
+it uses, the runs that changed, the moves (for the fallback's warnings) and whether the plan is
+done. It holds the planned samples (rows X Y Z E, machine mm) until the writer ``take``s them.
+
+``PlanProxy`` (an axis' process) is what its compensation reads in place of a ``PlanStream``:
+``runs``, ``frontier``, ``samples``, ``release``, ``wait``, ``moves``, ``done``, ``n_samples``. It
+asks for the next batch as soon as one comes, so that the writer's process plans the next while
+this one compensates; columns not sent are NaN.
+"""
+from __future__ import annotations
+
+import time
+from collections import deque
+from collections.abc import Callable
+
+import numpy as np
+
+from .gcode import AXES
+
+BATCH_SAMPLES = 1 << 15  # samples a request is answered with (fewer at the end)
+
+
+class PlanFeed:
+    """``plan``'s settled samples, runs and moves for the axes' processes; ``columns``: by
+    process key, the sample columns it uses."""
+
+    def __init__(self, plan, columns: dict[int, list[int]]):
+        self.plan, self.columns = plan, columns
+        self.base = 0  # sample of the first row held
+        self.rows = np.zeros((0, len(AXES)))  # planned samples from base to evaluated
+        self.taken = 0  # samples the writer has taken
+        self.sent = dict.fromkeys(columns, 0)  # samples sent to each process
+        self.runs_from = dict.fromkeys(columns, 0)  # each process' first run not known closed
+        self.moves: dict[int, list] = {key: [] for key in columns}
+
+    @property
+    def evaluated(self) -> int:
+        return self.base + len(self.rows)
+
+    def answer(self, key: int, send: Callable) -> None:
+        """``send`` process ``key`` the next ``BATCH_SAMPLES`` samples (fewer at the end: planned
+        on as far as needed), the runs as far as they reach and the moves settled since."""
+        plan = self.plan
+        stop = self.sent[key] + BATCH_SAMPLES
+        while plan.frontier < stop and plan.advance():
+            pass
+        self._settle(min(stop, plan.frontier))
+        first, last_sample = self.sent[key], self.evaluated - 1
+        changed = [(i, run_first, run_last if run_last is not None and run_last <= last_sample else None)
+                   for i, (run_first, run_last) in enumerate(plan.runs[self.runs_from[key]:], self.runs_from[key])
+                   if run_first <= last_sample]
+        send((first, self.rows[first - self.base:, self.columns[key]], changed, self.moves[key],
+              plan.done and self.evaluated == plan.n_samples, plan.n_samples))
+        self.sent[key], self.moves[key] = self.evaluated, []
+        self.runs_from[key] = next((i for i, _, last in changed if last is None), self.runs_from[key] + len(changed))
+        self._drop()
+
+    def take(self, n: int) -> np.ndarray:
+        """The writer's next ``n`` planned samples (sent to every process already)."""
+        start = self.taken - self.base
+        self.taken += n
+        rows = self.rows[start:start + n]
+        self._drop()
+        return rows
+
+    def _settle(self, stop: int) -> None:
+        """Evaluate the plan's samples up to ``stop`` (settled) and let the plan drop them; take
+        the moves settled."""
+        plan = self.plan
+        if stop > self.evaluated:
+            new = plan.samples(self.evaluated, stop)
+            plan.release(stop)
+            self.rows = np.concatenate([self.rows, new]) if len(self.rows) else new
+        for key in self.moves:
+            self.moves[key].extend(plan.moves)
+        plan.moves.clear()
+
+    def _drop(self) -> None:
+        """Let go of the rows every process has and the writer took (copying seldom)."""
+        drop = min(self.taken, *self.sent.values()) - self.base
+        if drop > len(self.rows) // 2:
+            self.rows = self.rows[drop:].copy()
+            self.base += drop
+
+
+class PlanProxy:
+    """The plan as ``PlanFeed`` sends it over ``channel`` (offload.Channel), a batch per request."""
+
+    def __init__(self, channel, sample_rate_hz: float, columns: list[int]):
+        self._channel, self._columns = channel, columns
+        self.sample_rate_hz = sample_rate_hz
+        self.runs: list[list] = []
+        self.frontier, self.done, self.n_samples = 0, False, None
+        self.moves: deque = deque()
+        self.time_s = 0.0  # spent waiting for the plan
+        self._base, self._rows = 0, np.zeros((0, len(columns)))
+        channel.request()
+
+    def wait(self, known: Callable[[], bool]) -> None:
+        """Take batches until ``known()`` or the end."""
+        clock = time.perf_counter()
+        while not known() and not self.done:
+            self._add(*self._channel.get())
+            if not self.done:
+                self._channel.request()  # (the next batch is planned while this one is used)
+        self.time_s += time.perf_counter() - clock
+
+    def samples(self, first: int, stop: int) -> np.ndarray:
+        assert stop <= self.frontier, "samples asked for before they came"
+        rows = np.full((stop - first, len(AXES)), np.nan)
+        rows[:, self._columns] = self._rows[first - self._base:stop - self._base]
+        return rows
+
+    def release(self, sample: int) -> None:
+        drop = min(max(sample - self._base, 0), len(self._rows))
+        if drop > len(self._rows) // 2:
+            self._rows = self._rows[drop:].copy()
+            self._base += drop
+
+    def _add(self, first: int, columns: np.ndarray, runs: list, moves: list, done: bool,
+             n_samples: int | None) -> None:
+        assert first == self.frontier, "a batch out of order"
+        self._rows = np.concatenate([self._rows, columns])
+        self.frontier += len(columns)
+        for i, run_first, run_last in runs:
+            if i < len(self.runs):
+                self.runs[i][1] = run_last
+            else:
+                self.runs.append([run_first, run_last])
+        self.moves.extend(moves)
+        self.done, self.n_samples = done, n_samples
