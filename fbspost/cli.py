@@ -8,6 +8,7 @@ temporary file behind.
 """
 from __future__ import annotations
 
+import gc
 import json
 import multiprocessing
 import os
@@ -184,6 +185,9 @@ def compensate(inputs, machine, output, output_dir, jobs, output_format, toleran
 
     targets = _targets(inputs, output, output_dir, report_path)
     profile = load_profile(machine)
+    # What the imports made lives to the end: the collector need not walk it every time the
+    # blocks' objects trigger a full collection (a tenth of a CAM program's time).
+    gc.freeze()
     options = CompensateOptions(flavor=flavor, output_format=output_format, tolerance_mm=tolerance,
                                 min_segment_time_s=min_segment_time, lookahead=lookahead, lead_time_s=lead_time_s,
                                 settle_time_s=settle_time_s, fallback=fallback, expand=expand,

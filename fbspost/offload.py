@@ -14,6 +14,7 @@ Python threads share one interpreter lock, so the axes' threads of one process o
 """
 from __future__ import annotations
 
+import gc
 import os
 import pickle
 import queue
@@ -147,6 +148,7 @@ def _serve(source, sink) -> None:
 
     try:
         function, args, talks = pickle.load(source)
+        gc.freeze()  # (the imports' objects: see cli.compensate)
         generator = function(Channel(source, send), *args) if talks else function(*args)
         while True:
             try:
@@ -173,7 +175,10 @@ if __name__ == "__main__":
     # The messages go to the parent on what was stdout; anything printed goes to stderr.
     _sink = os.fdopen(os.dup(sys.stdout.fileno()), "wb")
     os.dup2(sys.stderr.fileno(), sys.stdout.fileno())
+    _code = 0
     try:
         _serve(sys.stdin.buffer, _sink)
     except (BrokenPipeError, KeyboardInterrupt):  # the parent ended first: nobody to tell
-        sys.exit(1)
+        _code = 1
+    sys.stderr.flush()
+    os._exit(_code)  # (no interpreter shutdown: a Channel's reader thread holds stdin's lock, which is fatal there)

@@ -333,18 +333,22 @@ def _received(workers: dict[int, Offloaded], feed: PlanFeed,
               requests: queue.Queue) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """The planned samples and the axes' processes' commands (``workers``: by column) joined,
     as far as every one has given them; the processes' ``requests`` for more of the plan are
-    answered meanwhile, whenever they come."""
+    answered meanwhile (``PlanFeed.due``: not far ahead of the writer, unless it waits)."""
     held = {c: np.zeros(0) for c in workers}  # each axis' command
+    asked: list[int] = []  # requests not yet answered
 
     def command_of(worker: Offloaded) -> np.ndarray:
+        waiting = False
         while True:
             while not requests.empty():
-                key = requests.get()
+                asked.append(requests.get())
+            for key in [key for key in asked if waiting or feed.due(key)]:
+                asked.remove(key)
                 feed.answer(key, workers[key].send)
             try:
-                return worker.get(timeout=_POLL_S)
+                return worker.get(timeout=_POLL_S if waiting else 0.0)
             except queue.Empty:
-                continue
+                waiting = True
             except StopIteration:
                 return np.zeros(0)
 

@@ -20,7 +20,10 @@ import numpy as np
 
 from .gcode import AXES
 
-BATCH_SAMPLES = 1 << 15  # samples a request is answered with (fewer at the end)
+BATCH_SAMPLES = 1 << 14  # samples a request is answered with (fewer at the end)
+# Samples planned ahead of the writer at most, unless it waits for a process: the writer's process
+# holds their blocks (a CAM program's 5 samples a block: about 20 MB).
+LEAD_SAMPLES = 1 << 15
 
 
 class PlanFeed:
@@ -29,16 +32,17 @@ class PlanFeed:
 
     def __init__(self, plan, columns: dict[int, list[int]]):
         self.plan, self.columns = plan, columns
-        self.base = 0  # sample of the first row held
-        self.rows = np.zeros((0, len(AXES)))  # planned samples from base to evaluated
+        self.base = self.evaluated = 0  # the samples held: from base to evaluated
+        self._pieces: deque[np.ndarray] = deque()  # them, as evaluated (rows X Y Z E)
         self.taken = 0  # samples the writer has taken
         self.sent = dict.fromkeys(columns, 0)  # samples sent to each process
         self.runs_from = dict.fromkeys(columns, 0)  # each process' first run not known closed
         self.moves: dict[int, list] = {key: [] for key in columns}
 
-    @property
-    def evaluated(self) -> int:
-        return self.base + len(self.rows)
+    def due(self, key: int) -> bool:
+        """Whether process ``key``'s request is answered now: it has samples to come, or the
+        plan is less than ``LEAD_SAMPLES`` ahead of the writer."""
+        return self.sent[key] < self.evaluated or self.evaluated - self.taken < LEAD_SAMPLES
 
     def answer(self, key: int, send: Callable) -> None:
         """``send`` process ``key`` the next ``BATCH_SAMPLES`` samples (fewer at the end: planned
@@ -52,7 +56,7 @@ class PlanFeed:
         changed = [(i, run_first, run_last if run_last is not None and run_last <= last_sample else None)
                    for i, (run_first, run_last) in enumerate(plan.runs[self.runs_from[key]:], self.runs_from[key])
                    if run_first <= last_sample]
-        send((first, self.rows[first - self.base:, self.columns[key]], changed, self.moves[key],
+        send((first, self._rows(first, self.evaluated)[:, self.columns[key]], changed, self.moves[key],
               plan.done and self.evaluated == plan.n_samples, plan.n_samples))
         self.sent[key], self.moves[key] = self.evaluated, []
         self.runs_from[key] = next((i for i, _, last in changed if last is None), self.runs_from[key] + len(changed))
@@ -60,30 +64,39 @@ class PlanFeed:
 
     def take(self, n: int) -> np.ndarray:
         """The writer's next ``n`` planned samples (sent to every process already)."""
-        start = self.taken - self.base
+        rows = self._rows(self.taken, self.taken + n)
         self.taken += n
-        rows = self.rows[start:start + n]
         self._drop()
         return rows
+
+    def _rows(self, first: int, stop: int) -> np.ndarray:
+        """The held samples first .. stop - 1."""
+        parts, at = [], self.base
+        for piece in self._pieces:
+            if at >= stop:
+                break
+            if at + len(piece) > first:
+                parts.append(piece[max(first - at, 0):stop - at])
+            at += len(piece)
+        return parts[0] if len(parts) == 1 else np.concatenate(parts) if parts else np.zeros((0, len(AXES)))
 
     def _settle(self, stop: int) -> None:
         """Evaluate the plan's samples up to ``stop`` (settled) and let the plan drop them; take
         the moves settled."""
         plan = self.plan
         if stop > self.evaluated:
-            new = plan.samples(self.evaluated, stop)
+            self._pieces.append(plan.samples(self.evaluated, stop))
             plan.release(stop)
-            self.rows = np.concatenate([self.rows, new]) if len(self.rows) else new
+            self.evaluated = stop
         for key in self.moves:
             self.moves[key].extend(plan.moves)
         plan.moves.clear()
 
     def _drop(self) -> None:
-        """Let go of the rows every process has and the writer took (copying seldom)."""
-        drop = min(self.taken, *self.sent.values()) - self.base
-        if drop > len(self.rows) // 2:
-            self.rows = self.rows[drop:].copy()
-            self.base += drop
+        """Let go of the pieces every process has and the writer took."""
+        needed = min(self.taken, *self.sent.values())
+        while self._pieces and self.base + len(self._pieces[0]) <= needed:
+            self.base += len(self._pieces.popleft())
 
 
 class PlanProxy:

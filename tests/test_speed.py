@@ -2,6 +2,7 @@
 work is spread (the compensated axes on threads or one after the other), on programs whose
 limits bind (windows that need the QP)."""
 import os
+import queue
 import re
 import subprocess
 import sys
@@ -111,6 +112,25 @@ def test_axes_go_to_processes_of_their_own_for_long_programs(tmp_path, segment_m
     short = tmp_path / "short.gcode"
     short.write_bytes(source.read_bytes()[:pipeline._SECOND_PROCESS_BYTES - 1])
     assert not pipeline._in_second_process(short, options)
+
+
+def _talk(channel):
+    channel.request()
+    yield channel.get()
+
+
+def test_a_talking_child_ends_quietly(monkeypatch, capfd):
+    """A child that reads its parent's messages (offload.Channel, on a thread of its own) and ends
+    while the parent still holds its input open: no fatal error at its interpreter's shutdown
+    on the user's terminal, and it exits at once."""
+    monkeypatch.setenv("PYTHONPATH", str(Path(__file__).parent))  # (the child imports _talk from here)
+    requests = queue.Queue()
+    with Offloaded(_talk, requests=requests, key=7) as child:
+        assert requests.get(timeout=30) == 7
+        child.send("hello")
+        assert list(child) == ["hello"]
+        child._process.wait(timeout=30)  # ended, its input still open
+    assert capfd.readouterr().err == ""
 
 
 def test_bad_input_with_the_axes_in_processes_is_the_one_line_error(tmp_path):
