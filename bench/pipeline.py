@@ -16,6 +16,7 @@ of the wall time.
 from __future__ import annotations
 
 import argparse
+import gc
 import math
 import os
 import resource
@@ -105,6 +106,7 @@ def measure(program: Path, profile_name: str) -> tuple[dict, float, float, float
     """Runs in a fresh process: (report, wall time s, CPU time s of all its threads and of the
     axes' processes it starts, peak resident memory MB of it and them together)."""
     profile = load_profile(profile_name)
+    gc.freeze()  # as the fbspost command (cli.compensate)
     peak = _PeakMemory()
     with tempfile.TemporaryDirectory() as tmp:
         started = time.perf_counter()

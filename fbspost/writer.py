@@ -988,7 +988,9 @@ class _ProgramWriter:
             if block.kind is Kind.MOVE:
                 self._previous_modal, self._previous_mm = block.modal, block.position_mm
                 # the next copied line runs at or after the sample nearest the end of this motion
-                motion.until(line_time_s - 1.0 / self._fs, soft=True)
+                flush_s = line_time_s - 1.0 / self._fs
+                if flush_s - out.written_until_s >= _FLUSH_S:  # (else it writes nothing: called per CAM line)
+                    motion.until(flush_s, soft=True)
                 continue
             if not is_stop and not block.raw.endswith((b"\n", b"\r")):
                 last_line = block  # the file's last line has no ending: after the motion (of a settle margin)
