@@ -199,7 +199,12 @@ def _compensate(read_path, input_path, output_path, profile, options, flavor, pr
     else:
         outcome = _Outcome.of(compensators)
         chunks = _compensation_chunks(plan, compensators, options, outcome)
-    chunks = _timed(chunks, stages, "optimize", exclude=lambda: plan.time_s)
+
+    def shared_s() -> float:
+        """The plan's evaluation and sending to the axes' processes: part of its stage."""
+        return feed.time_s if elsewhere else 0.0
+
+    chunks = _timed(chunks, stages, "optimize", exclude=lambda: plan.time_s + shared_s())
     write_options = WriteOptions(
         flavor=flavor,
         output_format=options.output_format,
@@ -228,9 +233,10 @@ def _compensate(read_path, input_path, output_path, profile, options, flavor, pr
                 worker.close()
     if elsewhere:
         outcome = _Outcome.joined([worker.value for worker in workers.values()])
-    stages["plan"] = plan.time_s - stages["read"]
+    stages["plan"] = plan.time_s + shared_s() - stages["read"]
     # (optimize: the writer's wait for the chunks; the work's own time follows)
-    stages["write"] = time.perf_counter() - clock - plan.time_s - stages["optimize"] - stages.get("verify", 0.0)
+    stages["write"] = (time.perf_counter() - clock - plan.time_s - shared_s() - stages["optimize"]
+                       - stages.get("verify", 0.0))
     stages["optimize"] = outcome.optimize_s - outcome.tally.fallback_s
     stages["fallback"] = outcome.tally.fallback_s
     written = stats[0]

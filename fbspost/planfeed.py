@@ -38,6 +38,7 @@ class PlanFeed:
         self.sent = dict.fromkeys(columns, 0)  # samples sent to each process
         self.runs_from = dict.fromkeys(columns, 0)  # each process' first run not known closed
         self.moves: dict[int, list] = {key: [] for key in columns}
+        self.time_s = 0.0  # spent evaluating and sending the plan (its planning is the plan's own time_s)
 
     def due(self, key: int) -> bool:
         """Whether process ``key``'s request is answered now: it has samples to come, or the
@@ -48,6 +49,7 @@ class PlanFeed:
         """``send`` process ``key`` the next ``BATCH_SAMPLES`` samples (fewer at the end: planned
         on as far as needed), the runs as far as they reach and the moves settled since."""
         plan = self.plan
+        clock, planning_s = time.perf_counter(), plan.time_s
         stop = self.sent[key] + BATCH_SAMPLES
         while plan.frontier < stop and plan.advance():
             pass
@@ -61,6 +63,7 @@ class PlanFeed:
         self.sent[key], self.moves[key] = self.evaluated, []
         self.runs_from[key] = next((i for i, _, last in changed if last is None), self.runs_from[key] + len(changed))
         self._drop()
+        self.time_s += time.perf_counter() - clock - (plan.time_s - planning_s)
 
     def take(self, n: int) -> np.ndarray:
         """The writer's next ``n`` planned samples (sent to every process already)."""
