@@ -26,19 +26,53 @@ BATCH_SAMPLES = 1 << 14  # samples a request is answered with (fewer at the end)
 LEAD_SAMPLES = 1 << 15
 
 
+class _Held:
+    """Samples from ``base`` to ``end``, kept in the pieces they came in (never copied whole),
+    until dropped."""
+
+    def __init__(self, width: int):
+        self.base = self.end = 0
+        self._width = width
+        self._pieces: deque[np.ndarray] = deque()
+
+    def append(self, rows: np.ndarray) -> None:
+        self._pieces.append(rows)
+        self.end += len(rows)
+
+    def rows(self, first: int, stop: int) -> np.ndarray:
+        """Samples first .. stop - 1."""
+        assert first >= self.base and stop <= self.end, "samples asked for that are not held"
+        parts, at = [], self.base
+        for piece in self._pieces:
+            if at >= stop:
+                break
+            if at + len(piece) > first:
+                parts.append(piece[max(first - at, 0):stop - at])
+            at += len(piece)
+        return parts[0] if len(parts) == 1 else np.concatenate(parts) if parts else np.zeros((0, self._width))
+
+    def drop_before(self, sample: int) -> None:
+        """Let go of the pieces that end at or before ``sample``."""
+        while self._pieces and self.base + len(self._pieces[0]) <= sample:
+            self.base += len(self._pieces.popleft())
+
+
 class PlanFeed:
     """``plan``'s settled samples, runs and moves for the axes' processes; ``columns``: by
     process key, the sample columns it uses."""
 
     def __init__(self, plan, columns: dict[int, list[int]]):
         self.plan, self.columns = plan, columns
-        self.base = self.evaluated = 0  # the samples held: from base to evaluated
-        self._pieces: deque[np.ndarray] = deque()  # them, as evaluated (rows X Y Z E)
+        self._held = _Held(len(AXES))  # the samples evaluated (rows X Y Z E), until every one took them
         self.taken = 0  # samples the writer has taken
         self.sent = dict.fromkeys(columns, 0)  # samples sent to each process
         self.runs_from = dict.fromkeys(columns, 0)  # each process' first run not known closed
         self.moves: dict[int, list] = {key: [] for key in columns}
         self.time_s = 0.0  # spent evaluating and sending the plan (its planning is the plan's own time_s)
+
+    @property
+    def evaluated(self) -> int:
+        return self._held.end
 
     def due(self, key: int) -> bool:
         """Whether process ``key``'s request is answered now: it has samples to come, or the
@@ -58,7 +92,7 @@ class PlanFeed:
         changed = [(i, run_first, run_last if run_last is not None and run_last <= last_sample else None)
                    for i, (run_first, run_last) in enumerate(plan.runs[self.runs_from[key]:], self.runs_from[key])
                    if run_first <= last_sample]
-        send((first, self._rows(first, self.evaluated)[:, self.columns[key]], changed, self.moves[key],
+        send((first, self._held.rows(first, self.evaluated)[:, self.columns[key]], changed, self.moves[key],
               plan.done and self.evaluated == plan.n_samples, plan.n_samples))
         self.sent[key], self.moves[key] = self.evaluated, []
         self.runs_from[key] = next((i for i, _, last in changed if last is None), self.runs_from[key] + len(changed))
@@ -67,39 +101,25 @@ class PlanFeed:
 
     def take(self, n: int) -> np.ndarray:
         """The writer's next ``n`` planned samples (sent to every process already)."""
-        rows = self._rows(self.taken, self.taken + n)
+        rows = self._held.rows(self.taken, self.taken + n)
         self.taken += n
         self._drop()
         return rows
 
-    def _rows(self, first: int, stop: int) -> np.ndarray:
-        """The held samples first .. stop - 1."""
-        parts, at = [], self.base
-        for piece in self._pieces:
-            if at >= stop:
-                break
-            if at + len(piece) > first:
-                parts.append(piece[max(first - at, 0):stop - at])
-            at += len(piece)
-        return parts[0] if len(parts) == 1 else np.concatenate(parts) if parts else np.zeros((0, len(AXES)))
+    def _drop(self) -> None:
+        """Let go of what every process has and the writer took."""
+        self._held.drop_before(min(self.taken, *self.sent.values()))
 
     def _settle(self, stop: int) -> None:
         """Evaluate the plan's samples up to ``stop`` (settled) and let the plan drop them; take
         the moves settled."""
         plan = self.plan
         if stop > self.evaluated:
-            self._pieces.append(plan.samples(self.evaluated, stop))
+            self._held.append(plan.samples(self.evaluated, stop))
             plan.release(stop)
-            self.evaluated = stop
         for key in self.moves:
             self.moves[key].extend(plan.moves)
         plan.moves.clear()
-
-    def _drop(self) -> None:
-        """Let go of the pieces every process has and the writer took."""
-        needed = min(self.taken, *self.sent.values())
-        while self._pieces and self.base + len(self._pieces[0]) <= needed:
-            self.base += len(self._pieces.popleft())
 
 
 class PlanProxy:
@@ -109,11 +129,15 @@ class PlanProxy:
         self._channel, self._columns = channel, columns
         self.sample_rate_hz = sample_rate_hz
         self.runs: list[list] = []
-        self.frontier, self.done, self.n_samples = 0, False, None
+        self.done, self.n_samples = False, None
         self.moves: deque = deque()
         self.time_s = 0.0  # spent waiting for the plan
-        self._base, self._rows = 0, np.zeros((0, len(columns)))
+        self._held = _Held(len(columns))
         channel.request()
+
+    @property
+    def frontier(self) -> int:
+        return self._held.end
 
     def wait(self, known: Callable[[], bool]) -> None:
         """Take batches until ``known()`` or the end."""
@@ -125,22 +149,17 @@ class PlanProxy:
         self.time_s += time.perf_counter() - clock
 
     def samples(self, first: int, stop: int) -> np.ndarray:
-        assert stop <= self.frontier, "samples asked for before they came"
         rows = np.full((stop - first, len(AXES)), np.nan)
-        rows[:, self._columns] = self._rows[first - self._base:stop - self._base]
+        rows[:, self._columns] = self._held.rows(first, stop)
         return rows
 
     def release(self, sample: int) -> None:
-        drop = min(max(sample - self._base, 0), len(self._rows))
-        if drop > len(self._rows) // 2:
-            self._rows = self._rows[drop:].copy()
-            self._base += drop
+        self._held.drop_before(sample)
 
     def _add(self, first: int, columns: np.ndarray, runs: list, moves: list, done: bool,
              n_samples: int | None) -> None:
         assert first == self.frontier, "a batch out of order"
-        self._rows = np.concatenate([self._rows, columns])
-        self.frontier += len(columns)
+        self._held.append(columns)
         for i, run_first, run_last in runs:
             if i < len(self.runs):
                 self.runs[i][1] = run_last
