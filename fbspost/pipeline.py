@@ -227,6 +227,10 @@ def _compensate(read_path, input_path, output_path, profile, options, flavor, pr
         atomic_write(output_path, lambda f: stats.append(write_program(
             plan, SampleWindow(chunks, plan, follows_plan), write_options, f, executed)),
             verification if verification.wanted else None)
+        # The writer stops once it has every sample; the compensation's end (its time, the
+        # axes' processes' outcomes) comes after its last chunk.
+        for _ in chunks:
+            raise RuntimeError("compensated samples after the plan's end")
     finally:
         if elsewhere:
             for worker in workers.values():

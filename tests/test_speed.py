@@ -21,6 +21,7 @@ from fbspost.pipeline import CompensateOptions, compensate_file
 from fbspost.profile import load_profile
 from fbspost.trajectory import InputError
 from fbspost.writer import _merged
+from test_streaming import raster
 
 DATA = Path(__file__).parent / "data"
 
@@ -96,6 +97,20 @@ def test_fallback_warnings_come_back_from_the_axes_processes(tmp_path):
     report = _same_outcome(tmp_path, source, "bedslinger-example",
                            *(replace(options, second_process=apart) for apart in (True, False)))
     assert any(w.startswith(FALLBACK) and "line 2" in w for w in report["warnings"]), report["warnings"]
+
+
+def test_the_compensations_end_is_read_after_the_last_sample_is_written(tmp_path):
+    """A raster of three rows, whose writer has every sample before it asks past the last chunk:
+    what the compensation tells after that chunk (the axes' processes' outcomes, its own time) is
+    still read. The report is whole and alike in both modes, and the time positive. (Before:
+    an AttributeError from the processes, a negative optimize time on threads.)"""
+    source = raster(tmp_path / "raster.ngc", 3)
+    variants = [replace(CompensateOptions(), second_process=apart) for apart in (True, False)]
+    report = _same_outcome(tmp_path, source, "bedslinger-example", *variants)
+    assert set(report["axes"]) == {"X", "Y"}
+    for options in variants:
+        stages = compensate_file(source, tmp_path / "out.ngc", load_profile("bedslinger-example"), options).stage_time_s
+        assert stages["optimize"] > 0.0 and stages["fallback"] > 0.0
 
 
 @pytest.mark.parametrize("segment_mm", [10.0, 0.25])
