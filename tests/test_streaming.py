@@ -75,8 +75,8 @@ def raster(path: Path, rows: int) -> Path:
 def test_memory_does_not_grow_with_the_program(tmp_path):
     """The same kind of program, twice as long: the peak of the memory Python and numpy allocate
     (tracemalloc) barely grows. Held whole, the plan alone grew by about 0.5 kB per move. (The
-    axes' processes, which these programs go to, are sent the plan up to 32768 samples ahead of
-    the writer, whose process holds those blocks: the peak stops growing after about 30k moves,
+    axes' processes, which these programs go to, are sent the plan up to 65536 samples ahead of
+    the writer, whose process holds those blocks: the peak stops growing after about 25k moves,
     so the shorter program here is longer than that.)"""
     peaks = []
     for rows in (300, 600):  # 36k and 73k moves
