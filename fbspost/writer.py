@@ -437,7 +437,9 @@ def _merged(start: np.ndarray, ints: np.ndarray, steps_per_unit: np.ndarray, min
     return ends[source[1:]]
 
 
-_NEAR_ROWS = 16  # rows looked ahead at once for the next row far from each
+# Rows looked ahead at once for the next row far from each. On the gear at Marlin's steps most
+# find it 3 to 6 rows ahead; the 2% further go row by row (8: the merge 30% faster than 16).
+_NEAR_ROWS = 8
 
 
 def _next_far(at_steps: np.ndarray, min_steps: int) -> list[int]:
