@@ -11,10 +11,12 @@ tests/data/printer-two-mode-robust.toml; 3000 lines with --tradeoff).
 2. Firmware results: the original and both compensated programs (as Klipper programs) through
    klippy's own planner (bench/firmware.py), then through each perturbed machine's modes; the
    shapers applied to klippy's plan of the original.
-3. Load-dependent modes (predictions): Y carries the print and its frequency falls 15% by the
-   end of the program (the bed's mass chosen so); the machine simulated exactly per sample
+3. Load-dependent modes: Y carries the print and its frequency falls 15% by the end of the
+   program (the bed's mass chosen so); the machine simulated exactly per sample
    (tests/reference.py simulate_varying). Gains: FBS on the machine it models (constant), the
-   load-dependent profile's FBS and the fixed profile's FBS on the varying machine.
+   load-dependent profile's FBS and the fixed profile's FBS on the varying machine; predictions
+   (fbspost's plan), then firmware results (klippy's plan of each program, and the best shaper
+   on klippy's plan of the original through the varying machine).
 4. Speed: ``fbspost compensate`` of the program, its optimizer's time per window (--report),
    nominal and robust.
 5. With ``--tradeoff`` instead: the robust set's trade-off (predictions), on the gear and on two
@@ -29,7 +31,6 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import json
-import math
 import subprocess
 import sys
 import tempfile
@@ -43,12 +44,11 @@ sys.path[:0] = [str(ROOT), str(ROOT / "tests"), str(ROOT / "bench")]
 
 from fbspost.dynamics import scaled_mode  # noqa: E402
 from fbspost.gcode import AXES  # noqa: E402
-from fbspost.profile import load_profile  # noqa: E402
+from fbspost.profile import format_profile, load_profile  # noqa: E402
 from fbspost.shapers import SHAPERS  # noqa: E402
 from fbspost.simulate import MODEL_ERRORS, PathDistance, model_error, simulate_program  # noqa: E402
 from fbspost.verify import contour_um, modelled, printed_path  # noqa: E402
-from firmware_results import klippy_run, move_ends, shaped_plans  # noqa: E402
-from reference import simulate_varying  # noqa: E402
+from firmware_results import LoadedBed, klippy_run, move_ends, shaped_plans  # noqa: E402
 
 sys.path.insert(0, str(ROOT / "tests" / "data"))
 import make_sliced  # noqa: E402
@@ -99,32 +99,57 @@ def firmware(program: Path) -> None:
 
 
 def load_dependent(sim) -> None:
-    print("\n3. load-dependent modes (predictions, the machine simulated exactly per sample): Y 15% lower at the end")
+    print("\n3. load-dependent modes: Y 15% lower at the end (the machine simulated exactly per sample)")
     profile = sim.profile
     e = sim.desired_mm[:, AXES.index("E")]
-    extruded = np.maximum(e - e[np.isfinite(e)][0], 0.0)
-    g_per_mm = math.pi * (0.5 * profile.firmware.filament_diameter_mm) ** 2 * 1.24e-3
-    mass_kg = extruded.max() * g_per_mm * 1e-3 / (1 / 0.85**2 - 1)
-    scale = np.sqrt(mass_kg / (mass_kg + extruded * g_per_mm * 1e-3))
-    axes = dict(profile.axes, Y=dataclasses.replace(profile.axes["Y"], moving_mass_kg=mass_kg))
-    loaded = simulate_program(sim.program, dataclasses.replace(profile, axes=axes))
-    distance = PathDistance(sim.path_start_mm, sim.path_end_mm)
-    y = AXES.index("Y")
+    bed = LoadedBed.falling_to(0.85, float(np.nanmax(e - e[np.isfinite(e)][0])))
+    loaded_profile = dataclasses.replace(profile, axes=dict(profile.axes, Y=dataclasses.replace(
+        profile.axes["Y"], moving_mass_kg=bed.mass_kg)))
+    loaded = simulate_program(sim.program, loaded_profile)
+    distance, y = PathDistance(sim.path_start_mm, sim.path_end_mm), AXES.index("Y")
 
     def rms(method, varying):
         actual = method.actual_mm.copy()
         if varying:
-            actual[:, y] = simulate_varying(profile.axes["Y"].modes, 1.0 / profile.sample_rate_hz,
-                                            method.command_mm[:, y], scale)
+            actual[:, y] = bed.actual(method.command_mm, profile)[:, y]
         return float(np.sqrt(np.mean(distance(actual[sim.contour_mask, :3])[0] ** 2))) * 1e3
 
     original, fbs = sim.methods[:2]
+    print(f"  moving mass {bed.mass_kg * 1e3:.3g} g; RMS contour error um, gain = removed")
+    print("  a. predictions (fbspost's plan)")
     before = rms(original, True)
-    print(f"  moving mass {mass_kg * 1e3:.3g} g, {extruded.max():.0f} mm of filament; "
-          f"RMS contour error um, gain = removed")
-    for label, error, base in (("fbs, constant machine it models", rms(fbs, False), rms(original, False)),
-                               ("fbs load-dependent, varying machine", rms(loaded.methods[1], True), before),
-                               ("fbs fixed profile, varying machine", rms(fbs, True), before)):
+    _gains(rms(original, False), rms(fbs, False), before, rms(loaded.methods[1], True), rms(fbs, True))
+    print("  b. firmware results (klippy's planner; shapers on its plan of the original)")
+    with tempfile.TemporaryDirectory() as tmp:
+        plans = {}
+        for name, machine in (("load", loaded_profile), ("fixed", profile)):
+            output = Path(tmp) / f"{name}.gcode"
+            profile_path = Path(tmp) / f"{name}.toml"
+            profile_path.write_text(format_profile(machine))
+            subprocess.run([sys.executable, "-m", "fbspost.cli", "compensate", str(sim.program), "-m",
+                            str(profile_path), "-o", str(output), "--flavor", "klipper", "-q"], cwd=ROOT, check=True)
+            plans[name] = klippy_run(output, profile, "klipper")[2]
+        _, moves, plan = klippy_run(sim.program, profile, "klipper")
+    path, _ = printed_path(*move_ends(moves))
+
+    def contour(command, reference, varying=True):
+        return contour_um(bed.actual(command, profile) if varying else modelled(command, profile), reference, path,
+                          True)[0]
+
+    before = contour(plan, plan)
+    _gains(contour(plan, plan, False), contour(plans["fixed"], plans["fixed"], False), before,
+           contour(plans["load"], plans["load"]), contour(plans["fixed"], plans["fixed"]))
+    shaped = {name: contour(c, padded) for name, (c, padded, _) in shaped_plans(plan, profile).items()}
+    best = min(shaped, key=shaped.get)
+    print(f"  {'best shaper, varying machine':38} {shaped[best]:8.3f} of {before:8.3f}   gain "
+          f"{100 * (1 - shaped[best] / before):5.1f}%  ({best})")
+
+
+def _gains(original_fixed: float, fbs_fixed: float, original_varying: float, load_varying: float,
+           fbs_varying: float) -> None:
+    for label, error, base in (("fbs, constant machine it models", fbs_fixed, original_fixed),
+                               ("fbs load-dependent, varying machine", load_varying, original_varying),
+                               ("fbs fixed profile, varying machine", fbs_varying, original_varying)):
         print(f"  {label:38} {error:8.3f} of {base:8.3f}   gain {100 * (1 - error / base):5.1f}%")
 
 

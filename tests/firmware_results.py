@@ -4,11 +4,13 @@ machine's modes, its contour error, and the input shapers on the same plan.
 Takes program files and a profile; gives klippy's plan sampled on the profile's grid
 (``klippy_run``), the path of its moves (``move_ends``, for ``fbspost.verify.printed_path``)
 and every shaper of ``fbspost simulate``, tuned to the profile's dominant modes, applied to a
-plan (``shaped_plans``). The modelled motion and the contour error are ``fbspost.verify``'s.
+plan (``shaped_plans``). The modelled motion and the contour error are ``fbspost.verify``'s;
+``LoadedBed`` models a bed whose Y frequency falls as the print's mass grows on it.
 """
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +18,9 @@ import numpy as np
 from fbspost.gcode import AXES, read_gcode
 from fbspost.shapers import SHAPERS, klipper_shaper, shape
 from fbspost.simulate import shaper_settings
+from fbspost.verify import modelled
 from klippy_planner import KlippyPlanner, sample_moves
+from reference import simulate_varying
 
 
 def klippy_run(path: Path, profile, flavor: str):
@@ -46,3 +50,27 @@ def shaped_plans(plan: np.ndarray, profile) -> dict[str, tuple[np.ndarray, np.nd
             command[:, AXES.index(axis)] = shape(padded[:, AXES.index(axis)], period, shaper)
         out[name] = (command, padded, max(s.lag_s for s in row.values()))
     return out
+
+
+@dataclass(frozen=True)
+class LoadedBed:
+    """Y carries the print: every Y frequency times sqrt(m / (m + printed)), m the bed's mass,
+    the printed mass the filament (1.75 mm PLA) extruded by each sample."""
+    mass_kg: float
+    g_per_mm: float = math.pi * 0.875**2 * 1.24e-3
+
+    @classmethod
+    def falling_to(cls, fall: float, extruded_mm: float) -> LoadedBed:
+        """The bed whose Y frequency is ``fall`` times its own once ``extruded_mm`` are printed."""
+        return cls(extruded_mm * cls.g_per_mm * 1e-3 / (1 / fall**2 - 1))
+
+    def scale(self, extruded_mm: np.ndarray) -> np.ndarray:
+        return np.sqrt(self.mass_kg / (self.mass_kg + np.maximum(extruded_mm, 0.0) * self.g_per_mm * 1e-3))
+
+    def actual(self, command: np.ndarray, profile) -> np.ndarray:
+        """``modelled(command, profile)``, but Y on this bed, simulated exactly per sample
+        (reference.simulate_varying), the filament counted from the command's first E."""
+        actual, y, e = modelled(command, profile), AXES.index("Y"), command[:, AXES.index("E")]
+        actual[:, y] = simulate_varying(profile.axes["Y"].modes, 1.0 / profile.sample_rate_hz, command[:, y],
+                                        self.scale(e - e[0]))
+        return actual

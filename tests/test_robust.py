@@ -21,7 +21,7 @@ from fbspost.profile import Mode, PositionTable, ProfileError, format_profile, l
 from fbspost.simulate import MODEL_ERRORS, PathDistance, model_error, simulate_program
 from fbspost.varying import LoadModes, PositionModes
 from fbspost.verify import contour_um, modelled, printed_path
-from firmware_results import klippy_run, move_ends, shaped_plans
+from firmware_results import LoadedBed, klippy_run, move_ends, shaped_plans
 from klippy_planner import klippy_or_skip
 from reference import simulate_lsim, simulate_varying, unbudgeted
 from test_optimizer import brute_force_problem, smooth_move
@@ -300,15 +300,51 @@ def test_load_dependent_profile_keeps_the_gain_on_a_bed_whose_frequency_falls(ge
     print's mass growth in its first 26 s)."""
     e = nominal_sim.desired_mm[:, AXES.index("E")]
     extruded = e - e[np.isfinite(e)][0]
-    g_per_mm = math.pi * 0.875**2 * 1.24e-3
-    mass_kg = extruded.max() * g_per_mm * 1e-3 / (1 / 0.85**2 - 1)
-    scale = np.sqrt(mass_kg / (mass_kg + np.maximum(extruded, 0.0) * g_per_mm * 1e-3))
+    bed = LoadedBed.falling_to(0.85, np.nanmax(extruded))
+    scale = bed.scale(extruded)
     assert scale[-1] == pytest.approx(0.85)
-    axes = dict(NOMINAL.axes, Y=dataclasses.replace(NOMINAL.axes["Y"], moving_mass_kg=mass_kg))
+    axes = dict(NOMINAL.axes, Y=dataclasses.replace(NOMINAL.axes["Y"], moving_mass_kg=bed.mass_kg))
     loaded = simulate_program(gear_head, dataclasses.replace(NOMINAL, axes=axes))
     exact_gain, load_gain, fixed_gain = _varying_gains(nominal_sim, loaded, AXES.index("Y"), scale)
     assert load_gain >= 0.9 * exact_gain
     assert fixed_gain < load_gain - 0.05  # the fixed model loses what the load-dependent one keeps
+
+
+@pytest.mark.slow
+def test_load_dependent_profile_as_klipper_runs_it_keeps_the_gain(tmp_path, gear_head, nominal_sim):
+    """Firmware results for the bed above: the original, the load-dependent profile's output and
+    the fixed profile's (Klipper programs, no line budget) planned by klippy's own planner; Y then
+    through the machine whose frequency falls with the filament extruded by that time in each
+    plan, simulated exactly per sample (reference.simulate_varying), X through its fixed modes;
+    the exact model's gain is the fixed profile's output on the fixed machine. Klipper's shapers,
+    on klippy's plan of the original at the profiled frequencies, through the same varying machine."""
+    klippy_or_skip()
+    e = nominal_sim.desired_mm[:, AXES.index("E")]
+    bed = LoadedBed.falling_to(0.85, np.nanmax(e - e[np.isfinite(e)][0]))
+    loaded = dataclasses.replace(NOMINAL, axes=dict(NOMINAL.axes, Y=dataclasses.replace(
+        NOMINAL.axes["Y"], moving_mass_kg=bed.mass_kg)))
+    plans = {}
+    for name, profile in (("load", loaded), ("fixed", NOMINAL)):
+        compensate_file(gear_head, tmp_path / f"{name}.gcode", unbudgeted(profile), CompensateOptions(flavor="klipper"))
+        plans[name] = klippy_run(tmp_path / f"{name}.gcode", NOMINAL, "klipper")[2]
+    _, moves, original = klippy_run(gear_head, NOMINAL, "klipper")
+    path, _ = printed_path(*move_ends(moves))
+
+    def contour(command, reference, varying: bool) -> float:
+        actual = bed.actual(command, NOMINAL) if varying else modelled(command, NOMINAL)
+        return contour_um(actual, reference, path, True)[0]
+
+    before = contour(original, original, True)
+    exact_gain = 1.0 - contour(plans["fixed"], plans["fixed"], False) / contour(original, original, False)
+    load_gain = 1.0 - contour(plans["load"], plans["load"], True) / before
+    fixed_gain = 1.0 - contour(plans["fixed"], plans["fixed"], True) / before
+    shaped = {name: contour(c, padded, True) for name, (c, padded, _) in shaped_plans(original, NOMINAL).items()}
+    print(f"klippy: gain exact model {exact_gain:.3f}, load-dependent {load_gain:.3f}, fixed {fixed_gain:.3f}; "
+          f"RMS um original {before:.2f}, load-dependent {before * (1 - load_gain):.2f}, best shaper "
+          f"{min(shaped.values()):.2f} ({min(shaped, key=shaped.get)})")
+    assert load_gain >= 0.9 * exact_gain
+    assert fixed_gain < load_gain - 0.05  # the fixed model loses what the load-dependent one keeps
+    assert before * (1 - load_gain) < min(shaped.values())
 
 
 @pytest.mark.slow
