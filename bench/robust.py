@@ -1,9 +1,9 @@
 """How fast FBS loses its gain as the machine drifts from its profile, robust or not, and with modes
 that move with the print (docs/robust.md).
 
-Run from the repository root:  python bench/robust.py [--tradeoff] [LINES]  (default: the first
-8000 lines of tests/data/gear-marlin2.gcode, on printer-two-mode and
-tests/data/printer-two-mode-robust.toml; 3000 lines with --tradeoff).
+Run from the repository root:  python bench/robust.py [--tradeoff | --minmax] [LINES]  (default: the
+first 8000 lines of tests/data/gear-marlin2.gcode, on printer-two-mode and
+tests/data/printer-two-mode-robust.toml; 3000 lines with --tradeoff or --minmax).
 
 1. Predictions (fbspost's model of the machine): ``fbspost simulate --model-error`` for the
    nominal and the robust profile; RMS contour error of FBS and of the best input shaper on every
@@ -25,6 +25,13 @@ tests/data/printer-two-mode-robust.toml; 3000 lines with --tradeoff).
    FBS is at or below the best shaper, by how much it is above at worst, and how much of the
    nominal FBS's gain it keeps at the nominal machine (as error removed and as a ratio). Two
    processes; about 20 minutes at 3000 lines.
+6. With ``--minmax`` instead: the best any weighting of the set can do (predictions), on the same
+   three prints. The set is the 11 machines themselves; their weights are found by multiplicative
+   weights (each multiplied by its FBS over best shaper ratio cubed, then divided by the best
+   shaper's squared error), which converges to the weighting whose FBS is least above the best
+   shaper at its worst machine. If that worst ratio stays above 1, no weighting of a set of these
+   models meets "at or below the best shaper everywhere" on that print. Two processes; about 10
+   minutes at 3000 lines.
 """
 from __future__ import annotations
 
@@ -36,13 +43,14 @@ import sys
 import tempfile
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
+from unittest import mock
 
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "tests"), str(ROOT / "bench")]
 
-from fbspost.dynamics import scaled_mode  # noqa: E402
+from fbspost.dynamics import AxisDynamics, ModelSet, scaled_mode  # noqa: E402
 from fbspost.gcode import AXES  # noqa: E402
 from fbspost.profile import format_profile, load_profile  # noqa: E402
 from fbspost.shapers import SHAPERS  # noqa: E402
@@ -57,6 +65,7 @@ PROGRAM = "tests/data/gear-marlin2.gcode"
 MACHINES = {"nominal": "printer-two-mode", "robust": "tests/data/printer-two-mode-robust.toml"}
 TRADEOFF_PROGRAMS = {"gear": PROGRAM, "bracket": "tests/data/bracket-reprapfirmware-relative-e.gcode"}
 TOLERANCES = [(0.0, 0.0), (0.05, 0.1), (0.1, 0.16), (0.13, 0.2), (0.16, 0.25)]
+MINMAX_ITERATIONS = 16
 
 
 def perturbed(profile, frequency_scale, damping_scale):
@@ -199,6 +208,42 @@ def tradeoff(heads: dict[str, Path]) -> None:
                       f"{removed:12.1%} {ratio:10.1%}", flush=True)
 
 
+def _minmax_rows(program: Path) -> list[str]:
+    """Per iteration of the multiplicative weights: the worst FBS over best shaper ratio, the gain
+    kept at the nominal (error removed, relative to the nominal FBS's) and the 11 ratios."""
+    profile = load_profile(MACHINES["nominal"])
+    table = model_error(simulate_program(program, profile))
+    best = np.array([min(v for k, v in e.items() if k in SHAPERS) for *_, e in table])
+    original, plain = (table[MODEL_ERRORS.index((1.0, 1.0))][2][k] for k in ("original", "fbs"))
+    share, rows = np.ones(len(MODEL_ERRORS)), []
+    for _ in range(MINMAX_ITERATIONS):
+        def spread(cls, modes, sample_period_s, weights=share / best**2):
+            return cls([AxisDynamics(tuple(scaled_mode(m, f, d) for m in modes), sample_period_s)
+                        for f, d in MODEL_ERRORS], list(weights))
+
+        with mock.patch.object(ModelSet, "spread", classmethod(spread)):
+            fbs = np.array([e["fbs"] for *_, e in model_error(simulate_program(program, profile, shapers=()))])
+        ratio = fbs / best
+        removed = (original - fbs[MODEL_ERRORS.index((1.0, 1.0))]) / (original - plain)
+        rows.append(f"{ratio.max():6.3f} {removed:7.1%}  " + " ".join(f"{r:.3f}" for r in ratio))
+        share *= ratio**3
+        share /= share.sum()
+    return rows
+
+
+def minmax(heads: dict[str, Path]) -> None:
+    print("6. the best weighting of the 11 machines as the set (predictions, fbspost's model): multiplicative "
+          "weights; per iteration the worst FBS over best shaper, the gain kept at the nominal, the 11 ratios")
+    print(f"  machines (frequency x, damping x): {' '.join(f'{f:g}/{d:g}' for f, d in MODEL_ERRORS)}")
+    with ProcessPoolExecutor(2) as pool:
+        jobs = {name: pool.submit(_minmax_rows, head) for name, head in heads.items()}
+        for name, job in jobs.items():
+            rows = job.result()
+            for i, row in enumerate(rows):
+                print(f"  {name:12} {i:2d} {row}")
+            print(f"  {name:12} lowest worst ratio: {min(float(r.split()[0]) for r in rows):.3f}", flush=True)
+
+
 def _best(errors: dict) -> dict:
     best = min((n for n in errors if n in SHAPERS), key=errors.get)
     return {f"best shaper ({best})": errors[best]}
@@ -249,12 +294,14 @@ def _head(program: str | Path, lines: int, folder: str) -> Path:
 
 
 if __name__ == "__main__":
-    arguments = [a for a in sys.argv[1:] if a != "--tradeoff"]
-    lines = int(arguments[0]) if arguments else (3000 if "--tradeoff" in sys.argv else 8000)
+    sweep = next((a for a in sys.argv[1:] if a in ("--tradeoff", "--minmax")), None)
+    arguments = [a for a in sys.argv[1:] if a != sweep]
+    lines = int(arguments[0]) if arguments else (3000 if sweep else 8000)
     with tempfile.TemporaryDirectory() as folder:
-        if "--tradeoff" in sys.argv:
+        if sweep:
             programs = {**TRADEOFF_PROGRAMS, "twisted star": twisted_star(folder)}
-            tradeoff({name: _head(program, lines, folder) for name, program in programs.items()})
+            heads = {name: _head(program, lines, folder) for name, program in programs.items()}
+            (tradeoff if sweep == "--tradeoff" else minmax)(heads)
             sys.exit()
         head = _head(PROGRAM, lines, folder)
         sims = predictions(head)
