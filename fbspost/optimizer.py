@@ -34,6 +34,7 @@ from scipy import linalg, sparse
 
 from .dynamics import AxisDynamics, ModelSet
 from .profile import AxisProfile
+from .smoothing import RunSmoother
 from .splines import basis_matrix, uniform_knots
 from .varying import LoadModes, PositionModes
 
@@ -72,6 +73,7 @@ class FBSSettings:
     settle_weight: float = 0.5  # weight of the error after the end (residual vibration)
     derivative_weights: tuple[float, ...] = ()  # alpha_1, alpha_2, ... in s, s^2, ... (Eq. 13)
     end_rest_order: int = 2  # derivatives 1..r of the command are zero at the end
+    smoothing_half_width: int = 0  # samples: track the desired trajectory Hann-smoothed (smoothing.RunSmoother)
 
     def resolve(self, dynamics: AxisDynamics) -> FBSSettings:
         """Fill in every automatic size from the axis dynamics.
@@ -599,6 +601,8 @@ class AxisStream:
         self.first_sample = 0  # run sample at buffer[0]
         self.z = None  # the carry, once the first sample is known
         self.level = 0  # of the model in force (AxisCompensator.varying)
+        half_width = compensator.settings.smoothing_half_width
+        self.smoother = RunSmoother(half_width) if half_width else None
 
     def push(self, desired_mm: np.ndarray, state: np.ndarray | None = None) -> np.ndarray:
         """``state``: what varying modes follow (``varying.column`` of the plan: the filament
@@ -606,12 +610,9 @@ class AxisStream:
         desired_mm = np.asarray(desired_mm, dtype=float)
         if desired_mm.ndim != 1 or not np.all(np.isfinite(desired_mm)):
             raise ValueError("the desired trajectory must be a 1-D array of finite positions")
-        self.buffer = np.concatenate([self.buffer, desired_mm])
         if self.owner.varying is not None:
-            self._note_state(desired_mm.size, state)
-        if self.z is None and self.buffer.size:
-            self.level = self._level_at(0)
-            self.z = self.owner.rest_unit(self.level) * self.buffer[0]
+            self._note_state(desired_mm.size, state)  # (ahead of the buffer while the smoother holds samples)
+        self._take(desired_mm if self.smoother is None else self.smoother.push(desired_mm))
         if self.owner.lookahead == "complete":
             return np.empty(0)
         return self._regular_windows()
@@ -620,6 +621,8 @@ class AxisStream:
         """The rest of the run: regular windows while they are still regular, then the final one."""
         owner, result = self.owner, self.result
         settings = owner.settings
+        if self.smoother is not None:
+            self._take(self.smoother.finish())
         if self.first_sample + self.buffer.size == 0:
             raise ValueError("the desired trajectory must be a non-empty 1-D array of finite positions")
         head = self._regular_windows() if owner.lookahead == "limited" else np.empty(0)
@@ -631,6 +634,12 @@ class AxisStream:
         tail[-1] = self.buffer[-1]  # the last position in exact arithmetic; make it so in floating point too
         result.command_mm = np.concatenate([head, tail])
         return result
+
+    def _take(self, desired_mm: np.ndarray) -> None:
+        self.buffer = np.concatenate([self.buffer, desired_mm])
+        if self.z is None and self.buffer.size:
+            self.level = self._level_at(0)
+            self.z = self.owner.rest_unit(self.level) * self.buffer[0]
 
     def _note_state(self, n: int, state: np.ndarray | None) -> None:
         """Keep the state, counted from the compensator's first known one where ``varying`` says so

@@ -36,6 +36,7 @@ from .optimizer import AxisCompensator, AxisLimits, FBSSettings
 from .planfeed import PlanFeed, PlanProxy
 from .planner import BATCH_BLOCKS, Plan, PlanStream, RunMargins
 from .profile import AxisProfile, MachineProfile
+from .smoothing import half_width_samples
 from .trajectory import InputError
 from .transparency import FirmwareSettings
 from .varying import LoadModes, PositionModes
@@ -442,11 +443,18 @@ def _marlin_steps(profile: MachineProfile, flavor: str) -> dict:
 
 
 def _compensators(profile: MachineProfile, options: CompensateOptions) -> dict[int, AxisCompensator]:
-    """One per axis (column of AXES) that has modes in the profile."""
+    """One per axis (column of AXES) that has modes in the profile. With tolerances on any axis
+    (robust compensation), every axis tracks its plan smoothed by a Hann window one period of
+    the highest mode long (``smoothing``): the same window on every axis keeps the path's shape."""
     period_s = 1.0 / profile.sample_rate_hz
     axes = {c: profile.axes[name] for c, name in enumerate(AXES) if name in profile.axes and profile.axes[name].modes}
-    return {c: AxisCompensator(AxisDynamics(axis.modes, period_s), AxisLimits.from_profile(axis), options.settings,
-                               options.lookahead, ModelSet.spread(axis.modes, period_s), varying_modes(profile, axis))
+    sets = {c: ModelSet.spread(axis.modes, period_s) for c, axis in axes.items()}
+    settings = options.settings
+    if any(len(models.models) > 1 for models in sets.values()):
+        highest_hz = max(m.frequency_hz for axis in axes.values() for m in axis.modes)
+        settings = replace(settings, smoothing_half_width=half_width_samples(highest_hz, period_s))
+    return {c: AxisCompensator(AxisDynamics(axis.modes, period_s), AxisLimits.from_profile(axis), settings,
+                               options.lookahead, sets[c], varying_modes(profile, axis))
             for c, axis in axes.items()}
 
 
