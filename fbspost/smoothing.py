@@ -3,11 +3,11 @@
 Takes one run of one axis' desired positions (mm, on the sample grid), in pieces; gives them
 smoothed by a Hann window of ``half_width`` samples either side, narrowed near the run's ends so
 that the run starts and ends exactly where it did, at rest. The window is symmetric, so a straight
-line at constant speed is kept as it is: only the corners are rounded, by about a quarter of the
-window's length, and the same on every axis, so the path keeps its shape. What it removes is
-the content near and above the machine's highest mode, which a command can only track by
-exciting the modes hard: on a machine a few percent off its model, that is where the error
-comes from (docs/robust.md).
+line at constant speed is kept as it is: only the corners are rounded (a smoothed sample is an
+average of the positions within half a window of it), and the same on every axis, so the path
+keeps its shape. What it removes is the content near and above the machine's highest mode,
+which a command can only track by exciting the modes hard: on a machine a few percent off its
+model, that is where the error comes from (docs/robust.md).
 
 The result does not depend on how the run is cut into pieces: a sample is given once the
 ``half_width`` samples after it are known.

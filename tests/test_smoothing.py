@@ -6,12 +6,9 @@ import numpy as np
 from fbspost.dynamics import AxisDynamics, ModelSet
 from fbspost.optimizer import AxisCompensator, AxisLimits, FBSSettings
 from fbspost.pipeline import CompensateOptions, _compensators
-from fbspost.profile import load_profile
 from fbspost.smoothing import RunSmoother, half_width_samples
 from test_optimizer import smooth_move
-from test_robust import ROBUST, T, with_tolerances
-
-NOMINAL = load_profile("printer-two-mode")
+from test_robust import NOMINAL, ROBUST, T, with_tolerances
 
 
 def hann(half_width):
@@ -27,7 +24,7 @@ def reference_smoothed(x, half_width):
     return np.array([np.dot(x[i - w:i + w + 1], hann(w)) for i, w in enumerate(widths)])
 
 
-def _whole(x, half_width):
+def smoothed_whole(x, half_width):
     smoother = RunSmoother(half_width)
     return np.concatenate([smoother.push(x), smoother.finish()])
 
@@ -42,7 +39,7 @@ def corner_run(rng, n=900):
 def test_inside_the_run_it_is_the_hann_convolution_and_the_ends_are_kept():
     x = corner_run(np.random.default_rng(1))
     r = 4
-    ours = _whole(x, r)
+    ours = smoothed_whole(x, r)
     truth = np.convolve(x, hann(r), mode="same")
     assert np.abs(ours[r:-r] - truth[r:-r]).max() < 1e-12 * np.abs(x).max()
     assert ours[0] == x[0] and ours[-1] == x[-1]
@@ -52,22 +49,22 @@ def test_inside_the_run_it_is_the_hann_convolution_and_the_ends_are_kept():
 
 def test_a_straight_line_and_a_rest_are_kept():
     line = 3.0 + 0.0123 * np.arange(500)
-    assert np.allclose(_whole(line, 5), line, rtol=0, atol=1e-12)
+    assert np.allclose(smoothed_whole(line, 5), line, rtol=0, atol=1e-12)
     rest = np.full(300, 0.1 + 0.2)  # a value with no exact binary form
-    assert np.array_equal(_whole(rest, 5), rest)  # bit for bit: windows at rest stay exactly at rest
+    assert np.array_equal(smoothed_whole(rest, 5), rest)  # bit for bit: windows at rest stay exactly at rest
 
 
 def test_any_cut_gives_the_same_bits():
     rng = np.random.default_rng(2)
     x = corner_run(rng)
-    whole = _whole(x, 4)
+    whole = smoothed_whole(x, 4)
     for _ in range(5):
         cuts = np.sort(rng.choice(np.arange(1, x.size), size=12, replace=False))
         smoother = RunSmoother(4)
         pieces = [smoother.push(piece) for piece in np.split(x, cuts)] + [smoother.finish()]
         assert np.array_equal(np.concatenate(pieces), whole)
     short = RunSmoother(4)  # a run shorter than the window
-    assert np.array_equal(np.concatenate([short.push(x[:3]), short.finish()]), _whole(x[:3], 4))
+    assert np.array_equal(np.concatenate([short.push(x[:3]), short.finish()]), smoothed_whole(x[:3], 4))
 
 
 def test_the_window_is_one_period_of_the_highest_mode():
