@@ -194,8 +194,10 @@ def _compensate(read_path, input_path, output_path, profile, options, flavor, pr
     if elsewhere:  # a process per axis, sent the plan made here
         requests: queue.Queue = queue.Queue()
         feed = PlanFeed(plan, {c: _columns(c, compensator) for c, compensator in compensators.items()})
-        workers = {c: Offloaded(_proxied_chunks, profile, options, c, feed.columns[c], requests=requests, key=c)
-                   for c in compensators}
+        workers = {c: Offloaded(_proxied_chunks, profile, options, c, feed.columns[c], requests=requests, key=c,
+                                start=False) for c in compensators}
+        for worker in workers.values():
+            worker.start()
         chunks = _received(workers, feed, requests)
     else:
         outcome = _Outcome.of(compensators)

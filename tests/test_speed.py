@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fbspost import optimizer, pipeline, planfeed
+from fbspost import offload, optimizer, pipeline, planfeed
 from fbspost.dynamics import AxisDynamics
 from fbspost.fallback import FALLBACK
 from fbspost.offload import NICENESS, Offloaded, _portable
@@ -76,13 +76,17 @@ def test_final_windows_kept_or_built_anew_write_the_same_bytes(tmp_path, monkeyp
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("batch_samples", [planfeed.BATCH_SAMPLES, 3000])
-def test_axes_in_processes_of_their_own_write_and_report_the_same(tmp_path, monkeypatch, batch_samples):
+@pytest.mark.parametrize("batch_samples, forked", [(planfeed.BATCH_SAMPLES, True), (3000, True),
+                                                   (planfeed.BATCH_SAMPLES, False)])
+def test_axes_in_processes_of_their_own_write_and_report_the_same(tmp_path, monkeypatch, batch_samples, forked):
     """The gear's head, two modes on X and the QP at its corners: each axis compensated in a
     process of its own (offload.py), sent the plan made here (planfeed.py) in batches of the
     default size and in small ones (runs still open at most batches' ends), gives the same bytes
-    and the same report as on threads."""
+    and the same report as on threads; the processes forked (Linux) or started anew (elsewhere)."""
+    if forked and not offload.FORK:
+        pytest.skip("processes are forked on Linux only")
     monkeypatch.setattr(planfeed, "BATCH_SAMPLES", batch_samples)
+    monkeypatch.setattr(offload, "FORK", forked)
     report = _same_outcome(tmp_path, _head(tmp_path, "gear-marlin2.gcode", 1200), "printer-two-mode",
                            *(replace(CompensateOptions(), second_process=apart) for apart in (True, False)))
     assert len(report["axes"]) == 2 and all(axis["qp_windows"] > 0 for axis in report["axes"].values())
@@ -148,6 +152,35 @@ def test_a_talking_child_ends_quietly(monkeypatch, capfd):
     assert capfd.readouterr().err == ""
 
 
+def _until_the_end(channel):
+    try:
+        while True:
+            channel.get()
+    except EOFError:
+        yield "the end"
+
+
+@pytest.mark.parametrize("forked", [True, False])
+def test_a_child_sees_its_input_end_while_another_child_runs(monkeypatch, forked):
+    """Two children, the second started (forked) while the first's input is open here: closing
+    that input ends the first. (A forked child that kept its parent's descriptors would hold the
+    first's input open, and the first would wait forever.)"""
+    if forked and not offload.FORK:
+        pytest.skip("processes are forked on Linux only")
+    monkeypatch.setattr(offload, "FORK", forked)
+    monkeypatch.setenv("PYTHONPATH", str(Path(__file__).parent))  # (a started child imports _until_the_end from here)
+    requests = queue.Queue()
+    with Offloaded(_until_the_end, requests=requests, key=1) as first, \
+            Offloaded(_until_the_end, requests=requests, key=2) as second:
+        first._process.stdin.close()
+        assert first.get(timeout=30) == "the end"
+        second.send("still talking")
+        with pytest.raises(queue.Empty):
+            second.get(timeout=0.2)
+        second._process.stdin.close()
+        assert second.get(timeout=30) == "the end"
+
+
 def test_bad_input_with_the_axes_in_processes_is_the_one_line_error(tmp_path):
     """A bad line after the axes' processes started: the one-line InputError (file and line),
     and compensating writes nothing."""
@@ -177,7 +210,11 @@ def _niceness():
 
 
 @pytest.mark.skipif(not hasattr(os, "nice"), reason="POSIX priorities")
-def test_the_offloaded_work_yields_the_cores_to_its_reader(monkeypatch):
+@pytest.mark.parametrize("forked", [True, False])
+def test_the_offloaded_work_yields_the_cores_to_its_reader(monkeypatch, forked):
+    if forked and not offload.FORK:
+        pytest.skip("processes are forked on Linux only")
+    monkeypatch.setattr(offload, "FORK", forked)
     monkeypatch.setenv("PYTHONPATH", str(Path(__file__).parent))  # (the child imports _niceness from here)
     parent = os.nice(0)
     with Offloaded(_niceness) as child:
