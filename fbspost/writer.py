@@ -491,6 +491,7 @@ def _feeds(length_mm: np.ndarray, durations_s: np.ndarray, moving: np.ndarray, r
     negative than half a block's duration, the block keeps half its own and the rest goes on.)
     Marlin enters a faster block at once up to its ``jump_mm_s`` (see ``_Emitter._marlin_lengths``).
     """
+    residue_s = float(residue_s)  # (a numpy scalar makes every step of the loop three times slower)
     feeds = []
     add = feeds.append
     ramped = ramp_mm_s2 != math.inf
