@@ -13,8 +13,8 @@ Python threads share one interpreter lock, so the axes' threads of one process o
 (CPU time equals wall time on the gear); a process has its own.
 
 On Linux the child is forked, so it starts with this process' imports done (about 1 s of CPU
-each otherwise, while the writer waits for its first samples: gear 1 h, 10.7 -> 10.0 s); it
-keeps only its own pipes. Elsewhere it is started as ``python -m fbspost.offload``.
+each otherwise, while the writer waits for its first samples: gear 1 h, 9.8-10.3 -> 8.6-9.6 s);
+it keeps only its own pipes. Elsewhere it is started as ``python -m fbspost.offload``.
 """
 from __future__ import annotations
 
