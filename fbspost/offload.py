@@ -146,7 +146,8 @@ class _Forked:
     def __init__(self):
         child_in, parent_out = os.pipe()
         parent_in, child_out = os.pipe()
-        for stream in (sys.stdout, sys.stderr):  # (else the child's copy of their buffers is written twice)
+        # (Else the child's copy of their buffers is written twice; None: started without them.)
+        for stream in filter(None, (sys.stdout, sys.stderr)):
             stream.flush()
         pid = os.fork()
         if pid == 0:

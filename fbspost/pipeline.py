@@ -346,29 +346,31 @@ def _received(workers: dict[int, Offloaded], feed: PlanFeed,
               requests: queue.Queue) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """The planned samples and the axes' processes' commands (``workers``: by column) joined,
     as far as every one has given them; the processes' ``requests`` for more of the plan are
-    answered meanwhile (``PlanFeed.due``: not far ahead of the writer, unless it waits)."""
+    answered meanwhile (``PlanFeed.due``: not far ahead of the writer, unless it waits for that
+    process: the other may not run on ahead meanwhile, or the plan held here would grow with the
+    program)."""
     held = {c: np.zeros(0) for c in workers}  # each axis' command
     asked: list[int] = []  # requests not yet answered
 
-    def command_of(worker: Offloaded) -> np.ndarray:
+    def command_of(c: int) -> np.ndarray:
         waiting = False
         while True:
             while not requests.empty():
                 asked.append(requests.get())
-            for key in [key for key in asked if waiting or feed.due(key)]:
+            for key in [key for key in asked if (waiting and key == c) or feed.due(key)]:
                 asked.remove(key)
                 feed.answer(key, workers[key].send)
             try:
-                return worker.get(timeout=_POLL_S if waiting else 0.0)
+                return workers[c].get(timeout=_POLL_S if waiting else 0.0)
             except queue.Empty:
                 waiting = True
             except StopIteration:
                 return np.zeros(0)
 
     while True:
-        for c, worker in workers.items():
+        for c in workers:
             if not len(held[c]):
-                held[c] = command_of(worker)
+                held[c] = command_of(c)
         n = min(len(column) for column in held.values())
         if not n:
             if any(len(column) for column in held.values()):

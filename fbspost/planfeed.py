@@ -21,7 +21,7 @@ import numpy as np
 from .gcode import AXES
 
 BATCH_SAMPLES = 1 << 14  # samples a request is answered with at least (fewer at the end)
-# Samples planned ahead of the writer at most, unless it waits for a process: the writer's process
+# Samples planned ahead of the writer at most, unless it waits for the process asking: the writer's process
 # holds their blocks (a CAM program's 5 samples a block: about 40 MB). A request is answered up
 # to there, so that the processes can work that far ahead: with 2 batches, in step with the
 # writer, they and it waited for each other (gear 6 h: 15% of two cores idle, 77 -> 67 s).
