@@ -100,7 +100,7 @@ class Offloaded:
                 self._items.put(message)
                 if message[0] != "item":
                     return
-        except (EOFError, OSError, pickle.UnpicklingError):
+        except (EOFError, OSError, ValueError, pickle.UnpicklingError):  # (ValueError: closed by close())
             self._items.put(("error", RuntimeError("the compensation's process ended unexpectedly")))
 
     def get(self, timeout: float | None = None):

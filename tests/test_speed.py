@@ -289,3 +289,21 @@ def test_marlin_merge_as_done_row_by_row(exact_last, largest_step):
     assert np.array_equal(merged, _merged_row_by_row(start, ints, steps_per_unit, 3, exact_last))
     kept = (np.diff(np.vstack([start, merged]), axis=0) != 0).any(axis=1)
     assert (0.2 < kept.mean() < 0.9) if largest_step == 12 else (kept.mean() < 0.1)
+
+
+
+def _silent():
+    yield None
+
+
+@pytest.mark.filterwarnings("error::pytest.PytestUnhandledThreadExceptionWarning")
+def test_a_reader_that_starts_after_close_ends_quietly():
+    """close() may end the child and close its pipe before this process' reader of it has begun
+    to read (the reader of a program's bad line, started just before): the reader then ends
+    without an error of its own (it raised ValueError on the closed pipe before)."""
+    child = Offloaded(_silent, start=False)
+    child.close()
+    child.start()
+    child._receiver.join(timeout=30)
+    kind, error = child._items.get(timeout=30)
+    assert kind == "error" and "ended unexpectedly" in str(error)
