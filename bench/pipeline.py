@@ -3,10 +3,12 @@ CNC program, then complete vs limited look-ahead on the patent's butterfly.
 
 Run from the repository root:  python bench/pipeline.py [--sizes 1m,10m,cnc,gear1h] [--cache bench/.programs]
 
-The prints are the tube of tests/data/make_sliced.py (smooth circles, for bedslinger-example) and
-a spur gear (sharp corners on every layer, for printer-two-mode: X 52 + 96 Hz, Y 34 Hz), scaled
-and sliced with PrusaSlicer 2.5 (`prusa-slicer` on PATH) the first time and kept in the cache
-folder. The CNC program (LinuxCNC) is a raster finishing pass over a wavy surface, 0.25 mm
+The prints are the tube of tests/data/make_sliced.py (smooth circles, for bedslinger-example), a
+spur gear (sharp corners on every layer, for printer-two-mode: X 52 + 96 Hz, Y 34 Hz) and the
+twisted star of make_sliced (ten corners on every perimeter, moving from layer to layer: a print
+the speed work was not tuned on, printer-two-mode; star6h as long as the 6.6 h print of issue 15),
+scaled and sliced with PrusaSlicer 2.5 (`prusa-slicer` on PATH) the first time and kept in the
+cache folder. The CNC program (LinuxCNC) is a raster finishing pass over a wavy surface, 0.25 mm
 segments at 50 mm/s, about 2.8 million lines, generated the first time (bedslinger-example).
 Each program is compensated in a fresh process, so that its peak memory is its own.
 Per program: wall time and times faster than real time, peak memory, samples per second of
@@ -44,7 +46,8 @@ from fbspost.profile import load_profile  # noqa: E402
 # estimate is near the size.
 SCALES = {"1m": ("tube", 0.45, "bedslinger-example"), "10m": ("tube", 1.45, "bedslinger-example"),
           "1h": ("tube", 3.25, "bedslinger-example"), "6h": ("tube", 7.0, "bedslinger-example"),
-          "gear1h": ("gear", 2.9, "printer-two-mode"), "gear6h": ("gear", 6.3, "printer-two-mode")}
+          "gear1h": ("gear", 2.9, "printer-two-mode"), "gear6h": ("gear", 6.3, "printer-two-mode"),
+          "star1h": ("star", 3.5, "printer-two-mode"), "star6h": ("star", 7.7, "printer-two-mode")}
 CNC = "cnc"  # the size name of the CNC program
 CNC_PROFILE = "bedslinger-example"
 STAGES = ("read", "plan", "optimize", "fallback", "write")
@@ -61,6 +64,9 @@ def gear(teeth: int = 24, root_mm: float = 8.5, tip_mm: float = 10.0, hole_mm: f
     return make_sliced.ring(outer, make_sliced.circle(hole_mm, len(outer)), 0.0, 4.0)
 
 
+MODELS = {"tube": make_sliced.tube, "gear": gear, "star": make_sliced.twisted_star}
+
+
 def sliced_program(size: str, cache: Path) -> Path:
     """The size's model at its scale, sliced once: slicing is not what is measured, and a 6 h
     print is best sliced only once. Written under a temporary name, so the cache never holds
@@ -71,7 +77,7 @@ def sliced_program(size: str, cache: Path) -> Path:
         cache.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryDirectory(dir=cache) as tmp:
             stl, out = Path(tmp) / f"{model}.stl", Path(tmp) / path.name
-            make_sliced.write_stl(stl, make_sliced.tube() if model == "tube" else gear())
+            make_sliced.write_stl(stl, MODELS[model]())
             subprocess.run(["prusa-slicer", "--export-gcode", *make_sliced.COMMON, "--gcode-flavor", "marlin2",
                             "--scale", f"{scale:g}", "-o", str(out), str(stl)], check=True,
                            stdout=subprocess.DEVNULL)

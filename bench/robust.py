@@ -266,26 +266,11 @@ def _table(rows) -> None:
           f"at worst {max(ratios):.3f} times it")
 
 
-def twisted_star(folder: str, points: int = 5, twist_deg: float = 40.0, height_mm: float = 4.0) -> Path:
-    """A 20 mm star of ``points`` points twisted by ``twist_deg`` over its height, sliced as Marlin 2:
-    every perimeter turns ten sharp corners, and they move from layer to layer."""
-    def loop(angle):
-        t = np.arange(2 * points) * np.pi / points + angle
-        r = np.where(np.arange(2 * points) % 2 == 0, 10.0, 4.5)
-        return np.column_stack([r * np.cos(t), r * np.sin(t), np.zeros(t.size)])
-
-    levels = np.linspace(0.0, height_mm, 9)
-    rings = [loop(np.radians(twist_deg) * z / height_mm) + [0.0, 0.0, z] for z in levels]
-    triangles = []
-    for low, high in itertools.pairwise(rings):
-        for i, j in zip(range(len(low)), np.roll(range(len(low)), -1), strict=True):
-            triangles += [[low[i], low[j], high[j]], [low[i], high[j], high[i]]]
-    for ring, up in ((rings[0], False), (rings[-1], True)):
-        centre = [0.0, 0.0, ring[0, 2]]
-        for i, j in zip(range(len(ring)), np.roll(range(len(ring)), -1), strict=True):
-            triangles.append([centre, ring[i], ring[j]] if up else [centre, ring[j], ring[i]])
+def twisted_star(folder: str) -> Path:
+    """The twisted star of ``make_sliced``, sliced as Marlin 2: ten sharp corners on every
+    perimeter, moving from layer to layer."""
     stl, out = Path(folder) / "twisted-star.stl", Path(folder) / "twisted-star.gcode"
-    make_sliced.write_stl(stl, triangles)
+    make_sliced.write_stl(stl, make_sliced.twisted_star())
     subprocess.run(["prusa-slicer", "--export-gcode", *make_sliced.COMMON, "--gcode-flavor", "marlin2", "-o",
                     str(out), str(stl)], check=True, stdout=subprocess.DEVNULL)
     return out

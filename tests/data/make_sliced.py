@@ -15,6 +15,7 @@ Klipper users of 2.5 do; there is no G2/G3 program from this slicer.
 """
 from __future__ import annotations
 
+import itertools
 import shlex
 import subprocess
 import sys
@@ -122,6 +123,27 @@ def bracket():
     tris += prism(rectangle(8.0, -1.0, 10.0, 6.5), 1.0, 3.0)       # post
     tris += prism(rectangle(2.0, -1.0, 10.0, 6.5), 3.0, 3.6)       # bridge deck on the posts
     return tris
+
+
+def twisted_star(points: int = 5, twist_deg: float = 40.0, height_mm: float = 4.0):
+    """A 20 mm star of ``points`` points twisted by ``twist_deg`` over its height: every perimeter
+    turns ten sharp corners, and they move from layer to layer."""
+    def loop(angle):
+        t = np.arange(2 * points) * np.pi / points + angle
+        r = np.where(np.arange(2 * points) % 2 == 0, 10.0, 4.5)
+        return np.column_stack([r * np.cos(t), r * np.sin(t), np.zeros(t.size)])
+
+    levels = np.linspace(0.0, height_mm, 9)
+    rings = [loop(np.radians(twist_deg) * z / height_mm) + [0.0, 0.0, z] for z in levels]
+    triangles = []
+    for low, high in itertools.pairwise(rings):
+        for i, j in zip(range(len(low)), np.roll(range(len(low)), -1), strict=True):
+            triangles += [[low[i], low[j], high[j]], [low[i], high[j], high[i]]]
+    for level, up in ((rings[0], False), (rings[-1], True)):
+        centre = [0.0, 0.0, level[0, 2]]
+        for i, j in zip(range(len(level)), np.roll(range(len(level)), -1), strict=True):
+            triangles.append([centre, level[i], level[j]] if up else [centre, level[j], level[i]])
+    return triangles
 
 
 # name -> (model, flavor options)
