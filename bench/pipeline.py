@@ -164,13 +164,15 @@ def pipeline_table(sizes: list[str], cache: Path) -> None:
     print("Whole pipeline: wall time without interpreter start, CPU time (all threads and the axes' processes:\n"
           "on two idle cores the wall time is at least half of it), peak memory of them all; samples/s (S/s)\n"
           "per stage, samples = print time x sample rate, once per compensated axis for optimize and\n"
-          "fallback; QP %: the optimizer's windows that needed the QP; fallback %: its share of the wall time")
+          "fallback; QP %: the optimizer's windows that needed the QP; fallback %: its share of the wall time;\n"
+          "ref ms: the machine's speed just before (machine_reference_ms: lower is faster)")
     print(f"{'program':16} {'profile':19} {'lines':>8} {'print s':>8} "
           f"{'wall s':>8} {'cpu s':>8} {'x real':>7} {'peak MB':>8} "
-          + " ".join(f"{stage + ' S/s':>12}" for stage in STAGES) + f" {'QP %':>5} {'fallback %':>10}")
+          + " ".join(f"{stage + ' S/s':>12}" for stage in STAGES) + f" {'QP %':>5} {'fallback %':>10} {'ref ms':>6}")
     for size in sizes:
         program = cnc_program(cache) if size == CNC else sliced_program(size, cache)
         profile = CNC_PROFILE if size == CNC else SCALES[size][2]
+        reference_ms = machine_reference_ms()
         with ProcessPoolExecutor(1, mp_context=get_context("spawn")) as pool:
             report, wall_s, cpu_s, peak_mb = pool.submit(measure, program, profile).result()
         samples = report["print_time_s"] * load_profile(profile).sample_rate_hz
@@ -183,7 +185,20 @@ def pipeline_table(sizes: list[str], cache: Path) -> None:
         print(f"{program.name:16} {profile:19} {report['lines_in']:8d} {report['print_time_s']:8.1f} "
               f"{wall_s:8.2f} {cpu_s:8.2f} "
               f"{report['print_time_s'] / wall_s:7.1f} {peak_mb:8.0f} {rates} {qp:5.0%} "
-              f"{report['stage_time_s']['fallback'] / wall_s:10.0%}", flush=True)
+              f"{report['stage_time_s']['fallback'] / wall_s:10.0%} {reference_ms:6.0f}", flush=True)
+
+
+def machine_reference_ms() -> float:
+    """CPU time (ms) of a fixed pure-Python loop, the median of three: this machine's own speed
+    drifts (the same loop took 150 to 420 ms within minutes, and the gear 1 h's CPU time moved
+    with it, 18.2 to 22.9 s for the same work), so a slow row beside a slow reference is the machine."""
+    times = []
+    for _ in range(3):
+        started, total = time.process_time(), 0
+        for i in range(3_000_000):
+            total += i * i % 7
+        times.append(time.process_time() - started)
+    return sorted(times)[1] * 1e3
 
 
 def size_list(text: str) -> list[str]:
