@@ -291,7 +291,6 @@ def test_marlin_merge_as_done_row_by_row(exact_last, largest_step):
     assert (0.2 < kept.mean() < 0.9) if largest_step == 12 else (kept.mean() < 0.1)
 
 
-
 def _silent():
     yield None
 
