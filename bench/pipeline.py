@@ -191,7 +191,7 @@ def pipeline_table(sizes: list[str], cache: Path) -> None:
 def machine_reference_ms() -> float:
     """CPU time (ms) of a fixed pure-Python loop, the median of three: this machine's own speed
     drifts (the same loop took 150 to 420 ms within minutes, and the gear 1 h's CPU time moved
-    with it, 18.2 to 22.9 s for the same work), so a slow row beside a slow reference is the machine."""
+    with it, 17.6 to 22.9 s for the same work), so a slow row beside a slow reference is the machine."""
     times = []
     for _ in range(3):
         started, total = time.process_time(), 0
