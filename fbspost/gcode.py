@@ -191,6 +191,10 @@ _CHECKSUM = re.compile(r"\*\s*\d*\s*$")
 _EXT_PARAM = re.compile(r'([A-Za-z_][A-Za-z0-9_]*)\s*=\s*("[^"]*"|\S*)')
 _OWORD = re.compile(r"[Oo]\s*(?:\d+|<[^>]*>)\s*([A-Za-z_]*)")
 # Marlin-style commands whose arguments are free text (messages, file names, version strings).
+# Control characters (not white space) in a line's code, or a code that starts with bytes that are
+# not UTF-8: binary content, not G-code (a comment may hold any bytes: it passes through)
+_BINARY = re.compile("[\x00-\x08\x0e-\x1f\x7f]|^\ufffd")
+NOT_GCODE = "not a G-code file: binary content"
 _TEXT_CMD = re.compile(r"[Mm]\s*0*(?:117|118|23|28|30|32|33|928|115|0|1)(?![\d.])")
 
 _MOTION = {0.0: 0, 1.0: 1, 2.0: 2, 3.0: 3, 5.0: 5}
@@ -331,6 +335,8 @@ class _Words:
         code = code.strip()
         if not code:
             return Block(n, raw, Kind.PASS, self.modal, np.array(self.pos))
+        if _BINARY.search(code):
+            raise self.error(n, NOT_GCODE)
         c0 = code[0]
         if c0 in "Nn/":
             code = code[_HEAD.match(code).end():]
@@ -354,7 +360,7 @@ class _Words:
             shown = feature.group()
             raise NeedsInterpreter(self.path, n, f"{what} ({shown})",
                                    f"{what} ({shown}) need --expand (LinuxCNC's interpreter)")
-        if c0 == "_" or (len(code) > 1 and (code[1].isalpha() or code[1] == "_")):
+        if c0 == "_" or (c0.isalpha() and len(code) > 1 and (code[1].isalpha() or code[1] == "_")):
             return self.extended(n, raw, code)
         if not self.cnc:
             if c0 in "Mm" and _TEXT_CMD.match(code):
@@ -1300,7 +1306,8 @@ def detect_flavor(path: str | Path) -> str:
     parenthesis comments, M2/M30, G17/G64/... without any E word); Marlin otherwise.
 
     Klipper commands win over a declared Marlin flavor (Klipper printers are often sliced as
-    Marlin); a declared Klipper or RepRapFirmware flavor wins over everything.
+    Marlin); a declared Klipper or RepRapFirmware flavor wins over everything. Binary content in
+    the code of the first lines (a picture, random bytes) raises ``InputError`` naming its line.
     """
     try:
         lines = _head_and_tail(path)
@@ -1308,7 +1315,9 @@ def detect_flavor(path: str | Path) -> str:
         raise InputError(path, 0, f"cannot read: {exc}") from None
     declared = None
     klipper = reprap = cnc = e_words = False
-    for text in lines:
+    for i, text in enumerate(lines):
+        if i < _HEAD_LINES and _BINARY.search(_strip_comments(text.split(";", 1)[0]).strip()):
+            raise InputError(path, i + 1, NOT_GCODE)  # (before a binary file is taken for LinuxCNC's)
         m = _DECLARED.search(text)
         if m and declared is None:
             declared = m.group(1).lower()

@@ -9,6 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from fbspost.cli import main
 from fbspost.planner import RunMargins
@@ -187,3 +189,51 @@ def test_feed_beyond_the_machine_is_a_warning_naming_the_line(tmp_path):
     result = compensate(program, "-o", tmp_path / "out.gcode")
     assert result.exit_code == 0
     assert any(line.startswith("warning: ") and "line 3" in line for line in result.stderr.splitlines()), result.stderr
+
+
+# ---- not G-code at all ---------------------------------------------------------------------------
+
+PNG = (ROOT / "samples" / "butterfly-simulate.png").read_bytes()[:4096]
+
+
+@pytest.mark.parametrize("flavor", [None, "marlin", "klipper", "reprap", "linuxcnc"])
+@pytest.mark.parametrize("content", ["png", "random-0", "random-1", "random-2"])
+def test_binary_file_is_not_gcode(tmp_path, flavor, content):
+    """A picture or random bytes: one line naming the file and its first line, whatever the flavor
+    (without --flavor, before the detection can take the bytes for a LinuxCNC program and run rs274)."""
+    data = PNG if content == "png" else np.random.default_rng(int(content[-1])).bytes(4096)
+    program = tmp_path / "part.gcode"
+    program.write_bytes(data)
+    result = compensate(program, *(["--flavor", flavor] if flavor else []), "-o", tmp_path / "out.gcode")
+    assert_refused(result, program, data, f"error: {program}:1: ", "not a G-code file: binary content")
+
+
+@pytest.mark.parametrize("flavor", ["marlin", "klipper", "reprap", "linuxcnc"])
+@pytest.mark.parametrize("line", [b"\x00\x00\x00\rIHDR\x00", b"G1 X5\x00 Y2", b"\x89PNG", b"\xff\xd8\xff\xe0 JFIF",
+                                  b"G1 X\x1b[31m5"])
+def test_binary_line_after_good_ones_names_its_line(tmp_path, flavor, line):
+    """Binary content in the code of line 4 (a file cut into by another, a download that went wrong)."""
+    text = (CNC if flavor == "linuxcnc" else PRINT).encode().replace(b"{}", line)
+    program = tmp_path / "part.gcode"
+    program.write_bytes(text)
+    result = compensate(program, "--flavor", flavor, "-o", tmp_path / "out.gcode")
+    assert_refused(result, program, text, f"error: {program}:4: ", "not a G-code file: binary content")
+
+
+@settings(max_examples=60, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(data=st.binary(min_size=1, max_size=600), flavor=st.sampled_from([None, "marlin", "klipper", "reprap",
+                                                                          "linuxcnc"]))
+def test_fuzz_bytes_one_line_or_a_program(tmp_path, data, flavor):
+    """Any bytes, in any flavor: either a program (exit 0, an output) or a one-line refusal naming the
+    file (exit 1, nothing written); never a traceback, never the input changed."""
+    program = tmp_path / "fuzz" / "part.gcode"
+    program.parent.mkdir(exist_ok=True)
+    for stale in program.parent.iterdir():
+        stale.unlink()
+    program.write_bytes(data)
+    result = compensate(program, *(["--flavor", flavor] if flavor else []), "-q", "-o", program.parent / "out.gcode")
+    if result.exit_code == 0:
+        assert (program.parent / "out.gcode").exists()
+        assert program.read_bytes() == data
+    else:
+        assert_refused(result, program, data, f"error: {program}", "")
