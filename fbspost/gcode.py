@@ -1345,6 +1345,26 @@ def detect_flavor(path: str | Path) -> str:
     return "marlin"
 
 
+_COMPENSATED = re.compile(
+    r"^\s*(?:;|\()\s*(fbspost \S+: filtered B-spline compensation for machine profile .*?)\)?\s*$")
+
+
+def compensated_by(path: str | Path) -> tuple[int, str] | None:
+    """(line, header text) where the file at ``path`` says fbspost compensated it (the header
+    ``compensate`` writes among the comments before the first code line); None where not."""
+    try:
+        with open(path, "rb") as f:
+            for line_no, raw in enumerate(f, 1):
+                text = raw.decode("utf-8", "replace")
+                if m := _COMPENSATED.match(text):
+                    return line_no, m.group(1)
+                if _strip_comments(text.split(";", 1)[0]).strip():
+                    return None
+    except OSError as exc:
+        raise InputError(path, 0, f"cannot read: {exc}") from None
+    return None
+
+
 def _head_and_tail(path: str | Path) -> list[str]:
     """The first _HEAD_LINES lines and the last _TAIL_LINES lines (each line once), decoded."""
     out = []

@@ -30,7 +30,7 @@ from .atomicfile import atomic_write
 from .dynamics import AxisDynamics, ModelSet
 from .expand import check_remaps, expand
 from .fallback import FALLBACK, AxisGuard
-from .gcode import AXES, Block, NeedsInterpreter, detect_flavor, read_gcode
+from .gcode import AXES, Block, NeedsInterpreter, compensated_by, detect_flavor, read_gcode
 from .offload import Offloaded
 from .optimizer import AxisCompensator, AxisLimits, FBSSettings
 from .planfeed import PlanFeed, PlanProxy
@@ -150,6 +150,9 @@ def compensate_file(input_path: str | Path, output_path: str | Path, profile: Ma
     look-ahead, however long the program is.
     """
     started = time.perf_counter()
+    header = compensated_by(input_path)
+    if header:  # compensated twice, the motion would be wrong and the summary would still show a gain
+        raise InputError(input_path, header[0], f"already compensated ({header[1]}): compensate the original instead")
     flavor = options.flavor or detect_flavor(input_path)
     refusal = format_refusal(flavor, options.output_format)
     if refusal:  # before the work

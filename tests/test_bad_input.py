@@ -237,3 +237,20 @@ def test_fuzz_bytes_one_line_or_a_program(tmp_path, data, flavor):
         assert program.read_bytes() == data
     else:
         assert_refused(result, program, data, f"error: {program}", "")
+
+
+@pytest.mark.parametrize("flavor, text", [("marlin", PRINT.format("G1 X15 Y2 E0.3")),
+                                          ("linuxcnc", CNC.format("G1 X15 Y2"))])
+@pytest.mark.parametrize("in_place", [True, False], ids=["in-place", "output"])
+def test_compensated_file_is_refused(tmp_path, flavor, text, in_place):
+    """fbspost's output given to it again (a slicer that runs its scripts twice): one line naming the
+    header's line, its version and profile; the file as it was."""
+    program = tmp_path / "part.gcode"
+    program.write_bytes(("; sliced by hand\n" + text).encode())
+    assert compensate(program, "--flavor", flavor, "-q").exit_code == 0
+    once = program.read_bytes()
+    header = [n for n, line in enumerate(once.decode().splitlines(), 1) if "filtered B-spline compensation" in line]
+    assert header == [2], once.decode()[:300]
+    result = compensate(program, "--flavor", flavor, *([] if in_place else ["-o", tmp_path / "again.gcode"]))
+    assert_refused(result, program, once, f"error: {program}:2: already compensated (fbspost ",
+                   "for machine profile bedslinger-example): compensate the original instead")
