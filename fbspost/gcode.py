@@ -650,7 +650,8 @@ class _Motion:
         v = params.get("E")
         if v is not None:
             if self.cnc:
-                raise self.error(n, "E words are not supported in LinuxCNC programs")
+                raise self.error(n, f"E{v}: LinuxCNC refuses an E word on a motion line (a number has no "
+                                    "exponent there: 1e5 reads as 1, then E5)")
             x = self.number(n, "E", v) * scale
             target[3] = x + off[3] if self.eabs else target[3] + x
             named = True
@@ -1303,7 +1304,8 @@ def detect_flavor(path: str | Path) -> str:
     """The flavor (one of FLAVORS) the file at ``path`` is written for, from hints in its first
     2000 and last 300 lines: a slicer's declaration (``; gcode_flavor = ...``, ``;FLAVOR:...``),
     Klipper commands, RepRapFirmware commands and strings, CNC conventions (``%``, O-words,
-    parenthesis comments, M2/M30, G17/G64/... without any E word); Marlin otherwise.
+    parenthesis comments, M2/M30, G17/G64/... without any E word, or the name ``*.ngc``); Marlin
+    otherwise.
 
     Klipper commands win over a declared Marlin flavor (Klipper printers are often sliced as
     Marlin); a declared Klipper or RepRapFirmware flavor wins over everything. Binary content in
@@ -1336,6 +1338,8 @@ def detect_flavor(path: str | Path) -> str:
             return "klipper" if klipper else "reprap"
         if declared in ("mach3", "machinekit", "linuxcnc"):
             return "linuxcnc"
+    if declared is None and Path(path).suffix.lower() == ".ngc":  # LinuxCNC's own; no slicer writes it
+        return "linuxcnc"
     if klipper:
         return "klipper"
     if reprap:

@@ -2,6 +2,7 @@
 FILE: KEY: message`), exit status 1, no traceback, no output file, the input byte-for-byte as it
 was. And input that is odd but valid: bytes that are not UTF-8 in comments, an empty program, a
 feed beyond the machine's velocity."""
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -254,3 +255,18 @@ def test_compensated_file_is_refused(tmp_path, flavor, text, in_place):
     result = compensate(program, "--flavor", flavor, *([] if in_place else ["-o", tmp_path / "again.gcode"]))
     assert_refused(result, program, once, f"error: {program}:2: already compensated (fbspost ",
                    "for machine profile bedslinger-example): compensate the original instead")
+
+
+@pytest.mark.parametrize("name, flavor", [("part.ngc", None), ("part.gcode", "linuxcnc"), ("PART.NGC", None)])
+@pytest.mark.parametrize("line", ["G1 X1e999 Y2 F3000", "G0 X5 E2", "G1 X1e5 F100"])
+def test_linuxcnc_e_word_is_refused_as_linuxcnc_does(tmp_path, name, flavor, line):
+    """LinuxCNC's rs274 refuses these ("E word with no G70, G76, M66, M67 or M68 to use it"): so does
+    fbspost, also where it tells the flavor from the name *.ngc (as Marlin, X1e999 would read as X1 E999)."""
+    text = CNC.format(line)
+    program = tmp_path / name
+    program.write_bytes(text.encode())
+    result = compensate(program, *(["--flavor", flavor] if flavor else []), "-o", tmp_path / "out.ngc")
+    assert_refused(result, program, text.encode(), f"error: {program}:4: E", "LinuxCNC refuses an E word")
+    if shutil.which("rs274"):
+        canon = subprocess.run(["rs274", "-g", str(program)], capture_output=True, text=True, timeout=60)
+        assert "E word with no G70, G76, M66, M67 or M68 to use it" in canon.stdout + canon.stderr
