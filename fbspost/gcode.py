@@ -79,13 +79,13 @@ from pathlib import Path
 
 import numpy as np
 
+from .profile import FLAVORS
 from .trajectory import InputError
 
 AXES = ("X", "Y", "Z", "E", "A", "B", "C", "U", "V", "W")  # column order of every position array
 _E = 3
 _EXTRA = tuple(range(4, len(AXES)))  # LinuxCNC's rotary and other axes: followed exactly (no modes)
 _DEGREES = (4, 5, 6)  # A B C: degrees, whatever G20/G21 say
-FLAVORS = ("marlin", "klipper", "reprap", "linuxcnc")
 
 
 def feed_lengths(delta_mm: np.ndarray, xyz_moves: np.ndarray | None = None,

@@ -153,21 +153,41 @@ def compensate_file(input_path: str | Path, output_path: str | Path, profile: Ma
     header = compensated_by(input_path)
     if header:  # compensated twice, the motion would be wrong and the summary would still show a gain
         raise InputError(input_path, header[0], f"already compensated ({header[1]}): compensate the original instead")
-    flavor = options.flavor or detect_flavor(input_path)
+    flavor, flavor_note = _flavor(input_path, profile, options)
     refusal = format_refusal(flavor, options.output_format)
     if refusal:  # before the work
         raise InputError(input_path, None, refusal)
     if flavor == "linuxcnc" and options.ini:
         check_remaps(input_path, options.ini)
     if flavor == "linuxcnc" and options.expand:
-        return _compensate_expanded(input_path, output_path, profile, options, "--expand given", progress, started)
-    try:
-        return _compensate(input_path, input_path, output_path, profile, options, flavor, progress, started)
-    except NeedsInterpreter as exc:
-        if flavor != "linuxcnc" or options.expand is not None:
-            raise
-        reason = f"line {exc.line} uses {exc.feature}"
-        return _compensate_expanded(input_path, output_path, profile, options, reason, progress, started)
+        report = _compensate_expanded(input_path, output_path, profile, options, "--expand given", progress, started)
+    else:
+        try:
+            report = _compensate(input_path, input_path, output_path, profile, options, flavor, progress, started)
+        except NeedsInterpreter as exc:
+            if flavor != "linuxcnc" or options.expand is not None:
+                raise
+            reason = f"line {exc.line} uses {exc.feature}"
+            report = _compensate_expanded(input_path, output_path, profile, options, reason, progress, started)
+    if flavor_note:
+        report.warnings.insert(0, flavor_note)
+    return report
+
+
+def _flavor(input_path, profile: MachineProfile, options: CompensateOptions) -> tuple[str, str | None]:
+    """The flavor to read and write as (``--flavor``, else the profile's firmware, else the file's
+    hints), and a note where the profile's firmware and the file's hints disagree (a Klipper
+    printer's file sliced as Marlin: written as Marlin, Klipper would ignore M593 and shape twice)."""
+    if options.flavor:
+        return options.flavor, None
+    hinted = detect_flavor(input_path)
+    machine = profile.firmware.flavor
+    if machine is None:
+        return hinted, None
+    if machine == hinted:
+        return machine, None
+    return machine, (f"written for {machine}, the profile's [firmware] flavor; the file's hints say {hinted} "
+                     "(as sliced?): --flavor chooses otherwise")
 
 
 def _compensate_expanded(input_path, output_path, profile, options, reason, progress, started) -> Report:
@@ -261,6 +281,11 @@ def _compensate(read_path, input_path, output_path, profile, options, flavor, pr
     if report.original_kept:
         report.lines_out = report.lines_in  # (the original, line for line)
     report.warnings.extend(verification.warnings)
+    if written.shaping_left_off and not report.original_kept:
+        report.warnings.append(
+            f"input shaping on {' and '.join(written.shaping_left_off)} is off after this program: neither the profile "
+            "nor the program says what it was. Give it in the profile's [firmware] shaper_frequency (Klipper: "
+            "fbspost identify --klipper-cfg printer.cfg --merge PROFILE -o PROFILE reads [input_shaper])")
     for c, (before, after) in outcome.errors.items():
         windows = outcome.tally.windows.get(c, (0, 0))
         if before.count and c in executed.stats:

@@ -87,6 +87,7 @@ class FirmwareProfile:
     min_segment_time_s: float = 0.02  # Marlin MIN_SEGMENT_TIME (M205 B) while the buffer is under half full
     min_steps_per_segment: int = 6  # Marlin MIN_STEPS_PER_SEGMENT: shorter blocks are merged with the next
     dda_ring_length: int = 50  # RepRapFirmware's DDA ring (M595 P; Move.h DdaRingLength on Duet 3)
+    flavor: str | None = None  # the machine's firmware (one of FLAVORS): wins over the file's hints
 
     @property
     def extrude_ratio(self) -> float:
@@ -152,9 +153,10 @@ _FIRMWARE_NUMBERS = {
     "max_extrude_only_accel": "max_extrude_only_accel_mm_s2",
     "filament_diameter": "filament_diameter_mm", "nozzle_diameter": "nozzle_diameter_mm",
 }
-_FIRMWARE_KEYS = {*_FIRMWARE_NUMBERS, "steps_per_mm", "shaper_frequency", "block_buffer", "minimum_cruise_ratio",
-                  "instantaneous_corner_velocity", "min_segment_time", "min_steps_per_segment",
-                  "dda_ring_length"}
+FLAVORS = ("marlin", "klipper", "reprap", "linuxcnc")  # the firmwares fbspost writes for
+_FIRMWARE_KEYS = {*_FIRMWARE_NUMBERS, "flavor", "steps_per_mm", "shaper_frequency", "block_buffer",
+                  "minimum_cruise_ratio", "instantaneous_corner_velocity", "min_segment_time",
+                  "min_steps_per_segment", "dda_ring_length"}
 
 
 def bundled_profiles() -> dict[str, Path]:
@@ -375,6 +377,11 @@ def _parse_firmware(raw: dict, fail, number) -> FirmwareProfile:
     optional = {"minimum_cruise_ratio": ratio, "instantaneous_corner_velocity_mm_s": corner,
                 "min_segment_time_s": segment_time}
     values.update({attr: value for attr, value in optional.items() if value is not None})
+    flavor = raw.get("flavor")
+    if flavor is not None and flavor not in FLAVORS:
+        raise fail("firmware.flavor", f"must be one of {', '.join(FLAVORS)}, got {flavor!r}")
+    if flavor is not None:
+        values["flavor"] = flavor
     return FirmwareProfile(steps_per_mm=steps, shaper_frequency_hz=shaper, block_buffer=integer("block_buffer", 16),
                            min_steps_per_segment=integer("min_steps_per_segment", 6),
                            dda_ring_length=integer("dda_ring_length", 50), **values)
@@ -438,7 +445,7 @@ def _format_firmware(firmware: FirmwareProfile, number) -> list[str]:
     """The ``[firmware]`` lines of ``format_profile`` (none when every value is the default)."""
     if firmware == FirmwareProfile():
         return []
-    lines = ["", "[firmware]"]
+    lines = ["", "[firmware]"] + ([f'flavor = "{firmware.flavor}"'] if firmware.flavor else [])
     for key, table in (("steps_per_mm", firmware.steps_per_mm), ("shaper_frequency", firmware.shaper_frequency_hz)):
         if table:
             lines.append(f"{key} = {{ {', '.join(f'{axis} = {number(value)}' for axis, value in table.items())} }}")

@@ -47,6 +47,7 @@ MODEL_ERRORS = (*((1.0 + 0.025 * i, 1.0) for i in range(-4, 5)), (1.0, 0.8), (1.
 SETTLE_PERIODS = 5.0  # residual vibration is watched for this many periods of the lowest mode
 MOVING_MM = 1e-9  # a command this far from its rest has left it (shaped rests round to ~1e-13)
 _PIECE_MM = 0.25  # the path is searched in straight pieces no longer than this
+_PAIRS = 1 << 19  # (point, piece) pairs measured at once: about 100 MB of temporaries
 _XYZ = slice(0, 3)
 
 
@@ -300,23 +301,35 @@ class PathDistance:
         nearest = np.zeros((len(points_mm), self.a.shape[1]))
         todo, k = np.arange(len(points_mm)), 4
         while todo.size:
-            reach, candidate = self.tree.query(points_mm[todo], k=min(k, len(self.a)))
-            reach, candidate = reach.reshape(todo.size, -1), candidate.reshape(todo.size, -1)
-            p = points_mm[todo][:, None, :]
-            a, d = self.a[candidate], self.d[candidate]
-            length2 = np.einsum("ijk,ijk->ij", d, d)
-            u = np.clip(np.einsum("ijk,ijk->ij", p - a, d) / np.where(length2 > 0, length2, 1.0), 0.0, 1.0)
-            point = a + u[..., None] * d
-            gap = np.sqrt(np.einsum("ijk,ijk->ij", p - point, p - point))
-            best = gap.argmin(axis=1)
-            rows = np.arange(todo.size)
-            distance[todo], nearest[todo] = gap[rows, best], point[rows, best]
-            # A middle is on the path, so the nearest one bounds the distance: every piece holding a
-            # nearer point has its middle within that bound plus half a piece. Those whose k
-            # nearest middles may not include all such pieces are searched again with more.
-            complete = (reach[:, -1] > reach[:, 0] + self.half_mm) | (reach.shape[1] == len(self.a))
-            todo, k = todo[~complete], 4 * k
+            k = min(k, len(self.a))
+            # Points a query at a time so that memory holds _PAIRS candidates, whatever k: on a path
+            # smaller than its pieces (a LinuxCNC program at a 1e-4 scale) k grows to every piece.
+            batch = max(1, _PAIRS // k)
+            todo = np.concatenate([self._nearest(points_mm, rows, k, distance, nearest)
+                                   for rows in np.split(todo, range(batch, todo.size, batch))])
+            k *= 4
         return distance, nearest
+
+    def _nearest(self, points_mm: np.ndarray, rows: np.ndarray, k: int, distance: np.ndarray,
+                 nearest: np.ndarray) -> np.ndarray:
+        """The nearest point to each of ``points_mm[rows]`` on its ``k`` pieces whose middles are
+        nearest, into ``distance`` and ``nearest``; gives the rows whose search must go on."""
+        reach, candidate = self.tree.query(points_mm[rows], k=k)
+        reach, candidate = reach.reshape(rows.size, -1), candidate.reshape(rows.size, -1)
+        p = points_mm[rows][:, None, :]
+        a, d = self.a[candidate], self.d[candidate]
+        length2 = np.einsum("ijk,ijk->ij", d, d)
+        u = np.clip(np.einsum("ijk,ijk->ij", p - a, d) / np.where(length2 > 0, length2, 1.0), 0.0, 1.0)
+        point = a + u[..., None] * d
+        gap = np.sqrt(np.einsum("ijk,ijk->ij", p - point, p - point))
+        best = gap.argmin(axis=1)
+        within = np.arange(rows.size)
+        distance[rows], nearest[rows] = gap[within, best], point[within, best]
+        # A middle is on the path, so the nearest one bounds the distance: every piece holding a
+        # nearer point has its middle within that bound plus half a piece. Those whose k
+        # nearest middles may not include all such pieces are searched again with more.
+        complete = (reach[:, -1] > reach[:, 0] + self.half_mm) | (k == len(self.a))
+        return rows[~complete]
 
 
 def _modelled(profile: MachineProfile) -> list[str]:

@@ -46,6 +46,10 @@ _SHAPED_AXES = "XY"
 # LIMIT_ACCEL; RRF: per drive, E included): about 5000 / 0.033 mm/s^2, whose ramps would slow
 # every block by microseconds
 _M201_AXES = {"marlin": "XYE", "reprap": "XYE"}
+# The program's own input shaping: Klipper SET_INPUT_SHAPER SHAPER_FREQ_X=..., Marlin M593 [X|Y] F...
+_KLIPPER_SHAPER = re.compile(rb"^\s*SET_INPUT_SHAPER\b", re.IGNORECASE)
+_KLIPPER_FREQ = re.compile(rb"SHAPER_FREQ_([XY])\s*=\s*([\d.]+)", re.IGNORECASE)
+_MARLIN_SHAPER = re.compile(rb"^\s*M0*593(?![\d.])([^;]*)", re.IGNORECASE)
 _BLEND = re.compile(rb"[Gg]\s*0*6\s*(?:4(?:\s*[PpQq]\s*[-+]?[\d.]+)*|1(?:\s*\.\s*1)?)(?![\d.])")
 
 
@@ -105,6 +109,7 @@ class Transparency:
     def __init__(self, flavor: str, program: FirmwareSettings, tolerance_mm: float):
         self.flavor, self.program, self.tolerance_mm = flavor, program, tolerance_mm
         self.limits_set = self.shaping_off = False
+        self.left_off = ""  # the axes whose shaping the last restore could not turn on again
         # the acceleration the firmware then ramps between the blocks' speeds at, where the time
         # that loses is made up (Klipper: verified on its own planner; Marlin's and RRF's junctions
         # lose more than their ramps, not modelled: none)
@@ -120,6 +125,10 @@ class Transparency:
         if blend:
             self.program = replace(self.program, blend_words=" ".join(blend.group().decode().upper().split()))
             self.limits_set = False
+        shaping = _program_shaping(self.flavor, block.raw)
+        if shaping:  # the program's own: restored after the motion, and switched off again before it
+            self.program = replace(self.program, shaper_frequency_hz={**self.program.shaper_frequency_hz, **shaping})
+            self.shaping_off = False
 
     def header(self) -> list[str]:
         """Comments for the output's header: what the output sets, and what it cannot restore."""
@@ -129,8 +138,7 @@ class Transparency:
         notes = ["fbspost firmware settings: limits raised around the compensated motion (to run its blocks as "
                  "written), the program's own restored before every move copied unchanged and at the end"]
         program = self.program
-        kept = [f"input shaping on {a}" for a in _SHAPED_AXES
-                if self.flavor == "reprap" or a not in program.shaper_frequency_hz]
+        kept = [f"input shaping on {a}" for a in self.unknown_shaping()]
         if self.flavor in ("marlin", "reprap"):
             kept += [f"M201 {a}" for a in _M201_AXES[self.flavor] if a not in program.axis_max_acceleration_mm_s2]
         if self.flavor == "marlin" and program.junction_deviation_mm is None:
@@ -168,7 +176,16 @@ class Transparency:
         if shaping and self.shaping_off:
             lines += _shaping_lines(self.flavor, self.program.shaper_frequency_hz)
             self.shaping_off = False
+            self.left_off = self.unknown_shaping()
         return lines
+
+    def unknown_shaping(self) -> str:
+        """The axes whose input shaping the output turns off but cannot turn on again: neither the
+        profile nor the program says what it was ("" for none, and where the firmware has none)."""
+        if self.flavor not in ("klipper", "marlin", "reprap"):
+            return ""
+        known = {} if self.flavor == "reprap" else self.program.shaper_frequency_hz  # (RRF: the type is needed)
+        return "".join(a for a in _SHAPED_AXES if a not in known)
 
 
 def _transparent_limits(flavor: str, tolerance: float) -> list[str]:
@@ -218,6 +235,19 @@ def _program_limits(flavor: str, program: FirmwareSettings) -> list[str]:
         jerk = [f"M566 X{_num(scv * 60, 3)} Y{_num(scv * 60, 3)}"] if scv is not None else []
         return lines + [f"M204 P{accel} T{travel}"] + jerk
     return [program.blend_words]
+
+
+def _program_shaping(flavor: str, raw: bytes) -> dict[str, float]:
+    """The input shaping frequencies (Hz, 0: off) a program line sets, per axis ({}: none)."""
+    if flavor == "klipper" and _KLIPPER_SHAPER.match(raw):
+        return {a.decode().upper(): float(f) for a, f in _KLIPPER_FREQ.findall(raw.split(b"#", 1)[0])}
+    marlin = _MARLIN_SHAPER.match(raw) if flavor == "marlin" else None
+    if marlin:
+        words = dict(re.findall(r"([XYFD])\s*([-+]?[\d.]*)", marlin.group(1).decode(errors="replace").upper()))
+        if re.fullmatch(r"\d+\.?\d*|\.\d+", words.get("F", "")):
+            axes = [a for a in _SHAPED_AXES if a in words] or list(_SHAPED_AXES)  # (no X or Y: both)
+            return {a: float(words["F"]) for a in axes}
+    return {}
 
 
 def _shaping_lines(flavor: str, frequency_hz: dict[str, float]) -> list[str]:

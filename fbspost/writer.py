@@ -65,6 +65,7 @@ class WriteStats:
     max_deviation_s: float = 0.0  # where
     rms_deviation_mm: float = 0.0  # over the samples inside the blocks
     loosened_s: float = 0.0  # time in blocks beyond the tolerance (merged, or stretched for the line rate)
+    shaping_left_off: str = ""  # axes whose input shaping the output turns off and cannot turn on (not known)
 
 
 def format_refusal(flavor: str, output_format: str) -> str | None:
@@ -1064,6 +1065,7 @@ class _ProgramWriter:
         stats.max_deviation_mm, stats.max_deviation_s = deviation.max_mm, deviation.at_s
         stats.loosened_s = deviation.loosened_s
         stats.rms_deviation_mm = math.sqrt(deviation.sum_squares_mm2 / max(deviation.count, 1))
+        stats.shaping_left_off = self._settings.left_off if self._settings is not None else ""
 
 
 def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions, out, executed=None) -> WriteStats:

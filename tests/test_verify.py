@@ -2,6 +2,11 @@
 the original written unchanged where the output is no better there. (Its figures against
 Klipper's own planner: tests/test_output_klipper.py.)"""
 import dataclasses
+import os
+import resource
+import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -106,3 +111,79 @@ def test_a_jump_of_the_command_starts_the_modes_anew_at_rest():
     command = np.zeros((400, 4))
     command[200:, :2] = [100.0, 50.0]
     np.testing.assert_allclose(modelled(command, profile), command, atol=1e-9)
+
+
+_BOUNDED_DISTANCE = """
+import resource, sys
+import numpy as np
+from fbspost.simulate import PathDistance
+rng = np.random.default_rng(5)
+# a scribble of 1000 pieces in a 20 um box and one piece of 0.24 mm: every point's nearest middles
+# stay within half a piece of each other, so the search takes every piece (systems.ngc's case)
+corners = np.vstack([rng.uniform(0, 0.02, (1001, 3)), [[0.24, 0, 0]]])
+path = PathDistance(corners[:-1], corners[1:])
+points = rng.uniform(-0.005, 0.025, (20_000, 3))
+distance, nearest = path(points)
+np.save(sys.argv[1], np.column_stack([distance, nearest]))
+print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+"""
+
+
+@pytest.mark.slow
+def test_path_distance_is_exact_and_bounded_on_a_path_smaller_than_its_pieces(tmp_path):
+    """20k points against 1001 pieces that all lie within half a piece of each other: under a cap
+    of 1 GB of address space (the search once grew to every piece for all points at once: over 2 GB
+    here, and LinuxCNC's systems.ngc went past 14 GB), and exact against a brute-force distance to
+    every piece."""
+    def capped():
+        resource.setrlimit(resource.RLIMIT_AS, (1 << 30, 1 << 30))
+
+    out = tmp_path / "distance.npy"
+    done = subprocess.run([sys.executable, "-c", _BOUNDED_DISTANCE, str(out)], capture_output=True, text=True,
+                          preexec_fn=capped, env={**os.environ, "OPENBLAS_NUM_THREADS": "1"},
+                          timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert int(done.stdout.split()[-1]) < 700_000  # kB of resident memory at most
+    result = np.load(out)
+    rng = np.random.default_rng(5)
+    corners = np.vstack([rng.uniform(0, 0.02, (1001, 3)), [[0.24, 0, 0]]])
+    points = rng.uniform(-0.005, 0.025, (20_000, 3))
+    a, d = corners[:-1], np.diff(corners, axis=0)
+    check = np.random.default_rng(1).choice(len(points), 2000, replace=False)
+    p = points[check][:, None, :]
+    u = np.clip(np.einsum("ijk,jk->ij", p - a, d) / np.einsum("jk,jk->j", d, d), 0.0, 1.0)
+    brute = np.linalg.norm(p - (a + u[..., None] * d), axis=2).min(axis=1)
+    np.testing.assert_allclose(result[check, 0], brute, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(np.linalg.norm(points[check] - result[check, 1:], axis=1), brute, rtol=0, atol=1e-15)
+
+
+SYSTEMS_NGC = Path("/usr/share/linuxcnc/ncfiles/systems.ngc")
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not SYSTEMS_NGC.exists() or not shutil.which("rs274"), reason="LinuxCNC's examples and rs274")
+def test_linuxcnc_systems_ngc_is_compensated_and_verified_under_1_gb(tmp_path):
+    """LinuxCNC's own example (parameters, G5.1 splines on a 1.2e-4 scale) grew past 14 GB in the
+    verification: now compensated and verified in under 1 GB of resident memory, under a cap of
+    2.5 GB of address space (where a MemoryError would only be a warning, so that is checked too)."""
+    def capped():
+        resource.setrlimit(resource.RLIMIT_AS, (5 << 29, 5 << 29))
+
+    done = subprocess.run([sys.executable, "-c", _PEAK_MEMORY, "compensate", str(SYSTEMS_NGC), "-m", "patent-xy-stage",
+                           "--flavor", "linuxcnc", "-o", str(tmp_path / "out.ngc")], capture_output=True, text=True,
+                          preexec_fn=capped, env={**os.environ, "OPENBLAS_NUM_THREADS": "1"}, timeout=1200)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "verified on linuxcnc's planner" in done.stderr and "model failed" not in done.stderr, done.stderr
+    assert int(done.stderr.split()[-1]) < 1_000_000, "kB"
+
+
+# fbspost's command, then the peak resident memory of it and of the processes it started (kB)
+_PEAK_MEMORY = """
+import resource, sys
+from fbspost.cli import main
+try:
+    main(sys.argv[1:])
+finally:
+    print(max(resource.getrusage(who).ru_maxrss for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)),
+          file=sys.stderr)
+"""
