@@ -12,10 +12,12 @@ pairs, unstable poles flipped into the left half plane, gives the poles of each 
 linear least-squares solve gives each mode's numerator alpha + beta s (no direct term, zeros
 free: right-half-plane zeros are kept); a nonlinear least-squares refinement of (frequency,
 damping, alpha, beta), and of a time offset for recordings, on the complex residual relative to
-the measured |G| at each frequency, gives the result. Without a mode count, every count up to ``max_modes`` is
-fitted from 1 up, and the smallest count n is kept whose RMS error (relative to the peak) neither
-n + 1 nor n + 2 modes divide by more than ``MODE_COUNT_GAIN`` (two, so that a close pair of
-modes, which one more mode alone may not fit, is still found). Each mode's frequency and damping
+the measured |G| at each frequency, gives the result (for a recording, the chosen count is also
+refined from two more starts: its zeros trade off against the time offset). Without a mode
+count, every count up to ``max_modes`` is fitted from 1 up, and the smallest count n is kept
+whose RMS error (relative to the peak) neither n + 1 nor n + 2 modes divide by more than
+``MODE_COUNT_GAIN`` (two, so that a close pair of modes, which one more mode alone may not fit,
+is still found). Each mode's frequency and damping
 get a standard deviation from the fit's covariance; ``assess_fit`` says whether the fit is usable
 (its error, the coherence, the dampings, the modes' places in the band, that uncertainty) and
 gives the tolerances to write. The coarse estimates are base-excited modes by default
@@ -162,7 +164,10 @@ def fit_frf(frequency_hz: np.ndarray, response: np.ndarray, n_modes: int | None 
 
     def fit(n):
         tau0 = _delay_guess(s, hn, weights, n) if fit_delay else None
-        xs[n] = _fit_count(s, hn, weights, n, tau0, xs.get(n - 1))
+        keep(n, _fit_count(s, hn, weights, n, tau0, xs.get(n - 1)))
+
+    def keep(n, x):
+        xs[n] = x
         error = np.abs(_model(xs[n], s, n, fit_delay) - hn)[weights > 0]
         wn, zeta, a, b = xs[n][:n] * w_ref, xs[n][n:2 * n], xs[n][2 * n:3 * n], xs[n][3 * n:4 * n]
         order = np.argsort(wn)
@@ -181,6 +186,8 @@ def fit_frf(frequency_hz: np.ndarray, response: np.ndarray, n_modes: int | None 
             chosen = _chosen_count({k: v.rms_error for k, v in fits.items()}, max_modes)
             if chosen:
                 break
+    if fit_delay:
+        keep(chosen, _along_the_valley(xs[chosen], s, hn, weights, chosen))
     return replace(fits[chosen], errors_by_count={n: v.rms_error for n, v in fits.items()})
 
 
@@ -216,26 +223,41 @@ def _fit_count(s, hn, weights, n, tau0, previous):
         w_prev, zeta_prev = previous[:m], previous[m:2 * m]
         poles = np.append(w_prev * (-zeta_prev + 1j * np.sqrt(1 - zeta_prev**2)), w_new * (-0.01 + 1j))
         starts.append((poles, previous[-1] if fit_delay else None))
-    free = 2 * n + fit_delay  # a, b and the time offset: unbounded
-    lower = np.concatenate([np.full(n, s.imag.min()), np.full(n, DAMPING_BOUNDS[0]), np.full(free, -np.inf)])
-    upper = np.concatenate([np.full(n, s.imag.max()), np.full(n, DAMPING_BOUNDS[1]), np.full(free, np.inf)])
-
-    def residual(x):
-        return _residual(x, s, hn, weights, n, fit_delay)
-
-    def jacobian(x):
-        return _jacobian(x, s, weights, n, fit_delay)
-
-    best = None
+    results = []
     for poles, tau in starts:
         wn, zeta = np.abs(poles), np.clip(-poles.real / np.abs(poles), 1e-4, 0.99)
         a, b = _numerators(s, hn * np.exp(s * tau) if fit_delay else hn, weights, wn, zeta)
-        x0 = np.clip(np.concatenate([wn, zeta, a, b] + ([[tau]] if fit_delay else [])), lower + 1e-12, upper - 1e-12)
-        result = optimize.least_squares(residual, x0, jac=jacobian, bounds=(lower, upper), x_scale="jac",
-                                        xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=100 * len(x0))
-        if best is None or result.cost < best.cost:
-            best = result
-    return best.x
+        results.append(_refine(np.concatenate([wn, zeta, a, b] + ([[tau]] if fit_delay else [])), s, hn, weights, n,
+                               fit_delay))
+    return min(results, key=lambda r: r.cost).x
+
+
+def _along_the_valley(x, s, hn, weights, n):
+    """The best of the fit ``x`` (with a time offset) and its refinements from two other points
+    of the valley it lies in. The zeros and the time offset both set the low-frequency phase (its
+    first-order term is sum (b - 2 zeta a) / w - tau sum a), so a recording's fit can have two
+    nearly equal minima along that valley: also start from its points with no zeros (a mass
+    pushed by a force) and with a belt's zeros (b = 2 zeta a), the time offset moved to keep the
+    term."""
+    wn, zeta, a, b = (x[i * n:(i + 1) * n] for i in range(4))
+    best = (float(np.sum(_residual(x, s, hn, weights, n, True) ** 2)) / 2, x)
+    for b_start in (np.zeros(n), 2 * zeta * a):
+        tau = x[-1] + np.sum((b_start - b) / wn) / np.sum(a)
+        result = _refine(np.concatenate([wn, zeta, a, b_start, [tau]]), s, hn, weights, n, True)
+        best = min(best, (result.cost, result.x), key=lambda c: c[0])
+    return best[1]
+
+
+def _refine(x0, s, hn, weights, n, fit_delay):
+    """The nonlinear least-squares refinement of the parameters from ``x0`` (scipy's result):
+    natural frequencies within the band, dampings within DAMPING_BOUNDS."""
+    free = 2 * n + fit_delay  # a, b and the time offset: unbounded
+    lower = np.concatenate([np.full(n, s.imag.min()), np.full(n, DAMPING_BOUNDS[0]), np.full(free, -np.inf)])
+    upper = np.concatenate([np.full(n, s.imag.max()), np.full(n, DAMPING_BOUNDS[1]), np.full(free, np.inf)])
+    return optimize.least_squares(
+        lambda x: _residual(x, s, hn, weights, n, fit_delay), np.clip(x0, lower + 1e-12, upper - 1e-12),
+        jac=lambda x: _jacobian(x, s, weights, n, fit_delay), bounds=(lower, upper), x_scale="jac",
+        xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=100 * len(x0))
 
 
 def _residual(x, s, hn, weights, n, fit_delay):
@@ -392,9 +414,10 @@ def _delay_guess(s, h, weights, n_modes):
 # excite's sweep 0.05 to 0.35% and 0.3 to 2.6%, with a mean coherence of 0.99. A sweep the
 # firmware re-timed (the recording is not of the program) gave 31% and 100%, coherence 0.72.
 # Refused: an error of 10% of the peak is twice the residual vibration Klipper's shapers are
-# designed to leave (5%), so a compensation with that model cannot be expected to beat them; a
-# largest error of half the peak means a mode missed or a recording of something else; a mean
-# coherence below 0.8 means a fifth of the measured power is not the axis' response to the program.
+# designed to leave (5%: SHAPER_VIBRATION_REDUCTION = 20 in its shaper_defs.py), so compensation
+# with that model cannot be expected to beat them; a largest error of half the peak means a mode
+# missed or a recording of something else; a mean coherence below 0.8 means a fifth of the
+# measured power is not the axis' response to the program.
 # Warned: errors ten times the simulated recordings' (3%, 20%), a tenth of the power unexplained.
 WARN_RMS_ERROR, REFUSE_RMS_ERROR = 0.03, 0.10  # RMS error over the band / peak |G|
 WARN_MAX_ERROR, REFUSE_MAX_ERROR = 0.20, 0.50  # largest error / peak |G|
