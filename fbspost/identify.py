@@ -17,11 +17,10 @@ refined from two more starts: its zeros trade off against the time offset). With
 count, every count up to ``max_modes`` is fitted from 1 up, and the smallest count n is kept
 whose RMS error (relative to the peak) neither n + 1 nor n + 2 modes divide by more than
 ``MODE_COUNT_GAIN`` (two, so that a close pair of modes, which one more mode alone may not fit,
-is still found). Each mode's frequency and damping
-get a standard deviation from the fit's covariance; ``assess_fit`` says whether the fit is usable
-(its error, the coherence, the dampings, the modes' places in the band, that uncertainty) and
-gives the tolerances to write. The coarse estimates are base-excited modes by default
-(``coarse_mode``).
+is still found). Each mode's frequency and damping get a standard deviation from the fit's
+covariance; ``assess_fit`` says whether the fit is usable (its error, the coherence, the
+dampings, the modes' places in the band, that uncertainty) and gives the tolerances to write.
+The coarse estimates are base-excited modes by default (``coarse_mode``).
 
 Malformed files raise ``InputError`` naming the file and line.
 """
@@ -241,6 +240,8 @@ def _along_the_valley(x, s, hn, weights, n):
     term."""
     wn, zeta, a, b = (x[i * n:(i + 1) * n] for i in range(4))
     best = (float(np.sum(_residual(x, s, hn, weights, n, True) ** 2)) / 2, x)
+    if not abs(np.sum(a)) > 0:  # no DC gain: no term to keep
+        return x
     for b_start in (np.zeros(n), 2 * zeta * a):
         tau = x[-1] + np.sum((b_start - b) / wn) / np.sum(a)
         result = _refine(np.concatenate([wn, zeta, a, b_start, [tau]]), s, hn, weights, n, True)
@@ -422,7 +423,7 @@ def _delay_guess(s, h, weights, n_modes):
 WARN_RMS_ERROR, REFUSE_RMS_ERROR = 0.03, 0.10  # RMS error over the band / peak |G|
 WARN_MAX_ERROR, REFUSE_MAX_ERROR = 0.20, 0.50  # largest error / peak |G|
 WARN_COHERENCE, REFUSE_COHERENCE = 0.90, 0.80  # mean coherence over the band
-LOW_DAMPING = 0.005  # below what machine axes have (belts 0.02 to 0.15, screws and stages 0.005 up)
+LOW_DAMPING = 0.005  # below machine axes' (Klipper assumes 0.1 for a printer; the patent stage's lowest: 0.007)
 DC_GAIN_RANGE = (0.5, 2.0)  # a position axis follows a slow command: the fit's DC gain is near 1
 # The tolerances written: 3 standard deviations (99.7% of a normal estimate within them), at least
 # what a machine drifts by between measurement and use (temperature, belt tension, the print's
