@@ -412,7 +412,7 @@ def _delay_guess(s, h, weights, n_modes):
 # ---- how far to trust a fit ----------------------------------------------------------------------
 # Good fits give errors far below these: the noisy FRFs of tests/test_identify.py (1% noise) an RMS
 # error of 0.07 to 0.23% of the peak and a largest one of 1.5 to 2.1%; simulated recordings of
-# excite's sweep 0.05 to 0.35% and 0.3 to 2.6%, with a mean coherence of 0.99. A sweep the
+# excite's sweep 0.04 to 0.35% and 0.3 to 2.6%, with a mean coherence of 0.99. A sweep the
 # firmware re-timed (the recording is not of the program) gave 31% and 100%, coherence 0.72.
 # Refused: an error of 10% of the peak is twice the residual vibration Klipper's shapers are
 # designed to leave (5%: SHAPER_VIBRATION_REDUCTION = 20 in its shaper_defs.py), so compensation

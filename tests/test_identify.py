@@ -3,8 +3,10 @@
 Truths used: frequency responses computed here from the modal formula of models chosen here
 (the patent's Table 1 axes and two others), scipy's continuous-time simulation of the true model
 (reference.simulate_lsim) for the butterfly and for the recording of the sweep, the independent
-G-code executor of reference.py, closed-form half-power points of a single mode's PSD, and the
-numbers written into Klipper files here.
+G-code executor of reference.py, closed-form half-power points of a single mode's PSD, the
+numbers written into Klipper files here and the closed forms of their modes, and the spread of
+fits over noise seeds (Monte-Carlo) for the fit's covariance. The re-timed sweep is planned by
+fbspost's model of Klipper's planner (a different motion from the program's, checked here).
 """
 from __future__ import annotations
 
