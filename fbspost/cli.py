@@ -455,6 +455,9 @@ _positive = click.FloatRange(min=0, min_open=True)
 @click.option("--program", type=click.Path(dir_okay=False, path_type=Path),
               help="The sweep program of `fbspost excite` that was recorded.")
 @click.option("--accel-column", help="Column of --accel-log along the axis (default accel_<axis>).")
+@click.option("--force", is_flag=True, help="Write a fit that fails the checks (docs/identify.md), with a warning.")
+@click.option("--coarse-form", type=click.Choice(["base", "mass"]), default="base", show_default=True,
+              help="Coarse estimates' mode: base-excited (a belt or screw drive: a zero) or a mass pushed by a force.")
 @click.option("--name", help="Name of a new profile (default: the output file's name).")
 @click.option("--sample-rate", type=_positive, help="Hz, new profile (default 1000).")
 @click.option("--planner-acceleration", type=_positive, help="mm/s^2, new profile (default 3000).")
@@ -463,17 +466,18 @@ _positive = click.FloatRange(min=0, min_open=True)
 @click.option("--max-acceleration", type=_positive, help="mm/s^2, the axis (default: kept with --merge, else 10000).")
 @click.option("--max-jerk", type=_positive, help="mm/s^3, the axis (default: kept with --merge, else none).")
 def identify(frf_csv, axis, n_modes, max_modes, output, merge, plot, klipper_csv, klipper_cfg, accel_log, program,
-             accel_column, name, sample_rate, planner_acceleration, square_corner_velocity, max_velocity,
-             max_acceleration, max_jerk):
+             accel_column, force, coarse_form, name, sample_rate, planner_acceleration, square_corner_velocity,
+             max_velocity, max_acceleration, max_jerk):
     """Build a profile's axis model from measurements.
 
     From a measured frequency response FRF_CSV (header frequency_hz,real,imag or
     frequency_hz,magnitude,phase_deg; commanded to actual position, or commanded to measured
     acceleration, the same ratio), from an accelerometer recording of `fbspost excite`'s sweep
     (--accel-log with --program), or, as coarse estimates, from Klipper's calibrate_shaper CSV
-    (--klipper-csv) or printer.cfg (--klipper-cfg). Fits the modes, prints each and the fit
-    error, and writes a new profile (limits from the options or their defaults) or merges the
-    axis into --merge (comments there are not kept).
+    (--klipper-csv) or printer.cfg (--klipper-cfg). Fits the modes, prints each, the fit error
+    and the tolerances written, and writes a new profile (limits from the options or their
+    defaults) or merges the axis into --merge (comments there are not kept). A fit too far from
+    the measurement, or too uncertain, is refused (exit status 1) unless --force.
     """
     from . import identify as ident
 
@@ -490,11 +494,11 @@ def identify(frf_csv, axis, n_modes, max_modes, output, merge, plot, klipper_csv
     base = load_profile(merge) if merge else None
     lines = [f"fbspost {__version__}: identify from {sources[0]}"]
     if klipper_csv or klipper_cfg:
-        axes_modes, note = _klipper_estimate(klipper_csv, klipper_cfg, axis, lines)
+        axes_modes, note = _klipper_estimate(klipper_csv, klipper_cfg, axis, coarse_form, lines)
         picture = None
     else:
         axes_modes, note, picture = _fitted(frf_csv, accel_log, program, accel_column, axis, n_modes, max_modes,
-                                            plot, lines)
+                                            plot, force, lines)
     options = dict(sample_rate=sample_rate, planner_acceleration=planner_acceleration,
                    square_corner_velocity=square_corner_velocity, max_velocity=max_velocity,
                    max_acceleration=max_acceleration, max_jerk=max_jerk)
@@ -510,33 +514,41 @@ def identify(frf_csv, axis, n_modes, max_modes, output, merge, plot, klipper_csv
     click.echo("\n".join(lines), err=True)
 
 
-def _klipper_estimate(klipper_csv, klipper_cfg, axis, lines: list[str]) -> tuple[dict, str]:
-    """identify's coarse estimate from Klipper's files: the modes per axis and the profile's note."""
+def _klipper_estimate(klipper_csv, klipper_cfg, axis, form, lines: list[str]) -> tuple[dict, str]:
+    """identify's coarse estimate from Klipper's files: the modes (of ``form``, with the tolerances
+    of a machine not measured) per axis and the profile's note."""
     from . import identify as ident
 
     if klipper_csv:
-        mode, f1, f2 = ident.klipper_psd_mode(klipper_csv, axis)
+        mode, f1, f2 = ident.klipper_psd_mode(klipper_csv, axis, form)
         found = {axis: mode}
         lines.append(f"axis {axis}: PSD peak {mode.frequency_hz:.4g} Hz, half power {f1:.4g}..{f2:.4g} Hz")
         note = f"axis {axis}: COARSE ESTIMATE from Klipper calibrate_shaper data {klipper_csv.name}"
     else:
-        found = ident.klipper_cfg_modes(klipper_cfg)
+        found = ident.klipper_cfg_modes(klipper_cfg, form)
         if axis:
             if axis not in found:
                 raise InputError(klipper_cfg, None, f"[input_shaper] has no shaper_freq_{axis.lower()}")
             found = {axis: found[axis]}
         note = f"axes {', '.join(found)}: COARSE ESTIMATE from Klipper [input_shaper] of {klipper_cfg.name}"
+    found = {k: replace(m, frequency_tolerance=ident.COARSE_FREQUENCY_TOLERANCE,
+                        damping_tolerance=ident.COARSE_DAMPING_TOLERANCE) for k, m in found.items()}
     for name_, mode in found.items():
-        lines.append(f"axis {name_}: 1 mode {mode.frequency_hz:.4g} Hz, damping {mode.damping:.4g}, "
-                     f"alpha {mode.alpha:.6g}, beta 0")
-    lines.append("warning: a coarse estimate (one mode, no phase, no zeros), a starting point only: "
-                 "measure a frequency response (fbspost excite) for a real model")
-    return {k: (v,) for k, v in found.items()}, note
+        lines.append(f"axis {name_}: 1 mode ({form}-excited) {mode.frequency_hz:.4g} Hz, damping {mode.damping:.4g}, "
+                     f"alpha {mode.alpha:.6g}, beta {mode.beta:.6g}; tolerances written: frequency "
+                     f"{mode.frequency_tolerance:g}, damping {mode.damping_tolerance:g} (a machine not measured)")
+    limit = ("one mode per axis, at best level with your own input shaper (measured on Klipper: 1.9x worse "
+             "than it, with the mass form); measure a response with fbspost excite to beat it")
+    lines.append(f"warning: a coarse estimate gives {limit}")
+    return {k: (v,) for k, v in found.items()}, f"{note}: {limit}"
 
 
-def _fitted(frf_csv, accel_log, program, accel_column, axis, n_modes, max_modes, plot, lines: list[str]) -> tuple:
+def _fitted(frf_csv, accel_log, program, accel_column, axis, n_modes, max_modes, plot, force,
+            lines: list[str]) -> tuple:
     """identify's fit of a measured frequency response (a CSV, or an accelerometer recording of
-    the sweep ``program``): the modes, the profile's note and the plot (PNG bytes, or None)."""
+    the sweep ``program``): the modes (with the fit's tolerances), the profile's note and the
+    plot (PNG bytes, or None). A fit that fails ``identify.assess_fit``'s checks raises
+    ``InputError`` unless ``force`` (then it is a warning)."""
     from . import excite as excite_module
     from . import identify as ident
 
@@ -546,16 +558,20 @@ def _fitted(frf_csv, accel_log, program, accel_column, axis, n_modes, max_modes,
         rec = ident.frf_from_recording(times_s, accel, sweep)
         fit = ident.fit_frf(rec.frequency_hz, rec.response, n_modes, max_modes, weights=rec.coherence,
                             fit_delay=True)
-        frequency_hz = rec.frequency_hz
+        frequency_hz, coherence = rec.frequency_hz, rec.coherence
         measured = rec.response * np.exp(2j * np.pi * rec.frequency_hz * fit.delay_s)
         lines.append(f"recording: {len(times_s)} samples at {rec.sample_rate_hz:.1f} Hz; the sweep starts at "
                      f"{rec.offset_s + fit.delay_s:.6f} s of its time base"
                      + ("; accelerometer axis reversed: sign flipped" if rec.inverted else ""))
         note = f"axis {axis}: identified from the recording {accel_log.name} of {program.name}"
+        advice = ("check that the firmware ran the sweep as written (its acceleration limit at least the "
+                  "program's, input shaping off) and the accelerometer is fixed to the moving part, and record again")
     else:
         frequency_hz, measured = ident.read_frf_csv(frf_csv)
         fit = ident.fit_frf(frequency_hz, measured, n_modes, max_modes)
+        coherence = None
         note = f"axis {axis}: identified from {frf_csv.name}"
+        advice = "check the measurement and the fit (--plot, --modes)"
     lines.append(f"axis {axis}: {len(frequency_hz)} frequencies {frequency_hz[0]:.4g}..{frequency_hz[-1]:.4g} Hz, "
                  f"{len(fit.modes)} modes" + ("" if n_modes else " (chosen automatically)"))
     for i, m in enumerate(fit.modes, start=1):
@@ -566,8 +582,23 @@ def _fitted(frf_csv, accel_log, program, accel_column, axis, n_modes, max_modes,
                  + ", ".join(f"{n}: {100 * e:.3g}%" for n, e in fit.errors_by_count.items()))
     dc_gain = sum(m.alpha / m.omega_rad_s**2 for m in fit.modes)
     lines.append(f"DC gain of the fit {dc_gain:.4f} (scaled to 1 in the profile)")
+    trust = ident.assess_fit(fit, frequency_hz, coherence)
+    source = accel_log or frf_csv
+    if trust.refusals and not force:
+        raise InputError(source, None, f"the fit is not usable: {'; '.join(trust.refusals + trust.warnings)}: "
+                                       f"{advice}; --force writes it anyway")
+    if trust.refusals or trust.warnings:
+        what = "not usable, written as --force asks" if trust.refusals else "doubtful"
+        lines.append(f"warning: {source}: the fit is {what}: {'; '.join(trust.refusals + trust.warnings)}: {advice}")
+    lines.append(f"tolerances written: frequency {trust.frequency_tolerance:.3g}, damping "
+                 f"{trust.damping_tolerance:.3g} (the fit's {ident.COVERAGE:g} standard deviations "
+                 f"{trust.frequency_spread:.2g} and {trust.damping_spread:.2g}; at least "
+                 f"{ident.MIN_FREQUENCY_TOLERANCE:g} and {ident.MIN_DAMPING_TOLERANCE:g}, "
+                 f"at most {ident.MAX_TOLERANCE:g})")
+    modes = tuple(replace(m, frequency_tolerance=trust.frequency_tolerance, damping_tolerance=trust.damping_tolerance)
+                  for m in fit.modes)
     picture = ident.plot_png(frequency_hz, measured, fit.response(frequency_hz), note) if plot else None
-    return {axis: fit.modes}, note, picture
+    return {axis: modes}, note, picture
 
 
 @main.command()

@@ -12,10 +12,15 @@ pairs, unstable poles flipped into the left half plane, gives the poles of each 
 linear least-squares solve gives each mode's numerator alpha + beta s (no direct term, zeros
 free: right-half-plane zeros are kept); a nonlinear least-squares refinement of (frequency,
 damping, alpha, beta), and of a time offset for recordings, on the complex residual relative to
-the measured |G| at each frequency, gives the result. Without a mode count, every count up to ``max_modes`` is
-fitted from 1 up, and the smallest count n is kept whose RMS error (relative to the peak) neither
-n + 1 nor n + 2 modes divide by more than ``MODE_COUNT_GAIN`` (two, so that a close pair of
-modes, which one more mode alone may not fit, is still found).
+the measured |G| at each frequency, gives the result (for a recording, the chosen count is also
+refined from two more starts: its zeros trade off against the time offset). Without a mode
+count, every count up to ``max_modes`` is fitted from 1 up, and the smallest count n is kept
+whose RMS error (relative to the peak) neither n + 1 nor n + 2 modes divide by more than
+``MODE_COUNT_GAIN`` (two, so that a close pair of modes, which one more mode alone may not fit,
+is still found). Each mode's frequency and damping get a standard deviation from the fit's
+covariance; ``assess_fit`` says whether the fit is usable (its error, the coherence, the
+dampings, the modes' places in the band, that uncertainty) and gives the tolerances to write.
+The coarse estimates are base-excited modes by default (``coarse_mode``).
 
 Malformed files raise ``InputError`` naming the file and line.
 """
@@ -25,7 +30,7 @@ import configparser
 import csv
 import io
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -41,6 +46,8 @@ except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib
 MODE_COUNT_GAIN = 1.25  # one more mode must divide the RMS error by more than this to be kept
 KLIPPER_DEFAULT_DAMPING = 0.1  # Klipper's damping_ratio_x/y when printer.cfg does not set it
+DAMPING_BOUNDS = (1e-5, 0.999)  # the fit's damping stays within these
+COARSE_FORMS = ("base", "mass")  # the model of a coarse estimate's mode (coarse_mode)
 _VF_ITERATIONS = 30
 
 
@@ -53,6 +60,10 @@ class Fit:
     rms_error: float  # RMS of |fitted - measured| over the band / max |measured|
     max_error: float  # max of the same
     errors_by_count: dict[int, float]  # mode count -> RMS error, for every count tried
+    # per mode, the standard deviation of its frequency and of its damping relative to the value,
+    # from the fit's covariance (``_relative_sd``)
+    frequency_sd: tuple[float, ...] = ()
+    damping_sd: tuple[float, ...] = ()
 
     def response(self, frequency_hz: np.ndarray) -> np.ndarray:
         """The fitted model G(j 2 pi f), without the delay."""
@@ -152,13 +163,18 @@ def fit_frf(frequency_hz: np.ndarray, response: np.ndarray, n_modes: int | None 
 
     def fit(n):
         tau0 = _delay_guess(s, hn, weights, n) if fit_delay else None
-        xs[n] = _fit_count(s, hn, weights, n, tau0, xs.get(n - 1))
+        keep(n, _fit_count(s, hn, weights, n, tau0, xs.get(n - 1)))
+
+    def keep(n, x):
+        xs[n] = x
         error = np.abs(_model(xs[n], s, n, fit_delay) - hn)[weights > 0]
         wn, zeta, a, b = xs[n][:n] * w_ref, xs[n][n:2 * n], xs[n][2 * n:3 * n], xs[n][3 * n:4 * n]
+        order = np.argsort(wn)
         modes = tuple(Mode(wn[i] / (2 * np.pi), zeta[i], peak * a[i] * wn[i] ** 2, peak * b[i] * wn[i])
-                      for i in np.argsort(wn))
+                      for i in order)
+        sd = _relative_sd(xs[n], s, hn, weights, n, fit_delay)
         fits[n] = Fit(modes, xs[n][-1] / w_ref if fit_delay else 0.0, float(np.sqrt(np.mean(error**2))),
-                      float(error.max()), {})
+                      float(error.max()), {}, tuple(sd[:n][order]), tuple(sd[n:2 * n][order]))
 
     if n_modes:
         fit(n_modes)
@@ -169,8 +185,9 @@ def fit_frf(frequency_hz: np.ndarray, response: np.ndarray, n_modes: int | None 
             chosen = _chosen_count({k: v.rms_error for k, v in fits.items()}, max_modes)
             if chosen:
                 break
-    best = fits[chosen]
-    return Fit(best.modes, best.delay_s, best.rms_error, best.max_error, {n: v.rms_error for n, v in fits.items()})
+    if fit_delay:
+        keep(chosen, _along_the_valley(xs[chosen], s, hn, weights, chosen))
+    return replace(fits[chosen], errors_by_count={n: v.rms_error for n, v in fits.items()})
 
 
 def _chosen_count(errors: dict[int, float], max_modes: int) -> int | None:
@@ -205,31 +222,76 @@ def _fit_count(s, hn, weights, n, tau0, previous):
         w_prev, zeta_prev = previous[:m], previous[m:2 * m]
         poles = np.append(w_prev * (-zeta_prev + 1j * np.sqrt(1 - zeta_prev**2)), w_new * (-0.01 + 1j))
         starts.append((poles, previous[-1] if fit_delay else None))
-    lower = np.concatenate(
-        [np.full(n, s.imag.min()), np.full(n, 1e-5), np.full(2 * n, -np.inf)] + ([[-np.inf]] if fit_delay else [])
-    )
-    upper = np.concatenate(
-        [np.full(n, s.imag.max()), np.full(n, 0.999), np.full(2 * n, np.inf)] + ([[np.inf]] if fit_delay else [])
-    )
-
-    def residual(x):
-        r = weights * (_model(x, s, n, fit_delay) - hn)
-        return np.concatenate([r.real, r.imag])
-
-    def jacobian(x):
-        d = weights[:, None] * _model_derivatives(x, s, n, fit_delay)
-        return np.vstack([d.real, d.imag])
-
-    best = None
+    results = []
     for poles, tau in starts:
         wn, zeta = np.abs(poles), np.clip(-poles.real / np.abs(poles), 1e-4, 0.99)
         a, b = _numerators(s, hn * np.exp(s * tau) if fit_delay else hn, weights, wn, zeta)
-        x0 = np.clip(np.concatenate([wn, zeta, a, b] + ([[tau]] if fit_delay else [])), lower + 1e-12, upper - 1e-12)
-        result = optimize.least_squares(residual, x0, jac=jacobian, bounds=(lower, upper), x_scale="jac",
-                                        xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=100 * len(x0))
-        if best is None or result.cost < best.cost:
-            best = result
-    return best.x
+        results.append(_refine(np.concatenate([wn, zeta, a, b] + ([[tau]] if fit_delay else [])), s, hn, weights, n,
+                               fit_delay))
+    return min(results, key=lambda r: r.cost).x
+
+
+def _along_the_valley(x, s, hn, weights, n):
+    """The best of the fit ``x`` (with a time offset) and its refinements from two other points
+    of the valley it lies in. The zeros and the time offset both set the low-frequency phase (its
+    first-order term is sum (b - 2 zeta a) / w - tau sum a), so a recording's fit can have two
+    nearly equal minima along that valley: also start from its points with no zeros (a mass
+    pushed by a force) and with a belt's zeros (b = 2 zeta a), the time offset moved to keep the
+    term."""
+    wn, zeta, a, b = (x[i * n:(i + 1) * n] for i in range(4))
+    best = (float(np.sum(_residual(x, s, hn, weights, n, True) ** 2)) / 2, x)
+    if not abs(np.sum(a)) > 0:  # no DC gain: no term to keep
+        return x
+    for b_start in (np.zeros(n), 2 * zeta * a):
+        tau = x[-1] + np.sum((b_start - b) / wn) / np.sum(a)
+        result = _refine(np.concatenate([wn, zeta, a, b_start, [tau]]), s, hn, weights, n, True)
+        best = min(best, (result.cost, result.x), key=lambda c: c[0])
+    return best[1]
+
+
+def _refine(x0, s, hn, weights, n, fit_delay):
+    """The nonlinear least-squares refinement of the parameters from ``x0`` (scipy's result):
+    natural frequencies within the band, dampings within DAMPING_BOUNDS."""
+    free = 2 * n + fit_delay  # a, b and the time offset: unbounded
+    lower = np.concatenate([np.full(n, s.imag.min()), np.full(n, DAMPING_BOUNDS[0]), np.full(free, -np.inf)])
+    upper = np.concatenate([np.full(n, s.imag.max()), np.full(n, DAMPING_BOUNDS[1]), np.full(free, np.inf)])
+    return optimize.least_squares(
+        lambda x: _residual(x, s, hn, weights, n, fit_delay), np.clip(x0, lower + 1e-12, upper - 1e-12),
+        jac=lambda x: _jacobian(x, s, weights, n, fit_delay), bounds=(lower, upper), x_scale="jac",
+        xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=100 * len(x0))
+
+
+def _residual(x, s, hn, weights, n, fit_delay):
+    """The weighted complex residual of the parameters ``x`` as real numbers (real parts, then
+    imaginary parts)."""
+    r = weights * (_model(x, s, n, fit_delay) - hn)
+    return np.concatenate([r.real, r.imag])
+
+
+def _jacobian(x, s, weights, n, fit_delay):
+    """d _residual / d x."""
+    d = weights[:, None] * _model_derivatives(x, s, n, fit_delay)
+    return np.vstack([d.real, d.imag])
+
+
+def _relative_sd(x, s, hn, weights, n, fit_delay):
+    """Standard deviation of each parameter of the solution ``x`` relative to its value: the
+    covariance of weighted least squares, (J^T J)^-1 times the residual variance (sum of squares
+    over the degrees of freedom), J the Jacobian at the solution. Exact to first order for
+    independent noise whose standard deviation the weights are inversely proportional to; inf
+    for a parameter the data does not determine (J^T J singular)."""
+    used = np.concatenate([weights > 0, weights > 0])
+    jac = _jacobian(x, s, weights, n, fit_delay)[used]
+    r = _residual(x, s, hn, weights, n, fit_delay)[used]
+    variance = float(r @ r) / max(1, jac.shape[0] - jac.shape[1])
+    scale = np.linalg.norm(jac, axis=0)  # columns scaled to norm 1: the parameters' units differ widely
+    scale[scale == 0] = 1.0
+    _, singular, vt = np.linalg.svd(jac / scale, full_matrices=False)
+    with np.errstate(divide="ignore"):
+        inverse = np.where(singular > singular[0] * 1e-12, 1 / singular**2, np.inf)
+    sd = np.sqrt(variance * (vt.T**2 @ inverse)) / scale
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(np.isfinite(sd), sd / np.abs(x), np.inf)
 
 
 def _model(x, s, n, fit_delay):
@@ -347,14 +409,97 @@ def _delay_guess(s, h, weights, n_modes):
     return best[1]
 
 
+# ---- how far to trust a fit ----------------------------------------------------------------------
+# Good fits give errors far below these: the noisy FRFs of tests/test_identify.py (1% noise) an RMS
+# error of 0.07 to 0.23% of the peak and a largest one of 1.5 to 2.1%; simulated recordings of
+# excite's sweep 0.04 to 0.35% and 0.3 to 2.6%, with a mean coherence of 0.99. A sweep the
+# firmware re-timed (the recording is not of the program) gave 31% and 100%, coherence 0.72.
+# Refused: an error of 10% of the peak is twice the residual vibration Klipper's shapers are
+# designed to leave (5%: SHAPER_VIBRATION_REDUCTION = 20 in its shaper_defs.py), so compensation
+# with that model cannot be expected to beat them; a largest error of half the peak means a mode
+# missed or a recording of something else; a mean coherence below 0.8 means a fifth of the
+# measured power is not the axis' response to the program.
+# Warned: errors ten times the simulated recordings' (3%, 20%), a tenth of the power unexplained.
+WARN_RMS_ERROR, REFUSE_RMS_ERROR = 0.03, 0.10  # RMS error over the band / peak |G|
+WARN_MAX_ERROR, REFUSE_MAX_ERROR = 0.20, 0.50  # largest error / peak |G|
+WARN_COHERENCE, REFUSE_COHERENCE = 0.90, 0.80  # mean coherence over the band
+LOW_DAMPING = 0.005  # below machine axes' (Klipper assumes 0.1 for a printer; the patent stage's lowest: 0.007)
+DC_GAIN_RANGE = (0.5, 2.0)  # a position axis follows a slow command: the fit's DC gain is near 1
+# The tolerances written: 3 standard deviations (99.7% of a normal estimate within them), at least
+# what a machine drifts by between measurement and use (temperature, belt tension, the print's
+# mass: a few % of frequency; damping, which friction sets, more), and at most what robust FBS
+# covers: with 13% and 20% and wider it lost to the best shaper on two prints of three (robust.md).
+COVERAGE = 3.0
+MIN_FREQUENCY_TOLERANCE, MIN_DAMPING_TOLERANCE = 0.02, 0.05
+MAX_TOLERANCE = 0.20
+# A coarse estimate has no uncertainty of its own: README's values for a machine not measured.
+COARSE_FREQUENCY_TOLERANCE, COARSE_DAMPING_TOLERANCE = 0.10, 0.16
+
+
+@dataclass(frozen=True)
+class Trust:
+    """What ``assess_fit`` found: problems that make a fit unusable (``refusals``) or doubtful
+    (``warnings``), each a short phrase, and the relative tolerances to write for the axis."""
+
+    refusals: tuple[str, ...]
+    warnings: tuple[str, ...]
+    frequency_spread: float  # COVERAGE standard deviations relative to the value, the largest over the modes
+    damping_spread: float
+    frequency_tolerance: float  # the spread, at least the floor, at most MAX_TOLERANCE
+    damping_tolerance: float
+
+
+def assess_fit(fit: Fit, frequency_hz: np.ndarray, coherence: np.ndarray | None = None) -> Trust:
+    """How far to trust ``fit`` of a response measured at ``frequency_hz`` (with ``coherence``
+    where known): its error, the coherence, each mode's damping and place in the band, and the
+    uncertainty of its frequencies and dampings (see the thresholds above)."""
+    refusals, warnings = [], []
+    error = f"RMS error {100 * fit.rms_error:.3g}% and max {100 * fit.max_error:.3g}% of the peak"
+    if fit.rms_error > REFUSE_RMS_ERROR or fit.max_error > REFUSE_MAX_ERROR:
+        refusals.append(f"{error} (usable: under {100 * REFUSE_RMS_ERROR:g}% and {100 * REFUSE_MAX_ERROR:g}%)")
+    elif fit.rms_error > WARN_RMS_ERROR or fit.max_error > WARN_MAX_ERROR:
+        warnings.append(f"{error} (good fits: under {100 * WARN_RMS_ERROR:g}% and {100 * WARN_MAX_ERROR:g}%)")
+    if coherence is not None:
+        mean = float(np.mean(coherence))
+        phrase = f"mean coherence {mean:.2f}: {100 * (1 - mean):.0f}% of the measured power is not the response"
+        if mean < REFUSE_COHERENCE:
+            refusals.append(phrase)
+        elif mean < WARN_COHERENCE:
+            warnings.append(phrase)
+    f_lo, f_hi = frequency_hz[0], frequency_hz[-1]
+    for i, m in enumerate(fit.modes, start=1):
+        if not DAMPING_BOUNDS[0] * 1.01 < m.damping < DAMPING_BOUNDS[1] * 0.99:
+            refusals.append(f"mode {i}'s damping {m.damping:.3g} is at the fit's bound")
+        elif m.damping < LOW_DAMPING:
+            warnings.append(f"mode {i}'s damping {m.damping:.3g} is below machines' ({LOW_DAMPING:g})")
+        # its resonance spans f (1 +- zeta): nearer an end than that it is only partly measured
+        margin = m.frequency_hz * min(max(m.damping, 0.01), 0.05)
+        if m.frequency_hz - f_lo < margin or f_hi - m.frequency_hz < margin:
+            warnings.append(f"mode {i} at {m.frequency_hz:.4g} Hz is at the end of the band "
+                            f"{f_lo:.4g}..{f_hi:.4g} Hz: measure a wider one")
+    dc_gain = sum(m.alpha / m.omega_rad_s**2 for m in fit.modes)
+    if not DC_GAIN_RANGE[0] < dc_gain < DC_GAIN_RANGE[1]:
+        warnings.append(f"the fit's DC gain is {dc_gain:.3g}, not about 1")
+    spreads = []
+    for what, sds in (("frequency", fit.frequency_sd), ("damping", fit.damping_sd)):
+        spreads.append(COVERAGE * max(sds, default=0.0))
+        if spreads[-1] > MAX_TOLERANCE:
+            by = f"by {100 * spreads[-1]:.3g}% ({COVERAGE:g} standard deviations)" if math.isfinite(spreads[-1]) else ""
+            refusals.append(f"mode {int(np.argmax(sds)) + 1}'s {what} is uncertain {by or 'wholly'}, more than "
+                            f"the {100 * MAX_TOLERANCE:g}% robust FBS covers")
+    tolerances = [min(max(spread, floor), MAX_TOLERANCE)
+                  for spread, floor in zip(spreads, (MIN_FREQUENCY_TOLERANCE, MIN_DAMPING_TOLERANCE), strict=True)]
+    return Trust(tuple(refusals), tuple(warnings), *spreads, *tolerances)
+
+
 # ---- Klipper's measurements: coarse one-mode estimates ------------------------------------------
 
-def klipper_psd_mode(path: str | Path, axis: str) -> tuple[Mode, float, float]:
-    """One mode from the ``psd_<axis>`` column of Klipper's calibrate_shaper CSV (header
-    ``freq,psd_x,psd_y,psd_z,psd_xyz,...``; the shaper columns after it are ignored): the
-    frequency of the PSD peak and the damping from its half-power band f1..f2 (where the PSD,
-    a power, falls to half the peak), zeta = (f2 - f1) / (2 f0); alpha = w^2, beta = 0 (unit DC
-    gain). Gives (mode, f1, f2)."""
+def klipper_psd_mode(path: str | Path, axis: str, form: str = "base") -> tuple[Mode, float, float]:
+    """One mode of ``form`` (``coarse_mode``) from the ``psd_<axis>`` column of Klipper's
+    calibrate_shaper CSV (header ``freq,psd_x,psd_y,psd_z,psd_xyz,...``; the shaper columns
+    after it are ignored): the frequency of the PSD peak and the damping from its half-power
+    band f1..f2 (where the PSD, a power, falls to half the peak), zeta = (f2 - f1) / (2 f0).
+    Gives (mode, f1, f2)."""
     column = f"psd_{axis.lower()}"
     if column not in ("psd_x", "psd_y", "psd_z"):
         raise InputError(path, None, f"no PSD column for axis {axis} (calibrate_shaper has psd_x, psd_y, psd_z)")
@@ -378,11 +523,12 @@ def klipper_psd_mode(path: str | Path, axis: str) -> tuple[Mode, float, float]:
     f1 = float(np.interp(half, [psd[i], psd[i + 1]], [freq_hz[i], freq_hz[i + 1]]))
     f2 = float(np.interp(half, [psd[j], psd[j - 1]], [freq_hz[j], freq_hz[j - 1]]))
     f0 = float(freq_hz[peak])
-    return _unit_mode(f0, (f2 - f1) / (2 * f0)), f1, f2
+    return coarse_mode(f0, (f2 - f1) / (2 * f0), form), f1, f2
 
 
-def klipper_cfg_modes(path: str | Path) -> dict[str, Mode]:
-    """One mode per axis (X, Y) from the ``[input_shaper]`` section of a Klipper printer.cfg:
+def klipper_cfg_modes(path: str | Path, form: str = "base") -> dict[str, Mode]:
+    """One mode of ``form`` (``coarse_mode``) per axis (X, Y) from the ``[input_shaper]`` section
+    of a Klipper printer.cfg:
     ``shaper_freq_x/y`` and ``damping_ratio_x/y`` (Klipper's default 0.1). The SAVE_CONFIG block
     (``#*#`` lines at the end, where SHAPER_CALIBRATE results are saved) overrides the main part,
     as in Klipper. Gives {axis: mode} for the axes that have a frequency."""
@@ -426,7 +572,7 @@ def klipper_cfg_modes(path: str | Path) -> dict[str, Mode]:
         if not frequency > 0 or not 0 < damping < 1:
             raise InputError(path, lines.get(f"shaper_freq_{axis}"),
                              f"shaper_freq_{axis} must be > 0 and damping_ratio_{axis} in (0, 1)")
-        modes[axis.upper()] = _unit_mode(frequency, damping)
+        modes[axis.upper()] = coarse_mode(frequency, damping, form)
     if not modes:
         raise InputError(path, None, "[input_shaper] has neither shaper_freq_x nor shaper_freq_y")
     return modes
@@ -442,9 +588,15 @@ def _cfg_number(path, lines, values, key):
     return value
 
 
-def _unit_mode(frequency_hz: float, damping: float) -> Mode:
-    """The single mode w^2 / (s^2 + 2 zeta w s + w^2) (DC gain 1)."""
-    return Mode(frequency_hz, damping, (2 * math.pi * frequency_hz) ** 2, 0.0)
+def coarse_mode(frequency_hz: float, damping: float, form: str = "base") -> Mode:
+    """The single mode of DC gain 1 at ``frequency_hz`` and ``damping``: ``form`` "base", a
+    belt- or screw-driven axis, excited through its drive's stiffness and damping, (2 zeta w s +
+    w^2) / (s^2 + 2 zeta w s + w^2) (alpha = w^2, beta = 2 zeta w: a zero); "mass", a mass
+    pushed by a force, w^2 / (s^2 + 2 zeta w s + w^2) (beta = 0)."""
+    w = 2 * math.pi * frequency_hz
+    if form not in COARSE_FORMS:
+        raise ValueError(f"unknown coarse form {form!r}: expected one of {', '.join(COARSE_FORMS)}")
+    return Mode(frequency_hz, damping, w * w, 2 * damping * w if form == "base" else 0.0)
 
 
 # ---- an accelerometer recording of fbspost excite's sweep ----------------------------------------
@@ -548,7 +700,8 @@ def profile_with_axes(base: MachineProfile | None, axes_modes: dict[str, tuple[M
         old = axes.get(axis_name)
         dc_gain = sum(m.alpha / m.omega_rad_s**2 for m in modes)
         normalized = tuple(
-            Mode(float(m.frequency_hz), float(m.damping), float(m.alpha / dc_gain), float(m.beta / dc_gain))
+            replace(m, frequency_hz=float(m.frequency_hz), damping=float(m.damping), alpha=float(m.alpha / dc_gain),
+                    beta=float(m.beta / dc_gain))
             for m in modes
         )
         axes[axis_name] = AxisProfile(
