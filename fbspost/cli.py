@@ -502,7 +502,14 @@ def identify(frf_csv, axis, n_modes, max_modes, output, merge, plot, klipper_csv
     options = dict(sample_rate=sample_rate, planner_acceleration=planner_acceleration,
                    square_corner_velocity=square_corner_velocity, max_velocity=max_velocity,
                    max_acceleration=max_acceleration, max_jerk=max_jerk)
-    profile = ident.profile_with_axes(base, axes_modes, note, options, name or output.stem)
+    start = base
+    if klipper_cfg:  # the firmware's settings too: the output restores its shaping, plans with its limits
+        start = ident.klipper_cfg_machine(klipper_cfg, base or ident.profile_with_axes(None, {}, "", {}, name or output.stem))
+        lines.append(f"[firmware] from {klipper_cfg.name}: flavor klipper, input shaping "
+                     + (", ".join(f"{a} {f:g} Hz" for a, f in start.firmware.shaper_frequency_hz.items()) or "none")
+                     + f" (restored after the compensated motion), planner acceleration "
+                     f"{start.planner_acceleration_mm_s2:g} mm/s^2")
+    profile = ident.profile_with_axes(start, axes_modes, note, options, name or output.stem)
     text = ident.profile_text(profile, output)
     if not base:
         lines.append("new profile: limits and rates not given are defaults (see --help): check them")

@@ -528,40 +528,13 @@ def klipper_psd_mode(path: str | Path, axis: str, form: str = "base") -> tuple[M
 
 def klipper_cfg_modes(path: str | Path, form: str = "base") -> dict[str, Mode]:
     """One mode of ``form`` (``coarse_mode``) per axis (X, Y) from the ``[input_shaper]`` section
-    of a Klipper printer.cfg:
-    ``shaper_freq_x/y`` and ``damping_ratio_x/y`` (Klipper's default 0.1). The SAVE_CONFIG block
-    (``#*#`` lines at the end, where SHAPER_CALIBRATE results are saved) overrides the main part,
-    as in Klipper. Gives {axis: mode} for the axes that have a frequency."""
-    try:
-        text = Path(path).read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(path, None, f"cannot read: {exc}") from None
-    # The main part and the SAVE_CONFIG block, each with the other's lines blank (so configparser's
-    # line numbers are the file's); the block's lines before its first section are its banner.
-    main, saved, in_section = [], [], False
-    for line in text.splitlines():
-        block = line.startswith("#*#")
-        content = line[3:] if block else ""
-        in_section = in_section or (block and content.strip().startswith("["))
-        main.append("" if block else line)
-        saved.append(content if in_section else "")
-    values, lines = {}, {}
-    for part in ("\n".join(main), "\n".join(saved)):
-        parser = configparser.RawConfigParser(strict=True, inline_comment_prefixes=("#", ";"))
-        try:
-            parser.read_string(part, source=str(path))
-        except configparser.Error as exc:
-            raise InputError(
-                path, getattr(exc, "lineno", None), f"not a Klipper config: {exc.message.splitlines()[0]}"
-            ) from None
-        if parser.has_section("input_shaper"):
-            values.update(parser["input_shaper"])
-    if not values and not any(line.strip().lower().startswith("[input_shaper]") for line in main + saved):
+    of a Klipper printer.cfg: ``shaper_freq_x/y`` and ``damping_ratio_x/y`` (Klipper's default
+    0.1; see ``_klipper_config`` for the SAVE_CONFIG block). Gives {axis: mode} for the axes that
+    have a frequency."""
+    sections, lines = _klipper_config(path)
+    if "input_shaper" not in sections:
         raise InputError(path, None, "no [input_shaper] section (nor one in the #*# SAVE_CONFIG block)")
-    for number, line in enumerate(text.splitlines(), start=1):  # the keys' lines, for messages
-        key = line.removeprefix("#*#").split(":", 1)[0].split("=", 1)[0].strip().lower()
-        if key in values:
-            lines[key] = number
+    values = sections["input_shaper"]
     modes = {}
     for axis in ("x", "y"):
         if f"shaper_freq_{axis}" not in values:
@@ -576,6 +549,64 @@ def klipper_cfg_modes(path: str | Path, form: str = "base") -> dict[str, Mode]:
     if not modes:
         raise InputError(path, None, "[input_shaper] has neither shaper_freq_x nor shaper_freq_y")
     return modes
+
+
+def klipper_cfg_machine(path: str | Path, profile: MachineProfile) -> MachineProfile:
+    """``profile`` with what a Klipper printer.cfg says of the firmware fbspost writes for: the
+    flavor, ``[printer]`` max_accel (the planner's acceleration), max_velocity,
+    square_corner_velocity and minimum_cruise_ratio where given, and ``[input_shaper]``'s
+    frequencies (what the output restores after switching shaping off)."""
+    sections, lines = _klipper_config(path)
+    printer, shaper = sections.get("printer", {}), sections.get("input_shaper", {})
+    number = {key: _cfg_number(path, lines, printer, key) for key in
+              ("max_accel", "max_velocity", "square_corner_velocity", "minimum_cruise_ratio") if key in printer}
+    shaping = {axis.upper(): _cfg_number(path, lines, shaper, f"shaper_freq_{axis}") for axis in "xy"
+               if f"shaper_freq_{axis}" in shaper}
+    firmware = replace(profile.firmware, flavor="klipper", shaper_frequency_hz={**profile.firmware.shaper_frequency_hz,
+                                                                                **shaping},
+                       max_velocity_mm_s=number.get("max_velocity", profile.firmware.max_velocity_mm_s),
+                       minimum_cruise_ratio=number.get("minimum_cruise_ratio", profile.firmware.minimum_cruise_ratio))
+    return replace(profile, firmware=firmware,
+                   planner_acceleration_mm_s2=number.get("max_accel", profile.planner_acceleration_mm_s2),
+                   planner_square_corner_velocity_mm_s=number.get("square_corner_velocity",
+                                                                  profile.planner_square_corner_velocity_mm_s))
+
+
+def _klipper_config(path: str | Path) -> tuple[dict[str, dict[str, str]], dict[str, int]]:
+    """The sections of a Klipper printer.cfg ({section: {key: value}}, the SAVE_CONFIG block's
+    ``#*#`` lines at the end, where SHAPER_CALIBRATE saves, overriding the main part as in
+    Klipper) and the line of each key, for messages."""
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(path, None, f"cannot read: {exc}") from None
+    # The main part and the SAVE_CONFIG block, each with the other's lines blank (so configparser's
+    # line numbers are the file's); the block's lines before its first section are its banner.
+    main, saved, in_section = [], [], False
+    for line in text.splitlines():
+        block = line.startswith("#*#")
+        content = line[3:] if block else ""
+        in_section = in_section or (block and content.strip().startswith("["))
+        main.append("" if block else line)
+        saved.append(content if in_section else "")
+    sections: dict[str, dict[str, str]] = {}
+    for part in ("\n".join(main), "\n".join(saved)):
+        parser = configparser.RawConfigParser(strict=True, inline_comment_prefixes=("#", ";"))
+        try:
+            parser.read_string(part, source=str(path))
+        except configparser.Error as exc:
+            raise InputError(
+                path, getattr(exc, "lineno", None), f"not a Klipper config: {exc.message.splitlines()[0]}"
+            ) from None
+        for name in parser.sections():
+            sections.setdefault(name, {}).update(parser[name])
+    keys = {key for values in sections.values() for key in values}
+    lines = {}
+    for number, line in enumerate(text.splitlines(), start=1):
+        key = line.removeprefix("#*#").split(":", 1)[0].split("=", 1)[0].strip().lower()
+        if key in keys:
+            lines[key] = number
+    return sections, lines
 
 
 def _cfg_number(path, lines, values, key):

@@ -458,6 +458,17 @@ def test_klipper_cfg_save_config_block_overrides(tmp_path):
     assert (y.modes[0].frequency_hz, y.modes[0].damping) == (38.2, 0.07)
     assert x.max_acceleration_mm_s2 == 7000.0 and profile.sample_rate_hz == 1000.0
     assert "COARSE ESTIMATE" in profile.description and "coarse" in result.output.lower()
+    # the firmware's own settings: the output restores this shaping (the saved block's X) and plans
+    # with [printer]'s limits (max_accel not given: the default stays)
+    assert profile.firmware.flavor == "klipper"
+    assert profile.firmware.shaper_frequency_hz == {"X": 52.4, "Y": 38.2}
+    assert profile.firmware.max_velocity_mm_s == 300.0 and profile.planner_acceleration_mm_s2 == 3000.0
+    cfg.write_text(PRINTER_CFG.replace("max_velocity: 300", "max_velocity: 250\nmax_accel: 4000\n"
+                                                            "square_corner_velocity: 6.5\nminimum_cruise_ratio: 0.3"))
+    assert run("identify", "--klipper-cfg", cfg, "-o", tmp_path / "q.toml").exit_code == 0
+    profile = load_profile(tmp_path / "q.toml")
+    assert (profile.planner_acceleration_mm_s2, profile.planner_square_corner_velocity_mm_s) == (4000.0, 6.5)
+    assert (profile.firmware.max_velocity_mm_s, profile.firmware.minimum_cruise_ratio) == (250.0, 0.3)
 
 
 @pytest.mark.parametrize("form", ["base", "mass"])
