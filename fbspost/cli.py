@@ -349,31 +349,49 @@ def _one_line(message: str) -> str:
 
 
 def _summary(source: Path, target: Path, profile: MachineProfile, report: Report) -> str:
-    """The per-file summary on stderr: sizes, times and the predicted error of every axis."""
-    lines = [f"fbspost {__version__}: {source} -> {target} on {profile.name} ({report.flavor}): "
-             f"{report.lines_in} lines in, {report.lines_out} out; print time {report.print_time_s:.1f} s "
-             f"({report.added_time_s:.2f} s of it lead and settle margins: {report.lead_time_s * 1e3:.3g} + "
-             f"{report.settle_time_s * 1e3:.3g} ms per run of motion), computed in {report.compute_time_s:.2f} s"]
+    """The per-file summary on stderr: first the one result to go by (the firmware's, where the
+    output was verified on a model of its planner, else fbspost's prediction), then the sizes,
+    then the other figures, each saying what it is."""
+    kept = "the original written unchanged" if report.original_kept else "the output written"
+    lines = [f"fbspost {__version__}: {source} -> {target} on {profile.name} ({report.flavor}): {kept}"]
+    axes = ", ".join(f"{name} {a.rms_error_before_um:.4g} -> {a.rms_error_after_um:.4g} um"
+                     for name, a in report.axes.items())
+    if report.verified is not None:
+        lines.append(f"result, verified {report.verified.summary()}")
+    elif axes:
+        why = ("Klipper runs the written blocks as written, proven on its own planner code"
+               if report.flavor == "klipper" else "not verified on the firmware's planner")
+        lines.append(f"result, predicted by fbspost's model of the machine ({why}): RMS tracking error {axes}; "
+                     f"print time {report.print_time_s:.1f} s")
     budget = "" if report.line_rate_budget_hz is None else f" (budget {report.line_rate_budget_hz:g})"
-    lines.append(f"fbspost output: at most {report.max_line_rate_hz:g} lines/s{budget}; blocks at most "
-                 f"{report.tolerance_used_mm * 1e3:.3g} um from the command (at {report.tolerance_used_at_s:.3f} s; "
-                 f"RMS {report.rms_deviation_mm * 1e3:.3g} um), "
-                 f"{report.loosened_s:.3f} s of them beyond the tolerance")
+    lines.append(f"size: {report.lines_in} lines, {_size(report.bytes_in)} in; {report.lines_out} lines, "
+                 f"{_size(report.bytes_out)} out; at most {report.max_line_rate_hz:g} lines/s{budget}; "
+                 f"computed in {report.compute_time_s:.2f} s")
+    if report.axes:
+        lines.append("predictions, fbspost's model of the machine running the written blocks exactly (the tracking "
+                     "error: the distance from the planned position at each moment, along the path too, where the "
+                     "contour error does not count it):")
     for name, axis in report.axes.items():
         # (after: the written blocks as the firmware runs them, straight between their ends)
         command = (
             "" if axis.rms_error_command_um is None else f" (the command itself: {axis.rms_error_command_um:.4g} um)"
         )
         lines.append(
-            f"axis {name}: predicted RMS error {axis.rms_error_before_um:.4g} -> {axis.rms_error_after_um:.4g} um "
+            f"  axis {name}: predicted RMS error {axis.rms_error_before_um:.4g} -> {axis.rms_error_after_um:.4g} um "
             f"as the firmware runs the output{command}, "
             f"max {axis.max_error_before_um:.4g} -> {axis.max_error_after_um:.4g} um"
         )
-    if report.verified is not None:
-        kept = "the original kept" if report.original_kept else "the output kept"
-        lines.append(f"verified {report.verified.summary()}: {kept}")
+    lines.append(f"  the written blocks: at most {report.tolerance_used_mm * 1e3:.3g} um from the command (at "
+                 f"{report.tolerance_used_at_s:.3f} s; RMS {report.rms_deviation_mm * 1e3:.3g} um), "
+                 f"{report.loosened_s:.3f} s of them beyond the tolerance; print time {report.print_time_s:.1f} s, "
+                 f"{report.added_time_s:.2f} s of it lead and settle margins ({report.lead_time_s * 1e3:.3g} + "
+                 f"{report.settle_time_s * 1e3:.3g} ms per run of motion)")
     lines.extend(f"warning: {w}" for w in report.warnings)
     return "\n".join(lines)
+
+
+def _size(n_bytes: int) -> str:
+    return f"{n_bytes / 1e6:.3g} MB" if n_bytes >= 1e6 else f"{n_bytes / 1e3:.3g} kB"
 
 
 @main.command()
@@ -504,7 +522,8 @@ def identify(frf_csv, axis, n_modes, max_modes, output, merge, plot, klipper_csv
                    max_acceleration=max_acceleration, max_jerk=max_jerk)
     start = base
     if klipper_cfg:  # the firmware's settings too: the output restores its shaping, plans with its limits
-        start = ident.klipper_cfg_machine(klipper_cfg, base or ident.profile_with_axes(None, {}, "", {}, name or output.stem))
+        new = ident.profile_with_axes(None, {}, "", {}, name or output.stem)
+        start = ident.klipper_cfg_machine(klipper_cfg, base or new)
         lines.append(f"[firmware] from {klipper_cfg.name}: flavor klipper, input shaping "
                      + (", ".join(f"{a} {f:g} Hz" for a, f in start.firmware.shaper_frequency_hz.items()) or "none")
                      + f" (restored after the compensated motion), planner acceleration "

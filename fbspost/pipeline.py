@@ -126,6 +126,8 @@ class Report:
     stage_time_s: dict[str, float] = field(default_factory=dict)  # read, plan, optimize, fallback, write (, verify)
     verified: Verdict | None = None  # with --verify: both programs as the firmware's planner runs them
     original_kept: bool = False  # --verify found the output no better there: the original was written
+    bytes_in: int = 0  # the files' sizes
+    bytes_out: int = 0
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -150,6 +152,7 @@ def compensate_file(input_path: str | Path, output_path: str | Path, profile: Ma
     look-ahead, however long the program is.
     """
     started = time.perf_counter()
+    bytes_in = Path(input_path).stat().st_size  # (before an in-place output replaces it)
     header = compensated_by(input_path)
     if header:  # compensated twice, the motion would be wrong and the summary would still show a gain
         raise InputError(input_path, header[0], f"already compensated ({header[1]}): compensate the original instead")
@@ -171,6 +174,7 @@ def compensate_file(input_path: str | Path, output_path: str | Path, profile: Ma
             report = _compensate_expanded(input_path, output_path, profile, options, reason, progress, started)
     if flavor_note:
         report.warnings.insert(0, flavor_note)
+    report.bytes_in, report.bytes_out = bytes_in, Path(output_path).stat().st_size
     return report
 
 

@@ -72,10 +72,10 @@ class Verdict:
         return (1.0 + MAX_TIME_INCREASE) * self.original.duration_s + self.margins_s + TIME_SLACK_S
 
     def summary(self) -> str:
-        return (f"on {self.flavor}'s planner (model), original -> output: print time {self.original.duration_s:.1f} -> "
-                f"{self.output.duration_s:.1f} s ({100 * self.time_increase:+.2f}%), RMS contour error "
+        return (f"on {self.flavor}'s planner (fbspost's model of it), original -> output: RMS contour error "
                 f"{self.original.rms_um:.4g} -> {self.output.rms_um:.4g} um, max {self.original.max_um:.4g} -> "
-                f"{self.output.max_um:.4g} um")
+                f"{self.output.max_um:.4g} um; print time {self.original.duration_s:.1f} -> "
+                f"{self.output.duration_s:.1f} s ({100 * self.time_increase:+.2f}%)")
 
 
 def verify(original: Path, output: Path, profile: MachineProfile, flavor: str,

@@ -158,7 +158,8 @@ def copy_programs(folder, programs):
 
 def assert_one_line_errors(stderr):
     assert "Traceback" not in stderr
-    starts = ("error: ", "fbspost ", "axis ", "verified ", "warning: ")
+    starts = ("error: ", "fbspost ", "result, ", "size: ", "predictions, ", "  axis ", "  the written blocks: ",
+              "warning: ")
     assert all(line.startswith(starts) for line in stderr.splitlines())
 
 

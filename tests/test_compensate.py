@@ -233,7 +233,7 @@ def test_summary_and_json_report(tmp_path):
         assert key in report
     x = report["axes"]["X"]
     assert x["rms_error_after_um"] < x["rms_error_before_um"] / 20
-    assert "axis X: predicted RMS error" in result.stderr and "lines in" in result.stderr
+    assert "axis X: predicted RMS error" in result.stderr and "size: " in result.stderr
 
 
 def test_homing_after_the_motion_is_not_an_error(tmp_path):

@@ -67,7 +67,11 @@ def test_marlin_is_verified_by_default_and_the_better_output_kept(tmp_path):
     result = CliRunner().invoke(main, ["compensate", str(source), "-m", "printer-two-mode", "--flavor", "marlin",
                                        "-o", str(target)])
     assert result.exit_code == 0, result.output
-    assert "verified on marlin's planner (model)" in result.stderr and "the output kept" in result.stderr
+    lines = result.stderr.splitlines()
+    assert lines[0].endswith("(marlin): the output written"), lines[0]
+    assert lines[1].startswith("result, verified on marlin's planner (fbspost's model of it), original -> output: "
+                               "RMS contour error "), lines[1]  # the one result to go by, first
+    assert lines[2].startswith("size: ") and " kB out; " in lines[2], lines[2]
     assert target.read_bytes() != source.read_bytes()
     for flags, verified in (([], False), (["--verify"], True)):
         result = CliRunner().invoke(main, ["compensate", str(source), "-m", "printer-two-mode", "--flavor", "klipper",
