@@ -455,6 +455,8 @@ _positive = click.FloatRange(min=0, min_open=True)
 @click.option("--program", type=click.Path(dir_okay=False, path_type=Path),
               help="The sweep program of `fbspost excite` that was recorded.")
 @click.option("--accel-column", help="Column of --accel-log along the axis (default accel_<axis>).")
+@click.option("--machine", help="With --accel-log: the profile --program was written for, to plan it as its firmware "
+                                "runs it (default: the bundled profile its header names).")
 @click.option("--name", help="Name of a new profile (default: the output file's name).")
 @click.option("--sample-rate", type=_positive, help="Hz, new profile (default 1000).")
 @click.option("--planner-acceleration", type=_positive, help="mm/s^2, new profile (default 3000).")
@@ -463,7 +465,7 @@ _positive = click.FloatRange(min=0, min_open=True)
 @click.option("--max-acceleration", type=_positive, help="mm/s^2, the axis (default: kept with --merge, else 10000).")
 @click.option("--max-jerk", type=_positive, help="mm/s^3, the axis (default: kept with --merge, else none).")
 def identify(frf_csv, axis, n_modes, max_modes, output, merge, plot, klipper_csv, klipper_cfg, accel_log, program,
-             accel_column, name, sample_rate, planner_acceleration, square_corner_velocity, max_velocity,
+             accel_column, machine, name, sample_rate, planner_acceleration, square_corner_velocity, max_velocity,
              max_acceleration, max_jerk):
     """Build a profile's axis model from measurements.
 
@@ -494,7 +496,7 @@ def identify(frf_csv, axis, n_modes, max_modes, output, merge, plot, klipper_csv
         picture = None
     else:
         axes_modes, note, picture = _fitted(frf_csv, accel_log, program, accel_column, axis, n_modes, max_modes,
-                                            plot, lines)
+                                            plot, lines, machine)
     options = dict(sample_rate=sample_rate, planner_acceleration=planner_acceleration,
                    square_corner_velocity=square_corner_velocity, max_velocity=max_velocity,
                    max_acceleration=max_acceleration, max_jerk=max_jerk)
@@ -534,14 +536,16 @@ def _klipper_estimate(klipper_csv, klipper_cfg, axis, lines: list[str]) -> tuple
     return {k: (v,) for k, v in found.items()}, note
 
 
-def _fitted(frf_csv, accel_log, program, accel_column, axis, n_modes, max_modes, plot, lines: list[str]) -> tuple:
+def _fitted(frf_csv, accel_log, program, accel_column, axis, n_modes, max_modes, plot, lines: list[str],
+            machine=None) -> tuple:
     """identify's fit of a measured frequency response (a CSV, or an accelerometer recording of
-    the sweep ``program``): the modes, the profile's note and the plot (PNG bytes, or None)."""
+    the sweep ``program``, run as its firmware runs it on the profile ``machine``): the modes, the
+    profile's note and the plot (PNG bytes, or None)."""
     from . import excite as excite_module
     from . import identify as ident
 
     if accel_log:
-        sweep = excite_module.read_sweep(program, axis)
+        sweep = excite_module.commanded_sweep(program, axis, machine, lines)
         times_s, accel = ident.read_accel_log(accel_log, accel_column or f"accel_{axis.lower()}")
         rec = ident.frf_from_recording(times_s, accel, sweep)
         fit = ident.fit_frf(rec.frequency_hz, rec.response, n_modes, max_modes, weights=rec.coherence,
@@ -581,15 +585,21 @@ def _fitted(frf_csv, accel_log, program, accel_column, axis, n_modes, max_modes,
               help="Seconds from --start-hz to --end-hz (plus 0.5 s ramps at both ends).")
 @click.option("--amplitude", "amplitude_mm", type=_positive, default=1.0, show_default=True,
               help="Largest amplitude (mm); smaller where the axis' limits require.")
-@click.option("--block-time", "block_s", type=_positive, default=1e-3, show_default=True,
-              help="Time of each G1 block (s).")
-def excite(machine, axis, output, centre_mm, start_hz, end_hz, duration_s, amplitude_mm, block_s):
+@click.option("--block-time", "block_s", type=_positive,
+              help="Time of each G1 block (s). Default: 1 ms, or the shortest the firmware runs as written "
+                   "(the profile's max_line_rate; LinuxCNC: 2 servo periods).")
+@click.option("--flavor", type=click.Choice(FLAVORS), default="klipper", show_default=True,
+              help="The firmware the program is written for: its settings around the sweep, its dwells, "
+                   "its rounding.")
+def excite(machine, axis, output, centre_mm, start_hz, end_hz, duration_s, amplitude_mm, block_s, flavor):
     """Write a sine-sweep program of one axis, to record with an accelerometer.
 
     The axis' position sweeps from --start-hz to --end-hz (exponentially) about --center, in G1
     blocks of --block-time, with the amplitude the axis' velocity, acceleration and jerk limits
-    allow; it starts and ends at rest. Record the whole run, then `fbspost identify --accel-log
-    LOG.csv --program PROGRAM --axis AXIS`.
+    allow; it starts and ends at rest. Written for --flavor's firmware as `compensate` writes its
+    blocks: its limits raised and input shaping off around the sweep (the profile's settings
+    restored after it), each block's F carrying the time the firmware loses. Record the whole
+    run, then `fbspost identify --accel-log LOG.csv --program PROGRAM --axis AXIS --machine PROFILE`.
     """
     from . import excite as excite_module
 
@@ -597,15 +607,22 @@ def excite(machine, axis, output, centre_mm, start_hz, end_hz, duration_s, ampli
     axis = axis.upper()
     if axis not in profile.axes:
         raise ProfileError(f"{profile.source}: axes.{axis}: the profile has no axis {axis}")
+    shortest_s = excite_module.shortest_block_s(profile, flavor)
+    if block_s is None:
+        block_s = max(1e-3, shortest_s)
+    elif block_s < shortest_s * (1 - 1e-9):
+        raise click.UsageError(f"--block-time {block_s:g} s is shorter than {flavor} runs as written on "
+                               f"{profile.name}: at least {shortest_s:g} s (its line budget)")
     if not start_hz < end_hz <= 0.25 / block_s:
-        raise click.UsageError(f"need --start-hz < --end-hz <= {0.25 / block_s:g} Hz (4 blocks per period)")
+        raise click.UsageError(f"need --start-hz < --end-hz <= {0.25 / block_s:g} Hz (4 blocks of "
+                               f"{block_s:g} s per period)")
     positions = excite_module.sweep_samples(profile.axes[axis], centre_mm, start_hz, end_hz, duration_s,
                                             amplitude_mm, block_s)
-    text = excite_module.sweep_program(profile.axes[axis], positions, block_s, start_hz, end_hz, profile.name)
+    text = excite_module.sweep_program(profile, axis, positions, block_s, start_hz, end_hz, flavor)
     atomic_write(output, lambda f: f.write(text.encode()))
     click.echo(f"fbspost {__version__}: wrote {output}: axis {axis} {start_hz:g}..{end_hz:g} Hz about "
-               f"{centre_mm:g} mm, {(len(positions) - 1) * block_s:g} s, largest amplitude "
-               f"{np.abs(positions - centre_mm).max():.4g} mm", err=True)
+               f"{centre_mm:g} mm, {(len(positions) - 1) * block_s:g} s in {block_s * 1e3:g} ms blocks for "
+               f"{flavor}, largest amplitude {np.abs(positions - centre_mm).max():.4g} mm", err=True)
 
 
 def _shaper_names(ctx, param, value: str) -> tuple[str, ...]:

@@ -12,19 +12,28 @@ from __future__ import annotations
 
 import math
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
-from .profile import AxisProfile
+from .firmware import replan
+from .gcode import AXES, FLAVORS, Modal, read_gcode
+from .linuxcnc_tp import LinuxCNCConfig
+from .pipeline import marlin_steps
+from .profile import AxisProfile, MachineProfile, bundled_profiles, load_profile
 from .trajectory import InputError
+from .transparency import FirmwareSettings, Transparency
+from .writer import WriteOptions, dwell_line, shortest_line_s, timed_blocks
 
 _BEGIN = "; fbspost excite: sweep begins"
 _END = "; fbspost excite: sweep ends"
 _BAND = re.compile(r"; band: ([0-9.]+) Hz to ([0-9.]+) Hz")
+_FLAVOR = re.compile(r"; flavor: (\w+)$")
+_MACHINE = re.compile(r"; machine: (.+)$")
 _REST_S = 1.0  # dwell before and after the sweep, so a recording holds the rest on both sides
 _POSITION_DECIMALS = 6  # 1 nm
+_PLAN_RATE_HZ = 10000.0  # the firmware's plan of a sweep, sampled
 
 
 @dataclass(frozen=True)
@@ -36,6 +45,8 @@ class Sweep:
     positions_mm: np.ndarray
     start_hz: float
     end_hz: float
+    flavor: str = "klipper"  # the firmware the program was written for (its header; before it had one: Klipper)
+    machine: str | None = None  # the profile it was written for (its header)
 
     def position(self, times_s: np.ndarray) -> np.ndarray:
         """The commanded position at any times (held before the start and after the end)."""
@@ -67,72 +78,90 @@ def sweep_samples(axis: AxisProfile, centre_mm: float, start_hz: float, end_hz: 
     return centre_mm + offset / max(1.0, worst * (1 + 1e-9))
 
 
-def sweep_program(axis: AxisProfile, positions_mm: np.ndarray, block_s: float, start_hz: float, end_hz: float,
-                  machine: str) -> str:
-    """The G-code of the sampled sweep: move to the start (at a tenth of the axis' maximum
-    velocity), dwell, the sweep's G1 blocks, dwell. A block whose written length would be zero
-    (at the ramps, the firmware would skip it) is merged into the next, so every written block
-    takes the time it is given."""
-    name = axis.name
-    rounded = np.round(positions_mm, _POSITION_DECIMALS)
+_TOLERANCE_MM = 1e-3  # LinuxCNC's G64 P: the sweep's blocks are collinear, nothing to blend
+
+
+def shortest_block_s(profile: MachineProfile, flavor: str) -> float:
+    """The shortest block time at which ``flavor``'s firmware runs a sweep as written on
+    ``profile``: the line budget of the profile's max_line_rate (``writer.shortest_line_s``);
+    on LinuxCNC also 2 servo periods (its planner caps a block's speed at length / 1.02 servo
+    periods)."""
+    shortest_s = shortest_line_s(profile.firmware.max_line_rate_hz)
+    if flavor == "linuxcnc":
+        shortest_s = max(shortest_s, 2.0 * LinuxCNCConfig.from_profile(profile).servo_period_s)
+    return shortest_s
+
+
+def sweep_program(profile: MachineProfile, axis_name: str, positions_mm: np.ndarray, block_s: float,
+                  start_hz: float, end_hz: float, flavor: str) -> str:
+    """The G-code of the sampled sweep for ``flavor``'s firmware: move to the start (at a tenth of
+    the axis' maximum velocity), the firmware made transparent (``transparency``: limits raised,
+    input shaping off), dwell, the sweep's G1 blocks as ``writer.timed_blocks`` writes them (each
+    takes its time as the firmware runs it), the profile's settings restored, dwell."""
+    axis = profile.axes[axis_name]
+    options = WriteOptions(flavor, tolerance_mm=_TOLERANCE_MM, firmware=FirmwareSettings.from_profile(profile),
+                           max_line_rate_hz=profile.firmware.max_line_rate_hz, **marlin_steps(profile, flavor))
+    settings = Transparency(flavor, options.firmware, options.tolerance_mm)
+    command = np.zeros((len(positions_mm), len(AXES)))
+    command[:, AXES.index(axis_name)] = positions_mm
     speed = np.abs(np.diff(positions_mm)).max() / block_s
     accel = np.abs(np.diff(positions_mm, 2)).max() / block_s**2
-    lines = [
-        f"; fbspost excite: a sine sweep of axis {name} for identification ({machine})",
-        f"; band: {start_hz:g} Hz to {end_hz:g} Hz, exponential, "
-        f"{(len(positions_mm) - 1) * block_s:g} s with the ramps "
-        f"in {block_s * 1e3:g} ms blocks, about {rounded[0]:.3f} mm",
-        f"; largest amplitude {np.abs(positions_mm - positions_mm[0]).max():.4f} mm, velocity {speed:.4g} mm/s, "
+    header = [
+        f"fbspost excite: a sine sweep of axis {axis_name} for identification ({profile.name})",
+        f"machine: {profile.name}",
+        f"flavor: {flavor}",
+        f"band: {start_hz:g} Hz to {end_hz:g} Hz, exponential, {(len(positions_mm) - 1) * block_s:g} s with the "
+        f"ramps in {block_s * 1e3:.9g} ms blocks, about {positions_mm[0]:.3f} mm",
+        f"largest amplitude {np.abs(positions_mm - positions_mm[0]).max():.4f} mm, velocity {speed:.4g} mm/s, "
         f"acceleration {accel:.5g} mm/s^2 (the axis' limits: {axis.max_velocity_mm_s:g} mm/s, "
         f"{axis.max_acceleration_mm_s2:g} mm/s^2)",
-        "; Home the machine and make sure the axis is free to move there. The firmware's acceleration",
-        f"; limit must be at least {math.ceil(accel)} mm/s^2 "
-        f"(e.g. Klipper SET_VELOCITY_LIMIT ACCEL=..., Marlin M204 S...)",
-        "; and input shaping or other motion filtering off, or it is identified with the machine.",
-        "; Record an accelerometer on the moving part during the whole program, then:",
-        f";   fbspost identify --accel-log LOG.csv --program THIS.gcode --axis {name} -o PROFILE.toml",
+        f"Written for {flavor}: the sweep runs with the firmware's limits raised and input shaping off, so that",
+        "its blocks take their written times; the profile's settings are restored after it.",
+        *settings.header(),
+        "Home the machine and make sure the axis is free to move there.",
+        "Record an accelerometer on the moving part during the whole program, then:",
+        f"  fbspost identify --accel-log LOG.csv --program THIS.gcode --axis {axis_name} --machine PROFILE "
+        "-o OUT.toml",
+    ]
+    start = np.round(positions_mm[0], _POSITION_DECIMALS)
+    lines = [f"; {text}" for text in header] + [
         "G21 ; millimetres",
         "G90 ; absolute positions",
-        f"G1 {name}{rounded[0]:.{_POSITION_DECIMALS}f} F{60 * axis.max_velocity_mm_s / 10:.0f}",
-        f"G4 P{_REST_S * 1e3:.0f}",
+        f"G1 {axis_name}{start:.{_POSITION_DECIMALS}f} F{60 * axis.max_velocity_mm_s / 10:.0f}",
+        *settings.apply(True, Modal()),
+        dwell_line(flavor, _REST_S)[0],
         _BEGIN,
+        *timed_blocks(command, block_s, options),
+        _END,
+        *settings.restore(),
+        dwell_line(flavor, _REST_S)[0],
+        *(["M2"] if flavor == "linuxcnc" else []),
+        "",
     ]
-    last, last_k = rounded[0], 0
-    for k in range(1, len(rounded)):
-        if rounded[k] == last and k < len(rounded) - 1:
-            continue
-        if rounded[k] == last:  # the end, still at the start position: a dwell keeps the time
-            lines.append(f"G4 P{(k - last_k) * block_s * 1e3:.6f}")
-        else:
-            feed = 60 * abs(rounded[k] - last) / ((k - last_k) * block_s)
-            lines.append(f"G1 {name}{rounded[k]:.{_POSITION_DECIMALS}f} F{_fixed(feed)}")
-        last, last_k = rounded[k], k
-    lines += [_END, f"G4 P{_REST_S * 1e3:.0f}", ""]
     return "\n".join(lines)
-
-
-def _fixed(value: float, significant: int = 9) -> str:
-    """``value`` in fixed point (G-code has no exponents) with ``significant`` digits."""
-    decimals = max(0, significant - 1 - math.floor(math.log10(value)))
-    return f"{value:.{decimals}f}"
 
 
 _WORD = re.compile(r"([A-Za-z])\s*([-+]?(?:\d+\.?\d*|\.\d+))")
 
 
 def read_sweep(path: str | Path, axis: str) -> Sweep:
-    """The commanded motion of a program written by ``sweep_program`` for ``axis``: the position
-    at the begin marker, then every G1 (time = length / F) and G4 (P ms) up to the end marker."""
+    """The motion of a program written by ``sweep_program`` for ``axis`` as written: the position
+    at the begin marker, then every G1 (time = length / F) and G4 (P: ms, on LinuxCNC s) up to
+    the end marker; and its header's band, flavor and machine."""
     try:
         text = Path(path).read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(path, None, f"cannot read: {exc}") from None
-    position = feed = band = None
+    position = feed = band = machine = None
+    flavor = "klipper"
     times, positions, inside, ended = [], [], False, False
     for lineno, line in enumerate(text.splitlines(), start=1):
         stripped = line.strip()
-        if band is None and (match := _BAND.match(stripped)):
-            band = float(match[1]), float(match[2])
+        if not inside:
+            band, flavor, machine = _header_value(_BAND, stripped, band), _header_value(_FLAVOR, stripped, flavor), \
+                _header_value(_MACHINE, stripped, machine)
+            if flavor not in FLAVORS:
+                raise InputError(path, lineno, f"flavor {flavor!r}: expected one of {', '.join(FLAVORS)}")
         if stripped == _BEGIN:
             if position is None:
                 raise InputError(path, lineno, f"the sweep begins before any G1 {axis} sets the start position")
@@ -146,8 +175,8 @@ def read_sweep(path: str | Path, axis: str) -> Sweep:
         if 91 in codes:
             raise InputError(path, lineno, "G91: a sweep program is in absolute positions")
         if 4 in codes and inside:
-            dwell_ms = next((v for k, v in words if k == "P"), 0.0)
-            times.append(times[-1] + dwell_ms / 1e3)
+            dwell = next((v for k, v in words if k == "P"), 0.0)
+            times.append(times[-1] + (dwell if flavor == "linuxcnc" else dwell / 1e3))
             positions.append(position)
         elif {0, 1} & set(codes):
             target = next((v for k, v in words if k == axis), None)
@@ -165,4 +194,50 @@ def read_sweep(path: str | Path, axis: str) -> Sweep:
                                      "not a program written by fbspost excite?")
     if band is None:
         raise InputError(path, None, "no '; band: ... Hz to ... Hz' line")
-    return Sweep(axis, np.array(times), np.array(positions), *band)
+    return Sweep(axis, np.array(times), np.array(positions), float(band[0]), float(band[1]), flavor, machine)
+
+
+def _header_value(pattern: re.Pattern, line: str, value):
+    """The header line's value if ``line`` is one (its groups: a tuple where there are two), else ``value``."""
+    match = pattern.match(line)
+    if match is None:
+        return value
+    return match.groups() if len(match.groups()) > 1 else match[1]
+
+
+def firmware_sweep(path: str | Path, axis: str, profile: MachineProfile) -> Sweep:
+    """The sweep program at ``path`` (checked by ``read_sweep``) as its firmware runs it:
+    ``firmware.replan`` of the whole program with ``profile`` for the flavor its header names,
+    ``axis``' position every 0.1 ms from the begin marker's time to the end of the sweep's last
+    line (times from the begin marker)."""
+    written = read_sweep(path, axis)
+    blocks = list(read_gcode(path, written.flavor, profile.home_mm))
+    # (finely: linear interpolation between samples a fraction of a block off the blocks' ends would
+    # low-pass the command, by 5% at 100 Hz at 1 kHz)
+    profile = replace(profile, sample_rate_hz=max(profile.sample_rate_hz, _PLAN_RATE_HZ))
+    motion = replan(blocks, profile, written.flavor)
+    marks = [b.raw.strip() for b in blocks]
+    begin, end = marks.index(_BEGIN.encode()), marks.index(_END.encode())
+    # (Marlin, RRF: a line without motion is timed when the host sends it, ahead of the motion)
+    begin_s, end_s = motion.line_time_s[begin], np.nanmax(motion.line_time_s[begin:end])
+    fs = profile.sample_rate_hz
+    times_s = np.arange(int(math.ceil((end_s - begin_s) * fs)) + 1) / fs
+    grid_s = np.arange(len(motion.positions_mm)) / fs
+    positions_mm = np.interp(begin_s + times_s, grid_s, motion.positions_mm[:, AXES.index(axis)])
+    return replace(written, times_s=times_s, positions_mm=positions_mm)
+
+
+def commanded_sweep(path: str | Path, axis: str, machine: str | Path | None, lines: list[str]) -> Sweep:
+    """The sweep program at ``path`` as its firmware runs it (``firmware_sweep``) on the profile
+    ``machine`` (a bundled name or a file), else on the bundled profile its header names, else on
+    a default profile (the program's own settings; said in ``lines``)."""
+    if machine is None:
+        machine = read_sweep(path, axis).machine
+        if machine not in bundled_profiles():
+            from .identify import profile_with_axes
+
+            lines.append(f"{Path(path).name}: no --machine and no bundled profile named in it: planned as its "
+                         f"firmware runs it with the program's own settings on a default profile")
+            default = profile_with_axes(None, {axis: ()}, "default", {}, "default")
+            return firmware_sweep(path, axis, default)
+    return firmware_sweep(path, axis, load_profile(machine))
