@@ -107,14 +107,14 @@ def sweep_program(profile: MachineProfile, axis_name: str, positions_mm: np.ndar
     speed = np.abs(np.diff(positions_mm)).max() / block_s
     accel = np.abs(np.diff(positions_mm, 2)).max() / block_s**2
     header = [
-        f"fbspost excite: a sine sweep of axis {axis_name} for identification ({profile.name})",
+        f"fbspost excite: a sine sweep of axis {axis_name} for identification",
         f"machine: {profile.name}",
         f"flavor: {flavor}",
         f"band: {start_hz:g} Hz to {end_hz:g} Hz, exponential, {(len(positions_mm) - 1) * block_s:g} s with the "
         f"ramps in {block_s * 1e3:.9g} ms blocks, about {positions_mm[0]:.3f} mm",
         f"largest amplitude {np.abs(positions_mm - positions_mm[0]).max():.4f} mm, velocity {speed:.4g} mm/s, "
-        f"acceleration {accel:.5g} mm/s^2 (the axis' limits: {axis.max_velocity_mm_s:g} mm/s, "
-        f"{axis.max_acceleration_mm_s2:g} mm/s^2)",
+        f"acceleration {accel:.5g} mm/s^2; the axis' limits: {axis.max_velocity_mm_s:g} mm/s, "
+        f"{axis.max_acceleration_mm_s2:g} mm/s^2",
         f"Written for {flavor}: the sweep runs with the firmware's limits raised and input shaping off, so that",
         "its blocks take their written times; the profile's settings are restored after it.",
         *settings.header(),
@@ -124,6 +124,7 @@ def sweep_program(profile: MachineProfile, axis_name: str, positions_mm: np.ndar
         "-o OUT.toml",
     ]
     start = np.round(positions_mm[0], _POSITION_DECIMALS)
+    # (no parentheses: LinuxCNC refuses a comment inside a ';' comment)
     lines = [f"; {text}" for text in header] + [
         "G21 ; millimetres",
         "G90 ; absolute positions",
