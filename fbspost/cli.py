@@ -472,7 +472,8 @@ def identify(frf_csv, axis, n_modes, max_modes, output, merge, plot, klipper_csv
     From a measured frequency response FRF_CSV (header frequency_hz,real,imag or
     frequency_hz,magnitude,phase_deg; commanded to actual position, or commanded to measured
     acceleration, the same ratio), from an accelerometer recording of `fbspost excite`'s sweep
-    (--accel-log with --program), or, as coarse estimates, from Klipper's calibrate_shaper CSV
+    (--accel-log with --program; the sweep as its firmware runs it on --machine's profile is the
+    commanded motion), or, as coarse estimates, from Klipper's calibrate_shaper CSV
     (--klipper-csv) or printer.cfg (--klipper-cfg). Fits the modes, prints each and the fit
     error, and writes a new profile (limits from the options or their defaults) or merges the
     axis into --merge (comments there are not kept).

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from .firmware import replan
-from .gcode import AXES, FLAVORS, Modal, read_gcode
+from .gcode import AXES, FLAVORS, Kind, Modal, read_gcode
 from .linuxcnc_tp import LinuxCNCConfig
 from .pipeline import marlin_steps
 from .profile import AxisProfile, MachineProfile, bundled_profiles, load_profile
@@ -34,6 +34,9 @@ _MACHINE = re.compile(r"; machine: (.+)$")
 _REST_S = 1.0  # dwell before and after the sweep, so a recording holds the rest on both sides
 _POSITION_DECIMALS = 6  # 1 nm
 _PLAN_RATE_HZ = 10000.0  # the firmware's plan of a sweep, sampled
+# a sweep's plan where its profile is not known: a printer's limits, Klipper's defaults (the program
+# sets the firmware's limits around the sweep); its steps_per_mm are a guess
+_DEFAULT_PROFILE = "printer-two-mode"
 
 
 @dataclass(frozen=True)
@@ -210,7 +213,7 @@ def firmware_sweep(path: str | Path, axis: str, profile: MachineProfile) -> Swee
     """The sweep program at ``path`` (checked by ``read_sweep``) as its firmware runs it:
     ``firmware.replan`` of the whole program with ``profile`` for the flavor its header names,
     ``axis``' position every 0.1 ms from the begin marker's time to the end of the sweep's last
-    line (times from the begin marker)."""
+    block or dwell (times from the begin marker)."""
     written = read_sweep(path, axis)
     blocks = list(read_gcode(path, written.flavor, profile.home_mm))
     # (finely: linear interpolation between samples a fraction of a block off the blocks' ends would
@@ -219,8 +222,11 @@ def firmware_sweep(path: str | Path, axis: str, profile: MachineProfile) -> Swee
     motion = replan(blocks, profile, written.flavor)
     marks = [b.raw.strip() for b in blocks]
     begin, end = marks.index(_BEGIN.encode()), marks.index(_END.encode())
-    # (Marlin, RRF: a line without motion is timed when the host sends it, ahead of the motion)
-    begin_s, end_s = motion.line_time_s[begin], np.nanmax(motion.line_time_s[begin:end])
+    # the end: of the last block's motion, or of the last dwell (a stop's time is before its dwell;
+    # Marlin, RRF: a line without motion is timed when the host sends it, ahead of the motion)
+    begin_s = motion.line_time_s[begin]
+    end_s = np.nanmax([motion.line_time_s[k] + (blocks[k].dwell_s if blocks[k].kind is Kind.STOP else 0.0)
+                       for k in range(begin, end)])
     fs = profile.sample_rate_hz
     times_s = np.arange(int(math.ceil((end_s - begin_s) * fs)) + 1) / fs
     grid_s = np.arange(len(motion.positions_mm)) / fs
@@ -231,14 +237,11 @@ def firmware_sweep(path: str | Path, axis: str, profile: MachineProfile) -> Swee
 def commanded_sweep(path: str | Path, axis: str, machine: str | Path | None, lines: list[str]) -> Sweep:
     """The sweep program at ``path`` as its firmware runs it (``firmware_sweep``) on the profile
     ``machine`` (a bundled name or a file), else on the bundled profile its header names, else on
-    a default profile (the program's own settings; said in ``lines``)."""
+    ``_DEFAULT_PROFILE`` (the program's own settings; said in ``lines``)."""
     if machine is None:
         machine = read_sweep(path, axis).machine
         if machine not in bundled_profiles():
-            from .identify import profile_with_axes
-
             lines.append(f"{Path(path).name}: no --machine and no bundled profile named in it: planned as its "
-                         f"firmware runs it with the program's own settings on a default profile")
-            default = profile_with_axes(None, {axis: ()}, "default", {}, "default")
-            return firmware_sweep(path, axis, default)
+                         f"firmware runs it with the program's own settings on the profile {_DEFAULT_PROFILE}")
+            machine = _DEFAULT_PROFILE
     return firmware_sweep(path, axis, load_profile(machine))

@@ -200,6 +200,29 @@ def test_excite_unknown_axis_is_one_line_error(tmp_path):
     assert not (tmp_path / "s.gcode").exists()
 
 
+
+def test_identify_plans_the_sweep_on_the_profile_it_names_or_a_default(tmp_path):
+    """Without --machine: the bundled profile the header names (the same plan as with it), else
+    printer-two-mode, said in one line; the sweep as planned starts at rest at the centre and
+    takes its written time (Klipper's rules at the program's settings)."""
+    from fbspost import excite
+
+    path = tmp_path / "s.gcode"
+    text = write_sweep(path, "klipper", PRINTER, 1.0)
+    lines = []
+    named = excite.commanded_sweep(path, "X", None, lines)
+    given = excite.commanded_sweep(path, "X", "printer-two-mode", lines)
+    assert lines == [] and np.array_equal(named.positions_mm, given.positions_mm)
+    assert named.positions_mm[0] == CENTRE_MM and named.flavor == "klipper" and named.machine == "printer-two-mode"
+    _, ends_s, _ = written_blocks(text, "klipper")
+    assert named.times_s[-1] == pytest.approx(ends_s[-1] + dwells_s(text[text.rindex("\nG1 "):text.index(END)]),
+                                              abs=2e-4)
+    path.write_text(text.replace("; machine: printer-two-mode", "; machine: my-printer"))
+    default = excite.commanded_sweep(path, "X", None, lines)
+    assert len(lines) == 1 and "no bundled profile named in it" in lines[0]
+    assert np.abs(default.position(named.times_s) - named.positions_mm).max() < 1e-4
+
+
 # ---- Klipper ---------------------------------------------------------------------------------------
 
 @pytest.mark.slow
