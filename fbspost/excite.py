@@ -1,12 +1,15 @@
 """Excitation programs for identification: a sine sweep of one axis, and reading one back.
 
-Takes an axis' limits, a centre position, a band, a duration and a block time; gives the G-code
-of a logarithmic sine sweep (chirp) of that axis' position about the centre: G1 blocks of equal
-time, each with the F that gives it that time (like the dense output of ``compensate``), the
-amplitude falling with frequency so that the sampled velocity, acceleration and jerk stay within
-the axis' limits, tapered in and out so the motion starts and ends at rest. ``read_sweep``
-gives back the commanded motion of such a program (block end times and positions), which
-``identify --accel-log`` relates to an accelerometer recording of it.
+Takes an axis' limits, a centre position, a band, a duration, a block time and the firmware's
+flavor; gives the G-code of a logarithmic sine sweep (chirp) of that axis' position about the
+centre, sampled at the block time (the amplitude falling with frequency so that the sampled
+velocity, acceleration and jerk stay within the axis' limits, tapered in and out so the motion
+starts and ends at rest), written as ``compensate`` writes its blocks so that the firmware runs
+them as written: the firmware made transparent around them (``transparency``), G1 blocks whose F
+carries the time residues and ramps (``writer.timed_blocks``), within the line budget.
+``read_sweep`` gives back a sweep program's motion as written, ``firmware_sweep`` as its
+firmware runs it (``firmware.replan``): what ``identify --accel-log`` relates to an
+accelerometer recording of it.
 """
 from __future__ import annotations
 
@@ -28,9 +31,8 @@ from .writer import WriteOptions, dwell_line, shortest_line_s, timed_blocks
 
 _BEGIN = "; fbspost excite: sweep begins"
 _END = "; fbspost excite: sweep ends"
-_BAND = re.compile(r"; band: ([0-9.]+) Hz to ([0-9.]+) Hz")
-_FLAVOR = re.compile(r"; flavor: (\w+)$")
-_MACHINE = re.compile(r"; machine: (.+)$")
+_HEADER = {"band": re.compile(r"; band: ([0-9.]+) Hz to ([0-9.]+) Hz"), "flavor": re.compile(r"; flavor: (\w+)$"),
+           "machine": re.compile(r"; machine: (.+)$")}
 _REST_S = 1.0  # dwell before and after the sweep, so a recording holds the rest on both sides
 _POSITION_DECIMALS = 6  # 1 nm
 _PLAN_RATE_HZ = 10000.0  # the firmware's plan of a sweep, sampled
@@ -156,16 +158,17 @@ def read_sweep(path: str | Path, axis: str) -> Sweep:
         text = Path(path).read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(path, None, f"cannot read: {exc}") from None
-    position = feed = band = machine = None
-    flavor = "klipper"
+    position = feed = None
+    header = {"band": None, "flavor": "klipper", "machine": None}
     times, positions, inside, ended = [], [], False, False
     for lineno, line in enumerate(text.splitlines(), start=1):
         stripped = line.strip()
-        if not inside:
-            band, flavor, machine = _header_value(_BAND, stripped, band), _header_value(_FLAVOR, stripped, flavor), \
-                _header_value(_MACHINE, stripped, machine)
-            if flavor not in FLAVORS:
-                raise InputError(path, lineno, f"flavor {flavor!r}: expected one of {', '.join(FLAVORS)}")
+        for key, pattern in _HEADER.items() if not inside else ():
+            if match := pattern.match(stripped):
+                header[key] = match.groups() if key == "band" else match[1]
+        flavor = header["flavor"]
+        if flavor not in FLAVORS:
+            raise InputError(path, lineno, f"flavor {flavor!r}: expected one of {', '.join(FLAVORS)}")
         if stripped == _BEGIN:
             if position is None:
                 raise InputError(path, lineno, f"the sweep begins before any G1 {axis} sets the start position")
@@ -196,17 +199,10 @@ def read_sweep(path: str | Path, axis: str) -> Sweep:
     if not ended:
         raise InputError(path, None, f"no sweep of axis {axis} between '{_BEGIN}' and '{_END}': "
                                      "not a program written by fbspost excite?")
-    if band is None:
+    if header["band"] is None:
         raise InputError(path, None, "no '; band: ... Hz to ... Hz' line")
-    return Sweep(axis, np.array(times), np.array(positions), float(band[0]), float(band[1]), flavor, machine)
-
-
-def _header_value(pattern: re.Pattern, line: str, value):
-    """The header line's value if ``line`` is one (its groups: a tuple where there are two), else ``value``."""
-    match = pattern.match(line)
-    if match is None:
-        return value
-    return match.groups() if len(match.groups()) > 1 else match[1]
+    start_hz, end_hz = (float(f) for f in header["band"])
+    return Sweep(axis, np.array(times), np.array(positions), start_hz, end_hz, flavor, header["machine"])
 
 
 def firmware_sweep(path: str | Path, axis: str, profile: MachineProfile) -> Sweep:
