@@ -619,11 +619,12 @@ def excite(machine, axis, output, centre_mm, start_hz, end_hz, duration_s, ampli
                                f"{block_s:g} s per period)")
     positions = excite_module.sweep_samples(profile.axes[axis], centre_mm, start_hz, end_hz, duration_s,
                                             amplitude_mm, block_s)
-    text = excite_module.sweep_program(profile, axis, positions, block_s, start_hz, end_hz, flavor)
+    text, warnings = excite_module.sweep_program(profile, axis, positions, block_s, start_hz, end_hz, flavor)
     atomic_write(output, lambda f: f.write(text.encode()))
-    click.echo(f"fbspost {__version__}: wrote {output}: axis {axis} {start_hz:g}..{end_hz:g} Hz about "
-               f"{centre_mm:g} mm, {(len(positions) - 1) * block_s:g} s in {block_s * 1e3:g} ms blocks for "
-               f"{flavor}, largest amplitude {np.abs(positions - centre_mm).max():.4g} mm", err=True)
+    click.echo("\n".join([f"fbspost {__version__}: wrote {output}: axis {axis} {start_hz:g}..{end_hz:g} Hz about "
+                          f"{centre_mm:g} mm, {(len(positions) - 1) * block_s:g} s in {block_s * 1e3:g} ms blocks "
+                          f"for {flavor}, largest amplitude {np.abs(positions - centre_mm).max():.4g} mm",
+                          *warnings]), err=True)
 
 
 def _shaper_names(ctx, param, value: str) -> tuple[str, ...]:

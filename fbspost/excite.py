@@ -98,11 +98,12 @@ def shortest_block_s(profile: MachineProfile, flavor: str) -> float:
 
 
 def sweep_program(profile: MachineProfile, axis_name: str, positions_mm: np.ndarray, block_s: float,
-                  start_hz: float, end_hz: float, flavor: str) -> str:
+                  start_hz: float, end_hz: float, flavor: str) -> tuple[str, list[str]]:
     """The G-code of the sampled sweep for ``flavor``'s firmware: move to the start (at a tenth of
     the axis' maximum velocity), the firmware made transparent (``transparency``: limits raised,
     input shaping off), dwell, the sweep's G1 blocks as ``writer.timed_blocks`` writes them (each
-    takes its time as the firmware runs it), the profile's settings restored, dwell."""
+    takes its time as the firmware runs it), the profile's settings restored, dwell; and warnings
+    (Marlin: how many blocks its short-segment merge leaves)."""
     axis = profile.axes[axis_name]
     options = WriteOptions(flavor, tolerance_mm=_TOLERANCE_MM, firmware=FirmwareSettings.from_profile(profile),
                            max_line_rate_hz=profile.firmware.max_line_rate_hz, **marlin_steps(profile, flavor))
@@ -128,6 +129,12 @@ def sweep_program(profile: MachineProfile, axis_name: str, positions_mm: np.ndar
         f"  fbspost identify --accel-log LOG.csv --program THIS.gcode --axis {axis_name} --machine PROFILE "
         "-o OUT.toml",
     ]
+    blocks = timed_blocks(command, block_s, options)
+    written = sum(line.startswith("G1 ") for line in blocks)
+    warnings = [f"warning: Marlin merges blocks of fewer than {options.min_steps_per_segment} steps: {written} of "
+                f"{len(positions_mm) - 1} blocks written, the sweep is coarser where it moves less per block "
+                f"(a larger --amplitude or --block-time helps)"] if options.min_steps_per_segment and \
+        written < 0.9 * (len(positions_mm) - 1) else []
     start = np.round(positions_mm[0], _POSITION_DECIMALS)
     # (no parentheses: LinuxCNC refuses a comment inside a ';' comment)
     lines = [f"; {text}" for text in header] + [
@@ -137,14 +144,14 @@ def sweep_program(profile: MachineProfile, axis_name: str, positions_mm: np.ndar
         *settings.apply(True, Modal()),
         dwell_line(flavor, _REST_S)[0],
         _BEGIN,
-        *timed_blocks(command, block_s, options),
+        *blocks,
         _END,
         *settings.restore(),
         dwell_line(flavor, _REST_S)[0],
         *(["M2"] if flavor == "linuxcnc" else []),
         "",
     ]
-    return "\n".join(lines)
+    return "\n".join(lines), warnings
 
 
 _WORD = re.compile(r"([A-Za-z])\s*([-+]?(?:\d+\.?\d*|\.\d+))")
@@ -218,16 +225,21 @@ def firmware_sweep(path: str | Path, axis: str, profile: MachineProfile) -> Swee
     motion = replan(blocks, profile, written.flavor)
     marks = [b.raw.strip() for b in blocks]
     begin, end = marks.index(_BEGIN.encode()), marks.index(_END.encode())
-    # the end: of the last block's motion, or of the last dwell (a stop's time is before its dwell;
-    # Marlin, RRF: a line without motion is timed when the host sends it, ahead of the motion)
-    begin_s = motion.line_time_s[begin]
-    end_s = np.nanmax([motion.line_time_s[k] + (blocks[k].dwell_s if blocks[k].kind is Kind.STOP else 0.0)
-                       for k in range(begin, end)])
+    begin_s, end_s = _done_s(motion.line_time_s, blocks, 0, begin), _done_s(motion.line_time_s, blocks, begin, end)
     fs = profile.sample_rate_hz
     times_s = np.arange(int(math.ceil((end_s - begin_s) * fs)) + 1) / fs
     grid_s = np.arange(len(motion.positions_mm)) / fs
     positions_mm = np.interp(begin_s + times_s, grid_s, motion.positions_mm[:, AXES.index(axis)])
     return replace(written, times_s=times_s, positions_mm=positions_mm)
+
+
+def _done_s(line_time_s: np.ndarray, blocks: list, first: int, stop: int) -> float:
+    """When the firmware is done with the lines ``first`` to ``stop`` - 1 (``line_time_s`` as
+    ``firmware.replan`` gives it): the end of their last motion or dwell (a stop's time is before
+    its dwell; Marlin, RRF: a line without motion is timed when the host sends it, ahead of the
+    motion, and a comment, not sent, not at all)."""
+    return float(np.nanmax([line_time_s[k] + (blocks[k].dwell_s if blocks[k].kind is Kind.STOP else 0.0)
+                            for k in range(first, stop)]))
 
 
 def commanded_sweep(path: str | Path, axis: str, machine: str | Path | None, lines: list[str]) -> Sweep:
