@@ -456,7 +456,7 @@ _positive = click.FloatRange(min=0, min_open=True)
               help="The sweep program of `fbspost excite` that was recorded.")
 @click.option("--accel-column", help="Column of --accel-log along the axis (default accel_<axis>).")
 @click.option("--machine", help="With --accel-log: the profile --program was written for, to plan it as its firmware "
-                                "runs it (default: the bundled profile its header names).")
+                                "runs it (default: the bundled profile its header names, else printer-two-mode).")
 @click.option("--name", help="Name of a new profile (default: the output file's name).")
 @click.option("--sample-rate", type=_positive, help="Hz, new profile (default 1000).")
 @click.option("--planner-acceleration", type=_positive, help="mm/s^2, new profile (default 3000).")
