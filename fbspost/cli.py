@@ -476,6 +476,8 @@ _positive = click.FloatRange(min=0, min_open=True)
 @click.option("--force", is_flag=True, help="Write a fit that fails the checks (docs/identify.md), with a warning.")
 @click.option("--coarse-form", type=click.Choice(["base", "mass"]), default="base", show_default=True,
               help="Coarse estimates' mode: base-excited (a belt or screw drive: a zero) or a mass pushed by a force.")
+@click.option("--machine", help="With --accel-log: the profile --program was written for, to plan it as its firmware "
+                                "runs it (default: the bundled profile its header names, else printer-two-mode).")
 @click.option("--name", help="Name of a new profile (default: the output file's name).")
 @click.option("--sample-rate", type=_positive, help="Hz, new profile (default 1000).")
 @click.option("--planner-acceleration", type=_positive, help="mm/s^2, new profile (default 3000).")
@@ -484,14 +486,15 @@ _positive = click.FloatRange(min=0, min_open=True)
 @click.option("--max-acceleration", type=_positive, help="mm/s^2, the axis (default: kept with --merge, else 10000).")
 @click.option("--max-jerk", type=_positive, help="mm/s^3, the axis (default: kept with --merge, else none).")
 def identify(frf_csv, axis, n_modes, max_modes, output, merge, plot, klipper_csv, klipper_cfg, accel_log, program,
-             accel_column, force, coarse_form, name, sample_rate, planner_acceleration, square_corner_velocity,
-             max_velocity, max_acceleration, max_jerk):
+             accel_column, force, coarse_form, machine, name, sample_rate, planner_acceleration,
+             square_corner_velocity, max_velocity, max_acceleration, max_jerk):
     """Build a profile's axis model from measurements.
 
     From a measured frequency response FRF_CSV (header frequency_hz,real,imag or
     frequency_hz,magnitude,phase_deg; commanded to actual position, or commanded to measured
     acceleration, the same ratio), from an accelerometer recording of `fbspost excite`'s sweep
-    (--accel-log with --program), or, as coarse estimates, from Klipper's calibrate_shaper CSV
+    (--accel-log with --program; the sweep as its firmware runs it on --machine's profile is the
+    commanded motion), or, as coarse estimates, from Klipper's calibrate_shaper CSV
     (--klipper-csv) or printer.cfg (--klipper-cfg). Fits the modes, prints each, the fit error
     and the tolerances written, and writes a new profile (limits from the options or their
     defaults) or merges the axis into --merge (comments there are not kept). A fit too far from
@@ -516,7 +519,7 @@ def identify(frf_csv, axis, n_modes, max_modes, output, merge, plot, klipper_csv
         picture = None
     else:
         axes_modes, note, picture = _fitted(frf_csv, accel_log, program, accel_column, axis, n_modes, max_modes,
-                                            plot, force, lines)
+                                            plot, force, lines, machine)
     options = dict(sample_rate=sample_rate, planner_acceleration=planner_acceleration,
                    square_corner_velocity=square_corner_velocity, max_velocity=max_velocity,
                    max_acceleration=max_acceleration, max_jerk=max_jerk)
@@ -570,16 +573,17 @@ def _klipper_estimate(klipper_csv, klipper_cfg, axis, form, lines: list[str]) ->
 
 
 def _fitted(frf_csv, accel_log, program, accel_column, axis, n_modes, max_modes, plot, force,
-            lines: list[str]) -> tuple:
+            lines: list[str], machine=None) -> tuple:
     """identify's fit of a measured frequency response (a CSV, or an accelerometer recording of
-    the sweep ``program``): the modes (with the fit's tolerances), the profile's note and the
-    plot (PNG bytes, or None). A fit that fails ``identify.assess_fit``'s checks raises
-    ``InputError`` unless ``force`` (then it is a warning)."""
+    the sweep ``program``, run as its firmware runs it on the profile ``machine``): the modes
+    (with the fit's tolerances), the profile's note and the plot (PNG bytes, or None). A fit
+    that fails ``identify.assess_fit``'s checks raises ``InputError`` unless ``force`` (then it
+    is a warning)."""
     from . import excite as excite_module
     from . import identify as ident
 
     if accel_log:
-        sweep = excite_module.read_sweep(program, axis)
+        sweep = excite_module.commanded_sweep(program, axis, machine, lines)
         times_s, accel = ident.read_accel_log(accel_log, accel_column or f"accel_{axis.lower()}")
         rec = ident.frf_from_recording(times_s, accel, sweep)
         fit = ident.fit_frf(rec.frequency_hz, rec.response, n_modes, max_modes, weights=rec.coherence,
@@ -638,15 +642,21 @@ def _fitted(frf_csv, accel_log, program, accel_column, axis, n_modes, max_modes,
               help="Seconds from --start-hz to --end-hz (plus 0.5 s ramps at both ends).")
 @click.option("--amplitude", "amplitude_mm", type=_positive, default=1.0, show_default=True,
               help="Largest amplitude (mm); smaller where the axis' limits require.")
-@click.option("--block-time", "block_s", type=_positive, default=1e-3, show_default=True,
-              help="Time of each G1 block (s).")
-def excite(machine, axis, output, centre_mm, start_hz, end_hz, duration_s, amplitude_mm, block_s):
+@click.option("--block-time", "block_s", type=_positive,
+              help="Time of each G1 block (s). Default: 1 ms, or the shortest the firmware runs as written "
+                   "(the profile's max_line_rate; LinuxCNC: 2 servo periods).")
+@click.option("--flavor", type=click.Choice(FLAVORS), default="klipper", show_default=True,
+              help="The firmware the program is written for: its settings around the sweep, its dwells, "
+                   "its rounding.")
+def excite(machine, axis, output, centre_mm, start_hz, end_hz, duration_s, amplitude_mm, block_s, flavor):
     """Write a sine-sweep program of one axis, to record with an accelerometer.
 
     The axis' position sweeps from --start-hz to --end-hz (exponentially) about --center, in G1
     blocks of --block-time, with the amplitude the axis' velocity, acceleration and jerk limits
-    allow; it starts and ends at rest. Record the whole run, then `fbspost identify --accel-log
-    LOG.csv --program PROGRAM --axis AXIS`.
+    allow; it starts and ends at rest. Written for --flavor's firmware as `compensate` writes its
+    blocks: its limits raised and input shaping off around the sweep (the profile's settings
+    restored after it), each block's F carrying the time the firmware loses. Record the whole
+    run, then `fbspost identify --accel-log LOG.csv --program PROGRAM --axis AXIS --machine PROFILE`.
     """
     from . import excite as excite_module
 
@@ -654,15 +664,23 @@ def excite(machine, axis, output, centre_mm, start_hz, end_hz, duration_s, ampli
     axis = axis.upper()
     if axis not in profile.axes:
         raise ProfileError(f"{profile.source}: axes.{axis}: the profile has no axis {axis}")
+    shortest_s = excite_module.shortest_block_s(profile, flavor)
+    if block_s is None:
+        block_s = max(1e-3, shortest_s)
+    elif block_s < shortest_s * (1 - 1e-9):
+        raise click.UsageError(f"--block-time {block_s:g} s is shorter than {flavor} runs as written on "
+                               f"{profile.name}: at least {shortest_s:g} s (its line budget)")
     if not start_hz < end_hz <= 0.25 / block_s:
-        raise click.UsageError(f"need --start-hz < --end-hz <= {0.25 / block_s:g} Hz (4 blocks per period)")
+        raise click.UsageError(f"need --start-hz < --end-hz <= {0.25 / block_s:g} Hz (4 blocks of "
+                               f"{block_s:g} s per period)")
     positions = excite_module.sweep_samples(profile.axes[axis], centre_mm, start_hz, end_hz, duration_s,
                                             amplitude_mm, block_s)
-    text = excite_module.sweep_program(profile.axes[axis], positions, block_s, start_hz, end_hz, profile.name)
+    text, warnings = excite_module.sweep_program(profile, axis, positions, block_s, start_hz, end_hz, flavor)
     atomic_write(output, lambda f: f.write(text.encode()))
-    click.echo(f"fbspost {__version__}: wrote {output}: axis {axis} {start_hz:g}..{end_hz:g} Hz about "
-               f"{centre_mm:g} mm, {(len(positions) - 1) * block_s:g} s, largest amplitude "
-               f"{np.abs(positions - centre_mm).max():.4g} mm", err=True)
+    click.echo("\n".join([f"fbspost {__version__}: wrote {output}: axis {axis} {start_hz:g}..{end_hz:g} Hz about "
+                          f"{centre_mm:g} mm, {(len(positions) - 1) * block_s:g} s in {block_s * 1e3:g} ms blocks "
+                          f"for {flavor}, largest amplitude {np.abs(positions - centre_mm).max():.4g} mm",
+                          *warnings]), err=True)
 
 
 def _shaper_names(ctx, param, value: str) -> tuple[str, ...]:

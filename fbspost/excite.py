@@ -1,30 +1,44 @@
 """Excitation programs for identification: a sine sweep of one axis, and reading one back.
 
-Takes an axis' limits, a centre position, a band, a duration and a block time; gives the G-code
-of a logarithmic sine sweep (chirp) of that axis' position about the centre: G1 blocks of equal
-time, each with the F that gives it that time (like the dense output of ``compensate``), the
-amplitude falling with frequency so that the sampled velocity, acceleration and jerk stay within
-the axis' limits, tapered in and out so the motion starts and ends at rest. ``read_sweep``
-gives back the commanded motion of such a program (block end times and positions), which
-``identify --accel-log`` relates to an accelerometer recording of it.
+Takes an axis' limits, a centre position, a band, a duration, a block time and the firmware's
+flavor; gives the G-code of a logarithmic sine sweep (chirp) of that axis' position about the
+centre, sampled at the block time (the amplitude falling with frequency so that the sampled
+velocity, acceleration and jerk stay within the axis' limits, tapered in and out so the motion
+starts and ends at rest), written as ``compensate`` writes its blocks so that the firmware runs
+them as written: the firmware made transparent around them (``transparency``), G1 blocks whose F
+carries the time residues and ramps (``writer.timed_blocks``), within the line budget.
+``read_sweep`` gives back a sweep program's motion as written, ``firmware_sweep`` as its
+firmware runs it (``firmware.replan``): what ``identify --accel-log`` relates to an
+accelerometer recording of it.
 """
 from __future__ import annotations
 
 import math
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
-from .profile import AxisProfile
+from .firmware import replan
+from .gcode import AXES, FLAVORS, Kind, Modal, read_gcode
+from .linuxcnc_tp import LinuxCNCConfig
+from .pipeline import marlin_steps
+from .profile import AxisProfile, MachineProfile, bundled_profiles, load_profile
 from .trajectory import InputError
+from .transparency import FirmwareSettings, Transparency
+from .writer import WriteOptions, dwell_line, shortest_line_s, timed_blocks
 
 _BEGIN = "; fbspost excite: sweep begins"
 _END = "; fbspost excite: sweep ends"
-_BAND = re.compile(r"; band: ([0-9.]+) Hz to ([0-9.]+) Hz")
+_HEADER = {"band": re.compile(r"; band: ([0-9.]+) Hz to ([0-9.]+) Hz"), "flavor": re.compile(r"; flavor: (\w+)$"),
+           "machine": re.compile(r"; machine: (.+)$")}
 _REST_S = 1.0  # dwell before and after the sweep, so a recording holds the rest on both sides
 _POSITION_DECIMALS = 6  # 1 nm
+_PLAN_RATE_HZ = 10000.0  # the firmware's plan of a sweep, sampled
+# a sweep's plan where its profile is not known: a printer's limits, Klipper's defaults (the program
+# sets the firmware's limits around the sweep); its steps_per_mm are a guess
+_DEFAULT_PROFILE = "printer-two-mode"
 
 
 @dataclass(frozen=True)
@@ -36,6 +50,8 @@ class Sweep:
     positions_mm: np.ndarray
     start_hz: float
     end_hz: float
+    flavor: str = "klipper"  # the firmware the program was written for (its header; before it had one: Klipper)
+    machine: str | None = None  # the profile it was written for (its header)
 
     def position(self, times_s: np.ndarray) -> np.ndarray:
         """The commanded position at any times (held before the start and after the end)."""
@@ -67,72 +83,99 @@ def sweep_samples(axis: AxisProfile, centre_mm: float, start_hz: float, end_hz: 
     return centre_mm + offset / max(1.0, worst * (1 + 1e-9))
 
 
-def sweep_program(axis: AxisProfile, positions_mm: np.ndarray, block_s: float, start_hz: float, end_hz: float,
-                  machine: str) -> str:
-    """The G-code of the sampled sweep: move to the start (at a tenth of the axis' maximum
-    velocity), dwell, the sweep's G1 blocks, dwell. A block whose written length would be zero
-    (at the ramps, the firmware would skip it) is merged into the next, so every written block
-    takes the time it is given."""
-    name = axis.name
-    rounded = np.round(positions_mm, _POSITION_DECIMALS)
+_TOLERANCE_MM = 1e-3  # LinuxCNC's G64 P: the sweep's blocks are collinear, nothing to blend
+
+
+def shortest_block_s(profile: MachineProfile, flavor: str) -> float:
+    """The shortest block time at which ``flavor``'s firmware runs a sweep as written on
+    ``profile``: the line budget of the profile's max_line_rate (``writer.shortest_line_s``);
+    on LinuxCNC also 2 servo periods (its planner caps a block's speed at length / 1.02 servo
+    periods)."""
+    shortest_s = shortest_line_s(profile.firmware.max_line_rate_hz)
+    if flavor == "linuxcnc":
+        shortest_s = max(shortest_s, 2.0 * LinuxCNCConfig.from_profile(profile).servo_period_s)
+    return shortest_s
+
+
+def sweep_program(profile: MachineProfile, axis_name: str, positions_mm: np.ndarray, block_s: float,
+                  start_hz: float, end_hz: float, flavor: str) -> tuple[str, list[str]]:
+    """The G-code of the sampled sweep for ``flavor``'s firmware: move to the start (at a tenth of
+    the axis' maximum velocity), the firmware made transparent (``transparency``: limits raised,
+    input shaping off), dwell, the sweep's G1 blocks as ``writer.timed_blocks`` writes them (each
+    takes its time as the firmware runs it), the profile's settings restored, dwell; and warnings
+    (Marlin: how many blocks its short-segment merge leaves)."""
+    axis = profile.axes[axis_name]
+    options = WriteOptions(flavor, tolerance_mm=_TOLERANCE_MM, firmware=FirmwareSettings.from_profile(profile),
+                           max_line_rate_hz=profile.firmware.max_line_rate_hz, **marlin_steps(profile, flavor))
+    settings = Transparency(flavor, options.firmware, options.tolerance_mm)
+    command = np.zeros((len(positions_mm), len(AXES)))
+    command[:, AXES.index(axis_name)] = positions_mm
     speed = np.abs(np.diff(positions_mm)).max() / block_s
     accel = np.abs(np.diff(positions_mm, 2)).max() / block_s**2
-    lines = [
-        f"; fbspost excite: a sine sweep of axis {name} for identification ({machine})",
-        f"; band: {start_hz:g} Hz to {end_hz:g} Hz, exponential, "
-        f"{(len(positions_mm) - 1) * block_s:g} s with the ramps "
-        f"in {block_s * 1e3:g} ms blocks, about {rounded[0]:.3f} mm",
-        f"; largest amplitude {np.abs(positions_mm - positions_mm[0]).max():.4f} mm, velocity {speed:.4g} mm/s, "
-        f"acceleration {accel:.5g} mm/s^2 (the axis' limits: {axis.max_velocity_mm_s:g} mm/s, "
-        f"{axis.max_acceleration_mm_s2:g} mm/s^2)",
-        "; Home the machine and make sure the axis is free to move there. The firmware's acceleration",
-        f"; limit must be at least {math.ceil(accel)} mm/s^2 "
-        f"(e.g. Klipper SET_VELOCITY_LIMIT ACCEL=..., Marlin M204 S...)",
-        "; and input shaping or other motion filtering off, or it is identified with the machine.",
-        "; Record an accelerometer on the moving part during the whole program, then:",
-        f";   fbspost identify --accel-log LOG.csv --program THIS.gcode --axis {name} -o PROFILE.toml",
+    header = [
+        f"fbspost excite: a sine sweep of axis {axis_name} for identification",
+        f"machine: {profile.name}",
+        f"flavor: {flavor}",
+        f"band: {start_hz:g} Hz to {end_hz:g} Hz, exponential, {(len(positions_mm) - 1) * block_s:g} s with the "
+        f"ramps in {block_s * 1e3:.9g} ms blocks, about {positions_mm[0]:.3f} mm",
+        f"largest amplitude {np.abs(positions_mm - positions_mm[0]).max():.4f} mm, velocity {speed:.4g} mm/s, "
+        f"acceleration {accel:.5g} mm/s^2; the axis' limits: {axis.max_velocity_mm_s:g} mm/s, "
+        f"{axis.max_acceleration_mm_s2:g} mm/s^2",
+        f"Written for {flavor}: the sweep runs with the firmware's limits raised and input shaping off, so that",
+        "its blocks take their written times; the profile's settings are restored after it.",
+        *settings.header(),
+        "Home the machine and make sure the axis is free to move there.",
+        "Record an accelerometer on the moving part during the whole program, then:",
+        f"  fbspost identify --accel-log LOG.csv --program THIS.gcode --axis {axis_name} --machine PROFILE "
+        "-o OUT.toml",
+    ]
+    blocks = timed_blocks(command, block_s, options)
+    written = sum(line.startswith("G1 ") for line in blocks)
+    warnings = [f"warning: Marlin merges blocks of fewer than {options.min_steps_per_segment} steps: {written} of "
+                f"{len(positions_mm) - 1} blocks written, the sweep is coarser where it moves less per block "
+                f"(a larger --amplitude or --block-time helps)"] if options.min_steps_per_segment and \
+        written < 0.9 * (len(positions_mm) - 1) else []
+    start = np.round(positions_mm[0], _POSITION_DECIMALS)
+    # (no parentheses: LinuxCNC refuses a comment inside a ';' comment)
+    lines = [f"; {text}" for text in header] + [
         "G21 ; millimetres",
         "G90 ; absolute positions",
-        f"G1 {name}{rounded[0]:.{_POSITION_DECIMALS}f} F{60 * axis.max_velocity_mm_s / 10:.0f}",
-        f"G4 P{_REST_S * 1e3:.0f}",
+        f"G1 {axis_name}{start:.{_POSITION_DECIMALS}f} F{60 * axis.max_velocity_mm_s / 10:.0f}",
+        *settings.apply(True, Modal()),
+        dwell_line(flavor, _REST_S)[0],
         _BEGIN,
+        *blocks,
+        _END,
+        *settings.restore(),
+        dwell_line(flavor, _REST_S)[0],
+        *(["M2"] if flavor == "linuxcnc" else []),
+        "",
     ]
-    last, last_k = rounded[0], 0
-    for k in range(1, len(rounded)):
-        if rounded[k] == last and k < len(rounded) - 1:
-            continue
-        if rounded[k] == last:  # the end, still at the start position: a dwell keeps the time
-            lines.append(f"G4 P{(k - last_k) * block_s * 1e3:.6f}")
-        else:
-            feed = 60 * abs(rounded[k] - last) / ((k - last_k) * block_s)
-            lines.append(f"G1 {name}{rounded[k]:.{_POSITION_DECIMALS}f} F{_fixed(feed)}")
-        last, last_k = rounded[k], k
-    lines += [_END, f"G4 P{_REST_S * 1e3:.0f}", ""]
-    return "\n".join(lines)
-
-
-def _fixed(value: float, significant: int = 9) -> str:
-    """``value`` in fixed point (G-code has no exponents) with ``significant`` digits."""
-    decimals = max(0, significant - 1 - math.floor(math.log10(value)))
-    return f"{value:.{decimals}f}"
+    return "\n".join(lines), warnings
 
 
 _WORD = re.compile(r"([A-Za-z])\s*([-+]?(?:\d+\.?\d*|\.\d+))")
 
 
 def read_sweep(path: str | Path, axis: str) -> Sweep:
-    """The commanded motion of a program written by ``sweep_program`` for ``axis``: the position
-    at the begin marker, then every G1 (time = length / F) and G4 (P ms) up to the end marker."""
+    """The motion of a program written by ``sweep_program`` for ``axis`` as written: the position
+    at the begin marker, then every G1 (time = length / F) and G4 (P: ms, on LinuxCNC s) up to
+    the end marker; and its header's band, flavor and machine."""
     try:
         text = Path(path).read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(path, None, f"cannot read: {exc}") from None
-    position = feed = band = None
+    position = feed = None
+    header = {"band": None, "flavor": "klipper", "machine": None}
     times, positions, inside, ended = [], [], False, False
     for lineno, line in enumerate(text.splitlines(), start=1):
         stripped = line.strip()
-        if band is None and (match := _BAND.match(stripped)):
-            band = float(match[1]), float(match[2])
+        for key, pattern in _HEADER.items() if not inside else ():
+            if match := pattern.match(stripped):
+                header[key] = match.groups() if key == "band" else match[1]
+        flavor = header["flavor"]
+        if flavor not in FLAVORS:
+            raise InputError(path, lineno, f"flavor {flavor!r}: expected one of {', '.join(FLAVORS)}")
         if stripped == _BEGIN:
             if position is None:
                 raise InputError(path, lineno, f"the sweep begins before any G1 {axis} sets the start position")
@@ -146,8 +189,8 @@ def read_sweep(path: str | Path, axis: str) -> Sweep:
         if 91 in codes:
             raise InputError(path, lineno, "G91: a sweep program is in absolute positions")
         if 4 in codes and inside:
-            dwell_ms = next((v for k, v in words if k == "P"), 0.0)
-            times.append(times[-1] + dwell_ms / 1e3)
+            dwell = next((v for k, v in words if k == "P"), 0.0)
+            times.append(times[-1] + (dwell if flavor == "linuxcnc" else dwell / 1e3))
             positions.append(position)
         elif {0, 1} & set(codes):
             target = next((v for k, v in words if k == axis), None)
@@ -163,6 +206,50 @@ def read_sweep(path: str | Path, axis: str) -> Sweep:
     if not ended:
         raise InputError(path, None, f"no sweep of axis {axis} between '{_BEGIN}' and '{_END}': "
                                      "not a program written by fbspost excite?")
-    if band is None:
+    if header["band"] is None:
         raise InputError(path, None, "no '; band: ... Hz to ... Hz' line")
-    return Sweep(axis, np.array(times), np.array(positions), *band)
+    start_hz, end_hz = (float(f) for f in header["band"])
+    return Sweep(axis, np.array(times), np.array(positions), start_hz, end_hz, flavor, header["machine"])
+
+
+def firmware_sweep(path: str | Path, axis: str, profile: MachineProfile) -> Sweep:
+    """The sweep program at ``path`` (checked by ``read_sweep``) as its firmware runs it:
+    ``firmware.replan`` of the whole program with ``profile`` for the flavor its header names,
+    ``axis``' position every 0.1 ms from the begin marker's time to the end of the sweep's last
+    block or dwell (times from the begin marker)."""
+    written = read_sweep(path, axis)
+    blocks = list(read_gcode(path, written.flavor, profile.home_mm))
+    # (finely: linear interpolation between samples a fraction of a block off the blocks' ends would
+    # low-pass the command, by 5% at 100 Hz at 1 kHz)
+    profile = replace(profile, sample_rate_hz=max(profile.sample_rate_hz, _PLAN_RATE_HZ))
+    motion = replan(blocks, profile, written.flavor)
+    marks = [b.raw.strip() for b in blocks]
+    begin, end = marks.index(_BEGIN.encode()), marks.index(_END.encode())
+    begin_s, end_s = _done_s(motion.line_time_s, blocks, 0, begin), _done_s(motion.line_time_s, blocks, begin, end)
+    fs = profile.sample_rate_hz
+    times_s = np.arange(int(math.ceil((end_s - begin_s) * fs)) + 1) / fs
+    grid_s = np.arange(len(motion.positions_mm)) / fs
+    positions_mm = np.interp(begin_s + times_s, grid_s, motion.positions_mm[:, AXES.index(axis)])
+    return replace(written, times_s=times_s, positions_mm=positions_mm)
+
+
+def _done_s(line_time_s: np.ndarray, blocks: list, first: int, stop: int) -> float:
+    """When the firmware is done with the lines ``first`` to ``stop`` - 1 (``line_time_s`` as
+    ``firmware.replan`` gives it): the end of their last motion or dwell (a stop's time is before
+    its dwell; Marlin, RRF: a line without motion is timed when the host sends it, ahead of the
+    motion, and a comment, not sent, not at all)."""
+    return float(np.nanmax([line_time_s[k] + (blocks[k].dwell_s if blocks[k].kind is Kind.STOP else 0.0)
+                            for k in range(first, stop)]))
+
+
+def commanded_sweep(path: str | Path, axis: str, machine: str | Path | None, lines: list[str]) -> Sweep:
+    """The sweep program at ``path`` as its firmware runs it (``firmware_sweep``) on the profile
+    ``machine`` (a bundled name or a file), else on the bundled profile its header names, else on
+    ``_DEFAULT_PROFILE`` (the program's own settings; said in ``lines``)."""
+    if machine is None:
+        machine = read_sweep(path, axis).machine
+        if machine not in bundled_profiles():
+            lines.append(f"{Path(path).name}: no --machine and no bundled profile named in it: planned as its "
+                         f"firmware runs it with the program's own settings on the profile {_DEFAULT_PROFILE}")
+            machine = _DEFAULT_PROFILE
+    return firmware_sweep(path, axis, load_profile(machine))

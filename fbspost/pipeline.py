@@ -247,7 +247,7 @@ def _compensate(read_path, input_path, output_path, profile, options, flavor, pr
         ),
         firmware=FirmwareSettings.from_profile(profile),
         max_line_rate_hz=profile.firmware.max_line_rate_hz,
-        **_marlin_steps(profile, flavor),
+        **marlin_steps(profile, flavor),
     )
     stats = []
     executed = ExecutedError(compensators, plan.runs)
@@ -467,7 +467,7 @@ def compensated_samples(plan: Plan, profile: MachineProfile, options: Compensate
     return np.concatenate([command for _, command in chunks] or [np.zeros((0, len(AXES)))])
 
 
-def _marlin_steps(profile: MachineProfile, flavor: str) -> dict:
+def marlin_steps(profile: MachineProfile, flavor: str) -> dict:
     """The writer's options for Marlin's merge of short blocks (steps per mm X Y Z E, 0 where the
     profile does not give them), none for other flavors or without steps."""
     steps = profile.firmware.steps_per_mm

@@ -16,6 +16,7 @@ carry their rounding residues, so nothing accumulates.
 from __future__ import annotations
 
 import bisect
+import io
 import math
 import re
 from collections.abc import Iterable
@@ -807,8 +808,7 @@ class _RunWriter:
                  settings: Transparency | None, executed=None):
         self._plan, self._samples, self._options, self._out, self._settings = plan, samples, options, output, settings
         self._fs = fs = plan.sample_rate_hz
-        # The line rate: blocks no shorter than a line's share of it, a tenth of it left to the copied lines
-        min_segment_s = max(options.min_segment_time_s, 1.0 / (0.9 * (options.max_line_rate_hz or math.inf)))
+        min_segment_s = max(options.min_segment_time_s, shortest_line_s(options.max_line_rate_hz))
         self._min_samples = max(1, int(np.ceil(min_segment_s * fs - 1e-9)))
         self.deviation = _Deviation(samples, fs, options.tolerance_mm, executed)
         self.emitter: _Emitter | None = None
@@ -862,15 +862,10 @@ class _RunWriter:
             if ends[-1] == stop_s and end_exact_mm is not None and not soft:
                 exact = np.where(np.isnan(end_exact_mm), samples.at(ends[-1:], fs, planned=True)[0], end_exact_mm)
                 targets[-1, follows_plan] = exact[follows_plan]
-            # blocks that round to no motion at a run's start: a dwell, not a slow first block
-            still = emitter.still(targets[:-1]) if run_start else 0
+            still = _still_as_dwell(emitter, out.dwell, from_s, ends, targets, self.latency_s) if run_start else 0
             if still:
-                span_s = ends[still - 1] - from_s
-                dwell_s, late_s = _start_dwell(out.dwell, span_s + emitter.residue_s, self.latency_s)
-                if dwell_s > 0:
-                    emitter.residue_s += span_s - dwell_s - late_s
-                    from_s, ends, targets = ends[still - 1], ends[still:], targets[still:]
-                    curves = None if curves is None else curves[still:]
+                from_s, ends, targets = ends[still - 1], ends[still:], targets[still:]
+                curves = None if curves is None else curves[still:]
             text, count = emitter.blocks(targets, np.diff(np.append(from_s, ends)), ends, curves,
                                          exact_last=ends[-1] >= stop_s)
             out.text(text, count)
@@ -1101,6 +1096,49 @@ def _start_dwell(dwell, rest_s: float, latency_s: float | None) -> tuple[float, 
     if latency_s is not None and dwell_line("marlin", rest_s - latency_s)[1] > 0:
         return dwell(rest_s - latency_s), latency_s
     return dwell(rest_s), 0.0
+
+
+def shortest_line_s(max_line_rate_hz: float | None) -> float:
+    """The shortest block at a line rate (None: no limit): a line's share of 90% of it, the rest
+    left to the other lines (the copied ones), so that the host stays ahead of the firmware."""
+    return 1.0 / (0.9 * (max_line_rate_hz or math.inf))
+
+
+def _still_as_dwell(emitter: _Emitter, dwell, from_s: float, ends_s: np.ndarray, targets_mm: np.ndarray,
+                    latency_s: float | None) -> int:
+    """At a run's start (from ``from_s``), the first blocks (ends ``ends_s``, ``targets_mm``) that round
+    to no motion as a dwell (``dwell``: writes one for about the seconds given, gives how long it
+    dwells), not as a slow first block: how many it stands for (0: none, or the dwell rounds to none)."""
+    still = emitter.still(targets_mm[:-1])
+    if still:
+        span_s = ends_s[still - 1] - from_s
+        dwell_s, late_s = _start_dwell(dwell, span_s + emitter.residue_s, latency_s)
+        if dwell_s > 0:
+            emitter.residue_s += span_s - dwell_s - late_s
+            return still
+    return 0
+
+
+def timed_blocks(command_mm: np.ndarray, block_s: float, options: WriteOptions) -> list[str]:
+    """The lines that run a sampled command (rows X Y Z E, machine mm, one every ``block_s``; at
+    rest at the first row, where the firmware is) as blocks of ``block_s`` each on
+    ``options.flavor``'s firmware, made transparent by ``options.firmware``'s ``Transparency``
+    (whose lines the caller writes around them): F from each block's time with the residues and
+    ramps carried, Marlin's whole steps and merge with ``options``' steps (``_Emitter``), a dwell
+    for the first blocks that round to no motion and one for the time left at the end (the ramp
+    down to rest)."""
+    ramp_mm_s2 = math.inf if options.firmware is None else \
+        Transparency(options.flavor, options.firmware, options.tolerance_mm).ramp_mm_s2
+    steps = None if options.steps_per_mm is None else np.asarray(options.steps_per_mm)
+    emitter = _Emitter(command_mm[0], b"\n", steps, options.min_steps_per_segment, ramp_mm_s2, options.axis_modes)
+    text = io.BytesIO()
+    out = _Output(text, options.flavor)
+    ends_s, targets_mm = np.arange(1, len(command_mm)) * block_s, command_mm[1:]
+    still = _still_as_dwell(emitter, out.dwell, 0.0, ends_s, targets_mm, None)
+    from_s = ends_s[still - 1] if still else 0.0
+    out.text(*emitter.blocks(targets_mm[still:], np.diff(np.append(from_s, ends_s[still:])), ends_s[still:]))
+    out.dwell(emitter.residue_s - emitter.speed_mm_s / (2.0 * emitter.ramp_mm_s2))  # (as a stop, then a run's end)
+    return text.getvalue().decode().splitlines()
 
 
 def _copied_sample(line_time_s: float, is_stop: bool, fs: float, previous: int) -> int:

@@ -1,4 +1,4 @@
-"""fbspost identify and excite against known models.
+"""fbspost identify against known models (excite's sweep as the firmware runs it: test_excite.py).
 
 Truths used: frequency responses computed here from the modal formula of models chosen here
 (the patent's Table 1 axes and two others), scipy's continuous-time simulation of the true model
@@ -29,7 +29,7 @@ from fbspost.identify import fit_frf
 from fbspost.optimizer import AxisLimits, compensate_axis
 from fbspost.planner import plan_blocks
 from fbspost.profile import Mode, load_profile
-from reference import execute, finite_derivative_max, rms, sample_blocks, simulate_lsim
+from reference import execute, rms, sample_blocks, simulate_lsim
 
 MACHINES = Path(__file__).resolve().parents[1] / "machines"
 PATENT = load_profile("patent-xy-stage")
@@ -247,7 +247,7 @@ def test_identified_x_profile_removes_99_5_percent_of_butterfly_error(butterfly_
     assert max(with_fitted) <= 0.005 * uncompensated
 
 
-# ---- excite -> recording -> identify ---------------------------------------------------------------
+# ---- a recording of excite's sweep: usable or not ---------------------------------------------------------------
 
 def executed(program: Path, fs: float) -> np.ndarray:
     """The X positions of ``program`` run as written by the reference executor, every 1 / fs."""
@@ -260,8 +260,9 @@ def retimed(program: Path, fs: float) -> np.ndarray:
     """The X positions of ``program`` as Klipper's planner runs it with its acceleration limited
     to 10000 mm/s^2 (fbspost's model of it), every 1 / fs: blocks of 1 ms whose speeds change
     faster than that are stretched, so the motion is not the program's in time."""
-    limited = program.with_suffix(".limited.gcode")
-    limited.write_text("SET_VELOCITY_LIMIT ACCEL=10000 MINIMUM_CRUISE_RATIO=0\n" + program.read_text())
+    limited = program.with_suffix(".limited.gcode")  # (the sweep's own SET_VELOCITY_LIMIT left out: an old sweep)
+    text = "".join(line for line in program.read_text().splitlines(True) if not line.startswith("SET_VELOCITY_LIMIT"))
+    limited.write_text("SET_VELOCITY_LIMIT ACCEL=10000 MINIMUM_CRUISE_RATIO=0\n" + text)
     profile = replace(load_profile("printer-two-mode"), sample_rate_hz=fs)
     plan = plan_blocks(read_gcode(limited, "klipper"), profile, firmware="klipper")
     return plan.samples(0, plan.n_samples)[:, 0]
@@ -293,27 +294,6 @@ def simulated_recording(program: Path, log: Path, modes, offset_s=1234.5678, rat
 def dwells_s(text: str) -> float:
     """The G4 P (ms) dwells in a program's text, s: the executor times them."""
     return sum(float(ms) / 1e3 for ms in re.findall(r"^G4 P([\d.]+)", text, re.M))
-
-
-@pytest.mark.slow
-def test_round_trip_excite_record_identify_within_5_percent(tmp_path):
-    program, log, profile = tmp_path / "sweep.gcode", tmp_path / "raw_data.csv", tmp_path / "id.toml"
-    result = run("excite", "--machine", "patent-xy-stage", "--axis", "X", "--center", 50, "--end-hz", 100,
-                 "-o", program)
-    assert result.exit_code == 0, result.output
-    true_modes = PATENT.axes["X"].modes
-    sweep_start_s = simulated_recording(program, log, true_modes)
-    result = run("identify", "--accel-log", log, "--program", program, "--axis", "X", "-o", profile,
-                 "--merge", MACHINES / "patent-xy-stage.toml")
-    assert result.exit_code == 0 and "warning" not in result.output, result.output
-    f = np.linspace(5.0, 100.0, 4000)
-    g_true = true_frf(true_modes, f)
-    error = np.abs(true_frf(load_profile(profile).axes["X"].modes, f) - g_true).max() / np.abs(g_true).max()
-    start = float(result.output.split("the sweep starts at ")[1].split()[0])
-    print(f"round trip: max FRF error {100 * error:.3f}% of the peak; sweep start found "
-          f"{1e3 * (start - sweep_start_s):+.3f} ms off")
-    assert error <= 0.05
-    assert abs(start - sweep_start_s) < 2e-4  # found to a fraction of a recording sample (0.31 ms)
 
 
 BELT_AXIS = unit_modes((52.0, 0.07, 1.0, 0.14))  # one base-excited mode: issue 30's printer X
@@ -369,27 +349,6 @@ def test_sweep_run_as_written_is_identified_without_warning(printer_sweep, tmp_p
     assert mode.frequency_hz == pytest.approx(52.0, rel=0.005) and mode.damping == pytest.approx(0.07, rel=0.03)
     assert mode.beta == pytest.approx(BELT_AXIS[0].beta, rel=0.05)
     assert (mode.frequency_tolerance, mode.damping_tolerance) == (0.02, 0.05)
-
-
-def test_excite_program_keeps_the_limits_and_rests_at_the_centre(tmp_path):
-    program = tmp_path / "sweep.gcode"
-    result = run("excite", "--machine", "bedslinger-example", "--axis", "Y", "--center", 110, "-o", program,
-                 "--duration", 10, "--amplitude", 2)
-    assert result.exit_code == 0, result.output
-    axis = load_profile("bedslinger-example").axes["Y"]
-    text = program.read_text().replace("Y", "X")  # the executor records once X and Y are known
-    (tmp_path / "x.gcode").write_text("G1 Y0 F600\n" + text)
-    t, pos = sample_blocks(execute(tmp_path / "x.gcode", 1000.0).ends, 1000.0)
-    y = pos[:, 0]
-    last_move = text[:text.rindex("\nG1 ")]
-    assert t[-1] == pytest.approx(11.0 + dwells_s(last_move), abs=2e-3)  # 10 s, two 0.5 s ramps and the dwells
-    assert y[0] == y[-1] == 110.0
-    assert finite_derivative_max(y, 1, 1e-3) <= axis.max_velocity_mm_s * (1 + 1e-6)
-    assert finite_derivative_max(y, 2, 1e-3) <= axis.max_acceleration_mm_s2 * (1 + 1e-3)
-    assert np.abs(y - 110.0).max() == pytest.approx(2.0, rel=1e-3)  # the amplitude where the limits allow it
-    # near 120 Hz the acceleration limit sets the amplitude: 90% of a / w^2
-    late = np.abs(y[-560:-500] - 110.0).max()  # the last 60 ms before the final ramp, about 119 Hz
-    assert late == pytest.approx(0.9 * axis.max_acceleration_mm_s2 / (2 * math.pi * 119.0) ** 2, rel=0.03)
 
 
 # ---- Klipper ---------------------------------------------------------------------------------------
@@ -542,19 +501,12 @@ def test_bad_input_one_line_exit_1_nothing_written(tmp_path, monkeypatch, name, 
     monkeypatch.chdir(tmp_path)
     Path(name).write_text(text)
     assert run("excite", "--machine", "bedslinger-example", "--axis", "X", "--center", 0, "--duration", 2,
-               "-o", "sweep.gcode").exit_code == 0
+               "--end-hz", 60, "-o", "sweep.gcode").exit_code == 0
     result = CliRunner().invoke(main, ["identify", *args, name, "--axis", "X", "-o", "out.toml"])
     assert result.exit_code == 1, result.output
     assert result.output.startswith(f"error: {name}{where}"), result.output
     assert result.output.count("\n") == 1 and "Traceback" not in result.output
     assert not Path("out.toml").exists()
-
-
-def test_excite_unknown_axis_is_one_line_error(tmp_path):
-    result = run("excite", "--machine", "bedslinger-example", "--axis", "A", "--center", 0, "-o", tmp_path / "s.gcode")
-    assert result.exit_code == 1 and result.output.startswith("error: ") and "axes.A" in result.output
-    assert result.output.count("\n") == 1
-    assert not (tmp_path / "s.gcode").exists()
 
 
 def test_written_profile_reads_back_exactly(tmp_path):
