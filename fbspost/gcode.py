@@ -132,6 +132,7 @@ class PlannerLimits:
     minimum_cruise_ratio: float | None = None  # Klipper SET_VELOCITY_LIMIT MINIMUM_CRUISE_RATIO
     accel_to_decel_mm_s2: float | None = None  # Klipper SET_VELOCITY_LIMIT ACCEL_TO_DECEL (before 2024)
     axis_max_velocity_mm_s: dict[str, float] = field(default_factory=dict)  # M203
+    min_feed_mm_s: float | None = None  # RepRapFirmware M203 I: the slowest a move runs
     axis_max_acceleration_mm_s2: dict[str, float] = field(default_factory=dict)  # M201
 
 
@@ -496,11 +497,12 @@ class _Commands:
         if m == 201.0 or m == 203.0:
             factor = scale / 60.0 if (m == 203.0 and flavor == "reprap") else scale
             axes = {a: x for a in AXES if (x := value(a, factor)) is not None}
-            if not axes:
+            slowest = value("I", factor) if (m == 203.0 and flavor == "reprap") else None
+            if not axes and slowest is None:
                 return None
             if m == 201.0:
                 return PlannerLimits(axis_max_acceleration_mm_s2=axes)
-            return PlannerLimits(axis_max_velocity_mm_s=axes)
+            return PlannerLimits(axis_max_velocity_mm_s=axes, min_feed_mm_s=slowest)
         if m == 205.0:
             j = value("J", scale)
             jerks = [x for a in "XY" if (x := value(a, scale, zero_ok=True)) is not None]

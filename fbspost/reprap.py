@@ -19,7 +19,7 @@ M203, M204, M566, M595, "Motion system"):
   vector u is the move per mm of length, E included.
 - acceleration: min over the moving drives of M201 / |u| (VectorBoxIntersection), and for moves
   with X or Y motion at most M204 P (printing: XY with E forward) or T.
-- speed: F, at least M203 I (0.5 mm/s), at most min over the moving drives of M203 / |u|.
+- speed: F, at least M203 I (0.5 mm/s; the program's, at least 0.01), at most min over the moving drives of M203 / |u|.
 - junction (MatchSpeeds): at most M566 / |u - u_before| on every drive (E included), and at
   most both moves' speeds. Jerk policy 0 (M566 P0, the default): moves meld only when both or
   neither print, move XY, or extrude alone; else the first stops.
@@ -63,6 +63,7 @@ _M566 = re.compile(rb"^\s*(?:[Nn]\s*\d+\s*)?[Mm]\s*0*566(?![\d.])([^;(]*)")
 _WORD = re.compile(rb"([A-Za-z])\s*([-+]?[\d.]+)")
 _JERK_MM_S = {"Z": 10.0, "E": 5.0}  # DefaultZInstantDv, DefaultEInstantDv; other axes DefaultAxisInstantDv
 _AXIS_JERK_MM_S = 15.0
+MIN_FEED_FLOOR_MM_S = 0.01  # the lowest M203 I RRF takes (Platform::SetMinMovementSpeed)
 STEP_CLOCK_HZ = 750_000.0  # StepClockRate, 48 MHz / 64 on every Duet 3
 
 
@@ -75,7 +76,7 @@ class ReprapConfig:
     ring_length: int = 50  # DdaRingLength (M595 P)
     line_rate_hz: float | None = None  # lines the host sends per second (None: SD card)
     jerk_policy: int = 0  # M566 P
-    min_speed_mm_s: float = 0.5  # M203 I (DefaultMinFeedrate)
+    min_speed_mm_s: float = 0.5  # M203 I (DefaultMinFeedrate), until the program sets it
     prepare_ahead_s: float = 0.1  # UsualMinimumPreparedTime
     grace_s: float = 0.01  # DefaultGracePeriod (M595 R)
     min_ramp_s: float = 10.0 / STEP_CLOCK_HZ  # MinimumAccelOrDecelClocks
@@ -120,7 +121,7 @@ class _Moves:
         accel = _axis_limited(np.array(rows["axis_a"]).reshape(-1, _NA), u)
         m204 = np.where(printing, rows["print_a"], rows["travel_a"])
         accel = np.where(xy, np.minimum(accel, m204), accel)
-        speed = np.minimum(np.maximum(rows["feed"], config.min_speed_mm_s),
+        speed = np.minimum(np.maximum(rows["feed"], rows["min_feed"]),
                            _axis_limited(np.array(rows["axis_v"]).reshape(-1, _NA), u))
         jerk = np.array(rows["jerk"]).reshape(-1, _NA)
         step = np.abs(np.diff(u, axis=0, prepend=np.nan))
@@ -157,11 +158,14 @@ def _read(blocks: list[Block], profile: MachineProfile, config: ReprapConfig):
     state = _LimitState(profile)
     jerk, policy = np.array(config.jerk_mm_s), config.jerk_policy
     rows = {k: [] for k in ("start", "end", "line", "feed", "print_a", "travel_a", "axis_a", "axis_v", "jerk",
-                            "policy")}
+                            "policy", "min_feed")}
     lines = []
+    min_feed = config.min_speed_mm_s
     for index, block, pieces in commanded_pieces(blocks):
         if block.limits is not None:
             state.apply(block.limits, block.line_no)
+            if block.limits.min_feed_mm_s is not None:  # M203 I (Platform::SetMinMovementSpeed: at least 0.01)
+                min_feed = max(block.limits.min_feed_mm_s, MIN_FEED_FLOOR_MM_S)
         m566 = _M566.match(block.raw)
         if m566:
             for letter, value in _WORD.findall(m566.group(1).upper()):
@@ -173,7 +177,7 @@ def _read(blocks: list[Block], profile: MachineProfile, config: ReprapConfig):
         travel = state.accel if math.isnan(state.travel_accel) else state.travel_accel
         for start, end in pieces:
             for key, value in zip(rows, (start, end, index, block.feed_mm_s, state.accel, travel, state.axis_a.copy(),
-                                         state.axis_v.copy(), jerk.copy(), policy), strict=True):
+                                         state.axis_v.copy(), jerk.copy(), policy, min_feed), strict=True):
                 rows[key].append(value)
     return rows, lines
 

@@ -41,6 +41,8 @@ KLIPPER_SCV_MM_S = 1e4
 STEPPED_ACCEL_MM_S2 = 1e6  # Marlin, RepRapFirmware
 MARLIN_JUNCTION_DEVIATION_MM = 0.3
 JERK_MM_S = 1000.0  # Marlin M205 X Y, RepRapFirmware M566 (mm/min there)
+RRF_MIN_FEED_MM_S = 0.01  # RepRapFirmware M203 I: the lowest it takes (its default 0.5 runs slow blocks fast)
+RRF_DEFAULT_MIN_FEED_MM_S = 0.5  # DefaultMinFeedrate, restored where the program sets none
 _SHAPED_AXES = "XY"
 # Marlin and RRF limit a printing block's acceleration by M201 E / (E per mm) too (planner.cpp
 # LIMIT_ACCEL; RRF: per drive, E included): about 5000 / 0.033 mm/s^2, whose ramps would slow
@@ -67,6 +69,7 @@ class FirmwareSettings:
     axis_max_acceleration_mm_s2: dict[str, float] = field(default_factory=dict)  # M201
     shaper_frequency_hz: dict[str, float] = field(default_factory=dict)  # input shaping per axis
     blend_words: str = "G64"  # LinuxCNC: the program's blending mode, as it wrote it
+    min_feed_mm_s: float | None = None  # RepRapFirmware M203 I (None: its default)
 
     @classmethod
     def from_profile(cls, profile: MachineProfile) -> FirmwareSettings:
@@ -91,7 +94,8 @@ class FirmwareSettings:
             travel_acceleration_mm_s2=_first(limits.travel_acceleration_mm_s2, self.travel_acceleration_mm_s2),
             square_corner_velocity_mm_s=_first(limits.square_corner_velocity_mm_s, self.square_corner_velocity_mm_s),
             junction_deviation_mm=_first(limits.junction_deviation_mm, self.junction_deviation_mm),
-            axis_max_acceleration_mm_s2={**self.axis_max_acceleration_mm_s2, **limits.axis_max_acceleration_mm_s2})
+            axis_max_acceleration_mm_s2={**self.axis_max_acceleration_mm_s2, **limits.axis_max_acceleration_mm_s2},
+            min_feed_mm_s=_first(limits.min_feed_mm_s, self.min_feed_mm_s))
 
 
 def _first(*values):
@@ -196,8 +200,9 @@ def _transparent_limits(flavor: str, tolerance: float) -> list[str]:
     stepped = [f"M201 X{accel} Y{accel} E{accel}", f"M204 P{accel} T{accel}"]
     if flavor == "marlin":
         return stepped + [f"M205 B0 J{_num(MARLIN_JUNCTION_DEVIATION_MM, 3)} X{_num(JERK_MM_S)} Y{_num(JERK_MM_S)}"]
-    if flavor == "reprap":
-        return stepped + [f"M566 X{_num(JERK_MM_S * 60)} Y{_num(JERK_MM_S * 60)}"]
+    if flavor == "reprap":  # M203 I: RRF runs a move at 0.5 mm/s at least, the slowest blocks too fast
+        return stepped + [f"M566 X{_num(JERK_MM_S * 60)} Y{_num(JERK_MM_S * 60)}",
+                          f"M203 I{_num(RRF_MIN_FEED_MM_S * 60, 3)}"]
     # LinuxCNC: blend within the tolerance, never stop; Q0: no naive-CAM merging of the blocks
     # (Q is P when not given, and merged blocks would lose their speeds)
     return [f"G64 P{_num(tolerance, 6)} Q0"]
@@ -233,7 +238,8 @@ def _program_limits(flavor: str, program: FirmwareSettings) -> list[str]:
         return lines + [f"M204 P{accel} T{travel}", f"M205 {' '.join(words)}"]
     if flavor == "reprap":
         jerk = [f"M566 X{_num(scv * 60, 3)} Y{_num(scv * 60, 3)}"] if scv is not None else []
-        return lines + [f"M204 P{accel} T{travel}"] + jerk
+        slowest = _first(program.min_feed_mm_s, RRF_DEFAULT_MIN_FEED_MM_S)
+        return lines + [f"M204 P{accel} T{travel}"] + jerk + [f"M203 I{_num(slowest * 60, 3)}"]
     return [program.blend_words]
 
 

@@ -143,3 +143,11 @@ def test_move_prepared_100_ms_before_it_is_needed(tmp_path, rate, exit_mm_s):
     assert motion.exit_mm_s[0] == 0.0
     assert motion.exit_mm_s[1] == exit_mm_s
     assert motion.start_s[1] == pytest.approx(2 / rate + GRACE + rest_to_rest_s(100.0, 100.0), rel=1e-12)
+
+
+@pytest.mark.parametrize(("line", "speed_mm_s"), [(None, 0.5), ("M203 I6", 0.1), ("M203 I0.12", 0.01)])
+def test_slowest_move_is_m203_i(tmp_path, line, speed_mm_s):
+    """1 mm at F0.3 (0.005 mm/s): RRF runs it at M203 I at least (mm/min; 0.5 mm/s by default,
+    never below 0.01 mm/s), 1 mm at that speed plus its two ramps."""
+    motion = run(tmp_path, [line, "G1 X1 F0.3"] if line else ["G1 X1 F0.3"])
+    assert motion.duration_s == pytest.approx(GRACE + rest_to_rest_s(1.0, speed_mm_s), rel=1e-9)

@@ -20,7 +20,7 @@ TRANSPARENT = {
     "klipper": ["SET_VELOCITY_LIMIT ACCEL=100000000 ACCEL_TO_DECEL=100000000 MINIMUM_CRUISE_RATIO=0 "
                 "SQUARE_CORNER_VELOCITY=10000"],
     "marlin": ["M201 X1000000 Y1000000 E1000000", "M204 P1000000 T1000000", "M205 B0 J0.3 X1000 Y1000"],
-    "reprap": ["M201 X1000000 Y1000000 E1000000", "M204 P1000000 T1000000", "M566 X60000 Y60000"],
+    "reprap": ["M201 X1000000 Y1000000 E1000000", "M204 P1000000 T1000000", "M566 X60000 Y60000", "M203 I0.6"],
     "linuxcnc": ["G64 P0.001 Q0"],
 }
 SHAPING_OFF = {"klipper": ["SET_INPUT_SHAPER SHAPER_FREQ_X=0 SHAPER_FREQ_Y=0"], "marlin": ["M593 F0"],
@@ -50,7 +50,8 @@ def test_lines_per_flavor(flavor):
             "SET_INPUT_SHAPER SHAPER_FREQ_X=52 SHAPER_FREQ_Y=34.5",
         ],
         "marlin": ["M201 X4000", "M204 P1500 T2500", "M205 B20000 J0.02 X5 Y5", "M593 X F52", "M593 Y F34.5"],
-        "reprap": ["M201 X4000", "M204 P1500 T2500", "M566 X300 Y300"],  # (its shaper type is not known)
+        # (its shaper type is not known; M203 I: RRF's default 0.5 mm/s, the program set none)
+        "reprap": ["M201 X4000", "M204 P1500 T2500", "M566 X300 Y300", "M203 I30"],
         "linuxcnc": ["G61"],
     }[flavor]
     assert t.restore() == restored
