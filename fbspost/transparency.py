@@ -159,7 +159,7 @@ class Transparency:
         ``at_rest``: the machine is at rest there (shaping may be switched)."""
         lines = []
         if not self.limits_set:
-            lines += _transparent_limits(self.flavor, self.tolerance_mm / (25.4 if modal.inches else 1.0))
+            lines += transparent_limits(self.flavor, self.tolerance_mm / (25.4 if modal.inches else 1.0))
             self.limits_set = True
         if at_rest:
             lines += self.shaping_off_lines()
@@ -192,7 +192,9 @@ class Transparency:
         return "".join(a for a in _SHAPED_AXES if a not in known)
 
 
-def _transparent_limits(flavor: str, tolerance: float) -> list[str]:
+def transparent_limits(flavor: str, tolerance: float) -> list[str]:
+    """The lines that raise the firmware's limits around the compensated motion, in ``flavor``'s
+    syntax (``tolerance``: LinuxCNC's G64 P, in the program's units)."""
     if flavor == "klipper":
         return [f"SET_VELOCITY_LIMIT ACCEL={_num(KLIPPER_ACCEL_MM_S2)} ACCEL_TO_DECEL={_num(KLIPPER_ACCEL_MM_S2)} "
                 f"MINIMUM_CRUISE_RATIO=0 SQUARE_CORNER_VELOCITY={_num(KLIPPER_SCV_MM_S)}"]

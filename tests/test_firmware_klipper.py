@@ -6,13 +6,15 @@ Truth: the speeds and times klippy's MoveQueue gives every move (start, cruise, 
 cruise, decel time), on the sliced prints of tests/data, both butterflies and fbspost's own dense
 compensated output of a sliced print; with Klipper's defaults (this klippy's max_accel_to_decel =
 accel / 2, and the newer minimum_cruise_ratio 0.5 as the harness applies it on this klippy) and
-with the transparency settings the writer emits (ACCEL=1000000, no smoothing, SQUARE_CORNER_VELOCITY
-50). Equal to floating-point precision: fbspost's passes are vectorized, klippy's sequential.
+with the transparency settings the writer emits (taken from the writer: ACCEL 1e8, no smoothing,
+SQUARE_CORNER_VELOCITY 1e4). Equal to floating-point precision: fbspost's passes are vectorized,
+klippy's sequential.
 """
 from __future__ import annotations
 
 import dataclasses
 import itertools
+import re
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +24,7 @@ from fbspost.gcode import Kind, detect_flavor, read_gcode
 from fbspost.pipeline import CompensateOptions, compensate_file
 from fbspost.planner import PlanStream, plan_blocks
 from fbspost.profile import load_profile
+from fbspost.transparency import transparent_limits
 from klippy_planner import KlippyPlanner, klippy_or_skip
 from reference import unbudgeted
 
@@ -33,8 +36,8 @@ PROGRAMS = [("tests/data/gear-marlin2.gcode", "printer-two-mode", 3000),
             ("tests/data/bracket-reprapfirmware-relative-e.gcode", "printer-two-mode", 3000),
             ("samples/butterfly-polyline.gcode", "patent-xy-stage", 3400),
             ("samples/butterfly-dense.gcode", "patent-xy-stage", 3000)]
-TRANSPARENT = {"ratio": "SET_VELOCITY_LIMIT ACCEL=1000000 MINIMUM_CRUISE_RATIO=0 SQUARE_CORNER_VELOCITY=50\n",
-               "fixed": "SET_VELOCITY_LIMIT ACCEL=1000000 ACCEL_TO_DECEL=1000000 SQUARE_CORNER_VELOCITY=50\n"}
+# the writer's line, as it writes it (the tolerance is LinuxCNC's only)
+TRANSPARENT = "".join(line + "\n" for line in transparent_limits("klipper", 0.01))
 
 
 @pytest.fixture(scope="module")
@@ -114,10 +117,19 @@ def test_plan_is_klippys(tmp_path, klippy, name, profile, lines, smoothing):
 @pytest.mark.parametrize("smoothing", ["fixed", "ratio"])
 @pytest.mark.parametrize("name,profile,lines", PROGRAMS[::3], ids=[Path(p[0]).stem for p in PROGRAMS[::3]])
 def test_plan_is_klippys_with_transparency_settings(tmp_path, klippy, name, profile, lines, smoothing):
-    """The same with the writer's transparency settings in force from the first line."""
-    path = program(tmp_path, name, lines, TRANSPARENT[smoothing])
+    """The same with the writer's transparency settings in force from the first line. They serve
+    both Klipper generations: after them klippy's planner (``fixed``: its own ACCEL_TO_DECEL;
+    ``ratio``: the newer MINIMUM_CRUISE_RATIO) decelerates as hard as it accelerates, at ACCEL."""
+    path = program(tmp_path, name, lines, TRANSPARENT)
     blocks = list(read_gcode(path, "klipper"))
-    assert_same_motion(blocks, with_smoothing(load_profile(profile), smoothing), klippy)
+    profile = with_smoothing(load_profile(profile), smoothing)
+    head = KlippyPlanner(profile, klippy)
+    for block in blocks[:len(TRANSPARENT.splitlines())]:
+        head.command(block)
+    words = dict(re.findall(r"(\w+)=(\S+)", TRANSPARENT))
+    assert head.toolhead.max_accel == head.toolhead.max_accel_to_decel == float(words["ACCEL"])
+    assert head.toolhead.square_corner_velocity == float(words["SQUARE_CORNER_VELOCITY"])
+    assert_same_motion(blocks, profile, klippy)
 
 
 @pytest.fixture(scope="module")
@@ -142,9 +154,7 @@ def test_plan_of_dense_output_is_klippys(klippy, compensated, smoothing):
 @pytest.mark.parametrize("batch", [13, 211])
 def test_klipper_plan_streams_exactly(tmp_path, batch):
     """The plan with Klipper's rules is bit for bit the same however the program is cut."""
-    path = program(
-        tmp_path, "tests/data/gear-marlin2.gcode", 2500, TRANSPARENT["ratio"].replace("ACCEL=1000000", "ACCEL=2500")
-    )
+    path = program(tmp_path, "tests/data/gear-marlin2.gcode", 2500, re.sub(r"\bACCEL=\d+", "ACCEL=2500", TRANSPARENT))
     blocks = list(read_gcode(path, "klipper"))
     whole = plan_blocks(blocks, load_profile("printer-two-mode"), firmware="klipper")
     cut = plan_blocks(blocks, load_profile("printer-two-mode"), batch_blocks=batch, firmware="klipper")

@@ -45,12 +45,17 @@ def gain(program: Path, profile, compensated: Path):
 
 
 def keeps_the_gain(program: Path, profile, tmp_path: Path):
-    """The gain with the fallback is at least 90% of the gain without it; the simulation of the
-    written program with it, and its path."""
+    """Compensating gains (at least 5 times lower RMS contour error; 12 to 170 times on these
+    programs) and the gain with the fallback is at least 90% of the gain without it; the
+    simulation of the written program with it, and its path. Where the fallback changes no byte
+    its cost is 0: with the default margins it finds nothing to undo in any of these programs
+    (2026-11), so the 90% is checked only once it acts (where it does: test_fallback.py)."""
     on, off = (written(program, profile, fallback, tmp_path) for fallback in (True, False))
     with_fallback, sim = gain(program, profile, on)
-    without = with_fallback if on.read_bytes() == off.read_bytes() else gain(program, profile, off)[0]
-    assert with_fallback >= 0.9 * without, f"{with_fallback:.3g}x with the fallback, {without:.3g}x without"
+    assert with_fallback >= 5.0, f"{with_fallback:.3g}x with the fallback"
+    if on.read_bytes() != off.read_bytes():
+        without = gain(program, profile, off)[0]
+        assert with_fallback >= 0.9 * without, f"{with_fallback:.3g}x with the fallback, {without:.3g}x without"
     return sim, on
 
 
@@ -66,19 +71,26 @@ def test_butterflies_keep_the_gain(make, scale, tmp_path):
 @pytest.mark.slow
 @pytest.mark.parametrize("source", PRINTS, ids=[p.stem for p in PRINTS])
 def test_prints_keep_the_gain_and_compensate_the_travel_after_homing(source, tmp_path):
-    """On the two-mode printer: the gain kept; where the program homes (G28), its first travel is
-    rewritten (not copied) and, from the start of that travel on, no contour error of the written
-    program is above the original's largest."""
+    """On the two-mode printer: the gain kept; where the program homes (G28), its first travel
+    after is rewritten (not copied); where it does not (the Klipper print homes in its
+    PRINT_START macro, which fbspost cannot read), its first XY travel starts from an unknown
+    position and is copied as written; no contour error of the written program is above the
+    original's largest."""
     program = tmp_path / source.name
     with open(source, "rb") as f:
         program.write_bytes(b"".join(itertools.islice(f, HEAD_LINES)))
     sim, out = keeps_the_gain(program, TWO_MODE, tmp_path)
     blocks = list(read_gcode(program, sim.flavor, TWO_MODE.home_mm))
     homed = [b.line_no for b in blocks if b.raw.lstrip().upper().startswith(b"G28")]
-    if not homed:  # (the Klipper print homes in its PRINT_START macro: positions unknown until set)
-        return
-    travel = next(b for b in blocks if b.line_no > homed[-1] and b.kind is Kind.MOVE and re.search(rb"[XY]", b.raw))
-    assert travel.raw not in out.read_bytes().splitlines(keepends=True), "the first travel was copied"
+    assert bool(homed) == (sim.flavor != "klipper")
+    after = homed[-1] if homed else 0
+    travel = next(b for b in blocks if b.line_no > after and b.kind in (Kind.MOVE, Kind.STOP)
+                  and re.search(rb"[XY]", b.raw.split(b";")[0]))
+    # homed: a move from home, planned and rewritten; else from an unknown position, which no
+    # model plans (fbspost reads it as a rest): copied
+    assert travel.kind is (Kind.MOVE if homed else Kind.STOP)
+    copied = travel.raw in out.read_bytes().splitlines(keepends=True)
+    assert copied == (not homed), f"the first travel {'was' if copied else 'was not'} copied"
     original, fbs = sim.methods
     assert fbs.path.max_contour_error_um <= original.path.max_contour_error_um
 

@@ -1,6 +1,8 @@
 """--verify: both programs re-planned on the firmware's planner before the output is committed;
 the original written unchanged where the output is no better there. (Its figures against
-Klipper's own planner: tests/test_output_klipper.py.)"""
+Klipper's own planner: tests/test_output_klipper.py.) The modelled motion against scipy.signal.lsim
+of the continuous modes, the contour error and PathDistance against a brute-force distance to every
+segment of the program as reference.execute reads it."""
 import dataclasses
 import os
 import resource
@@ -15,11 +17,14 @@ from click.testing import CliRunner
 
 from fbspost import pipeline
 from fbspost.cli import main
+from fbspost.firmware import replan
+from fbspost.gcode import read_gcode
 from fbspost.pipeline import CompensateOptions, compensate_file
 from fbspost.profile import load_profile
+from fbspost.reprap import commanded_pieces
 from fbspost.simulate import PathDistance
 from fbspost.verify import MAX_TIME_INCREASE, contour_um, modelled, printed_path
-from reference import serial
+from reference import execute, serial, simulate_lsim
 
 DATA = Path(__file__).resolve().parent / "data"
 
@@ -191,3 +196,91 @@ finally:
     print(max(resource.getrusage(who).ru_maxrss for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)),
           file=sys.stderr)
 """
+
+
+def gear_motion(tmp_path, lines=300):
+    """(profile, the gear's first ``lines`` as Klipper's rules plan them: X Y Z E per sample, its file)."""
+    profile, source = load_profile("printer-two-mode"), gear(tmp_path, lines)
+    command = replan(list(read_gcode(source, "klipper", profile.home_mm)), profile, "klipper").positions_mm[:, :4]
+    return profile, command, source
+
+
+def brute_distance(starts, ends, points):
+    """(distance, nearest point) from every point to every segment, the nearest kept."""
+    d = ends - starts
+    length2 = np.einsum("ij,ij->i", d, d)
+    distance, nearest = np.empty(len(points)), np.empty_like(points)
+    for k in range(0, len(points), 64):
+        p = points[k:k + 64, None, :]
+        u = np.clip(np.einsum("kij,ij->ki", p - starts, d) / np.where(length2 > 0, length2, 1.0), 0.0, 1.0)
+        on = starts + u[..., None] * d
+        gap = np.linalg.norm(p - on, axis=2)
+        best = gap.argmin(axis=1)
+        distance[k:k + 64], nearest[k:k + 64] = gap.min(axis=1), on[np.arange(len(best)), best]
+    return distance, nearest
+
+
+def extruding_segments(source):
+    """XYZ starts and ends of the moves that extrude, as an independent reader runs the program."""
+    ends = np.array(execute(source).ends)[:, 1:]
+    extruding = (np.diff(ends[:, 3]) > 0) & (np.linalg.norm(np.diff(ends[:, :3], axis=0), axis=1) > 0)
+    return ends[:-1][extruding, :3], ends[1:][extruding, :3]
+
+
+def test_modelled_is_lsim_of_the_modes(tmp_path):
+    """A sliced print's planned command, then a jump of 100 mm and the same again from there:
+    each part scipy.signal.lsim of the continuous modes from rest at its start (zero-order hold,
+    as the firmware's samples are held); Z and E, without modes, as commanded."""
+    profile, command, _ = gear_motion(tmp_path)
+    period_s = 1.0 / profile.sample_rate_hz
+    # (no jump inside the print: the planner keeps to the top speed, half the jump threshold)
+    assert np.abs(np.diff(command[:, :2], axis=0)).max() <= 300.0 * period_s * (1 + 1e-9)
+    parts = [command, command + [100.0, 50.0, 0.0, 0.0]]
+    actual = modelled(np.concatenate(parts), profile)
+    for axis, column in (("X", 0), ("Y", 1)):
+        modes = profile.axes[axis].modes
+        truth = np.concatenate([simulate_lsim(modes, period_s, part[:, column]) for part in parts])
+        assert np.abs(truth - np.concatenate(parts)[:, column]).max() > 0.01  # (the modes lag: a real check)
+        np.testing.assert_allclose(actual[:, column], truth, rtol=0, atol=1e-10)
+    assert np.array_equal(actual[:, 2:], np.concatenate(parts)[:, 2:])
+
+
+def test_path_distance_is_the_brute_force_distance(tmp_path):
+    """PathDistance on a sliced print's extruding moves: distance and nearest point of points
+    scattered around the path (0.7 mm sd) and over its box and 2 mm beyond, to every segment.
+    (The box's points are those whose 4 nearest piece middles can miss the nearest piece: the
+    search must widen for them.)"""
+    starts, stops = extruding_segments(gear(tmp_path, 300))
+    assert len(starts) > 150
+    rng = np.random.default_rng(7)
+    pick = rng.integers(len(starts), size=1500)
+    near = starts[pick] + rng.random(1500)[:, None] * (stops - starts)[pick] + rng.normal(0.0, 0.7, (1500, 3))
+    low, high = starts.min(axis=0) - 2.0, starts.max(axis=0) + 2.0
+    points = np.concatenate([near, low + rng.random((3000, 3)) * (high - low)])
+    distance, nearest = PathDistance(starts, stops)(points)
+    truth, truth_nearest = brute_distance(starts, stops, points)
+    np.testing.assert_allclose(distance, truth, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(nearest, truth_nearest, rtol=0, atol=1e-12)
+
+
+def test_contour_error_is_the_brute_force_distance_of_the_modelled_motion(tmp_path):
+    """verify's figures on a sliced print: the modelled motion (lsim of the modes) at the samples
+    whose E rises on both sides, its distance to every extruding segment of the program as an
+    independent reader runs it, brute force: RMS and max."""
+    profile, command, source = gear_motion(tmp_path)
+    blocks = list(read_gcode(source, "klipper", profile.home_mm))
+    pieces = [piece for _, _, p in commanded_pieces(blocks) for piece in p]
+    path, printer = printed_path(*(np.array(column)[:, :4] for column in zip(*pieces, strict=True)))
+    rms_um, max_um = contour_um(modelled(command, profile), command, path, printer)
+    period_s = 1.0 / profile.sample_rate_hz
+    actual = np.column_stack([simulate_lsim(profile.axes[a].modes, period_s, command[:, i])
+                              for i, a in enumerate("XY")])
+    e = command[:, 3]
+    printing = [k for k in range(1, len(e) - 1) if e[k - 1] < e[k] < e[k + 1]]
+    assert printer and len(printing) > 1000
+    points = np.column_stack([actual[printing], command[printing, 2]])
+    truth, _ = brute_distance(*extruding_segments(source), points)
+    # (1e-11 mm: the two simulations' rounding over 14000 samples)
+    assert max_um == pytest.approx(truth.max() * 1e3, rel=0, abs=1e-8)
+    assert rms_um == pytest.approx(np.sqrt(np.mean(truth**2)) * 1e3, rel=0, abs=1e-8)
+    assert 1.0 < rms_um < max_um  # (um: the modes' error is there to measure)

@@ -1,6 +1,7 @@
 """The writer through the whole pipeline on small programs, judged by the executor in
 reference.py: lines kept byte-exact, extrusion and end positions exact in every mode; its bulk
 number formatting against Decimal's text."""
+import itertools
 import math
 import re
 from decimal import Decimal
@@ -80,23 +81,25 @@ def test_lines_and_extrusion_exact(tmp_path, e_relative, xyz_relative, inches, n
     # The last motion ends exactly where the original's does.
     assert np.allclose(compensated.ends[-1][1:4], original.ends[-1][1:4], atol=1e-9)
     out = target.read_bytes()
-    # The program's last line, then only the motion of the settle margin (within 2 um of where the
-    # program ends; a dwell where it no longer moves) and the firmware's settings as the program left
-    # them (Marlin's: the profile's planner acceleration and corner speed as jerk, its default 20 ms).
-    tail = out[out.rindex(b"M107"):].split(newline.encode())
-    settling = [line for line in tail[1:] if line.startswith((b"G1 ", b"G4 P"))]
-    assert [line for line in tail[1:] if line and line not in settling] in (
-        [],
-        [b"M204 P3000 T3000", b"M205 B20000 X5 Y5"],
-    )
-    assert tail[0] == b"M107" and (tail[-1] == b"" or not final_newline and len(tail) == 1)
-    for line in settling:
-        for word in line.split()[1:]:
-            if word[:1] in b"XY":
-                assert (
-                    abs(float(word[1:]) * (25.4 if inches else 1.0) - original.ends[-1][1 + b"XY".index(word[:1])])
-                    <= 2e-3
-                )
+    lines = out.split(newline.encode())
+    # The program's lines after its last XY move (the retract, G92 E0, M107) end the output as
+    # written, after the firmware's settings as the program has them (restored before a move of E
+    # alone; Marlin's: the profile's planner acceleration and corner speed as jerk, its default
+    # 20 ms) and, before those, the motion of the settle margin (a dwell where it no longer moves).
+    restore = [b"M204 P3000 T3000", b"M205 B20000 X5 Y5"]
+    program_end = [line.encode() for line in square(e_relative, xyz_relative, inches)[-3:]] + [b""] * final_newline
+    at = len(lines) - len(restore) - len(program_end)
+    assert lines[at:] == restore + program_end
+    settling = list(itertools.takewhile(lambda line: line.startswith((b"G1 ", b"G4 P")) and b"E" not in line,
+                                        lines[at - 1::-1]))
+    moves = sum(line.startswith(b"G1 ") for line in settling)
+    assert moves >= 5
+    # That motion (the executor's ends: one per G1 line, the retract last; G91 words are relative)
+    # ends where the program does, to the written decimals, and stays within 10 um of it: the
+    # command's last approach after E stops and the settling of the ringing it cancels (9.5 um at
+    # most on this square; not within 2 um, as this test once said without checking it).
+    settle_xy = np.array(compensated.ends)[-1 - moves:-1, 1:3] - original.ends[-1][1:3]
+    assert np.abs(settle_xy[-1]).max() <= 1e-9 and np.abs(settle_xy).max() <= 10e-3
     if newline == "\r\n":
         assert out.count(b"\n") == out.count(b"\r\n")
 
