@@ -11,7 +11,7 @@ temporary file is removed and the destination is untouched; an ``OSError`` names
 from __future__ import annotations
 
 import os
-import tempfile
+import secrets
 from collections.abc import Callable
 from pathlib import Path
 from typing import IO
@@ -27,8 +27,15 @@ def atomic_write(path: str | Path, write: Callable[[IO[bytes]], None],
 
 
 def _replace(path: Path, write: Callable[[IO[bytes]], None], check: Callable[[Path], None] | None) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    tmp = None
     try:
+        # (named before it is made, so that an interrupt while it is made still finds it)
+        while tmp is None:
+            tmp = path.parent / f".{path.name}.{secrets.token_hex(6)}.tmp"
+            try:
+                fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o600)
+            except FileExistsError:  # (another writer's: not ours to remove)
+                tmp = None
         with os.fdopen(fd, "wb") as f:
             write(f)
             f.flush()
@@ -51,10 +58,11 @@ def _replace(path: Path, write: Callable[[IO[bytes]], None], check: Callable[[Pa
             os.chmod(tmp, old.st_mode & 0o7777)  # after chown, which clears set-id bits
         os.replace(tmp, path)
     except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
+        if tmp is not None:
+            try:
+                os.unlink(tmp)
+            except FileNotFoundError:
+                pass
         raise
     _sync_directory(path.parent)
 

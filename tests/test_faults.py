@@ -85,13 +85,29 @@ def test_unwritable_output_directory(program, unwritable_dir):
 def test_in_place_in_a_directory_that_refuses_new_files(program, monkeypatch):
     """In place, the temporary file goes beside the input: its directory refusing it (as a
     read-only directory does, for anyone but root) leaves the input as it was."""
-    def refuse(*args, **kwargs):
-        raise PermissionError(errno.EACCES, "Permission denied", str(kwargs.get("dir")))
+    def refuse(path, *args):
+        raise PermissionError(errno.EACCES, "Permission denied", str(path))
 
-    monkeypatch.setattr(atomicfile.tempfile, "mkstemp", refuse)
+    monkeypatch.setattr(atomicfile.os, "open", refuse)
     result = compensate(program)
     assert_nothing_lost(result.exit_code, result.stderr, program, SHORT,
                         words=f"error: {program}: cannot write: Permission denied")
+
+
+def test_interrupt_as_the_temporary_file_is_made_leaves_none(program, monkeypatch):
+    """Ctrl-C just after the temporary file came into being, before its maker returned: the file is
+    removed all the same (it was left behind when tempfile.mkstemp made it)."""
+    real_open = os.open
+
+    def made_then_interrupted(path, flags, mode=0o777):
+        os.close(real_open(path, flags, mode))
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(atomicfile.os, "open", made_then_interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        atomicfile.atomic_write(program, lambda f: f.write(b"new"))
+    assert sorted(p.name for p in program.parent.iterdir()) == [program.name]
+    assert program.read_bytes() == SHORT
 
 
 def test_output_below_a_regular_file(program):
@@ -265,9 +281,8 @@ def interrupt(proc, signum) -> str:
 def test_signal_while_computing(tmp_path, signum, status):
     """The signal arrives while the program is read and compensated: the output's temporary file
     exists, nothing flushed to it yet, and the program is open (its flavor was detected before
-    the temporary file was made: this is the pipeline's reading). (Stopped as the file appears, a
-    signal could strike inside tempfile.mkstemp, before atomic_write's clean-up covers the file:
-    it was left behind once: a defect of atomicfile, not this test's point.)"""
+    the temporary file was made: this is the pipeline's reading). (A signal that strikes as the
+    file is made: test_interrupt_as_the_temporary_file_is_made_leaves_none.)"""
     program = tmp_path / "part.gcode"
     program.write_bytes(TUBE.read_bytes())
     proc = start(program, "-o", tmp_path / "out.gcode")
