@@ -140,6 +140,7 @@ class Row:
     rms_um: float
     max_um: float
     predicted_rms_um: float | None = None  # fbspost's figure for its output (the identified modes)
+    note: str = ""
 
 
 def compensate(program: Path, profile: Path, output: Path, timeout_s: float) -> bool:
@@ -174,7 +175,7 @@ def evaluate(program: Path, truth_path: Path, measured: Measured, folder: Path,
                           ("FBS, exact model", truth_path)):
         output = folder / f"{program.stem}-{name.split()[-1].strip('-')}.gcode"
         if not compensate(program, profile, output, timeout_s):
-            rows[f"{name} (compensate over {timeout_s:g} s)"] = Row(math.nan, math.nan, math.nan)
+            rows[name] = Row(math.nan, math.nan, math.nan, note=f"compensate stopped after {timeout_s:g} s")
             continue
         out_s, _, out_plan = klippy_run(output, user, "klipper")
         predicted = contour(out_plan, out_plan, load_profile(profile))[0] if profile == measured.identified else None
@@ -194,5 +195,6 @@ def table(rows: dict[str, Row]) -> str:
     lines = [f"  {'run':46} {'RMS um':>9} {'max um':>9} {'predicted':>10} {'print s':>9}"]
     for name, row in rows.items():
         predicted = f"{row.predicted_rms_um:10.3f}" if row.predicted_rms_um is not None else f"{'':10}"
-        lines.append(f"  {name:46} {row.rms_um:9.3f} {row.max_um:9.2f} {predicted} {row.print_s:9.3f}")
+        line = f"  {name:46} {row.rms_um:9.3f} {row.max_um:9.2f} {predicted} {row.print_s:9.3f}  {row.note}"
+        lines.append(line.rstrip())
     return "\n".join(lines)
