@@ -10,7 +10,8 @@ planner, configured from the user's profile: the program's own lines, or with ``
 klippy's motion through the truth (tests/accel_recording.py), ``fbspost identify --accel-log``
 (Y with ``--merge``); klippy's ``extras/shaper_calibrate.py`` on the same recordings picks a
 shaper per axis as Klipper's SHAPER_CALIBRATE / calibrate_shaper.py do; ``fbspost identify
---klipper-cfg`` of a printer.cfg with that choice. ``evaluate``: the print, fbspost's output
+--klipper-cfg`` of a printer.cfg with that choice; optionally also shaper_calibrate on Klipper's
+own excitation (TEST_RESONANCES' moves, ``resonance_test``) recorded alike. ``evaluate``: the print, fbspost's output
 (``compensate --flavor klipper``) with the measured, the printer.cfg and the true profile, each
 planned by klippy; the chosen shapers on klippy's plan of the original (Klipper shapes the planned
 motion); every command through the truth's modes; RMS and max contour error on klippy's path of
@@ -73,6 +74,8 @@ class Measured:
     from_cfg: Path  # identify --klipper-cfg of the printer.cfg with shaper_calibrate's choice
     shapers: dict[str, tuple[str, float]]  # per axis, shaper_calibrate's (type, frequency Hz)
     identify_output: str
+    # the same from Klipper's own excitation (resonance_test), where measured
+    klipper_test_shapers: dict[str, tuple[str, float]] | None = None
 
 
 def user_profile(truth_path: Path, folder: Path) -> Path:
@@ -88,17 +91,42 @@ def user_profile(truth_path: Path, folder: Path) -> Path:
 def recorded_sweep(truth, user, axis: str, folder: Path, sweep_args=(), as_written: bool = False,
                    chip: Accelerometer | None = None) -> tuple[Path, Path]:
     """(the program klippy ran, the recording): ``fbspost excite`` of ``axis`` run by klippy,
-    recorded through the truth from ``REST_S`` before to ``REST_S`` after."""
+    recorded through the truth."""
     program = folder / f"sweep-{axis}.gcode"
     cli("excite", "-m", user, "--axis", axis, "--center", CENTER_MM, *sweep_args, "-o", program)
     if as_written:
         program.write_text(AS_WRITTEN + program.read_text())
+    return program, recorded(program, truth, user, folder / f"raw_data_{axis.lower()}.csv", chip)
+
+
+def recorded(program: Path, truth, user, log: Path, chip: Accelerometer | None = None) -> Path:
+    """The recording ``log`` of ``program`` run by klippy (configured from the profile ``user``)
+    through the truth's modes, from ``REST_S`` before to ``REST_S`` after."""
     motion = executed(program, load_profile(user), "klipper")
     t_s = np.arange(-REST_S, motion.duration_s + REST_S, 1e-4)
     modes = {name: truth.axes[name].modes for name in "XY"}
-    rows = record(t_s, motion.at(t_s)[:, :2], modes, chip or Accelerometer())
-    log = write_csv(folder / f"raw_data_{axis.lower()}.csv", rows)
-    return program, log
+    return write_csv(log, record(t_s, motion.at(t_s)[:, :2], modes, chip or Accelerometer()))
+
+
+def resonance_test(axis: str, center_mm: float, start_hz: float = 5.0, end_hz: float = 10000.0 / 75.0,
+                   accel_per_hz: float = 75.0, hz_per_s: float = 1.0) -> str:
+    """Klipper's own excitation for SHAPER_CALIBRATE (this klippy's resonance_tester.py run_test,
+    its defaults) along ``axis`` about ``center_mm``, as lines for klippy: at frequency f a move
+    out and back of 0.5 a t^2 at speed a t, a = accel_per_hz f, t = 1 / (4 f); f rising by
+    hz_per_s every second of these moves."""
+    max_accel = end_hz * accel_per_hz
+    lines = [f"SET_VELOCITY_LIMIT ACCEL={max_accel:.3f} ACCEL_TO_DECEL={max_accel:.3f}",
+             f"G1 X{center_mm:.6f} Y{center_mm:.6f} F3000", "G4 P1000"]
+    frequency_hz, sign = start_hz, 1.0
+    while frequency_hz <= end_hz + 1e-6:
+        t_seg = 0.25 / frequency_hz
+        accel = accel_per_hz * frequency_hz
+        out = center_mm + sign * 0.5 * accel * t_seg**2
+        lines += [f"M204 S{accel:.3f}", f"G1 {axis}{out:.6f} F{60 * accel * t_seg:.4f}",
+                  f"G1 {axis}{center_mm:.6f}"]
+        sign = -sign
+        frequency_hz += 2.0 * t_seg * hz_per_s
+    return "\n".join([*lines, "G4 P1000"]) + "\n"
 
 
 def shaper_calibrate(log: Path) -> tuple[str, float]:
@@ -114,8 +142,9 @@ def shaper_calibrate(log: Path) -> tuple[str, float]:
 
 
 def measure(truth_path: Path, folder: Path, sweep_args=(), as_written: bool = False,
-            chip: Accelerometer | None = None) -> Measured:
-    """X then Y measured as the user would (see the module docstring)."""
+            chip: Accelerometer | None = None, klipper_test: bool = False) -> Measured:
+    """X then Y measured as the user would (see the module docstring); with ``klipper_test`` also
+    shaper_calibrate on recordings of Klipper's own excitation (``resonance_test``)."""
     truth = load_profile(truth_path)
     user = user_profile(truth_path, folder)
     identified, outputs, shapers = folder / "identified.toml", [], {}
@@ -129,7 +158,15 @@ def measure(truth_path: Path, folder: Path, sweep_args=(), as_written: bool = Fa
                                                 for a, (name, f) in shapers.items()))
     from_cfg = folder / "from-cfg.toml"
     cli("identify", "--klipper-cfg", cfg, "--merge", user, "-o", from_cfg)
-    return Measured(user, identified, from_cfg, shapers, "".join(outputs))
+    klipper_test_shapers = None
+    if klipper_test:
+        klipper_test_shapers = {}
+        for axis in "XY":
+            program = folder / f"resonance-test-{axis}.gcode"
+            program.write_text(resonance_test(axis, CENTER_MM))
+            log = recorded(program, truth, user, folder / f"resonances_{axis.lower()}.csv", chip)
+            klipper_test_shapers[axis] = shaper_calibrate(log)
+    return Measured(user, identified, from_cfg, shapers, "".join(outputs), klipper_test_shapers)
 
 
 @dataclass
@@ -166,11 +203,13 @@ def evaluate(program: Path, truth_path: Path, measured: Measured, folder: Path,
     def contour(command, reference, machine=truth):
         return contour_um(modelled(command, machine), reference, path, printer)
 
-    chosen = {a: klipper_shaper(name, freq, KLIPPER_DAMPING) for a, (name, freq) in measured.shapers.items()}
-    shaper_name = ", ".join(f"{a} {name} {freq:.1f} Hz" for a, (name, freq) in measured.shapers.items())
-    ((command, padded, lag_s),) = shaped_plans(plan, user, {shaper_name: chosen}).values()
-    rows = {"original": Row(seconds, *contour(plan, plan)),
-            f"shaper_calibrate: {shaper_name}": Row(seconds + lag_s, *contour(command, padded))}
+    rows = {"original": Row(seconds, *contour(plan, plan))}
+    for label, choice in (("shaper_calibrate", measured.shapers), ("TEST_RESONANCES", measured.klipper_test_shapers)):
+        if choice:
+            chosen = {a: klipper_shaper(name, freq, KLIPPER_DAMPING) for a, (name, freq) in choice.items()}
+            name = f"{label}: " + ", ".join(f"{a} {shaper} {freq:.1f} Hz" for a, (shaper, freq) in choice.items())
+            ((command, padded, lag_s),) = shaped_plans(plan, user, {name: chosen}).values()
+            rows[name] = Row(seconds + lag_s, *contour(command, padded))
     for name, profile in (("FBS, --klipper-cfg", measured.from_cfg), ("FBS, measured", measured.identified),
                           ("FBS, exact model", truth_path)):
         output = folder / f"{program.stem}-{name.split()[-1].strip('-')}.gcode"
