@@ -35,12 +35,15 @@ def move_ends(moves) -> tuple[np.ndarray, np.ndarray]:
     return np.array([m.start_pos[:4] for m in moves]), np.array([m.end_pos[:4] for m in moves])
 
 
-def shaped_plans(plan: np.ndarray, profile) -> dict[str, tuple[np.ndarray, np.ndarray, float]]:
-    """Every shaper on ``plan`` (samples of klippy's plan of the original): by name, (the shaped
-    command, the plan padded to its length, the shaper's lag s: the time it adds)."""
-    settings = shaper_settings(profile)
+def shaped_plans(plan: np.ndarray, profile, shapers: dict[str, dict] | None = None
+                 ) -> dict[str, tuple[np.ndarray, np.ndarray, float]]:
+    """Every shaper on ``plan`` (samples of klippy's plan of the original), tuned to the profile's
+    dominant modes, or the ``shapers`` given (by name, a ``fbspost.shapers.Shaper`` per axis): by
+    name, (the shaped command, the plan padded to its length, the shaper's lag s: the time it adds)."""
     period = 1.0 / profile.sample_rate_hz
-    shapers = {name: {a: klipper_shaper(name, *settings[a]) for a in settings} for name in SHAPERS}
+    if shapers is None:
+        settings = shaper_settings(profile)
+        shapers = {name: {a: klipper_shaper(name, *settings[a]) for a in settings} for name in SHAPERS}
     pad = math.ceil(max(s.lead_s + s.lag_s for row in shapers.values() for s in row.values()) / period) + 1
     padded = np.pad(plan, ((pad, pad), (0, 0)), mode="edge")
     out = {}

@@ -1,0 +1,80 @@
+"""Issue 30's proof, end to end: from an accelerometer recording to the machine, against the input
+shaper Klipper's own shaper_calibrate picks from the same recordings (tests/identify_chain.py).
+
+Run from the repository root:  python bench/identify_chain.py [--as-written] [--drift-ppm PPM]
+[--lines N] [--duration S]
+
+For each held-out truth (tests/data/truth-a.toml, truth-b.toml: never tuned on), as a Klipper
+user with an accelerometer would go: ``fbspost excite`` of X then Y (default sweep, 30 s), each
+run by klippy's own planner configured from the user's profile (the truth's limits, no modes;
+``--as-written``: a SET_VELOCITY_LIMIT line first that lets klippy run the sweep's blocks as
+written), recorded by a simulated ADXL345 through the truth (3200 Hz on its own clock, 1234.5 s
+offset and ``--drift-ppm`` drift, default 100; 100 mm/s^2 RMS noise; tests/accel_recording.py),
+``fbspost identify --accel-log`` (Y with --merge), and Klipper's shaper_calibrate (klippy's own
+``extras/shaper_calibrate.py``, its defaults) on the same recordings. Then on two prints (the
+gear's first 8000 lines and the bracket, which no change was tuned on): the original; the chosen
+shapers (damping 0.1, Klipper's default) on klippy's plan of the original; fbspost's output with
+the profile ``identify --klipper-cfg`` makes of a printer.cfg holding that choice; with the
+measured profile (its modes printed); with the exact model (the truth's own modes, a reference).
+Also, as the fairer baseline, "TEST_RESONANCES": the shapers shaper_calibrate picks from recordings
+of Klipper's own excitation (resonance_tester.py's moves, 5 to 133 Hz at 1 Hz/s, 75 mm/s^2 per Hz,
+run by klippy and recorded alike): on fbspost's exponential sweep its PSD weighs low frequencies
+more than on the excitation it was written for.
+
+EVERY FIGURE COMES FROM KLIPPY'S PLANNER THROUGH THE TRUTH MODEL: klippy's plan of each program
+(a shaper: applied to klippy's plan of the original) run through the truth's modes (exact ZOH
+simulation), RMS and max contour error (um) on klippy's path of the original, print time (s)
+klippy's (a shaper's plus its lag). "predicted": fbspost's own figure for its output, klippy's
+plan of it through the identified modes. A compensate over ``--timeout`` (300 s) is stopped and
+its row is NaN. Several minutes per truth.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
+
+from accel_recording import Accelerometer  # noqa: E402
+from identify_chain import evaluate, excerpt, measure, modes_text, table  # noqa: E402
+
+TRUTHS = ("tests/data/truth-a.toml", "tests/data/truth-b.toml")
+PRINTS = ("tests/data/gear-marlin2.gcode", "tests/data/bracket-reprapfirmware-relative-e.gcode")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--as-written", action="store_true", help="klippy runs the sweeps as written")
+    parser.add_argument("--drift-ppm", type=float, default=100.0, help="the accelerometer clock's drift")
+    parser.add_argument("--lines", type=int, default=8000, help="the first LINES lines of each print")
+    parser.add_argument("--duration", type=float, default=None, help="sweep seconds (default: excite's)")
+    parser.add_argument("--timeout", type=float, default=300.0, help="longest compensate, s (then a NaN row)")
+    args = parser.parse_args()
+    sweep = ("--duration", args.duration) if args.duration else ()
+    chip = Accelerometer(drift_ppm=args.drift_ppm)
+    how = "as written (SET_VELOCITY_LIMIT first)" if args.as_written else "as the program is"
+    print(f"sweeps run by klippy {how}; "
+          f"accelerometer clock drift {args.drift_ppm:g} ppm; prints: first {args.lines} lines")
+    for truth in TRUTHS:
+        with tempfile.TemporaryDirectory() as tmp:
+            start = time.time()
+            measured = measure(ROOT / truth, Path(tmp), sweep, args.as_written, chip, klipper_test=True)
+            print(f"\n{truth}: measured in {time.time() - start:.0f} s")
+            print("identify's summary:\n" + "\n".join(line for line in measured.identify_output.splitlines()
+                                                     if line.startswith(("recording", "axis", "fit error"))))
+            print("identified modes:\n" + modes_text(measured.identified))
+            print("true modes:\n" + modes_text(ROOT / truth))
+            for program in PRINTS:
+                start = time.time()
+                rows = evaluate(excerpt(program, args.lines, Path(tmp)), ROOT / truth, measured, Path(tmp),
+                                args.timeout)
+                print(f"\n{truth} on {program} (first {args.lines} lines), klippy + truth model "
+                      f"({time.time() - start:.0f} s):\n{table(rows)}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
