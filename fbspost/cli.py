@@ -590,7 +590,8 @@ def _fitted(frf_csv, accel_log, program, accel_column, axis, n_modes, max_modes,
                             fit_delay=True)
         frequency_hz, coherence = rec.frequency_hz, rec.coherence
         measured = rec.response * np.exp(2j * np.pi * rec.frequency_hz * fit.delay_s)
-        lines.append(f"recording: {len(times_s)} samples at {rec.sample_rate_hz:.1f} Hz; the sweep starts at "
+        lines.append(f"recording: {len(times_s)} samples at {rec.sample_rate_hz:.1f} Hz, its clock "
+                     f"{1e6 * (rec.clock_rate - 1):+.1f} ppm from the machine's; the sweep starts at "
                      f"{rec.offset_s + fit.delay_s:.6f} s of its time base"
                      + ("; accelerometer axis reversed: sign flipped" if rec.inverted else ""))
         note = f"axis {axis}: identified from the recording {accel_log.name} of {program.name}"

@@ -32,7 +32,13 @@ from .writer import WriteOptions, dwell_line, shortest_line_s, timed_blocks
 _BEGIN = "; fbspost excite: sweep begins"
 _END = "; fbspost excite: sweep ends"
 _HEADER = {"band": re.compile(r"; band: ([0-9.]+) Hz to ([0-9.]+) Hz"), "flavor": re.compile(r"; flavor: (\w+)$"),
-           "machine": re.compile(r"; machine: (.+)$")}
+           "machine": re.compile(r"; machine: (.+)$"), "mark": re.compile(r"; clock mark at ([0-9.]+) s")}
+# The clock mark: right after the sweep (a rest inside it would be a dwell, after which Marlin
+# waits for its buffer to fill), its first MARK_S again, so that identify can tell the recording's
+# clock rate from the machine's (a chip's own clock drifts 100 ppm and more: 3 ms over a 30 s
+# sweep, 130 degrees at 120 Hz) from where the same low passage falls twice in the recording: the
+# axis' own lag is the same both times.
+MARK_S = 2.0
 _REST_S = 1.0  # dwell before and after the sweep, so a recording holds the rest on both sides
 _POSITION_DECIMALS = 6  # 1 nm
 _PLAN_RATE_HZ = 10000.0  # the firmware's plan of a sweep, sampled
@@ -52,6 +58,7 @@ class Sweep:
     end_hz: float
     flavor: str = "klipper"  # the firmware the program was written for (its header; before it had one: Klipper)
     machine: str | None = None  # the profile it was written for (its header)
+    mark_s: float | None = None  # where the clock mark begins (None: a sweep without one)
 
     def position(self, times_s: np.ndarray) -> np.ndarray:
         """The commanded position at any times (held before the start and after the end)."""
@@ -64,8 +71,9 @@ def sweep_samples(axis: AxisProfile, centre_mm: float, start_hz: float, end_hz: 
     phi's frequency rising exponentially from start_hz to end_hz over duration_s (and on at the
     same rate over the raised-cosine ramps of ramp_s added before and after, so the whole band
     is swept at full amplitude), A the largest amplitude (at most amplitude_mm) within 90% of
-    the axis' limits at the current frequency; then scaled down, if needed, until the finite
-    differences of the samples, with the rest before and after, keep every limit."""
+    the axis' limits at the current frequency; then the clock mark: the first MARK_S again,
+    its last ramp_s faded out. Scaled down, if needed, until the finite differences of the
+    samples, with the rest before and after, keep every limit."""
     t = np.arange(int(round((duration_s + 2 * ramp_s) / block_s)) + 1) * block_s
     rate = math.log(end_hz / start_hz) / duration_s
     f0 = start_hz * math.exp(-rate * ramp_s)
@@ -78,6 +86,9 @@ def sweep_samples(axis: AxisProfile, centre_mm: float, start_hz: float, end_hz: 
     amplitude = np.minimum(amplitude_mm, np.min([0.9 * lim / w**k for lim, k in limits], axis=0))
     ramp = 0.5 - 0.5 * np.cos(np.pi * np.clip(np.minimum(t, t[-1] - t) / ramp_s, 0.0, 1.0))
     offset = amplitude * ramp * np.sin(phase)
+    mark = offset[:int(round(MARK_S / block_s))]
+    fade = 0.5 + 0.5 * np.cos(np.pi * np.clip((np.arange(len(mark)) * block_s - MARK_S + ramp_s) / ramp_s, 0, 1))
+    offset = np.concatenate([offset, mark[1:] * fade[1:], [0.0]])
     padded = np.concatenate([[0.0] * 3, offset, [0.0] * 3])
     worst = max(np.abs(np.diff(padded, k)).max() / block_s**k / lim for lim, k in limits)
     return centre_mm + offset / max(1.0, worst * (1 + 1e-9))
@@ -117,7 +128,9 @@ def sweep_program(profile: MachineProfile, axis_name: str, positions_mm: np.ndar
         f"machine: {profile.name}",
         f"flavor: {flavor}",
         f"band: {start_hz:g} Hz to {end_hz:g} Hz, exponential, {(len(positions_mm) - 1) * block_s:g} s with the "
-        f"ramps in {block_s * 1e3:.9g} ms blocks, about {positions_mm[0]:.3f} mm",
+        f"ramps and the clock mark in {block_s * 1e3:.9g} ms blocks, about {positions_mm[0]:.3f} mm",
+        f"clock mark at {(len(positions_mm) - 1 - int(round(MARK_S / block_s))) * block_s:.9g} s: the sweep's first "
+        f"{MARK_S:g} s again, for the recording's clock rate",
         f"largest amplitude {np.abs(positions_mm - positions_mm[0]).max():.4f} mm, velocity {speed:.4g} mm/s, "
         f"acceleration {accel:.5g} mm/s^2; the axis' limits: {axis.max_velocity_mm_s:g} mm/s, "
         f"{axis.max_acceleration_mm_s2:g} mm/s^2",
@@ -166,7 +179,7 @@ def read_sweep(path: str | Path, axis: str) -> Sweep:
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(path, None, f"cannot read: {exc}") from None
     position = feed = None
-    header = {"band": None, "flavor": "klipper", "machine": None}
+    header = {"band": None, "flavor": "klipper", "machine": None, "mark": None}
     times, positions, inside, ended = [], [], False, False
     for lineno, line in enumerate(text.splitlines(), start=1):
         stripped = line.strip()
@@ -209,7 +222,8 @@ def read_sweep(path: str | Path, axis: str) -> Sweep:
     if header["band"] is None:
         raise InputError(path, None, "no '; band: ... Hz to ... Hz' line")
     start_hz, end_hz = (float(f) for f in header["band"])
-    return Sweep(axis, np.array(times), np.array(positions), start_hz, end_hz, flavor, header["machine"])
+    return Sweep(axis, np.array(times), np.array(positions), start_hz, end_hz, flavor, header["machine"],
+                 None if header["mark"] is None else float(header["mark"]))
 
 
 def firmware_sweep(path: str | Path, axis: str, profile: MachineProfile) -> Sweep:
@@ -230,7 +244,8 @@ def firmware_sweep(path: str | Path, axis: str, profile: MachineProfile) -> Swee
     times_s = np.arange(int(math.ceil((end_s - begin_s) * fs)) + 1) / fs
     grid_s = np.arange(len(motion.positions_mm)) / fs
     positions_mm = np.interp(begin_s + times_s, grid_s, motion.positions_mm[:, AXES.index(axis)])
-    return replace(written, times_s=times_s, positions_mm=positions_mm)
+    mark_s = written.mark_s and written.mark_s * times_s[-1] / written.times_s[-1]  # (near enough: see identify)
+    return replace(written, times_s=times_s, positions_mm=positions_mm, mark_s=mark_s)
 
 
 def _done_s(line_time_s: np.ndarray, blocks: list, first: int, stop: int) -> float:

@@ -47,6 +47,7 @@ except ModuleNotFoundError:  # Python 3.10
 MODE_COUNT_GAIN = 1.25  # one more mode must divide the RMS error by more than this to be kept
 KLIPPER_DEFAULT_DAMPING = 0.1  # Klipper's damping_ratio_x/y when printer.cfg does not set it
 DAMPING_BOUNDS = (1e-5, 0.999)  # the fit's damping stays within these
+PLAUSIBLE_DAMPING = 0.9  # the automatic count skips a fit with a mode damped more (the patent stage: 0.54 at most)
 COARSE_FORMS = ("base", "mass")  # the model of a coarse estimate's mode (coarse_mode)
 _VF_ITERATIONS = 30
 
@@ -182,9 +183,12 @@ def fit_frf(frequency_hz: np.ndarray, response: np.ndarray, n_modes: int | None 
     else:
         for n in range(1, max_modes + 1):
             fit(n)
-            chosen = _chosen_count({k: v.rms_error for k, v in fits.items()}, max_modes)
+            chosen = _chosen_count({k: v.rms_error if _plausible(v) else math.inf for k, v in fits.items()},
+                                   max_modes)
             if chosen:
                 break
+        else:  # (no count of only plausible modes: the best, which assess_fit refuses)
+            chosen = min(fits, key=lambda k: fits[k].rms_error)
     if fit_delay:
         keep(chosen, _along_the_valley(xs[chosen], s, hn, weights, chosen))
     return replace(fits[chosen], errors_by_count={n: v.rms_error for n, v in fits.items()})
@@ -192,14 +196,24 @@ def fit_frf(frequency_hz: np.ndarray, response: np.ndarray, n_modes: int | None 
 
 def _chosen_count(errors: dict[int, float], max_modes: int) -> int | None:
     """The smallest count n whose RMS error neither n + 1 nor n + 2 modes (up to max_modes)
-    divide by more than MODE_COUNT_GAIN; None while those are not all fitted yet."""
+    divide by more than MODE_COUNT_GAIN; None while those are not all fitted yet. A count whose
+    error is inf (a fit with a mode that is not one, ``_plausible``) is never chosen."""
     for n in sorted(errors):
         following = [m for m in (n + 1, n + 2) if m <= max_modes]
         if any(m not in errors for m in following):
             return None
-        if not following or errors[n] <= MODE_COUNT_GAIN * min(errors[m] for m in following):
+        if math.isfinite(errors[n]) and (not following
+                                         or errors[n] <= MODE_COUNT_GAIN * min(errors[m] for m in following)):
             return n
     return None
+
+
+def _plausible(fit: Fit) -> bool:
+    """Whether every mode of ``fit`` is a resonance: none nearly critically damped (two real poles,
+    which with a partner of opposite sign stand in for a slow trend of the response, the
+    recording's timing or a filter: seen on simulated recordings, a pair at 85 Hz of damping 0.996
+    and 0.999 whose 0.1% less error made FBS worse than no compensation on the machine)."""
+    return all(m.damping < PLAUSIBLE_DAMPING for m in fit.modes)
 
 
 def _fit_count(s, hn, weights, n, tau0, previous):
@@ -641,7 +655,8 @@ class Recording:
     coherence: np.ndarray
     offset_s: float  # the recording's time of the sweep's start (with the plant's delay, see fit)
     inverted: bool  # the accelerometer axis pointed against the machine axis: sign flipped
-    sample_rate_hz: float
+    sample_rate_hz: float  # in the machine's time
+    clock_rate: float = 1.0  # the recording's seconds per second of the machine's (from the sweep's clock mark)
 
 
 def read_accel_log(path: str | Path, column: str) -> tuple[np.ndarray, np.ndarray]:
@@ -672,30 +687,61 @@ def frf_from_recording(times_s: np.ndarray, accel: np.ndarray, sweep) -> Recordi
     fs = (len(times_s) - 1) / (times_s[-1] - times_s[0])
     grid = times_s[0] + np.arange(len(times_s)) / fs
     measured = np.interp(grid, times_s, accel)
+    measured -= measured.mean()
     duration_s = sweep.times_s[-1]
     # Aligned on the sweep's first octave only: well below the modes the axis follows its command
     # (G ~ 1), while near a mode the response lags by up to half a period and its ringing
     # dominates the correlation.
     octave_s = duration_s * math.log(2) / math.log(sweep.end_hz / sweep.start_hz)
-    command = _commanded_acceleration(sweep, np.arange(int(octave_s * fs) + 1) / fs, fs)
-    if len(measured) < len(command):
-        raise ValueError("the recording is shorter than the sweep")
-    corr = signal.correlate(measured - measured.mean(), command, mode="valid", method="fft")
-    k = int(np.argmax(np.abs(corr)))
-    inverted = corr[k] < 0
-    if 0 < k < len(corr) - 1:  # the peak between samples (parabola through three)
-        c0, c1, c2 = corr[k - 1:k + 2] * (-1 if inverted else 1)
-        k += 0.5 * (c0 - c2) / (c0 - 2 * c1 + c2)
-    offset_s = grid[0] + k / fs
-    keep = (grid >= offset_s - 1.0) & (grid <= offset_s + duration_s + 1.0)
+    offset_s, inverted = _aligned(measured, grid, _commanded_acceleration(sweep, np.arange(int(octave_s * fs) + 1) / fs,
+                                                                          fs))
+    # The recording's clock against the machine's, from the clock mark: the sweep's first passage
+    # again at the end, both found with the same template (the axis' lag the same both times), the
+    # mark within 1000 ppm of where a clock of the machine's rate would put it
+    rate = 1.0
+    if sweep.mark_s:
+        template = _commanded_acceleration(sweep, np.arange(int(_MARK_TEMPLATE_S * fs) + 1) / fs, fs)
+        start_at_s, _ = _aligned(measured, grid, template, (offset_s - 0.05, offset_s + 0.05))
+        reach_s = 1e-3 * sweep.mark_s + 1.0 / fs
+        mark_at_s, _ = _aligned(measured, grid, template, (start_at_s + sweep.mark_s - reach_s,
+                                                           start_at_s + sweep.mark_s + reach_s))
+        rate = (mark_at_s - start_at_s) / sweep.mark_s
+    keep = (grid >= offset_s - 1.0) & (grid <= offset_s + rate * (duration_s + 1.0))
     y = -measured[keep] if inverted else measured[keep]
-    x = _commanded_acceleration(sweep, grid[keep] - offset_s, fs)
-    welch = dict(fs=fs, nperseg=len(x) // 2, noverlap=len(x) // 4)
+    fs_machine = fs * rate  # the recording's samples per second of the machine's
+    x = _commanded_acceleration(sweep, (grid[keep] - offset_s) / rate, fs_machine)
+    welch = dict(fs=fs_machine, nperseg=len(x) // 2, noverlap=len(x) // 4)
     f, s_xx = signal.welch(x, **welch)
     _, s_xy = signal.csd(x, y, **welch)
     _, coherence = signal.coherence(x, y, **welch)
     band = (f >= sweep.start_hz) & (f <= sweep.end_hz)
-    return Recording(f[band], s_xy[band] / s_xx[band], coherence[band], offset_s, bool(inverted), fs)
+    return Recording(f[band], s_xy[band] / s_xx[band], coherence[band], offset_s, bool(inverted), fs_machine, rate)
+
+
+_MARK_TEMPLATE_S = 1.5  # the mark's part before its fade
+
+
+def _aligned(measured: np.ndarray, grid: np.ndarray, template: np.ndarray,
+             window_s: tuple[float, float] | None = None) -> tuple[float, bool]:
+    """(the recording's time where ``template`` starts, whether it is inverted there): the peak of
+    |cross-correlation|, between samples by a parabola through three, within ``window_s`` (the
+    template's start times searched; default anywhere)."""
+    if len(measured) < len(template):
+        raise ValueError("the recording is shorter than the sweep")
+    corr = signal.correlate(measured, template, mode="valid", method="fft")
+    fs = 1.0 / (grid[1] - grid[0])
+    lo, hi = 0, len(corr)
+    if window_s is not None:
+        lo = max(lo, int(math.floor((window_s[0] - grid[0]) * fs)))
+        hi = min(hi, int(math.ceil((window_s[1] - grid[0]) * fs)) + 1)
+    if lo >= hi:
+        raise ValueError("the recording ends before the sweep's clock mark")
+    k = lo + int(np.argmax(np.abs(corr[lo:hi])))
+    inverted = corr[k] < 0
+    if 0 < k < len(corr) - 1:
+        c0, c1, c2 = corr[k - 1:k + 2] * (-1 if inverted else 1)
+        k += 0.5 * (c0 - c2) / (c0 - 2 * c1 + c2)
+    return grid[0] + k / fs, bool(inverted)
 
 
 def _commanded_acceleration(sweep, times_s: np.ndarray, fs: float, oversample: int = 8) -> np.ndarray:
