@@ -231,9 +231,9 @@ def modes_text(profile_path: Path) -> str:
 
 def table(rows: dict[str, Row]) -> str:
     """The rows as a text table (um, s)."""
-    lines = [f"  {'run':46} {'RMS um':>9} {'max um':>9} {'predicted':>10} {'print s':>9}"]
+    lines = [f"  {'run':50} {'RMS um':>9} {'max um':>9} {'predicted':>10} {'print s':>9}"]
     for name, row in rows.items():
         predicted = f"{row.predicted_rms_um:10.3f}" if row.predicted_rms_um is not None else f"{'':10}"
-        line = f"  {name:46} {row.rms_um:9.3f} {row.max_um:9.2f} {predicted} {row.print_s:9.3f}  {row.note}"
+        line = f"  {name:50} {row.rms_um:9.3f} {row.max_um:9.2f} {predicted} {row.print_s:9.3f}  {row.note}"
         lines.append(line.rstrip())
     return "\n".join(lines)
