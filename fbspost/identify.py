@@ -700,12 +700,25 @@ def frf_from_recording(times_s: np.ndarray, accel: np.ndarray, sweep) -> Recordi
     # mark within 1000 ppm of where a clock of the machine's rate would put it
     rate = 1.0
     if sweep.mark_s:
-        template = _commanded_acceleration(sweep, np.arange(int(_MARK_TEMPLATE_S * fs) + 1) / fs, fs)
-        start_at_s, _ = _aligned(measured, grid, template, (offset_s - 0.05, offset_s + 0.05))
-        reach_s = 1e-3 * sweep.mark_s + 1.0 / fs
-        mark_at_s, _ = _aligned(measured, grid, template, (start_at_s + sweep.mark_s - reach_s,
-                                                           start_at_s + sweep.mark_s + reach_s))
-        rate = (mark_at_s - start_at_s) / sweep.mark_s
+        # In the recording low-passed, all alike, below the modes: no blocks' corners (1 kHz) there,
+        # what the axis' modes would let through of them would align the passages block by block
+        low = signal.butter(4, _MARK_LOW_PASS * sweep.start_hz, fs=fs, output="sos")
+        # (cut from the whole command low-passed, as the recording is: not low-passed alone, whose
+        # ends the filter would shape otherwise)
+        machine_s = np.arange(-int(fs), int((duration_s + 1.0) * fs)) / fs  # (from the rest before it)
+        command = _commanded_acceleration(sweep, machine_s, fs)
+        first = slice(int(fs), int(fs) + int(_MARK_TEMPLATE_S * fs))
+        # where the mark is in the command itself (the header's time is the program's as written,
+        # the firmware's plan may differ by milliseconds): the two passages as they are, corner for
+        # corner (low-passed, what lies around them would bias it by 0.4 ms)
+        mark_s, _ = _aligned(command, machine_s, command[first], (sweep.mark_s - 0.05, sweep.mark_s + 0.05))
+        template = signal.sosfiltfilt(low, command)[first]
+        measured_low = signal.sosfiltfilt(low, measured)
+        start_at_s, _ = _aligned(measured_low, grid, template, (offset_s - 0.05, offset_s + 0.05))
+        reach_s = 1e-3 * mark_s + 1.0 / fs
+        window_s = (start_at_s + mark_s - reach_s, start_at_s + mark_s + reach_s)
+        mark_at_s, _ = _aligned(measured_low, grid, template, window_s)
+        rate = (mark_at_s - start_at_s) / mark_s
     keep = (grid >= offset_s - 1.0) & (grid <= offset_s + rate * (duration_s + 1.0))
     y = -measured[keep] if inverted else measured[keep]
     fs_machine = fs * rate  # the recording's samples per second of the machine's
@@ -718,7 +731,8 @@ def frf_from_recording(times_s: np.ndarray, accel: np.ndarray, sweep) -> Recordi
     return Recording(f[band], s_xy[band] / s_xx[band], coherence[band], offset_s, bool(inverted), fs_machine, rate)
 
 
-_MARK_TEMPLATE_S = 1.5  # the mark's part before its fade
+_MARK_TEMPLATE_S = 1.3  # the mark's part well before its fade (at 1.5 s)
+_MARK_LOW_PASS = 2.5  # times the band's start, Hz: the mark's passage, far below the modes
 
 
 def _aligned(measured: np.ndarray, grid: np.ndarray, template: np.ndarray,
