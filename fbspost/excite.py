@@ -236,7 +236,7 @@ def firmware_sweep(path: str | Path, axis: str, profile: MachineProfile) -> Swee
     # (finely: linear interpolation between samples a fraction of a block off the blocks' ends would
     # low-pass the command, by 5% at 100 Hz at 1 kHz)
     profile = replace(profile, sample_rate_hz=max(profile.sample_rate_hz, _PLAN_RATE_HZ))
-    motion = replan(blocks, profile, written.flavor)
+    motion = replan(blocks, profile, written.flavor, every_axis=True)  # (the axis may have no modes yet)
     marks = [b.raw.strip() for b in blocks]
     begin, end = marks.index(_BEGIN.encode()), marks.index(_END.encode())
     begin_s, end_s = _done_s(motion.line_time_s, blocks, 0, begin), _done_s(motion.line_time_s, blocks, begin, end)

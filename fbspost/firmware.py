@@ -46,8 +46,9 @@ class FirmwareMotion:
     starved: list[tuple[float, float]] = field(default_factory=list)  # Marlin, RRF: (when, rest s) the buffer ran dry
 
 
-def replan(blocks: list[Block], profile: MachineProfile, flavor: str) -> FirmwareMotion:
-    """``blocks`` planned as the firmware of ``flavor`` plans them (see the module docstring)."""
+def replan(blocks: list[Block], profile: MachineProfile, flavor: str, every_axis: bool = False) -> FirmwareMotion:
+    """``blocks`` planned as the firmware of ``flavor`` plans them (see the module docstring);
+    ``every_axis`` (Klipper and the planner's other flavors): see ``planner.plan_blocks``."""
     if flavor in ("marlin", "reprap"):
         run = (run_marlin if flavor == "marlin" else run_reprap)(blocks, profile)
         return FirmwareMotion(flavor, run.positions_mm(profile.sample_rate_hz), run.line_time_s, run.duration_s,
@@ -55,5 +56,5 @@ def replan(blocks: list[Block], profile: MachineProfile, flavor: str) -> Firmwar
     if flavor == "linuxcnc":
         run = run_linuxcnc(blocks, profile)
         return FirmwareMotion(flavor, run.positions_mm(profile.sample_rate_hz), run.line_time_s, run.duration_s, [])
-    plan = plan_blocks(blocks, profile, firmware="klipper" if flavor == "klipper" else None)
+    plan = plan_blocks(blocks, profile, firmware="klipper" if flavor == "klipper" else None, every_axis=every_axis)
     return FirmwareMotion(flavor, plan.positions_mm, plan.line_time_s, plan.duration_s, [])

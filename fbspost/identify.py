@@ -719,7 +719,10 @@ def frf_from_recording(times_s: np.ndarray, accel: np.ndarray, sweep) -> Recordi
         window_s = (start_at_s + mark_s - reach_s, start_at_s + mark_s + reach_s)
         mark_at_s, _ = _aligned(measured_low, grid, template, window_s)
         rate = (mark_at_s - start_at_s) / mark_s
-    keep = (grid >= offset_s - 1.0) & (grid <= offset_s + rate * (duration_s + 1.0))
+    # the sweep and a second each side (not the mark: with it in, the last of three half-length
+    # segments put 90-120 Hz where it read a response 6.8 times the truth's)
+    sweep_s = sweep.mark_s or duration_s
+    keep = (grid >= offset_s - 1.0) & (grid <= offset_s + rate * (sweep_s + 1.0))
     y = -measured[keep] if inverted else measured[keep]
     fs_machine = fs * rate  # the recording's samples per second of the machine's
     x = _commanded_acceleration(sweep, (grid[keep] - offset_s) / rate, fs_machine)

@@ -410,9 +410,12 @@ def fill_unknown(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def plan_blocks(blocks: Iterable[Block], profile: MachineProfile, batch_blocks: int | None = None,
-                margins: RunMargins | None = None, firmware: str | None = None) -> Plan:
-    """The whole plan of ``blocks`` on ``profile`` (see the module docstring), held in memory."""
-    stream = PlanStream(blocks, profile, batch_blocks, keep=True, margins=margins, firmware=firmware)
+                margins: RunMargins | None = None, firmware: str | None = None, every_axis: bool = False) -> Plan:
+    """The whole plan of ``blocks`` on ``profile`` (see the module docstring), held in memory;
+    ``every_axis``: every axis counts as compensated (no move of an axis without modes becomes a
+    rest: the firmware's own motion of them, as ``firmware.replan`` of an excite sweep needs)."""
+    stream = PlanStream(blocks, profile, batch_blocks, keep=True, margins=margins, firmware=firmware,
+                        every_axis=every_axis)
     while stream.advance():
         pass
     return stream.whole()
@@ -729,13 +732,14 @@ class _BlockReader:
     it is timed. A MOVE that moves no compensated axis is read as a STOP (``_uncompensated_s``)."""
 
     def __init__(self, blocks: Iterable[Block], profile: MachineProfile, klipper: bool, batch: int,
-                 settle_s: float, piece_limits: Callable):
+                 settle_s: float, piece_limits: Callable, every_axis: bool = False):
         self._blocks_in = iter(blocks)
         self._batch = batch
         self._settle_s = settle_s
         self._piece_limits = piece_limits
         # the axes a compensated command moves: a move of the others alone is a rest of these
-        self._compensated = [c for c, name in enumerate(AXES) if name in profile.axes and profile.axes[name].modes]
+        self._compensated = [c for c, name in enumerate(AXES)
+                             if every_axis or name in profile.axes and profile.axes[name].modes]
         self._limits = _LimitState(profile, klipper)
         self._state_row = self._limits.row()
         self.n_blocks = 0
@@ -908,7 +912,8 @@ class PlanStream:
     blocks' times, whose motion goes to the samples (``_Timeline``)."""
 
     def __init__(self, blocks: Iterable[Block], profile: MachineProfile, batch_blocks: int | None = None,
-                 keep: bool = False, margins: RunMargins | None = None, firmware: str | None = None):
+                 keep: bool = False, margins: RunMargins | None = None, firmware: str | None = None,
+                 every_axis: bool = False):
         self.sample_rate_hz = self._fs = float(profile.sample_rate_hz)
         self.margins = margins = margins or RunMargins()
         self._lead = round(margins.lead_s * self._fs)  # samples
@@ -929,7 +934,7 @@ class PlanStream:
         self.time_s = 0.0  # spent in advance(), reading included
         self._pieces = _PieceMaker(profile, klipper, self.notes)
         self._reader = _BlockReader(blocks, profile, klipper, batch_blocks or BATCH_BLOCKS, self._settle_s,
-                                    self._pieces.piece_limits)
+                                    self._pieces.piece_limits, every_axis)
         self._scans = _LookAhead(klipper)
         self._timeline = _Timeline(self._fs, keep)
         self._clock = _BlockClock(self._reader.pending, keep)
