@@ -47,6 +47,8 @@ except ModuleNotFoundError:  # Python 3.10
 MODE_COUNT_GAIN = 1.25  # one more mode must divide the RMS error by more than this to be kept
 KLIPPER_DEFAULT_DAMPING = 0.1  # Klipper's damping_ratio_x/y when printer.cfg does not set it
 DAMPING_BOUNDS = (1e-5, 0.999)  # the fit's damping stays within these
+VALLEY_TIE = 0.1  # minima of the zeros' trade-off with the time offset this close in cost are a tie
+PLAUSIBLE_SHARE = 0.01
 PLAUSIBLE_DAMPING = 0.9  # the automatic count skips a fit with a mode damped more (the patent stage: 0.54 at most)
 COARSE_FORMS = ("base", "mass")  # the model of a coarse estimate's mode (coarse_mode)
 _VF_ITERATIONS = 30
@@ -212,8 +214,13 @@ def _plausible(fit: Fit) -> bool:
     """Whether every mode of ``fit`` is a resonance: none nearly critically damped (two real poles,
     which with a partner of opposite sign stand in for a slow trend of the response, the
     recording's timing or a filter: seen on simulated recordings, a pair at 85 Hz of damping 0.996
-    and 0.999 whose 0.1% less error made FBS worse than no compensation on the machine)."""
-    return all(m.damping < PLAUSIBLE_DAMPING for m in fit.modes)
+    and 0.999 whose 0.1% less error made FBS worse than no compensation on the machine), and none
+    whose own peak is under PLAUSIBLE_SHARE of the response's (one at 119.9 Hz of 0.1% soaked up
+    what was left of a recording's clock at the band's end)."""
+    peaks = [abs(modal_response((m,), np.array([m.frequency_hz]))[0]) for m in fit.modes]
+    whole = np.abs(modal_response(fit.modes, np.array([m.frequency_hz for m in fit.modes]))).max()
+    return all(m.damping < PLAUSIBLE_DAMPING and peak >= PLAUSIBLE_SHARE * whole
+               for m, peak in zip(fit.modes, peaks, strict=True))
 
 
 def _fit_count(s, hn, weights, n, tau0, previous):
@@ -251,16 +258,22 @@ def _along_the_valley(x, s, hn, weights, n):
     first-order term is sum (b - 2 zeta a) / w - tau sum a), so a recording's fit can have two
     nearly equal minima along that valley: also start from its points with no zeros (a mass
     pushed by a force) and with a belt's zeros (b = 2 zeta a), the time offset moved to keep the
-    term."""
+    term. Of minima whose costs are within VALLEY_TIE of the lowest, the one with the smallest time
+    offset: the recording is aligned on the sweep and its clock (``frf_from_recording``), so what
+    is left of the offset is the machine's own delay, which a controller and an accelerometer keep
+    to a fraction of a millisecond, while a belt's zero traded for an offset moves it by 2 beta /
+    alpha, about 1 ms (seen on simulated recordings: the zeros' signs flipped within 0.2% of the
+    cost, and FBS with them was 6 times worse on the machine)."""
     wn, zeta, a, b = (x[i * n:(i + 1) * n] for i in range(4))
-    best = (float(np.sum(_residual(x, s, hn, weights, n, True) ** 2)) / 2, x)
     if not abs(np.sum(a)) > 0:  # no DC gain: no term to keep
         return x
+    found = [(float(np.sum(_residual(x, s, hn, weights, n, True) ** 2)) / 2, x)]
     for b_start in (np.zeros(n), 2 * zeta * a):
         tau = x[-1] + np.sum((b_start - b) / wn) / np.sum(a)
         result = _refine(np.concatenate([wn, zeta, a, b_start, [tau]]), s, hn, weights, n, True)
-        best = min(best, (result.cost, result.x), key=lambda c: c[0])
-    return best[1]
+        found.append((result.cost, result.x))
+    lowest = min(cost for cost, _ in found)
+    return min((c for c in found if c[0] <= (1 + VALLEY_TIE) * lowest), key=lambda c: abs(c[1][-1]))[1]
 
 
 def _refine(x0, s, hn, weights, n, fit_delay):
@@ -706,13 +719,17 @@ def frf_from_recording(times_s: np.ndarray, accel: np.ndarray, sweep) -> Recordi
         # (cut from the whole command low-passed, as the recording is: not low-passed alone, whose
         # ends the filter would shape otherwise)
         machine_s = np.arange(-int(fs), int((duration_s + 1.0) * fs)) / fs  # (from the rest before it)
-        command = _commanded_acceleration(sweep, machine_s, fs)
         first = slice(int(fs), int(fs) + int(_MARK_TEMPLATE_S * fs))
         # where the mark is in the command itself (the header's time is the program's as written,
-        # the firmware's plan may differ by milliseconds): the two passages as they are, corner for
-        # corner (low-passed, what lies around them would bias it by 0.4 ms)
-        mark_s, _ = _aligned(command, machine_s, command[first], (sweep.mark_s - 0.05, sweep.mark_s + 0.05))
-        template = signal.sosfiltfilt(low, command)[first]
+        # the firmware's plan may differ by milliseconds), from its positions, exact copies of the
+        # first passage's (the accelerations' block corners match a block off as well); from that
+        # passage as found alike: a correlation over a window that cuts a growing signal peaks off
+        # its lag (here by 0.35 ms), the same for both passages
+        position = sweep.position(machine_s) - sweep.positions_mm[0]
+        passages = [_aligned(position, machine_s, position[first], (at_s - 0.05, at_s + 0.05))[0]
+                    for at_s in (0.0, sweep.mark_s)]
+        mark_s = passages[1] - passages[0]
+        template = signal.sosfiltfilt(low, _commanded_acceleration(sweep, machine_s, fs))[first]
         measured_low = signal.sosfiltfilt(low, measured)
         start_at_s, _ = _aligned(measured_low, grid, template, (offset_s - 0.05, offset_s + 0.05))
         reach_s = 1e-3 * mark_s + 1.0 / fs

@@ -284,12 +284,7 @@ def _compensate(read_path, input_path, output_path, profile, options, flavor, pr
     report.original_kept = verification.original_kept
     if report.original_kept:
         report.lines_out = report.lines_in  # (the original, line for line)
-    report.warnings.extend(verification.warnings)
-    if written.shaping_left_off and not report.original_kept:
-        report.warnings.append(
-            f"input shaping on {' and '.join(written.shaping_left_off)} is off after this program: neither the profile "
-            "nor the program says what it was. Give it in the profile's [firmware] shaper_frequency (Klipper: "
-            "fbspost identify --klipper-cfg printer.cfg --merge PROFILE -o PROFILE reads [input_shaper])")
+    report.warnings.extend(verification.warnings + _shaping_left_off(written, report.original_kept))
     for c, (before, after) in outcome.errors.items():
         windows = outcome.tally.windows.get(c, (0, 0))
         if before.count and c in executed.stats:
@@ -298,6 +293,15 @@ def _compensate(read_path, input_path, output_path, profile, options, flavor, pr
             report.axes[AXES[c]] = AxisReport.from_stats(before, after, *windows)
     report.compute_time_s = time.perf_counter() - started
     return report
+
+
+def _shaping_left_off(written, original_kept: bool) -> list[str]:
+    """The warning where the output leaves input shaping off (every later print would run unshaped)."""
+    if not written.shaping_left_off or original_kept:
+        return []
+    return [f"input shaping on {' and '.join(written.shaping_left_off)} is off after this program: neither the "
+            "profile nor the program says what it was. Give it in the profile's [firmware] shaper_frequency "
+            "(Klipper: fbspost identify --klipper-cfg printer.cfg --merge PROFILE -o PROFILE reads [input_shaper])"]
 
 
 def _plan_stream(blocks: Iterable[Block], profile: MachineProfile, options: CompensateOptions,

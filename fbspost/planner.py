@@ -904,8 +904,8 @@ class PlanStream:
     ([first, last] sample indices, last None while the run goes on), the samples below
     ``frontier`` (``samples``; ``release`` drops what is behind), the blocks with their times
     (``blocks``), and at the end (``done``) ``n_samples``, ``duration_s``, ``notes`` and
-    ``warnings``. ``keep`` holds everything for ``whole`` (``plan_blocks``). ``firmware``
-    "klipper" plans with Klipper's rules (``klipper_rules``), anything else as above.
+    ``warnings``. ``keep`` holds everything for ``whole`` (``plan_blocks``, as is ``every_axis``).
+    ``firmware`` "klipper" plans with Klipper's rules (``klipper_rules``), anything else as above.
 
     The stream reads blocks (``_BlockReader``), makes their pieces (``_PieceMaker``), decides
     their speeds (``_LookAhead``) and settles them here: the pieces' times, the runs and the
@@ -925,8 +925,7 @@ class PlanStream:
         self.runs: list[list] = []
         self.frontier = 0  # samples below it are settled
         self.settled_s = 0.0  # the motion is settled up to this time (the end of the last piece settled)
-        self.done = False
-        self.n_blocks = 0
+        self.done, self.n_blocks = False, 0
         self.n_samples: int | None = None
         self.duration_s: float | None = None
         self.notes: list[str] = []
