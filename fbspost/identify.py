@@ -185,7 +185,7 @@ def fit_frf(frequency_hz: np.ndarray, response: np.ndarray, n_modes: int | None 
     else:
         for n in range(1, max_modes + 1):
             fit(n)
-            chosen = _chosen_count({k: v.rms_error if _plausible(v) else math.inf for k, v in fits.items()},
+            chosen = _chosen_count({k: v.rms_error if _plausible(v, f[-1]) else math.inf for k, v in fits.items()},
                                    max_modes)
             if chosen:
                 break
@@ -210,16 +210,19 @@ def _chosen_count(errors: dict[int, float], max_modes: int) -> int | None:
     return None
 
 
-def _plausible(fit: Fit) -> bool:
+def _plausible(fit: Fit, top_hz: float) -> bool:
     """Whether every mode of ``fit`` is a resonance: none nearly critically damped (two real poles,
     which with a partner of opposite sign stand in for a slow trend of the response, the
     recording's timing or a filter: seen on simulated recordings, a pair at 85 Hz of damping 0.996
-    and 0.999 whose 0.1% less error made FBS worse than no compensation on the machine), and none
-    whose own peak is under PLAUSIBLE_SHARE of the response's (one at 119.9 Hz of 0.1% soaked up
-    what was left of a recording's clock at the band's end)."""
+    and 0.999 whose 0.1% less error made FBS worse than no compensation on the machine), none at
+    the fit's lowest damping (undetermined), and none
+    at the band's top (``top_hz``) whose own peak is under PLAUSIBLE_SHARE of the response's (one at 119.9 Hz of
+    0.1% soaked up what was left of a recording's clock there; the patent stage's Y has a real one
+    of 1% inside the band)."""
     peaks = [abs(modal_response((m,), np.array([m.frequency_hz]))[0]) for m in fit.modes]
     whole = np.abs(modal_response(fit.modes, np.array([m.frequency_hz for m in fit.modes]))).max()
-    return all(m.damping < PLAUSIBLE_DAMPING and peak >= PLAUSIBLE_SHARE * whole
+    return all(1.01 * DAMPING_BOUNDS[0] < m.damping < PLAUSIBLE_DAMPING
+               and (peak >= PLAUSIBLE_SHARE * whole or m.frequency_hz < 0.98 * top_hz)
                for m, peak in zip(fit.modes, peaks, strict=True))
 
 

@@ -133,6 +133,7 @@ class Report:
         return asdict(self)
 
 
+SHAPING_LEFT_OFF = "input shaping is off after this program"  # (the warning's start)
 _CHUNK = 1 << 14  # samples planned, compensated and written at once
 # Verified by default up to this many written lines: the firmware models hold every block and
 # sample of a program at once, about 4 kB a line (measured: 85k Marlin lines 0.35 GB, 353k
@@ -299,9 +300,9 @@ def _shaping_left_off(written, original_kept: bool) -> list[str]:
     """The warning where the output leaves input shaping off (every later print would run unshaped)."""
     if not written.shaping_left_off or original_kept:
         return []
-    return [f"input shaping on {' and '.join(written.shaping_left_off)} is off after this program: neither the "
-            "profile nor the program says what it was. Give it in the profile's [firmware] shaper_frequency "
-            "(Klipper: fbspost identify --klipper-cfg printer.cfg --merge PROFILE -o PROFILE reads [input_shaper])"]
+    return [f"{SHAPING_LEFT_OFF} on {' and '.join(written.shaping_left_off)}: neither the profile nor the program "
+            "says what it was. Give it in the profile's [firmware] shaper_frequency (Klipper: fbspost identify "
+            "--klipper-cfg printer.cfg --merge PROFILE -o PROFILE reads [input_shaper])"]
 
 
 def _plan_stream(blocks: Iterable[Block], profile: MachineProfile, options: CompensateOptions,

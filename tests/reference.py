@@ -280,6 +280,7 @@ INSERTED = (
     b"M204",
     b"M205",
     b"M566",
+    b"M203 I",
     b"M593",
     b"SET_VELOCITY_LIMIT",
     b"SET_INPUT_SHAPER",

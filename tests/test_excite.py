@@ -246,7 +246,9 @@ def test_klipper_runs_the_sweep_as_written_and_the_old_setting_did_not(tmp_path)
     block_s = block_s_of(text)
     late_s, off_mm, ratio = timing_and_position(*klippy_run(path), text, "klipper")
     print(f"klippy: blocks end up to {late_s * 1e6:.2f} us off, {off_mm * 1e3:.3f} um; duration ratio {ratio:.6f}")
-    assert late_s <= 0.01 * block_s
+    # (2%: the make-up counts the speed steps between blocks, not the stop at each reversal of the
+    # axis, 0.02 to 0.05 us each: 17.6 us by the end of the clock mark)
+    assert late_s <= 0.02 * block_s
     assert off_mm <= 1e-3
     assert abs(ratio - 1.0) <= 1e-3
 
@@ -264,9 +266,9 @@ def test_klipper_runs_the_sweep_as_written_and_the_old_setting_did_not(tmp_path)
 
 @pytest.mark.slow
 @pytest.mark.parametrize("flavor, late_blocks, position_mm", [
-    # whole steps: within a step; Marlin's F (to 0.001 mm/min) and steps leave 2.4% of a block (26.5 us,
-    # on the way down to the clock mark, where the speed steps are largest)
-    ("marlin", 0.03, 1.0 / STEPS_PER_MM),
+    # whole steps: within a step; Marlin's F (to 0.001 mm/min) and steps leave 3.4% of a block (37 us,
+    # by the end of the clock mark: the stops at the reversals, as on Klipper)
+    ("marlin", 0.04, 1.0 / STEPS_PER_MM),
     # RRF runs a move at M203 I's speed at least (0.5 mm/s by default: the 3 s sweep ran 2% short, its slow
     # blocks 78 ms early); the sweep sets it to RRF's lowest, 0.01 mm/s, and restores it after
     pytest.param("reprap", 0.01, 1e-3, marks=pytest.mark.xfail(strict=True, reason=(

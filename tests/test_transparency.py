@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from fbspost.gcode import AXES, Block, Kind, Modal, PlannerLimits
-from fbspost.pipeline import CompensateOptions, compensate_file
+from fbspost.pipeline import SHAPING_LEFT_OFF, CompensateOptions, compensate_file
 from fbspost.profile import ProfileError, format_profile, load_profile, parse_profile, tomllib
 from fbspost.transparency import FirmwareSettings, Transparency
 from fbspost.writer import _Emitter
@@ -233,7 +233,7 @@ def test_shaping_left_off_is_said_on_stderr(tmp_path, flavor):
     report, lines = compensated(tmp_path, HEAD.format(""), flavor)
     shaping = [x for x in lines if x.startswith(("SET_INPUT_SHAPER", "M593"))]
     assert shaping == SHAPING_OFF[flavor]
-    left = [w for w in report.warnings if "input shaping on X and Y is off after this program" in w]
+    left = [w for w in report.warnings if w.startswith(f"{SHAPING_LEFT_OFF} on X and Y: ")]
     assert len(left) == 1 and "[firmware] shaper_frequency" in left[0], report.warnings
 
 
