@@ -711,34 +711,7 @@ def frf_from_recording(times_s: np.ndarray, accel: np.ndarray, sweep) -> Recordi
     octave_s = duration_s * math.log(2) / math.log(sweep.end_hz / sweep.start_hz)
     offset_s, inverted = _aligned(measured, grid, _commanded_acceleration(sweep, np.arange(int(octave_s * fs) + 1) / fs,
                                                                           fs))
-    # The recording's clock against the machine's, from the clock mark: the sweep's first passage
-    # again at the end, both found with the same template (the axis' lag the same both times), the
-    # mark within 1000 ppm of where a clock of the machine's rate would put it
-    rate = 1.0
-    if sweep.mark_s:
-        # In the recording low-passed, all alike, below the modes: no blocks' corners (1 kHz) there,
-        # what the axis' modes would let through of them would align the passages block by block
-        low = signal.butter(4, _MARK_LOW_PASS * sweep.start_hz, fs=fs, output="sos")
-        # (cut from the whole command low-passed, as the recording is: not low-passed alone, whose
-        # ends the filter would shape otherwise)
-        machine_s = np.arange(-int(fs), int((duration_s + 1.0) * fs)) / fs  # (from the rest before it)
-        first = slice(int(fs), int(fs) + int(_MARK_TEMPLATE_S * fs))
-        # where the mark is in the command itself (the header's time is the program's as written,
-        # the firmware's plan may differ by milliseconds), from its positions, exact copies of the
-        # first passage's (the accelerations' block corners match a block off as well); from that
-        # passage as found alike: a correlation over a window that cuts a growing signal peaks off
-        # its lag (here by 0.35 ms), the same for both passages
-        position = sweep.position(machine_s) - sweep.positions_mm[0]
-        passages = [_aligned(position, machine_s, position[first], (at_s - 0.05, at_s + 0.05))[0]
-                    for at_s in (0.0, sweep.mark_s)]
-        mark_s = passages[1] - passages[0]
-        template = signal.sosfiltfilt(low, _commanded_acceleration(sweep, machine_s, fs))[first]
-        measured_low = signal.sosfiltfilt(low, measured)
-        start_at_s, _ = _aligned(measured_low, grid, template, (offset_s - 0.05, offset_s + 0.05))
-        reach_s = 1e-3 * mark_s + 1.0 / fs
-        window_s = (start_at_s + mark_s - reach_s, start_at_s + mark_s + reach_s)
-        mark_at_s, _ = _aligned(measured_low, grid, template, window_s)
-        rate = (mark_at_s - start_at_s) / mark_s
+    rate = _clock_rate(measured, grid, fs, sweep, offset_s) if sweep.mark_s else 1.0
     # the sweep and a second each side (not the mark: with it in, the last of three half-length
     # segments put 90-120 Hz where it read a response 6.8 times the truth's)
     sweep_s = sweep.mark_s or duration_s
@@ -752,6 +725,38 @@ def frf_from_recording(times_s: np.ndarray, accel: np.ndarray, sweep) -> Recordi
     _, coherence = signal.coherence(x, y, **welch)
     band = (f >= sweep.start_hz) & (f <= sweep.end_hz)
     return Recording(f[band], s_xy[band] / s_xx[band], coherence[band], offset_s, bool(inverted), fs_machine, rate)
+
+
+def _clock_rate(measured: np.ndarray, grid: np.ndarray, fs: float, sweep, offset_s: float) -> float:
+    """The recording's seconds per second of the machine's, from the sweep's clock mark: its first
+    passage again at the end, both found in the recording (``measured`` on ``grid``, ``fs``
+    samples per second, the sweep starting near ``offset_s``) with the same template, so the
+    axis' lag is the same both times; the mark within 1000 ppm of where a clock of the machine's
+    rate would put it."""
+    duration_s = sweep.times_s[-1]
+    # In the recording low-passed, all alike, below the modes: no blocks' corners (1 kHz) there,
+    # what the axis' modes would let through of them would align the passages block by block
+    low = signal.butter(4, _MARK_LOW_PASS * sweep.start_hz, fs=fs, output="sos")
+    # (cut from the whole command low-passed, as the recording is: not low-passed alone, whose
+    # ends the filter would shape otherwise)
+    machine_s = np.arange(-int(fs), int((duration_s + 1.0) * fs)) / fs  # (from the rest before it)
+    first = slice(int(fs), int(fs) + int(_MARK_TEMPLATE_S * fs))
+    # where the mark is in the command itself (the header's time is the program's as written,
+    # the firmware's plan may differ by milliseconds), from its positions, exact copies of the
+    # first passage's (the accelerations' block corners match a block off as well); from that
+    # passage as found alike: a correlation over a window that cuts a growing signal peaks off
+    # its lag (here by 0.35 ms), the same for both passages
+    position = sweep.position(machine_s) - sweep.positions_mm[0]
+    passages = [_aligned(position, machine_s, position[first], (at_s - 0.05, at_s + 0.05))[0]
+                for at_s in (0.0, sweep.mark_s)]
+    mark_s = passages[1] - passages[0]
+    template = signal.sosfiltfilt(low, _commanded_acceleration(sweep, machine_s, fs))[first]
+    measured_low = signal.sosfiltfilt(low, measured)
+    start_at_s, _ = _aligned(measured_low, grid, template, (offset_s - 0.05, offset_s + 0.05))
+    reach_s = 1e-3 * mark_s + 1.0 / fs
+    window_s = (start_at_s + mark_s - reach_s, start_at_s + mark_s + reach_s)
+    mark_at_s, _ = _aligned(measured_low, grid, template, window_s)
+    return (mark_at_s - start_at_s) / mark_s
 
 
 _MARK_TEMPLATE_S = 1.3  # the mark's part well before its fade (at 1.5 s)
