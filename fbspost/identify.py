@@ -34,6 +34,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
+from scipy import fft as sp_fft
 from scipy import ndimage, optimize, signal
 
 from .dynamics import modal_response
@@ -693,13 +694,11 @@ def read_accel_log(path: str | Path, column: str) -> tuple[np.ndarray, np.ndarra
 
 
 def frf_from_recording(times_s: np.ndarray, accel: np.ndarray, sweep) -> Recording:
-    """H1 from the measured acceleration ``accel`` at ``times_s`` (its own time base) and the
-    commanded motion of ``sweep`` (``excite.Sweep``): the recording is put on a uniform grid at
-    its mean rate; the commanded acceleration, band-limited alike, is aligned with it by
-    cross-correlation; S_xy / S_xx and the coherence by Welch averaging over the sweep with a
-    second of rest on each side, in three Hann segments of half its length (a quarter apart):
-    a lightly damped mode rings for seconds after the sweep passes it, and a sweep excites each
-    frequency only once, so long segments matter more than many averages."""
+    """The frequency response from the measured acceleration ``accel`` at ``times_s`` (its own
+    time base) and the commanded motion of ``sweep`` (``excite.Sweep``): the recording is put on a
+    uniform grid at its mean rate; the commanded acceleration, band-limited alike, is aligned with
+    it by cross-correlation and its clock rate found (``_clock_rate``); then ``_whole_record_frf``
+    of the program from a second before it to a second after it ends."""
     fs = (len(times_s) - 1) / (times_s[-1] - times_s[0])
     grid = times_s[0] + np.arange(len(times_s)) / fs
     measured = np.interp(grid, times_s, accel)
@@ -712,19 +711,44 @@ def frf_from_recording(times_s: np.ndarray, accel: np.ndarray, sweep) -> Recordi
     offset_s, inverted = _aligned(measured, grid, _commanded_acceleration(sweep, np.arange(int(octave_s * fs) + 1) / fs,
                                                                           fs))
     rate = _clock_rate(measured, grid, fs, sweep, offset_s) if sweep.mark_s else 1.0
-    # the sweep and a second each side (not the mark: with it in, the last of three half-length
-    # segments put 90-120 Hz where it read a response 6.8 times the truth's)
-    sweep_s = sweep.mark_s or duration_s
-    keep = (grid >= offset_s - 1.0) & (grid <= offset_s + rate * (sweep_s + 1.0))
+    keep = (grid >= offset_s - 1.0) & (grid <= offset_s + rate * (duration_s + 1.0))
     y = -measured[keep] if inverted else measured[keep]
     fs_machine = fs * rate  # the recording's samples per second of the machine's
     x = _commanded_acceleration(sweep, (grid[keep] - offset_s) / rate, fs_machine)
-    welch = dict(fs=fs_machine, nperseg=len(x) // 2, noverlap=len(x) // 4)
-    f, s_xx = signal.welch(x, **welch)
-    _, s_xy = signal.csd(x, y, **welch)
-    _, coherence = signal.coherence(x, y, **welch)
-    band = (f >= sweep.start_hz) & (f <= sweep.end_hz)
-    return Recording(f[band], s_xy[band] / s_xx[band], coherence[band], offset_s, bool(inverted), fs_machine, rate)
+    f, response, coherence = _whole_record_frf(x, y, fs_machine, sweep.start_hz, sweep.end_hz)
+    return Recording(f, response, coherence, offset_s, bool(inverted), fs_machine, rate)
+
+
+FRF_RESOLUTION = 0.002  # relative width of the bands the response is averaged over (a tenth of
+#                         the half-width of a mode of damping 0.02: what a peak keeps of its shape)
+_FRF_BINS = 3  # at least this many spectral lines per band: the coherence needs more than one
+
+
+def _whole_record_frf(x: np.ndarray, y: np.ndarray, fs: float, start_hz: float, end_hz: float):
+    """(frequencies Hz, H, coherence) from ``x`` and ``y`` sampled at ``fs``, each from rest to
+    rest: their whole spectra, so that Y = G X holds line by line (the sweep excites each
+    frequency once, and a lightly damped mode rings for seconds after: Welch's windowed segments
+    weigh its input and its ringing differently, which biased the phase enough for a belt's zero
+    to read as a time offset: Y's zero 0 for 21 on a simulated recording). H1 = S_xy / S_xx and
+    the coherence over bands of FRF_RESOLUTION of their frequency, at least _FRF_BINS lines,
+    between ``start_hz`` and ``end_hz``."""
+    n = sp_fft.next_fast_len(len(x))
+    spectrum_x, spectrum_y = sp_fft.rfft(x, n), sp_fft.rfft(y, n)
+    f = sp_fft.rfftfreq(n, 1.0 / fs)
+    step_hz = f[1]
+    edges = [int(math.ceil(start_hz / step_hz))]
+    while f[edges[-1]] < end_hz:
+        edges.append(edges[-1] + max(_FRF_BINS, int(round(FRF_RESOLUTION * f[edges[-1]] / step_hz))))
+    edges = np.array(edges[:-1] if edges[-1] >= len(f) else edges)
+
+    def summed(values):
+        return np.add.reduceat(values[:edges[-1]], edges[:-1])
+
+    s_xx, s_yy = summed(np.abs(spectrum_x) ** 2), summed(np.abs(spectrum_y) ** 2)
+    s_xy = summed(np.conj(spectrum_x) * spectrum_y)
+    weights = np.abs(spectrum_x) ** 2
+    centre_hz = summed(weights * f) / s_xx
+    return centre_hz, s_xy / s_xx, np.abs(s_xy) ** 2 / (s_xx * s_yy)
 
 
 def _clock_rate(measured: np.ndarray, grid: np.ndarray, fs: float, sweep, offset_s: float) -> float:

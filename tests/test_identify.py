@@ -338,8 +338,8 @@ def test_sweep_the_firmware_retimed_is_refused_and_written_only_with_force(print
 def test_sweep_run_as_written_is_identified_without_warning(printer_sweep, tmp_path):
     """The same sweep run as written, recorded alike: no warning (the checks do not always
     warn), the mode within 0.5% (frequency) and 3% (damping) of BELT_AXIS and its zero (beta)
-    within 5% (without the fit's starts along the zeros' trade-off with the time offset it was
-    -45 for 46), and the tolerances the floors (the fit's own 3 sd is far smaller)."""
+    within 5%, its sign too (without the fit's starts along the zeros' trade-off with the time
+    offset it was -45 for 46), and the tolerances the floors (the fit's own 3 sd is far smaller)."""
     log, profile = tmp_path / "raw_data.csv", tmp_path / "p.toml"
     simulated_recording(printer_sweep, log, BELT_AXIS)
     result = run("identify", "--accel-log", log, "--program", printer_sweep, "--axis", "X", "-o", profile)
@@ -347,10 +347,10 @@ def test_sweep_run_as_written_is_identified_without_warning(printer_sweep, tmp_p
     assert result.exit_code == 0 and "warning" not in result.output, result.output
     (mode,) = load_profile(profile).axes["X"].modes
     assert mode.frequency_hz == pytest.approx(52.0, rel=0.005) and mode.damping == pytest.approx(0.07, rel=0.03)
-    # The zero's size, not its side: with the command from the firmware's plan (sampled at 0.1 ms)
-    # the fit's two near-equal minima of the zero's trade-off with the time offset swap (0.217% RMS
-    # error either way): a recording tells the zero's size, not whether it is a belt's or a delay's
-    assert abs(mode.beta) == pytest.approx(BELT_AXIS[0].beta, rel=0.05)
+    # The zero itself, sign and size: with Welch's windowed segments the fit's two near-equal
+    # minima of the zero's trade-off with the time offset swapped (+-46, 0.217% RMS error either
+    # way); the whole record's response tells them apart (45.74 for 45.74)
+    assert mode.beta == pytest.approx(BELT_AXIS[0].beta, rel=0.05)
     assert (mode.frequency_tolerance, mode.damping_tolerance) == (0.02, 0.05)
 
 
