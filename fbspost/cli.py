@@ -585,13 +585,14 @@ def _fitted(frf_csv, accel_log, program, accel_column, axis, n_modes, max_modes,
     if accel_log:
         sweep = excite_module.commanded_sweep(program, axis, machine, lines)
         times_s, accel = ident.read_accel_log(accel_log, accel_column or f"accel_{axis.lower()}")
-        rec = ident.frf_from_recording(times_s, accel, sweep)
-        fit = ident.fit_frf(rec.frequency_hz, rec.response, n_modes, max_modes, weights=rec.coherence,
-                            fit_delay=True)
+        rec, fit, mark_rate = ident.fit_recording(times_s, accel, sweep, n_modes, max_modes)
         frequency_hz, coherence = rec.frequency_hz, rec.coherence
-        measured = rec.response * np.exp(2j * np.pi * rec.frequency_hz * fit.delay_s)
+        late_s = fit.delay_s + fit.clock_error * rec.excited_at_s
+        measured = rec.response * np.exp(2j * np.pi * rec.frequency_hz * late_s)
         lines.append(f"recording: {len(times_s)} samples at {rec.sample_rate_hz:.1f} Hz, its clock "
-                     f"{1e6 * (rec.clock_rate - 1):+.1f} ppm from the machine's; the sweep starts at "
+                     f"{1e6 * (rec.clock_rate * (1 + fit.clock_error) - 1):+.1f} ppm from the machine's (its clock "
+                     f"mark's: {1e6 * (mark_rate - 1):+.1f}; the phase over the band tells better); "
+                     f"the sweep starts at "
                      f"{rec.offset_s + fit.delay_s:.6f} s of its time base"
                      + ("; accelerometer axis reversed: sign flipped" if rec.inverted else ""))
         note = f"axis {axis}: identified from the recording {accel_log.name} of {program.name}"
