@@ -130,7 +130,7 @@ class AxisDynamics:
             term = np.array([m.beta, m.alpha])
             for j, den in enumerate(dens):
                 if j != i:
-                    term = np.polymul(term, den)
+                    term = np.convolve(term, den)  # (not np.polymul: it drops a leading 0, a mode without beta)
             terms.append(term)
         terms = np.array(terms)
         numerator = terms.sum(axis=0)

@@ -297,3 +297,20 @@ def test_response_in_pieces_is_the_simulation():
     cuts = [0, 0, 17, 17, 1000, 1001, 4321, 5000]
     pieces = np.concatenate([step(command[a:b]) for a, b in zip(cuts[:-1], cuts[1:], strict=True)])
     assert np.array_equal(pieces, dynamics.simulate(command))
+
+
+def test_zeros_of_modes_with_and_without_beta():
+    """A mode without beta beside one with it (a mass and a belt on one axis): G vanishes at every
+    zero returned (G summed from the modes, written out here), three of them (the numerator's
+    degree: beta s times the other denominator; np.polymul dropped the first mode's 0 and crashed)."""
+    modes = (Mode(40.0, 0.05, 63165.0, 0.0), Mode(80.0, 0.03, 50000.0, 30.0))
+    zeros = AxisDynamics(modes, 1e-3).zeros()
+
+    def g(s):
+        return sum((m.alpha + m.beta * s) / (s * s + 2 * m.damping * m.omega_rad_s * s + m.omega_rad_s**2)
+                   for m in modes)
+
+    assert len(zeros) == 3
+    scale = abs(g(1j * modes[0].omega_rad_s))
+    for z in zeros:
+        assert abs(g(z)) < 1e-9 * scale
