@@ -26,7 +26,8 @@ highest a <= 1 that does no harm:
   sum of squares than the original, the first safe plan);
 - no error where it writes is above the original's largest over the ``_RECENT_S`` before the
   decision and the horizon after it;
-- its command where it writes is within the axis limits wherever the planned original is.
+- its command where it writes is within the axis limits and the machine's travel wherever the
+  planned original is.
 
 Both over the samples the report counts (motion and the settling after it) and over all of them.
 The blend down after a decision is judged for its sum of squares only: it is written only where
@@ -155,6 +156,11 @@ class AxisGuard:
         self.settle = settings.settle_samples
         self.limits = compensator.limits.command
         self.history = max([*self.limits, 1])
+        # the travel, and as judged: as far beyond it as the optimizer's rows accept (clipped when written)
+        self.travel = compensator.limits.position_mm
+        slack = _LIMIT_TOLERANCE * (compensator.limits.position_half_mm or 0.0)
+        self.judged_travel = (self.travel[0] - slack, self.travel[1] + slack)
+        self.orders = [0] * (compensator.limits.position_half_mm is not None) + sorted(self.limits)
         # Blends last whole units, at least the decay time of the slowest mode: removed faster,
         # the compensation of a lightly damped mode leaves it ringing as much as it cancelled.
         slowest_per_s = float(np.min(-dynamics.poles().real))
@@ -296,7 +302,7 @@ class AxisGuard:
         return [max((r[i] for r in self.recent), default=0.0) for i in (1, 2)]
 
     def _within_limits(self, change: np.ndarray, difference: np.ndarray, checked: int) -> bool:
-        """Is planned + ``change`` (then planned) within the axis' command limits wherever the
+        """Is planned + ``change`` (then planned) within the axis' command limits and travel wherever the
         planned original is? (Where the original itself is beyond one, at a junction's velocity
         jump, the controller's junction model governs, for the original as for this.) Over the
         first ``checked`` samples, what the decision writes; after them, the blend down, only
@@ -309,15 +315,21 @@ class AxisGuard:
         written[self.history:self.history + len(change)] += change
         compensated = np.concatenate([self.command_before, ahead])
         compensated[self.history:self.history + len(change)] += difference[:len(change)]
-        for order, limit in self.limits.items():
-            bound = limit * self.period_s**order * (1.0 + _LIMIT_TOLERANCE)
-            rows = slice(self.history - order, None)
-            beyond = (np.abs(np.diff(written, order)[rows]) > bound) & (np.abs(np.diff(planned, order)[rows]) <= bound)
+        for order in self.orders:
+            beyond = self._outside(written, order) & ~self._outside(planned, order)
             judged = np.arange(beyond.size) < checked
-            judged[checked:] = np.abs(np.diff(compensated, order)[rows][checked:]) > bound
+            judged[checked:] = self._outside(compensated, order)[checked:]
             if np.any(beyond & judged):
                 return False
         return True
+
+    def _outside(self, command: np.ndarray, order: int) -> np.ndarray:
+        """Where the samples from n of ``command`` (the ``history`` before n first) are beyond the
+        travel (``order`` 0) or beyond the limit of their ``order``-th derivative."""
+        values = np.diff(command, order)[self.history - order:]
+        if order == 0:
+            return (values < self.judged_travel[0]) | (values > self.judged_travel[1])
+        return np.abs(values) > self.limits[order] * self.period_s**order * (1.0 + _LIMIT_TOLERANCE)
 
     def _commit(self, size: int) -> np.ndarray:
         """Write ``size`` samples from n as the safe plan has them."""
@@ -327,6 +339,8 @@ class AxisGuard:
         planned, command, error = self.planned[:size], self.command[:size], self.error[:size]
         counted = self.counted[:size]
         written = np.where(w == 1.0, command, np.where(w == 0.0, planned, planned + w * (command - planned)))
+        if self.orders[:1] == [0]:  # within the travel exactly, not to the optimizer's tolerance
+            written = np.clip(written, *self.travel)
         change = written - planned
         self.before.add(error[counted])
         self.after.add((error - self.model.moved(change, size))[counted])

@@ -71,6 +71,7 @@ the first 2000 and last 300 lines. How lines are read:
 from __future__ import annotations
 
 import enum
+import itertools
 import math
 import re
 from collections.abc import Iterator
@@ -234,12 +235,16 @@ _EXPAND_HINT = "--expand runs it through LinuxCNC's interpreter"
 _NURBS_G = {5.1, 5.2, 5.3, 6.2}  # LinuxCNC splines (G6.2: LinuxCNC 2.10's NURBS with its own knots)
 _IO_M = {62.0, 63.0, 64.0, 65.0, 66.0, 67.0, 68.0}  # LinuxCNC I/O: E P Q L are its words
 _LINUXCNC_PASS_M = {48.0, 49.0, 50.0, 51.0, 52.0, 53.0, 61.0, 62.0, 63.0, 64.0, 65.0, 67.0, 68.0}
+_TRAVEL_BATCH = 256  # blocks checked against the travel at once
 _PARAMETER = re.compile(r"#\s*(?:<[^>]*>?|\d+|\[)|\[[^\]]*\]?")
 
 
-def read_gcode(path: str | Path, flavor: str, home_mm=(0.0, 0.0, 0.0)) -> Iterator[Block]:
+def read_gcode(path: str | Path, flavor: str, home_mm=(0.0, 0.0, 0.0), travel_mm=None) -> Iterator[Block]:
     """Blocks of the G-code file ``path`` read as ``flavor`` (one of FLAVORS), one per line, in order.
     ``home_mm``: the X Y Z machine position a G28 leaves the axes it homes at (printers).
+    ``travel_mm``: the lowest and the highest machine position of each axis of AXES
+    (``MachineProfile.travel_mm``): a line that moves an axis beyond them is refused, as the
+    firmware refuses it (Klipper: "Move out of range"; LinuxCNC's soft limits).
 
     Streams: the file is read line by line as the iterator is consumed. Raises ``InputError``
     (``FILE:LINE: message``) at the first line it cannot interpret safely, ``ValueError`` at once
@@ -247,7 +252,27 @@ def read_gcode(path: str | Path, flavor: str, home_mm=(0.0, 0.0, 0.0)) -> Iterat
     """
     if flavor not in FLAVORS:
         raise ValueError(f"unknown G-code flavor {flavor!r}: expected one of {', '.join(FLAVORS)}")
-    return _blocks(path, flavor, home_mm)
+    blocks = _blocks(path, flavor, home_mm)
+    if travel_mm is None or not np.isfinite(travel_mm).any():
+        return blocks
+    return _within_travel(blocks, path, *np.asarray(travel_mm, dtype=float))
+
+
+def _within_travel(blocks: Iterator[Block], path, lowest_mm: np.ndarray, highest_mm: np.ndarray) -> Iterator[Block]:
+    """``blocks``, each checked to leave no axis beyond the travel (a position still unknown, NaN,
+    is not checked: the machine's own is that of the line that sets it); checked ``_TRAVEL_BATCH``
+    blocks at a time (one at a time took a CAM program's reading 3 times as long)."""
+    while batch := list(itertools.islice(blocks, _TRAVEL_BATCH)):
+        points = [b.points_mm if b.points_mm is not None else b.position_mm[None] for b in batch]
+        stacked = np.vstack(points)
+        beyond = (stacked < lowest_mm) | (stacked > highest_mm)
+        if beyond.any():
+            row, axis = np.argwhere(beyond)[0]
+            line_no = batch[np.searchsorted(np.cumsum([len(p) for p in points]), row, "right")].line_no
+            raise InputError(path, line_no, f"moves {AXES[axis]} to {stacked[row, axis]:.6g} mm, beyond the "
+                             f"machine's travel {lowest_mm[axis]:g} to {highest_mm[axis]:g} mm (the profile's "
+                             f"axes.{AXES[axis]}.position_min and position_max, or the firmware's default)")
+        yield from batch
 
 
 def _blocks(path: str | Path, flavor: str, home_mm) -> Iterator[Block]:

@@ -46,13 +46,39 @@ class AxisLimits:
 
     command: dict[int, float] = field(default_factory=dict)
     output: dict[int, float] = field(default_factory=dict)
+    position_mm: tuple[float, float] = (-math.inf, math.inf)  # the machine's travel: the command stays within
 
     @classmethod
     def from_profile(cls, axis: AxisProfile) -> AxisLimits:
         command = {1: axis.max_velocity_mm_s, 2: axis.max_acceleration_mm_s2}
         if axis.max_jerk_mm_s3 is not None:
             command[3] = axis.max_jerk_mm_s3
-        return cls(command)
+        travel = tuple(math.copysign(math.inf, sign) if value is None else value
+                       for value, sign in ((axis.position_min_mm, -1.0), (axis.position_max_mm, 1.0)))
+        return cls(command, position_mm=travel)
+
+    @property
+    def position_half_mm(self) -> float | None:
+        """Half the band |command - center| <= half of the position rows (None: no travel given).
+        With one end of the travel open, a fixed ``_OPEN_HALF_MM``: the center follows the window."""
+        low, high = self.position_mm
+        if math.isinf(low) and math.isinf(high):
+            return None
+        return 0.5 * (high - low) if math.isfinite(low + high) else _OPEN_HALF_MM
+
+    def position_center(self, desired_mm: np.ndarray) -> float:
+        """The center of the position rows' band for a window tracking ``desired_mm``: the middle of
+        the travel; with one end open, the band's far side half a band beyond the window's motion,
+        its near side at the travel's end wherever the window comes within a band of it."""
+        low, high = self.position_mm
+        half = self.position_half_mm
+        if half is None:  # no rows
+            return 0.0
+        if math.isfinite(low + high):
+            return 0.5 * (low + high)
+        if math.isfinite(low):
+            return max(low + half, float(desired_mm.max()) - 0.5 * half)
+        return min(high - half, float(desired_mm.min()) + 0.5 * half)
 
     @property
     def history(self) -> int:
@@ -125,6 +151,9 @@ class AxisResult:
 
 
 _LIMIT_TOLERANCE = 1e-7  # relative excess over a limit accepted as meeting it
+# Half the position rows' band where one end of the travel is open: wider than any window's motion
+# and overshoot, narrow enough that _LIMIT_TOLERANCE of it (0.05 um) is nothing (fallback.py clips it).
+_OPEN_HALF_MM = 500.0
 _QP_ROUNDS = 4
 _FINAL_CACHE_BYTES = 128 << 20  # per axis (printer-two-mode's X: the final windows of every long run's length, 63 MB)
 _ACTIVE_SET_STEPS = 400
@@ -367,8 +396,15 @@ class _Stretch(_LimitedQP):
             self._factor = linalg.cho_factor(self.H)
             self.G = linalg.cho_solve(self._factor, np.asarray(self.W.T @ self.M).T)
 
-        # Limits, one row per sample and limit, divided by the limit: |A_free p + offset| <= 1 with
-        # offset = A_fixed p_fixed + A_prev [previous command; previous output] + A_state state.
+        self._limit_rows(limits, n_samples, T)
+        self._qp = None
+        self._ldp = self._hinv_at = None
+
+    def _limit_rows(self, limits: AxisLimits, n_samples: int, T: float) -> None:
+        """The rows of ``limits``, one per sample and limit, divided by the limit: |A_free p + offset|
+        <= 1 with offset = A_fixed p_fixed + A_prev [previous command; previous output] + A_state
+        state + A_center center (``has_limits``: are there any)."""
+        m = self.m
         r_max = limits.history
         free, fixed, prev, state, row_sample = [], [], [], [], []
         for kind, table in (("command", limits.command), ("output", limits.output)):
@@ -386,13 +422,24 @@ class _Stretch(_LimitedQP):
                     D[:, r:] @ self.Phi[:n_samples] if kind == "output" else np.zeros((n_samples, self.Phi.shape[1]))
                 )
                 row_sample.append(np.arange(n_samples))
+        # The travel: |(N p - center) / half| <= 1 at every sample, the center set per window.
+        half = limits.position_half_mm
+        center = [np.zeros(len(rows)) for rows in fixed]
+        if half is not None:
+            rows = self.N / half
+            free.append(sparse.csr_matrix(rows[:, m:]))
+            fixed.append(rows[:, :m])
+            prev.append(np.zeros((n_samples, 2 * r_max)))
+            state.append(np.zeros((n_samples, self.Phi.shape[1])))
+            row_sample.append(np.arange(n_samples))
+            center.append(np.full(n_samples, -1.0 / half))
         self.has_limits = bool(free)
+        self.position_center = limits.position_center
         if self.has_limits:
             self.A_free = sparse.vstack(free, format="csc")
             self.A_fixed, self.A_prev, self.A_state = np.vstack(fixed), np.vstack(prev), np.vstack(state)
+            self.A_center = np.concatenate(center)
             self.row_sample = np.concatenate(row_sample)
-        self._qp = None
-        self._ldp = self._hinv_at = None
 
     @property
     def nbytes(self) -> int:
@@ -419,9 +466,11 @@ class _Stretch(_LimitedQP):
         rhs = np.concatenate([self.gradient(target), end_values - self.E[:, :self.m] @ p_fixed])
         return linalg.lu_solve(self._factor, rhs)[:self.n_free]
 
-    def limit_offset(self, p_fixed, state, previous) -> np.ndarray:
-        """``previous``: the last commands, then the last outputs, before the window."""
-        return self.A_fixed @ p_fixed + self.A_prev @ previous + self.A_state @ state
+    def limit_offset(self, p_fixed, state, previous, desired) -> np.ndarray:
+        """``previous``: the last commands, then the last outputs, before the window; ``desired``:
+        the window's desired trajectory (where the travel's rows center)."""
+        return (self.A_fixed @ p_fixed + self.A_prev @ previous + self.A_state @ state
+                + self.A_center * self.position_center(desired))
 
     def check_rows(self, n_samples: int):
         """The limit rows of the first ``n_samples`` samples: (their rows of A_free, their indices)."""
@@ -471,6 +520,7 @@ class _Sweep:
             used = max(commit, int(check.indices.max(initial=-1)) + 1)  # points the checked rows see
             self.A = check[:, :used].toarray()
             self.Az = np.hstack([stretch.A_state, stretch.A_fixed, stretch.A_prev])[index]
+            self.A_center = stretch.A_center[index]
         G = stretch.G[:used]  # of the stacked target; every model's desired trajectory is the same
         self.Gd = G.reshape(used, stretch.n_models, -1).sum(axis=1) if stretch.n_models > 1 else G
         self.Gz = np.hstack([G @ stretch.Phi, G @ stretch.Nt[:, :m], np.zeros((used, 2 * r))])
@@ -679,7 +729,8 @@ class AxisStream:
                 command = desired[:rows].copy()  # at rest and staying there: exactly the optimum
             else:
                 p = sweep.Gd @ desired - sweep.Gz @ z
-                if stretch.has_limits and np.abs(sweep.A @ p + sweep.Az @ z).max() > 1.0:
+                if stretch.has_limits and np.abs(sweep.A @ p + sweep.Az @ z
+                                                 + sweep.A_center * stretch.position_center(desired)).max() > 1.0:
                     p = _solve_window(stretch, desired, carry, z, None, self.result, self.first_sample + start,
                                       breaks_limit=True)
                 kept = np.concatenate([carry.p_fixed(z), p[:commit]])
@@ -734,7 +785,7 @@ def _solve_window(stretch: _Stretch, desired, carry: _Carry, z: np.ndarray, end_
     p = stretch.unconstrained(target, p_fixed, end_values)
     if not stretch.has_limits:
         return p
-    offset = stretch.limit_offset(p_fixed, state, carry.previous(z))
+    offset = stretch.limit_offset(p_fixed, state, carry.previous(z), desired)
     if not breaks_limit and stretch.violation(p, offset) <= 0.0:
         return p
     result.qp_windows += 1

@@ -35,7 +35,7 @@ from .offload import Offloaded
 from .optimizer import AxisCompensator, AxisLimits, FBSSettings
 from .planfeed import PlanFeed, PlanProxy
 from .planner import BATCH_BLOCKS, Plan, PlanStream, RunMargins
-from .profile import AxisProfile, MachineProfile
+from .profile import AxisProfile, MachineProfile, with_travel
 from .smoothing import half_width_samples
 from .trajectory import InputError
 from .transparency import FirmwareSettings
@@ -158,6 +158,7 @@ def compensate_file(input_path: str | Path, output_path: str | Path, profile: Ma
     if header:  # compensated twice, the motion would be wrong and the summary would still show a gain
         raise InputError(input_path, header[0], f"already compensated ({header[1]}): compensate the original instead")
     flavor, flavor_note = _flavor(input_path, profile, options)
+    profile = with_travel(profile, flavor)
     refusal = format_refusal(flavor, options.output_format)
     if refusal:  # before the work
         raise InputError(input_path, None, refusal)
@@ -215,7 +216,7 @@ def _compensate_expanded(input_path, output_path, profile, options, reason, prog
 def _compensate(read_path, input_path, output_path, profile, options, flavor, progress, started) -> Report:
     """Compensates the program at ``read_path`` (``input_path`` itself or its expansion)."""
     stages = dict.fromkeys(("read", "plan", "optimize", "fallback", "write"), 0.0)
-    plan = _plan_stream(_read(read_path, flavor, profile.home_mm, stages, progress), profile, options, flavor)
+    plan = _plan_stream(_read(read_path, flavor, profile, stages, progress), profile, options, flavor)
     compensators = _compensators(profile, options)
     follows_plan = np.array([c not in compensators for c in range(len(AXES))])
     elsewhere = bool(compensators) and _in_second_process(read_path, options)
@@ -849,11 +850,12 @@ def _count_lines(path: str | Path) -> int:
         return max(1, sum(chunk.count(b"\n") for chunk in iter(lambda: f.read(1 << 20), b"")))
 
 
-def _read(read_path, flavor: str, home_mm, stages: dict[str, float], progress=None) -> Iterator[Block]:
-    """The program's blocks, read a batch at a time: the time taken goes to ``stages["read"]``,
-    and ``progress`` is told the fraction of the lines read after each batch. (Timed block by
-    block, a CAM program's reading took a tenth longer.)"""
-    blocks, total_lines = read_gcode(read_path, flavor, home_mm), _count_lines(read_path) if progress else 1
+def _read(read_path, flavor: str, profile: MachineProfile, stages: dict[str, float], progress=None) -> Iterator[Block]:
+    """The program's blocks (a move beyond the profile's travel refused), read a batch at a time:
+    the time taken goes to ``stages["read"]``, and ``progress`` is told the fraction of the lines
+    read after each batch. (Timed block by block, a CAM program's reading took a tenth longer.)"""
+    blocks = read_gcode(read_path, flavor, profile.home_mm, profile.travel_mm("".join(AXES)))
+    total_lines = _count_lines(read_path) if progress else 1
 
     def batches() -> Iterator[list[Block]]:
         while True:

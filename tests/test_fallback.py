@@ -96,6 +96,24 @@ def test_a_stretch_beyond_the_limits_falls_back_within_them(move):
     assert stretch.start <= 150 < stretch.stop and LIMITS in stretch.reasons
 
 
+def test_a_stretch_beyond_the_travel_falls_back_within_it(move):
+    """The travel ends at 20 mm, where the move ends; the compensated command (of a compensator
+    without the travel's rows) settles onto 20 mm from 39 nm beyond it. Written: within the travel
+    everywhere, exactly; the compensated command before the stretch that falls back; no worse than
+    the original."""
+    planned, command = move
+    assert command.max() > 20.0 + 3e-5 and planned.max() == 20.0
+    limits = AxisLimits(AxisLimits.from_profile(X).command, position_mm=(0.0, 20.0))
+    guard = AxisGuard(AxisCompensator(AxisDynamics(X.modes, PERIOD_S), limits), Errors(), Errors())
+    written = np.concatenate([guard.push(planned, command, True, False), guard.finish()])
+    assert written.min() >= 0.0 and written.max() <= 20.0
+    [stretch] = guard.stretches
+    assert LIMITS in stretch.reasons and stretch.start <= np.flatnonzero(command > 20.0)[0]
+    np.testing.assert_array_equal(written[:stretch.start], command[:stretch.start])
+    before, after = modelled_error(planned, planned), modelled_error(planned, written)
+    assert rms(after) <= rms(before) and np.abs(after).max() <= np.abs(before).max()
+
+
 def test_decisions_do_not_depend_on_the_pieces(move):
     planned, command = move
     bump = np.zeros_like(planned)

@@ -173,43 +173,93 @@ def test_complete_lookahead_equals_brute_force_least_squares():
     assert np.abs(ours - truth).max() <= 1e-7 * np.ptp(desired)
 
 
-def test_constrained_solve_is_the_qp_optimum():
-    """Acceleration limited to 70% of what the unconstrained command uses. Our command meets the
-    limit and satisfies the KKT conditions of the written-out problem (so it is the global
-    optimum of this convex QP): the objective's gradient is cancelled by nonnegative multipliers
-    on the active limit rows and free ones on the end conditions (found by NNLS here)."""
+def qp_move(limits):
+    """Y's 2 mm move, complete look-ahead, under ``limits`` (AxisLimits): (desired, its settings
+    resolved, the unconstrained command, ours)."""
     axis = PATENT.axes["Y"]
     desired = smooth_move(2.0, 0.1, 0.03, T)
     dynamics = AxisDynamics(axis.modes, T)
     settings = FBSSettings(knot_spacing_samples=40, settle_samples=300)
     free = compensate_axis(desired, dynamics, AxisLimits(), settings, lookahead="complete").command_mm
-    limit = 0.7 * finite_derivative_max(free, 2, T)
-    ours = compensate_axis(desired, dynamics, AxisLimits({2: limit}), settings, lookahead="complete")
+    ours = compensate_axis(desired, dynamics, limits(free), settings, lookahead="complete")
     assert ours.qp_windows == 1 and not ours.warnings
-    assert finite_derivative_max(ours.command_mm, 2, T) <= limit * (1 + 1e-6)
+    return desired, settings.resolve(dynamics), free, ours.command_mm
 
-    a, b, c, d, command = brute_force_problem(desired, axis.modes, settings.resolve(dynamics), T)
+
+def assert_kkt(desired, settings, ours, active_rows):
+    """``ours`` satisfies the KKT conditions of the written-out problem (so it is the global optimum
+    of this convex QP): the objective's gradient is cancelled by nonnegative multipliers on the
+    active rows and free ones on the end conditions (found by NNLS here). ``active_rows(jac, p,
+    base)``: the active rows (samples by control points), each signed to point out of the feasible set."""
+    a, b, c, d, command = brute_force_problem(desired, PATENT.axes["Y"].modes, settings, T)
     n = c.shape[1]
     base = command(np.zeros(n))
     jac = np.column_stack([command(e) - base for e in np.eye(n)])  # samples per control point
-    p = np.linalg.lstsq(jac, ours.command_mm - base, rcond=None)[0]
-    assert np.abs(command(p) - ours.command_mm).max() < 1e-9
+    p = np.linalg.lstsq(jac, ours - base, rcond=None)[0]
+    assert np.abs(command(p) - ours).max() < 1e-9
     # End conditions (position, velocity, acceleration rows), each relative to its own scale.
     assert np.all(np.abs(c @ p - d) <= 1e-9 * np.ptp(desired) * np.abs(c).sum(axis=1))
-    # Acceleration rows over the samples, the rest before the start and the hold after the end.
-    padded_jac = np.vstack([np.zeros((2, n)), jac, np.repeat(jac[-1:], 2, axis=0)])
-    padded_base = np.concatenate([[desired[0]] * 2, base, [base[-1]] * 2])
-    accel_rows, accel_offset = np.diff(padded_jac, 2, axis=0) / T**2, np.diff(padded_base, 2) / T**2
-    accel = accel_rows @ p + accel_offset
-    assert np.abs(accel).max() <= limit * (1 + 1e-6)
-    active = np.abs(accel) >= limit * (1 - 1e-6)
-    assert active.sum() >= 1
+    active = active_rows(jac, p, base)
+    assert len(active) >= 1
     gradient = 2 * a.T @ (a @ p - b)
-    # grad + sum lam_i sign_i G_i + c^T mu = 0, lam >= 0, mu = mu+ - mu-.
-    directions = np.hstack([(np.sign(accel[active])[:, None] * accel_rows[active]).T, c.T, -c.T])
+    # grad + sum lam_i G_i + c^T mu = 0, lam >= 0, mu = mu+ - mu-.
+    directions = np.hstack([active.T, c.T, -c.T])
     scale = np.abs(directions).max(axis=0)
+    directions, scale = directions[:, scale > 0], scale[scale > 0]  # (samples at rest before the move: fixed)
     _, residual = optimize.nnls(directions / scale, -gradient, maxiter=50 * directions.shape[1])
     assert residual <= 1e-6 * np.linalg.norm(gradient)
+
+
+def test_constrained_solve_is_the_qp_optimum():
+    """Acceleration limited to 70% of what the unconstrained command uses: our command meets the
+    limit and is the QP's optimum (``assert_kkt``)."""
+    desired, settings, free, ours = qp_move(lambda free: AxisLimits({2: 0.7 * finite_derivative_max(free, 2, T)}))
+    limit = 0.7 * finite_derivative_max(free, 2, T)
+    assert finite_derivative_max(ours, 2, T) <= limit * (1 + 1e-6)
+
+    def accel_rows(jac, p, base):
+        """Acceleration rows over the samples, the rest before the start and the hold after the end."""
+        n = jac.shape[1]
+        padded_jac = np.vstack([np.zeros((2, n)), jac, np.repeat(jac[-1:], 2, axis=0)])
+        padded_base = np.concatenate([[desired[0]] * 2, base, [base[-1]] * 2])
+        rows, offset = np.diff(padded_jac, 2, axis=0) / T**2, np.diff(padded_base, 2) / T**2
+        accel = rows @ p + offset
+        assert np.abs(accel).max() <= limit * (1 + 1e-6)
+        active = np.abs(accel) >= limit * (1 - 1e-6)
+        return np.sign(accel[active])[:, None] * rows[active]
+
+    assert_kkt(desired, settings, ours, accel_rows)
+
+
+def test_travel_rows_hold_and_the_command_is_the_qp_optimum():
+    """The travel 0..2 mm, where the desired move 0 -> 2 mm goes (the unconstrained command goes
+    beyond 2 mm to cancel Y's modes): our command stays within it and is the QP's optimum with the
+    travel as inequalities on the samples (``assert_kkt``)."""
+    desired, settings, free, ours = qp_move(lambda free: AxisLimits(position_mm=(0.0, 2.0)))
+    assert free.max() > 2.05
+    assert -1e-7 <= ours.min() and ours.max() <= 2.0 + 1e-7
+    assert_kkt(desired, settings, ours, lambda jac, p, base: np.vstack([jac[ours >= 2.0 - 1e-6],
+                                                                        -jac[ours <= 1e-6]]))
+
+
+@pytest.mark.parametrize("travel_mm", [(0.0, 2.0), (0.0, np.inf), (-np.inf, 2.0)], ids=["both", "min", "max"])
+def test_travel_holds_window_by_window(travel_mm):
+    """Three strokes 0 -> 2 -> 0 mm on X, limited look-ahead (15 windows), the travel at the
+    strokes' own ends (the unconstrained command goes 12 um below 0 and beyond 2 mm): every sample
+    within it to the optimizer's tolerance (relative to half the band, 500 mm where an end is open),
+    and the tracking error (scipy's simulation) still under a fifth of the uncompensated one."""
+    axis = PATENT.axes["X"]
+    stroke = np.concatenate([smooth_move(2.0, 0.1, 0.2, T), 2.0 - smooth_move(2.0, 0.1, 0.3, T)])
+    desired = np.tile(stroke, 3)
+    dynamics = AxisDynamics(axis.modes, T)
+    free = compensate_axis(desired, dynamics, AxisLimits()).command_mm
+    assert free.min() < -0.01 and free.max() > 2.01
+    limits = AxisLimits(position_mm=travel_mm)
+    result = compensate_axis(desired, dynamics, limits)
+    slack = 1e-7 * limits.position_half_mm
+    assert result.windows >= 10 and not result.warnings
+    assert travel_mm[0] - slack <= result.command_mm.min() and result.command_mm.max() <= travel_mm[1] + slack
+    assert tracking_rms("X", desired, result.command_mm) < 0.2 * tracking_rms("X", desired, desired)
 
 
 # ---- behaviour at the edges -------------------------------------------------------------------

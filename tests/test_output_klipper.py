@@ -19,7 +19,7 @@ from fbspost.profile import load_profile
 from fbspost.verify import contour_um, modelled, printed_path
 from firmware_results import klippy_run, move_ends, shaped_plans
 from klippy_motion import executed
-from klippy_planner import klippy_or_skip
+from klippy_planner import KlippyPlanner, klippy_or_skip
 from reference import rms, serial, simulate_lsim, unbudgeted
 
 pytestmark = pytest.mark.slow  # whole programs through Klipper's own planner
@@ -94,6 +94,21 @@ def test_sliced_print_runs_as_written(tmp_path, klippy, name):
     assert np.linalg.norm(run.at(t)[:, :2] - command[:, :2], axis=1).max() <= TOLERANCE_MM + 2e-3
     beats_the_shapers(source, profile, run.at(np.arange(round(run.duration_s * plan.sample_rate_hz) + 1)
                                               / plan.sample_rate_hz))
+
+
+@pytest.mark.parametrize("name", ["gear-marlin2", "tube-marlin2", "pocket-klipper", "blob-reprap-relative-e",
+                                  "bracket-reprapfirmware-relative-e"])
+def test_sliced_print_stays_within_the_travel(tmp_path, klippy, name):
+    """Every sliced print's first 3000 lines on the two-mode printer, through klippy's own range
+    check with Klipper's default position_min 0 on X and Y: the output runs without "Move out of
+    range" (before the travel's rows, the gear's first moves went to X-0.0006 Y-0.0018)."""
+    source, target = tmp_path / f"{name}.gcode", tmp_path / "out.gcode"
+    with open(f"tests/data/{name}.gcode", "rb") as f:
+        source.write_bytes(b"".join(f.readlines()[:3000]))
+    profile = unbudgeted(load_profile("printer-two-mode"))
+    compensate_file(source, target, profile, CompensateOptions(flavor="klipper"))
+    for program in (source, target):
+        KlippyPlanner(profile, travel=True).run(list(read_gcode(program, "klipper")))
 
 
 def test_report_is_the_written_program_as_klipper_runs_it(tmp_path, klippy):

@@ -198,6 +198,10 @@ BROKEN = [
     ("home-unknown-axis", "[motion]", "[home]\nE = 1.0\n\n[motion]", "home.E"),
     ("home-string", "[motion]", '[home]\nX = "max"\n\n[motion]', "home.X"),
     ("home-not-a-table", 'name = "test-machine"', 'name = "test-machine"\nhome = 3', "home"),
+    ("travel-string", "max_velocity = 200.0", 'max_velocity = 200.0\nposition_min = "0"', "axes.Y.position_min"),
+    ("travel-empty", "max_velocity = 200.0", "max_velocity = 200.0\nposition_min = 5.0\nposition_max = 5.0",
+     "axes.Y.position_max"),
+    ("travel-nan", "max_velocity = 200.0", "max_velocity = 200.0\nposition_max = nan", "axes.Y.position_max"),
 ]
 
 
@@ -226,6 +230,24 @@ def test_home(tmp_path):
     homed = load_profile(write(tmp_path, edited("[motion]", "[home]\nX = 235.0\nZ = -1\n\n[motion]")))
     assert homed.home_mm == (235.0, 0.0, -1.0)
     assert load_profile(write(tmp_path, format_profile(homed))).home_mm == (235.0, 0.0, -1.0)
+
+
+def test_travel_and_the_firmwares_defaults(tmp_path):
+    """position_min / position_max as given (format_profile writes them back); where none is given,
+    Klipper's, Marlin's and RepRapFirmware's minimum 0 on X and Y (the home position where that is
+    below), none for LinuxCNC (its INI has them) nor on the other axes."""
+    from fbspost.profile import format_profile, with_travel
+    given = load_profile(write(tmp_path, edited("max_velocity = 200.0", "max_velocity = 200.0\nposition_min = "
+                                                "-5.5\nposition_max = 210")))
+    assert (given.axes["Y"].position_min_mm, given.axes["Y"].position_max_mm) == (-5.5, 210.0)
+    assert load_profile(write(tmp_path, format_profile(given))).axes["Y"] == given.axes["Y"]
+    for flavor in ("klipper", "marlin", "reprap"):
+        assert with_travel(given, flavor).travel_mm("XYZE") == ([0.0, -5.5, -math.inf, -math.inf],
+                                                                [math.inf, 210.0, math.inf, math.inf])
+    assert with_travel(given, "linuxcnc").travel_mm("XYZE") == ([-math.inf, -5.5, -math.inf, -math.inf],
+                                                                [math.inf, 210.0, math.inf, math.inf])
+    below = load_profile(write(tmp_path, edited("[motion]", "[home]\nX = -3.0\nY = 235.0\n\n[motion]")))
+    assert with_travel(below, "klipper").travel_mm("XY")[0] == [-3.0, 0.0]
 
 
 def test_profile_error_is_value_error():

@@ -19,6 +19,7 @@ itself. The other tests generate programs without them.
 import math
 import re
 import tempfile
+from dataclasses import replace
 from pathlib import Path
 from unittest import mock
 
@@ -37,7 +38,11 @@ from fbspost.planner import CLAMPED, RunMargins, plan_blocks
 from fbspost.profile import load_profile
 from reference import execute, kept_lines, rest_limits, rms, sample_blocks, simulate_lsim, unbudgeted
 
+# The programs here move around X0 Y0 (arcs, G92 X Y below it): a travel that holds them, not
+# Marlin's default minimum 0 (test_bad_input and test_optimizer test the travel).
 PRINTER = unbudgeted(load_profile("bedslinger-example"))
+PRINTER = replace(PRINTER, axes={**PRINTER.axes, **{a: replace(PRINTER.axes[a], position_min_mm=-1000.0)
+                                                    for a in "XY"}})
 OPTIONS = CompensateOptions(flavor="marlin")
 MARGINS = RunMargins.for_profile(PRINTER)
 PASSTHROUGH = [b"M106 S128", b"M107", b"M104 S205", b"M140 S60", b"M117 Layer 2", b"; LAYER_CHANGE",
