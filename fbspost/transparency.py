@@ -70,6 +70,10 @@ class FirmwareSettings:
     shaper_frequency_hz: dict[str, float] = field(default_factory=dict)  # input shaping per axis
     blend_words: str = "G64"  # LinuxCNC: the program's blending mode, as it wrote it
     min_feed_mm_s: float | None = None  # RepRapFirmware M203 I (None: its default)
+    max_velocity_mm_s: float | None = None  # Klipper max_velocity, along the path (None: not known, not raised)
+    axis_max_velocity_mm_s: dict[str, float] = field(default_factory=dict)  # Marlin, RRF M203 as the program set it
+    # the compensated command's own limit per axis (the profile's axes): what the raised limits let through
+    command_velocity_mm_s: dict[str, float] = field(default_factory=dict)
 
     @classmethod
     def from_profile(cls, profile: MachineProfile) -> FirmwareSettings:
@@ -78,7 +82,19 @@ class FirmwareSettings:
         return cls(profile.planner_acceleration_mm_s2,
                    square_corner_velocity_mm_s=profile.planner_square_corner_velocity_mm_s,
                    minimum_cruise_ratio=fw.minimum_cruise_ratio, max_accel_to_decel_mm_s2=fw.max_accel_to_decel_mm_s2,
-                   min_segment_time_us=fw.min_segment_time_s * 1e6, shaper_frequency_hz=dict(fw.shaper_frequency_hz))
+                   min_segment_time_us=fw.min_segment_time_s * 1e6, shaper_frequency_hz=dict(fw.shaper_frequency_hz),
+                   max_velocity_mm_s=fw.max_velocity_mm_s,
+                   command_velocity_mm_s={a: profile.axes[a].max_velocity_mm_s for a in "XYZ" if a in profile.axes})
+
+    def raised_velocity(self) -> tuple[float | None, dict[str, float]]:
+        """The velocity limits to raise around the compensated motion: Klipper's max_velocity to what
+        the axes allow together (None: not raised: not known, or not below that), the M203 axes the
+        program set below the command's limit ({}: none)."""
+        together = math.hypot(*self.command_velocity_mm_s.values())
+        path = together if self.max_velocity_mm_s is not None and self.max_velocity_mm_s < together else None
+        axes = {a: v for a, v in self.command_velocity_mm_s.items()
+                if a in "XY" and self.axis_max_velocity_mm_s.get(a, math.inf) < v}
+        return path, axes
 
     def changed(self, limits: PlannerLimits) -> FirmwareSettings:
         """These settings after a program line that changes ``limits``."""
@@ -95,7 +111,9 @@ class FirmwareSettings:
             square_corner_velocity_mm_s=_first(limits.square_corner_velocity_mm_s, self.square_corner_velocity_mm_s),
             junction_deviation_mm=_first(limits.junction_deviation_mm, self.junction_deviation_mm),
             axis_max_acceleration_mm_s2={**self.axis_max_acceleration_mm_s2, **limits.axis_max_acceleration_mm_s2},
-            min_feed_mm_s=_first(limits.min_feed_mm_s, self.min_feed_mm_s))
+            min_feed_mm_s=_first(limits.min_feed_mm_s, self.min_feed_mm_s),
+            max_velocity_mm_s=_first(limits.max_velocity_mm_s, self.max_velocity_mm_s),
+            axis_max_velocity_mm_s={**self.axis_max_velocity_mm_s, **limits.axis_max_velocity_mm_s})
 
 
 def _first(*values):
@@ -159,7 +177,8 @@ class Transparency:
         ``at_rest``: the machine is at rest there (shaping may be switched)."""
         lines = []
         if not self.limits_set:
-            lines += transparent_limits(self.flavor, self.tolerance_mm / (25.4 if modal.inches else 1.0))
+            lines += transparent_limits(self.flavor, self.tolerance_mm / (25.4 if modal.inches else 1.0),
+                                        self.program)
             self.limits_set = True
         if at_rest:
             lines += self.shaping_off_lines()
@@ -192,22 +211,33 @@ class Transparency:
         return "".join(a for a in _SHAPED_AXES if a not in known)
 
 
-def transparent_limits(flavor: str, tolerance: float) -> list[str]:
+def transparent_limits(flavor: str, tolerance: float, program: FirmwareSettings | None = None) -> list[str]:
     """The lines that raise the firmware's limits around the compensated motion, in ``flavor``'s
-    syntax (``tolerance``: LinuxCNC's G64 P, in the program's units)."""
+    syntax (``tolerance``: LinuxCNC's G64 P, in the program's units; ``program``: its velocity
+    limits, raised where they are known to be below the command's, ``FirmwareSettings.raised_velocity``)."""
+    path_mm_s, axes_mm_s = program.raised_velocity() if program is not None else (None, {})
     if flavor == "klipper":
+        velocity = f" VELOCITY={_num(path_mm_s, 3)}" if path_mm_s is not None else ""
         return [f"SET_VELOCITY_LIMIT ACCEL={_num(KLIPPER_ACCEL_MM_S2)} ACCEL_TO_DECEL={_num(KLIPPER_ACCEL_MM_S2)} "
-                f"MINIMUM_CRUISE_RATIO=0 SQUARE_CORNER_VELOCITY={_num(KLIPPER_SCV_MM_S)}"]
+                f"MINIMUM_CRUISE_RATIO=0 SQUARE_CORNER_VELOCITY={_num(KLIPPER_SCV_MM_S)}{velocity}"]
     accel = _num(STEPPED_ACCEL_MM_S2)
     stepped = [f"M201 X{accel} Y{accel} E{accel}", f"M204 P{accel} T{accel}"]
     if flavor == "marlin":
-        return stepped + [f"M205 B0 J{_num(MARLIN_JUNCTION_DEVIATION_MM, 3)} X{_num(JERK_MM_S)} Y{_num(JERK_MM_S)}"]
+        return stepped + [f"M205 B0 J{_num(MARLIN_JUNCTION_DEVIATION_MM, 3)} X{_num(JERK_MM_S)} Y{_num(JERK_MM_S)}"] + \
+            ([_m203(flavor, axes_mm_s)] if axes_mm_s else [])
     if flavor == "reprap":  # M203 I: RRF runs a move at 0.5 mm/s at least, the slowest blocks too fast
         return stepped + [f"M566 X{_num(JERK_MM_S * 60)} Y{_num(JERK_MM_S * 60)}",
-                          f"M203 I{_num(RRF_MIN_FEED_MM_S * 60, 3)}"]
+                          _m203(flavor, axes_mm_s, RRF_MIN_FEED_MM_S)]
     # LinuxCNC: blend within the tolerance, never stop; Q0: no naive-CAM merging of the blocks
     # (Q is P when not given, and merged blocks would lose their speeds)
     return [f"G64 P{_num(tolerance, 6)} Q0"]
+
+
+def _m203(flavor: str, axes_mm_s: dict[str, float], slowest_mm_s: float | None = None) -> str:
+    """M203 with the axes' maximum feeds (and RRF's slowest, I), in the flavor's units (RRF: mm/min)."""
+    scale = 60.0 if flavor == "reprap" else 1.0
+    words = [f"{a}{_num(v * scale, 3)}" for a, v in axes_mm_s.items()]
+    return " ".join(["M203", *words] + ([f"I{_num(slowest_mm_s * scale, 3)}"] if slowest_mm_s is not None else []))
 
 
 def _program_limits(flavor: str, program: FirmwareSettings) -> list[str]:
@@ -230,18 +260,22 @@ def _program_limits(flavor: str, program: FirmwareSettings) -> list[str]:
         words = [f"ACCEL={accel}", f"ACCEL_TO_DECEL={_num(to_decel, 3)}", f"MINIMUM_CRUISE_RATIO={_num(ratio, 3)}"]
         if scv is not None:
             words.append(f"SQUARE_CORNER_VELOCITY={_num(scv, 3)}")
+        if program.raised_velocity()[0] is not None:
+            words.append(f"VELOCITY={_num(program.max_velocity_mm_s, 3)}")
         return [f"SET_VELOCITY_LIMIT {' '.join(words)}"]
+    raised = {a: program.axis_max_velocity_mm_s[a] for a in program.raised_velocity()[1]}
     if flavor == "marlin":
         words = [f"B{_num(_first(program.min_segment_time_us, 20000.0))}"]  # Marlin's default 20 ms
         if program.junction_deviation_mm is not None:
             words.append(f"J{_num(program.junction_deviation_mm, 4)}")
         if scv is not None:
             words += [f"X{_num(scv, 3)}", f"Y{_num(scv, 3)}"]
-        return lines + [f"M204 P{accel} T{travel}", f"M205 {' '.join(words)}"]
+        lines += [f"M204 P{accel} T{travel}", f"M205 {' '.join(words)}"]
+        return lines + ([_m203(flavor, raised)] if raised else [])
     if flavor == "reprap":
         jerk = [f"M566 X{_num(scv * 60, 3)} Y{_num(scv * 60, 3)}"] if scv is not None else []
         slowest = _first(program.min_feed_mm_s, RRF_DEFAULT_MIN_FEED_MM_S)
-        return lines + [f"M204 P{accel} T{travel}"] + jerk + [f"M203 I{_num(slowest * 60, 3)}"]
+        return lines + [f"M204 P{accel} T{travel}"] + jerk + [_m203(flavor, raised, slowest)]
     return [program.blend_words]
 
 

@@ -69,6 +69,31 @@ def test_lines_per_flavor(flavor):
     assert Transparency("linuxcnc", program, 0.0254).apply(True, inches) == ["G64 P0.001 Q0"]
 
 
+@pytest.mark.parametrize("flavor, raised, restored", [
+    ("klipper", "SQUARE_CORNER_VELOCITY=10000 VELOCITY=360.555", "SQUARE_CORNER_VELOCITY=5 VELOCITY=150"),
+    ("marlin", "M203 X300", "M203 X150"),
+    ("reprap", "M203 X18000 I0.6", "M203 X9000 I30")])
+def test_velocity_limits_raised_where_known_to_be_lower(flavor, raised, restored):
+    """Klipper's max_velocity (along the path) 150 mm/s, the program's M203 X 150 mm/s (Marlin, RRF:
+    per axis) below the command's X 300 and Y 200 mm/s: raised around the compensated motion to
+    what the axes allow (Klipper: sqrt(300^2 + 200^2) = 360.555 along the path; M203 X to 300, RRF
+    in mm/min), the program's given back after. Not known (Klipper: the profile gives no
+    max_velocity; M203 not set), or not lower: not raised."""
+    command = {"X": 300.0, "Y": 200.0}
+    program = FirmwareSettings(3000.0, square_corner_velocity_mm_s=5.0, max_velocity_mm_s=150.0,
+                               command_velocity_mm_s=command)
+    t = Transparency(flavor, program, 1e-3)
+    t.note(limits_line(PlannerLimits(axis_max_velocity_mm_s={"X": 150.0, "Y": 250.0})))
+    assert raised in " ".join(t.apply(False, Modal()))
+    assert restored in " ".join(t.restore())
+    for settings in (FirmwareSettings(3000.0, command_velocity_mm_s=command),
+                     FirmwareSettings(3000.0, max_velocity_mm_s=400.0, axis_max_velocity_mm_s={"X": 300.0},
+                                      command_velocity_mm_s=command)):
+        t = Transparency(flavor, settings, 1e-3)
+        assert t.apply(False, Modal()) == TRANSPARENT[flavor] and "VELOCITY=" not in t.restore()[-1]
+    assert FirmwareSettings.from_profile(PRINTER).command_velocity_mm_s == {"X": 300.0, "Y": 300.0, "Z": 12.0}
+
+
 def test_header_names_what_cannot_be_restored():
     marlin = Transparency("marlin", FirmwareSettings(3000.0), 1e-3).header()[-1]
     assert "input shaping on X, input shaping on Y, M201 X, M201 Y, M201 E, M205 J" in marlin
