@@ -20,7 +20,6 @@ RMS and max contour error over the extruding samples to the original's commanded
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import tempfile
 from pathlib import Path
@@ -38,40 +37,24 @@ from fbspost.firmware_shapers import (  # noqa: E402
     marlin_zv,
     marlin_zv_shaper,
     shaped_steps,
-    whole_steps,
+    stepper_positions,
 )
-from fbspost.gcode import AXES  # noqa: E402
 from fbspost.profile import load_profile  # noqa: E402
 from fbspost.simulate import shaper_settings  # noqa: E402
 from fbspost.verify import contour_um, modelled  # noqa: E402
+from firmware_results import shaped_plans  # noqa: E402
 
 PRINTS = ("gear-marlin2.gcode", "tube-marlin2.gcode", "pocket-klipper.gcode",
           "bracket-reprapfirmware-relative-e.gcode", "blob-reprap-relative-e.gcode")
 BUDGETS = (300.0, None)
-_STEPPED = ("X", "Y", "Z")
 
 
-def stepped(samples: np.ndarray, profile) -> np.ndarray:
-    """X Y Z of ``samples`` on the whole steps Marlin's stepper gives them (E as planned: it only
-    says which samples print)."""
-    out = samples.copy()
-    for axis in _STEPPED:
-        out[:, AXES.index(axis)] = whole_steps(samples[:, AXES.index(axis)], profile.firmware.steps_per_mm[axis])
-    return out
-
-
-def shaped(plan: np.ndarray, profile, shape_axis, shapers: dict) -> tuple[np.ndarray, np.ndarray, float]:
+def shaped(plan: np.ndarray, profile, shapers: dict, shape_axis) -> tuple[np.ndarray, np.ndarray, float]:
     """(the plan through ``shape_axis`` per shaped axis and whole steps, the plan padded alike,
-    the time the shaping adds: its largest lead and lag)."""
-    period_s = 1.0 / profile.sample_rate_hz
+    the time the shaping adds: its largest lead (FT_MOTION delays every axis by it) and lag)."""
+    (command, padded, _), = shaped_plans(plan, profile, {"": shapers}, shape_axis).values()
     added_s = max(s.lead_s for s in shapers.values()) + max(s.lag_s for s in shapers.values())
-    pad = math.ceil(added_s / period_s) + 1
-    padded = np.pad(plan, ((pad, pad), (0, 0)), mode="edge")
-    command = stepped(padded, profile)
-    for axis, shaper in shapers.items():
-        i = AXES.index(axis)
-        command[:, i] = shape_axis(padded[:, i], period_s, profile.firmware.steps_per_mm[axis], shaper)
-    return command, padded, added_s
+    return stepper_positions(command, profile.firmware.steps_per_mm), padded, added_s
 
 
 def rows(original: Path, output: Path, profile, budget: float | None) -> list[tuple[str, float, tuple]]:
@@ -79,22 +62,25 @@ def rows(original: Path, output: Path, profile, budget: float | None) -> list[tu
     plain, fbs = model_run(original, profile, "marlin", budget), model_run(output, profile, "marlin", budget)
     settings = shaper_settings(profile)
 
+    spm = profile.firmware.steps_per_mm
+
     def error(command, mask_source):
         return contour_um(modelled(command, profile), mask_source, plain.path, plain.printer)
 
-    out = [("original", plain.seconds, error(stepped(plain.samples, profile), plain.samples))]
-    zv = {a: marlin_zv_shaper(*settings[a]) for a in settings}
-    command, padded, added_s = shaped(plain.samples, profile,
-                                      lambda x, p, spm, s: marlin_zv(x, p, spm, s.frequency_hz, s.damping), zv)
+    out = [("original", plain.seconds, error(stepper_positions(plain.samples, spm), plain.samples))]
+    command, padded, added_s = shaped(
+        plain.samples, profile, {a: marlin_zv_shaper(*settings[a]) for a in settings},
+        lambda x, period_s, s, axis: marlin_zv(x, period_s, spm[axis], s.frequency_hz, s.damping))
     out.append(("Marlin ZV", plain.seconds + added_s, error(command, padded)))
     best = None
     for name in FT_MOTION_SHAPERS:
-        command, padded, added_s = shaped(plain.samples, profile, shaped_steps,
-                                          {a: ft_motion_shaper(name, *settings[a]) for a in settings})
+        command, padded, added_s = shaped(plain.samples, profile,
+                                          {a: ft_motion_shaper(name, *settings[a]) for a in settings},
+                                          lambda x, period_s, s, axis: shaped_steps(x, period_s, spm[axis], s))
         row = (f"FT_MOTION {name.upper()}", plain.seconds + added_s, error(command, padded))
         best = row if best is None or row[2][0] < best[2][0] else best
     out.append(best)
-    out.append(("fbspost", fbs.seconds, error(stepped(fbs.samples, profile), fbs.samples)))
+    out.append(("fbspost", fbs.seconds, error(stepper_positions(fbs.samples, spm), fbs.samples)))
     out.append(("fbspost, no stepper", fbs.seconds, error(fbs.samples, fbs.samples)))
     return out
 

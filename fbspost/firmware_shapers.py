@@ -39,6 +39,7 @@ import math
 
 import numpy as np
 
+from .gcode import AXES
 from .shapers import _HUMP_AMPLITUDES, _HUMP_TIMES, Shaper, shape
 
 STEPPER_TIMER_RATE_HZ = 2_000_000  # Marlin's STEPPER_TIMER_RATE on AVR (F_CPU / 8) and most 32-bit HALs
@@ -52,6 +53,16 @@ _HALF = 64  # Marlin's shaping counter steps at +-64 of 128
 def whole_steps(positions_mm: np.ndarray, steps_per_mm: float) -> np.ndarray:
     """``positions_mm`` at the whole step the stepper is on: floor(x spm + 1/2) / spm."""
     return np.floor(np.asarray(positions_mm, dtype=float) * steps_per_mm + 0.5) / steps_per_mm
+
+
+def stepper_positions(samples_mm: np.ndarray, steps_per_mm: dict[str, float]) -> np.ndarray:
+    """Rows of X Y Z E ... (``gcode.AXES``) with X Y Z on their whole steps (``whole_steps``) where
+    ``steps_per_mm`` has them; E as given (it only says which samples print)."""
+    out = np.array(samples_mm, dtype=float)
+    for axis in ("X", "Y", "Z"):
+        if axis in steps_per_mm:
+            out[:, AXES.index(axis)] = whole_steps(out[:, AXES.index(axis)], steps_per_mm[axis])
+    return out
 
 
 def marlin_zv_factors(zeta: float) -> tuple[int, int]:
