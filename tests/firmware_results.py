@@ -41,7 +41,9 @@ def shaped_plans(plan: np.ndarray, profile, shapers: dict[str, dict] | None = No
     dominant modes, or the ``shapers`` given (by name, a ``fbspost.shapers.Shaper`` per axis): by
     name, (the shaped command, the plan padded to its length, the shaper's lag s: the time it adds).
     ``shape_axis(samples, period_s, shaper, axis)`` shapes a column (default ``shapers.shape``; a
-    firmware's own, through whole steps: ``fbspost.firmware_shapers``)."""
+    firmware's own, through whole steps: ``fbspost.firmware_shapers``). A jump (a move from an
+    unknown place, which a firmware model puts in no time: see ``verify.modelled``) is carried
+    through unshaped: shaped, it would be split into jumps to points off every path."""
     period = 1.0 / profile.sample_rate_hz
     if shapers is None:
         settings = shaper_settings(profile)
@@ -53,8 +55,11 @@ def shaped_plans(plan: np.ndarray, profile, shapers: dict[str, dict] | None = No
         command = padded.copy()
         for axis, shaper in row.items():
             column = padded[:, AXES.index(axis)]
-            command[:, AXES.index(axis)] = (shape_axis(column, period, shaper, axis) if shape_axis
-                                            else shape(column, period, shaper))
+            step = np.diff(column, prepend=column[:1])
+            jumps = np.cumsum(np.where(np.abs(step) > 2.0 * profile.axes[axis].max_velocity_mm_s * period, step, 0.0))
+            column = column - jumps
+            command[:, AXES.index(axis)] = jumps + (shape_axis(column, period, shaper, axis) if shape_axis
+                                                    else shape(column, period, shaper))
         out[name] = (command, padded, max(s.lag_s for s in row.values()))
     return out
 

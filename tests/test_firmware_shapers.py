@@ -153,3 +153,22 @@ def test_shaped_steps_are_whole_and_within_half_a_step():
         assert np.array_equal(stepped * SPM, np.rint(stepped * SPM))
         assert np.abs(stepped - shape(x, 1e-3, shaper)).max() <= 0.5 / SPM + 1e-12
     assert np.array_equal(whole_steps(np.array([0.00625, -0.00625, 0.0062]), SPM) * SPM, [1.0, 0.0, 0.0])
+
+
+def test_a_jump_is_not_shaped():
+    """A move from an unknown place (the Marlin model puts it in no time) stays one jump: shaped,
+    it would be two, the axis stopping between them 60 mm off every path for 9.6 ms."""
+    from fbspost.profile import load_profile
+    from firmware_results import shaped_plans
+    profile = load_profile("printer-two-mode")
+    plan = np.zeros((400, 4))
+    plan[100:, 0] = 100.0  # a jump on X
+    plan[200:, 0] = 100.0 + np.minimum(np.arange(200) * 1e-3 * 50.0, 5.0)  # then a real move
+    shapers = {"X": ft_motion_shaper("zv", 52.0, 0.07)}
+    (command, padded, _), = shaped_plans(plan, profile, {"zv": shapers},
+                                         lambda x, p, s, axis: shaped_steps(x, p, SPM, s)).values()
+    jump = np.flatnonzero(np.abs(np.diff(command[:, 0])) > 1.0)
+    assert len(jump) == 1 and command[jump[0] + 1, 0] == 100.0
+    moving = np.abs(padded[:, 0] - 102.5) < 2.0
+    ideal = 100.0 + shape(padded[:, 0] - 100.0, 1e-3, shapers["X"])
+    assert np.abs(command[moving, 0] - ideal[moving]).max() <= 0.5 / SPM
