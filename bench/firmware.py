@@ -9,9 +9,11 @@ once at the profile's max_line_rate, else at a serial host's 300 lines/s (the ho
 by line) and once without a line budget (an SD-card print; the output written from a copy of
 the profile with that max_line_rate, or without one); also where the buffer (ring) ran dry.
 The original's path is its commanded one (not the firmware's whole steps); on RepRapFirmware
-the output is also run with motors that take no whole steps (the cost of the steps). The
-shapers compared on RepRapFirmware are ideal ones of its M593 types (MZV, ZVD, EI2, EI3:
-Klipper's impulses convolved with the whole motion), not RRF's own shaping of each move.
+the output is also run with motors that take no whole steps (the cost of the steps), and every
+run is put on its whole steps, the shapers too: RRF's own M593 types (ZVD, ZVDD, ZVDDD, MZV,
+EI2, EI3, fbspost/firmware_shapers.py: its impulses on the whole plan, not its per-move segments),
+one for X and Y together at each of the profile's dominant modes, as M593 has one. Marlin's own
+shaping through its steps: bench/marlin_baseline.py.
 FLAVOR linuxcnc: the program compensated as a LinuxCNC program (its G64 P<tolerance> Q0) and both
 run through the model of LinuxCNC 2.9's trajectory planner (fbspost/linuxcnc_tp.py); also how far
 the model's motion of the output departs from its blocks run exactly as written (each at its F).
@@ -48,19 +50,19 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
 
+from fbspost.firmware_shapers import REPRAP_SHAPERS, reprap_shaper, shaped_steps, stepper_positions  # noqa: E402
 from fbspost.gcode import AXES, Kind, detect_flavor, read_gcode  # noqa: E402
 from fbspost.linuxcnc_tp import run_linuxcnc  # noqa: E402
 from fbspost.marlin import MarlinConfig, run_marlin  # noqa: E402
 from fbspost.profile import load_profile  # noqa: E402
 from fbspost.reprap import ReprapConfig, commanded_pieces, run_reprap  # noqa: E402
-from fbspost.simulate import PathDistance  # noqa: E402
+from fbspost.simulate import PathDistance, shaper_settings  # noqa: E402
 from fbspost.verify import contour_um, modelled, printed_path  # noqa: E402
 from firmware_results import klippy_run, move_ends, shaped_plans  # noqa: E402
 
 SERIAL_LINES_PER_S = 300.0  # a serial host's budget where the profile gives none
 MODELS = {"marlin": (run_marlin, MarlinConfig, "Marlin's planner"),
           "reprap": (run_reprap, ReprapConfig, "RepRapFirmware's planner")}
-RRF_SHAPERS = ("mzv", "zvd", "2hump_ei", "3hump_ei")  # M593 P"mzv" "zvd" "ei2" "ei3" (fbspost.shapers' names)
 DEFAULT = [("tests/data/gear-marlin2.gcode", "printer-two-mode", 8000),
            ("samples/butterfly-polyline.gcode", "patent-xy-stage", None)]
 
@@ -189,7 +191,7 @@ def bench(program: str, machine: str, lines: int | None, output_flavor: str = "k
     profile = load_profile(machine)
     flavor = detect_flavor(ROOT / program)
     if output_flavor in MODELS:
-        shapers = RRF_SHAPERS if output_flavor == "reprap" else None
+        shapers = reprap_shapers(profile) if output_flavor == "reprap" else {}
         for budget in (profile.firmware.max_line_rate_hz or SERIAL_LINES_PER_S, None):
             name = f"at {budget:g} lines/s" if budget else "without a line budget"
             with tempfile.TemporaryDirectory() as tmp:
@@ -199,8 +201,8 @@ def bench(program: str, machine: str, lines: int | None, output_flavor: str = "k
                          model_run(output, profile, output_flavor, budget, steps_per_mm=(math.nan,) * len(AXES)))]
                 table(program, lines, flavor, machine, f"through the model of {MODELS[output_flavor][2]}, {name}",
                       profile, model_run(original, profile, output_flavor, budget),
-                      model_run(output, profile, output_flavor, budget), shapers,
-                      more if output_flavor == "reprap" else [])
+                      model_run(output, profile, output_flavor, budget), more if output_flavor == "reprap" else [],
+                      **shapers)
         return
     if output_flavor == "linuxcnc":
         with tempfile.TemporaryDirectory() as tmp:
@@ -227,16 +229,31 @@ def excerpt(program: str, lines: int | None, folder: Path) -> Path:
     return original
 
 
+def reprap_shapers(profile) -> dict:
+    """``table``'s keywords for RRF's own M593 shapers through whole steps: each type at each of
+    the profile's dominant modes, the same on every shaped axis (M593 has one)."""
+    settings, spm = shaper_settings(profile), profile.firmware.steps_per_mm
+    shapers = {f"{name} {f:g} Hz": {axis: reprap_shaper(name, f, zeta) for axis in settings}
+               for name in REPRAP_SHAPERS for f, zeta in sorted(set(settings.values()))}
+    return {"shapers": shapers, "shape_axis": lambda x, period_s, s, axis: shaped_steps(x, period_s, spm[axis], s),
+            "steps_per_mm": spm}
+
+
 def table(program: str, lines, flavor: str, machine: str, how: str, profile, run_a: Run, run_b: Run,
-          shapers: tuple[str, ...] | None = None, more: list[tuple[str, Run]] = ()) -> None:
+          more: list[tuple[str, Run]] = (), shapers: dict | None = None, shape_axis=None,
+          steps_per_mm: dict | None = None) -> None:
     """Print time, RMS and max contour error of the original, fbspost's output (and ``more`` runs)
-    and the best input shaper (of ``shapers``, by default every one)."""
+    and the best input shaper (of ``shapers``, by default simulate's; see ``shaped_plans``), every
+    run but ``more`` on its whole steps if ``steps_per_mm`` is given."""
+    def on_steps(samples):
+        return stepper_positions(samples, steps_per_mm) if steps_per_mm else samples
+
     time_a, plan_a, path, printer = run_a.seconds, run_a.samples, run_a.path, run_a.printer
-    rows = [(name, run.seconds, contour_um(modelled(run.samples, profile), run.samples, path, printer))
-            for name, run in [("original", run_a), ("fbspost", run_b), *more]]
-    shaped = {name: (contour_um(modelled(command, profile), padded, path, printer), lag_s)
-              for name, (command, padded, lag_s) in shaped_plans(plan_a, profile).items()
-              if shapers is None or name in shapers}
+    rows = [(name, run.seconds, contour_um(modelled(moved(run.samples), profile), run.samples, path, printer))
+            for name, run, moved in [("original", run_a, on_steps), ("fbspost", run_b, on_steps),
+                                     *((name, run, np.asarray) for name, run in more)]]
+    shaped = {name: (contour_um(modelled(on_steps(command), profile), padded, path, printer), lag_s)
+              for name, (command, padded, lag_s) in shaped_plans(plan_a, profile, shapers, shape_axis).items()}
     best = min(shaped, key=lambda name: shaped[name][0][0])
     rows.append((f"{best} shaper (best)", time_a + shaped[best][1], shaped[best][0]))
     print(f"{program} ({lines or 'all'} lines, {flavor}) on {machine}, {how} (firmware results):")

@@ -15,7 +15,8 @@ line's time and the print time, as that firmware plans them.
   host at ``max_line_rate``): whole-step targets timed over the commanded length, M201/M203/M204
   limits, M566 jerk per drive and its jerk policy, look-ahead over the moves in the ring when a
   move is prepared, RecalculateMove's short-ramp rule; where the ring runs dry. Not modelled:
-  M593 input shaping.
+  M593 input shaping (``firmware_shapers`` gives Marlin's and RRF's shaping of a plan, through
+  whole steps, for the benches).
 - LinuxCNC 2.9: ``linuxcnc_tp.run_linuxcnc``, a model of its trajectory planner (tp.c, tc.c,
   blendmath.c): the servo period's short-segment cap, G64 P blend arcs, tangent and parabolic
   blends, G61 / G61.1, the look-ahead, ramps and split cycles.

@@ -39,7 +39,8 @@ Modelled from MarlinFirmware/Marlin bugfix-2.1.x, Marlin/src/module/planner.cpp 
   M593...) wait for the buffer to empty, then their dwell; other lines cost their line time only.
 Not modelled: the stepper's step-rate quantization (ceil of the accelerate steps, nominal_rate,
 minimal_step_rate: under a step per block), S-curve acceleration and linear advance (off by
-default), input shaping and FT_MOTION, G2/G3 segmentation by Marlin (arcs come as the reader's
+default), input shaping and FT_MOTION (``firmware_shapers`` shapes a plan as they do, for the
+benches), G2/G3 segmentation by Marlin (arcs come as the reader's
 chords), sync blocks of G92 and M-codes taking buffer slots, serial buffer and command queue
 (BUFSIZE) beyond the ok-handshake. Units: mm, s, mm/s, mm/s^2 (Marlin's M205 B is in us).
 """

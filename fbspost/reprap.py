@@ -39,8 +39,9 @@ M203, M204, M566, M595, "Motion system"):
 Not modelled: CanAddMove's limit on unprepared time (2 s, or 0.5 s but the first), PrepareMoves'
 holding back a deceleration-only move until 50 ms are left (IsGoodToPrepare), RRF's own
 arc segmentation, pressure advance, step timing within a move, M593 input shaping (applied by
-RRF to each move's acceleration and deceleration: bench/firmware.py compares ideal shapers of
-RRF's types instead). Units: mm, s, mm/s, mm/s^2 (M566 and M203 are in mm/min on the line).
+RRF to each move's acceleration and deceleration: bench/firmware.py compares RRF's own impulses
+on the whole plan, through whole steps, ``firmware_shapers.reprap_shaper``). Units: mm, s, mm/s,
+mm/s^2 (M566 and M203 are in mm/min on the line).
 """
 from __future__ import annotations
 

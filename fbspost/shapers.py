@@ -42,7 +42,7 @@ class Shaper:
     frequency_hz: float
     damping: float
     amplitudes: np.ndarray  # sum 1
-    times_s: np.ndarray  # ascending; sum(amplitudes * times_s) = 0
+    times_s: np.ndarray  # ascending; Klipper's: sum(amplitudes * times_s) = 0 (firmware_shapers' need not be)
 
     @property
     def lead_s(self) -> float:

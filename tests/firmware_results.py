@@ -35,11 +35,15 @@ def move_ends(moves) -> tuple[np.ndarray, np.ndarray]:
     return np.array([m.start_pos[:4] for m in moves]), np.array([m.end_pos[:4] for m in moves])
 
 
-def shaped_plans(plan: np.ndarray, profile, shapers: dict[str, dict] | None = None
+def shaped_plans(plan: np.ndarray, profile, shapers: dict[str, dict] | None = None, shape_axis=None
                  ) -> dict[str, tuple[np.ndarray, np.ndarray, float]]:
     """Every shaper on ``plan`` (samples of klippy's plan of the original), tuned to the profile's
     dominant modes, or the ``shapers`` given (by name, a ``fbspost.shapers.Shaper`` per axis): by
-    name, (the shaped command, the plan padded to its length, the shaper's lag s: the time it adds)."""
+    name, (the shaped command, the plan padded to its length, the shaper's lag s: the time it adds).
+    ``shape_axis(samples, period_s, shaper, axis)`` shapes a column (default ``shapers.shape``; a
+    firmware's own, through whole steps: ``fbspost.firmware_shapers``). A jump (a move from an
+    unknown place, which a firmware model puts in no time: see ``verify.modelled``) is carried
+    through unshaped: shaped, it would be split into jumps to points off every path."""
     period = 1.0 / profile.sample_rate_hz
     if shapers is None:
         settings = shaper_settings(profile)
@@ -50,7 +54,12 @@ def shaped_plans(plan: np.ndarray, profile, shapers: dict[str, dict] | None = No
     for name, row in shapers.items():
         command = padded.copy()
         for axis, shaper in row.items():
-            command[:, AXES.index(axis)] = shape(padded[:, AXES.index(axis)], period, shaper)
+            column = padded[:, AXES.index(axis)]
+            step = np.diff(column, prepend=column[:1])
+            jumps = np.cumsum(np.where(np.abs(step) > 2.0 * profile.axes[axis].max_velocity_mm_s * period, step, 0.0))
+            column = column - jumps
+            command[:, AXES.index(axis)] = jumps + (shape_axis(column, period, shaper, axis) if shape_axis
+                                                    else shape(column, period, shaper))
         out[name] = (command, padded, max(s.lag_s for s in row.values()))
     return out
 

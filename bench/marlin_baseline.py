@@ -1,0 +1,113 @@
+"""Marlin's own input shaping against fbspost's Marlin output, all through whole steps (issue 32).
+
+Run from the repository root:  python bench/marlin_baseline.py [PROFILE ...] [--lines N] [--prints P ...]
+Default: printer-two-mode and bedslinger-example, the first 8000 lines of every sliced print in
+tests/data, once at a serial host's 300 lines/s and once without a line budget (an SD card).
+
+Every run is *the model of Marlin's planner* (fbspost/marlin.py: whole-step block ends, the
+6-step merge, its buffer and look-ahead), then *the model of its stepper* (each axis on the whole
+step its Bresenham gives, fbspost/firmware_shapers.py), then the profile's modes:
+- original: the program as Marlin runs it, unshaped;
+- Marlin ZV: INPUT_SHAPING_X/Y at the profile's dominant modes (``M593 X F.. D..``, ``M593 Y
+  F.. D..``) on the original's plan, as its stepper shapes steps (each axis late by its own
+  shaper's mean delay: not centred);
+- FT_MOTION: each of its shapers at the same modes on the original's plan (echoes on its 1 kHz
+  grid, axes kept in step), the best by RMS;
+- fbspost: its default Marlin output (``compensate --flavor marlin``, written for the budget).
+RMS and max contour error over the extruding samples to the original's commanded path
+(fbspost.verify), print time as the model runs it (a shaper adds its lead and lag).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path[:0] = [str(ROOT), str(ROOT / "bench"), str(ROOT / "tests")]
+
+from firmware import compensated, excerpt, model_run  # noqa: E402
+
+from fbspost.firmware_shapers import (  # noqa: E402
+    FT_MOTION_SHAPERS,
+    ft_motion_shaper,
+    marlin_zv,
+    marlin_zv_shaper,
+    shaped_steps,
+    stepper_positions,
+)
+from fbspost.profile import load_profile  # noqa: E402
+from fbspost.simulate import shaper_settings  # noqa: E402
+from fbspost.verify import contour_um, modelled  # noqa: E402
+from firmware_results import shaped_plans  # noqa: E402
+
+PRINTS = ("gear-marlin2.gcode", "tube-marlin2.gcode", "pocket-klipper.gcode",
+          "bracket-reprapfirmware-relative-e.gcode", "blob-reprap-relative-e.gcode")
+BUDGETS = (300.0, None)
+
+
+def shaped(plan: np.ndarray, profile, shapers: dict, shape_axis) -> tuple[np.ndarray, np.ndarray, float]:
+    """(the plan through ``shape_axis`` per shaped axis and whole steps, the plan padded alike,
+    the time the shaping adds: its largest lead (FT_MOTION delays every axis by it) and lag)."""
+    (command, padded, _), = shaped_plans(plan, profile, {"": shapers}, shape_axis).values()
+    added_s = max(s.lead_s for s in shapers.values()) + max(s.lag_s for s in shapers.values())
+    return stepper_positions(command, profile.firmware.steps_per_mm), padded, added_s
+
+
+def rows(original: Path, output: Path, profile, budget: float | None) -> list[tuple[str, float, tuple]]:
+    """(name, seconds, (RMS um, max um)) of every run (see the module docstring)."""
+    plain, fbs = model_run(original, profile, "marlin", budget), model_run(output, profile, "marlin", budget)
+    settings = shaper_settings(profile)
+
+    spm = profile.firmware.steps_per_mm
+
+    def error(command, mask_source):
+        return contour_um(modelled(command, profile), mask_source, plain.path, plain.printer)
+
+    out = [("original", plain.seconds, error(stepper_positions(plain.samples, spm), plain.samples))]
+    command, padded, added_s = shaped(
+        plain.samples, profile, {a: marlin_zv_shaper(*settings[a]) for a in settings},
+        lambda x, period_s, s, axis: marlin_zv(x, period_s, spm[axis], s.frequency_hz, s.damping))
+    out.append(("Marlin ZV", plain.seconds + added_s, error(command, padded)))
+    best = None
+    for name in FT_MOTION_SHAPERS:
+        command, padded, added_s = shaped(plain.samples, profile,
+                                          {a: ft_motion_shaper(name, *settings[a]) for a in settings},
+                                          lambda x, period_s, s, axis: shaped_steps(x, period_s, spm[axis], s))
+        row = (f"FT_MOTION {name.upper()}", plain.seconds + added_s, error(command, padded))
+        best = row if best is None or row[2][0] < best[2][0] else best
+    out.append(best)
+    out.append(("fbspost", fbs.seconds, error(stepper_positions(fbs.samples, spm), fbs.samples)))
+    out.append(("fbspost, no stepper", fbs.seconds, error(fbs.samples, fbs.samples)))
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("profiles", nargs="*", default=["printer-two-mode", "bedslinger-example"])
+    parser.add_argument("--lines", type=int, default=8000)
+    parser.add_argument("--prints", nargs="*", default=list(PRINTS))
+    args = parser.parse_args()
+    print("| profile | program | line budget | original um (max) | Marlin ZV um (max) | FT_MOTION best um (max) "
+          "| fbspost um (max) | fbspost, no stepper um (max) | fbspost time vs original |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for machine in args.profiles:
+        profile = load_profile(machine)
+        for program in args.prints:
+            for budget in BUDGETS:
+                with tempfile.TemporaryDirectory() as tmp:
+                    original = excerpt(f"tests/data/{program}", args.lines, Path(tmp))
+                    output = compensated(original, machine, "marlin", budget)
+                    result = rows(original, output, profile, budget)
+                cells = [f"{rms:.2f} ({peak:.0f})" for _, _, (rms, peak) in result]
+                cells[2] = f"{result[2][0].split()[-1]} {cells[2]}"
+                time = 100 * (result[3][1] / result[0][1] - 1)
+                print(f"| {machine} | {program.split('-')[0]} | {f'{budget:g} lines/s' if budget else 'none'} | "
+                      f"{' | '.join(cells)} | {time:+.2f}% of {result[0][1]:.1f} s |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
