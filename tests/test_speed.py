@@ -173,12 +173,14 @@ def test_a_child_sees_its_input_end_while_another_child_runs(monkeypatch, forked
     with Offloaded(_until_the_end, requests=requests, key=1) as first, \
             Offloaded(_until_the_end, requests=requests, key=2) as second:
         first._process.stdin.close()
-        assert first.get(timeout=30) == "the end"
+        # (generous: a started child imports numpy and scipy first, slow on a loaded machine;
+        # the fault this catches waits forever)
+        assert first.get(timeout=180) == "the end"
         second.send("still talking")
         with pytest.raises(queue.Empty):
             second.get(timeout=0.2)
         second._process.stdin.close()
-        assert second.get(timeout=30) == "the end"
+        assert second.get(timeout=180) == "the end"
 
 
 def test_bad_input_with_the_axes_in_processes_is_the_one_line_error(tmp_path):
