@@ -38,7 +38,7 @@ from .dynamics import AxisDynamics, scaled_mode
 from .gcode import AXES, Block, Kind, detect_flavor, feed_lengths, read_gcode
 from .pipeline import compensated_samples, varying_modes
 from .planner import EXTRUDE_ONLY_MM, Plan, PlanStream, RunMargins, fill_unknown, plan_blocks
-from .profile import AxisProfile, MachineProfile, ProfileError
+from .profile import AxisProfile, MachineProfile, ProfileError, with_travel
 from .shapers import SHAPERS, Shaper, klipper_shaper, shape
 from .trajectory import InputError
 
@@ -164,7 +164,8 @@ def simulate_program(program: str | Path, profile: MachineProfile, shapers: tupl
     if not modelled:
         raise ProfileError(f"{profile.source}: no axis has modes: nothing to simulate")
     flavor = flavor or detect_flavor(program)
-    blocks = list(read_gcode(program, flavor, profile.home_mm))
+    profile = with_travel(profile, flavor)  # (as compensate: the command within the firmware's travel)
+    blocks = list(read_gcode(program, flavor, profile.home_mm, profile.travel_mm("".join(AXES))))
     margins = margins or RunMargins.for_profile(profile)
     plan = plan_blocks(blocks, profile, margins=margins, firmware=flavor)
     if not plan.runs:

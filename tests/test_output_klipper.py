@@ -17,7 +17,7 @@ from fbspost.firmware import replan
 from fbspost.gcode import read_gcode
 from fbspost.pipeline import CompensateOptions, compensate_file, compensated_samples
 from fbspost.planner import RunMargins, plan_blocks
-from fbspost.profile import load_profile
+from fbspost.profile import load_profile, with_travel
 from fbspost.verify import contour_um, modelled, printed_path
 from firmware_results import klippy_run, move_ends, shaped_plans
 from klippy_motion import executed
@@ -43,7 +43,7 @@ def run_by_klipper(tmp_path, source, profile, tolerance_mm=TOLERANCE_MM):
     for axis in report.axes.values():  # the gain as the firmware runs the output, and as the command has it
         executed_gain = axis.rms_error_before_um / axis.rms_error_after_um
         assert executed_gain >= 0.9 * axis.rms_error_before_um / axis.rms_error_command_um
-    return plan, compensated_samples(plan, profile), executed(target, profile)
+    return plan, compensated_samples(plan, with_travel(profile, "klipper")), executed(target, profile)
 
 
 def beats_the_shapers(source, profile, written):

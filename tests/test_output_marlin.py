@@ -15,7 +15,7 @@ from fbspost.gcode import AXES, Kind, read_gcode
 from fbspost.marlin import run_marlin
 from fbspost.pipeline import CompensateOptions, compensate_file, compensated_samples
 from fbspost.planner import RunMargins, plan_blocks
-from fbspost.profile import load_profile
+from fbspost.profile import load_profile, with_travel
 from fbspost.writer import _Emitter
 from reference import serial
 
@@ -198,7 +198,7 @@ def _off_command(program, written, command, line_times_s, at) -> np.ndarray:
 def _command(source):
     plan = plan_blocks(read_gcode(source, "marlin", PROFILE.home_mm), PROFILE, firmware="marlin",
                        margins=RunMargins.for_profile(PROFILE))
-    return compensated_samples(plan, PROFILE)
+    return compensated_samples(plan, with_travel(PROFILE, "marlin"))
 
 
 def _on_command(command, near: float, end_mm: np.ndarray) -> int:
