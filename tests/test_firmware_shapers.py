@@ -172,3 +172,12 @@ def test_a_jump_is_not_shaped():
     moving = np.abs(padded[:, 0] - 102.5) < 2.0
     ideal = 100.0 + shape(padded[:, 0] - 100.0, 1e-3, shapers["X"])
     assert np.abs(command[moving, 0] - ideal[moving]).max() <= 0.5 / SPM
+
+
+def test_reprap_ei2_is_its_cumulative_coefficients():
+    """RRF's EI2 undamped, from AxisShaper::Configure worked by hand: coefficients (the
+    acceleration's levels) 0.16054, 0.16054 + 0.33911, + 0.34089, then 1; durations 0.49890,
+    0.99748 - 0.49890, 1.49920 - 0.99748 periods."""
+    shaper = reprap_shaper("ei2", 40.0, 0.0)
+    np.testing.assert_allclose(np.cumsum(shaper.amplitudes), [0.16054, 0.49965, 0.84054, 1.0], atol=1e-12)
+    np.testing.assert_allclose(shaper.times_s * 40.0, [0.0, 0.49890, 0.99748, 1.49920], atol=1e-12)
