@@ -162,8 +162,7 @@ def machines():
                    "and the machine's modes; where the output is not more accurate there (a lower RMS contour "
                    "error, a largest at most 10% above the original's) or lasts longer than its margins, 2% "
                    "and 50 ms more, write the original unchanged. Default: on for Marlin, RepRapFirmware and LinuxCNC "
-                   "outputs up to 100,000 lines (it holds about 4 kB a line), off for Klipper (which runs the "
-                   "blocks as written).")
+                   "at any length (it streams), off for Klipper (which runs the blocks as written).")
 @click.option("--report", "report_path", type=click.Path(dir_okay=False, path_type=Path),
               help="Also write the summary as JSON to this file (one INPUT only).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar and no summary on stderr.")

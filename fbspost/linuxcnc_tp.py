@@ -554,7 +554,10 @@ class LinuxCNCRun:
 
     def positions_mm(self, sample_rate_hz: float) -> np.ndarray:
         """(n, NA) positions at t = k / sample_rate_hz through the end, linear between periods."""
-        t = np.arange(math.floor(self.duration_s * sample_rate_hz) + 2) / sample_rate_hz
+        return self.at(np.arange(math.floor(self.duration_s * sample_rate_hz) + 2) / sample_rate_hz)
+
+    def at(self, t: np.ndarray) -> np.ndarray:
+        """(len(t), NA) positions at the times ``t`` (s), linear between periods."""
         grid = np.arange(len(self.cycle_positions_mm)) * self.servo_period_s
         return np.column_stack([np.interp(t, grid, self.cycle_positions_mm[:, i]) for i in range(_NA)])
 

@@ -46,9 +46,10 @@ chords), sync blocks of G92 and M-codes taking buffer slots, serial buffer and c
 """
 from __future__ import annotations
 
+import copy
 import math
 import re
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -187,12 +188,14 @@ def merge_short_segments(blocks: list[Block], profile: MachineProfile) -> tuple[
             target = _lround(point * scale)
             if last is not None:
                 moved = np.where(stepped, np.abs(target - last[0]), np.where(point != last[1], np.inf, 0.0))
-                if np.nan_to_num(moved).max() < least:
+                if least > 0 and not (moved >= least).any():  # (NaN: an unknown axis, no steps)
                     merged.append(block.line_no)
                     continue
             last = (target, point)
             kept.append(np.where(stepped, target / scale, point))
-        out.append(replace(block, points_mm=np.array(kept) if kept else None))
+        block = copy.copy(block)  # (dataclasses.replace runs __init__: a fifth of the model's time)
+        block.points_mm = np.array(kept) if kept else None
+        out.append(block)
     return out, merged
 
 
@@ -234,13 +237,16 @@ def _read(blocks: list[Block], profile: MachineProfile) -> tuple[_Segments, list
     junction_mm = state.row()[3]  # M205 J alone sets it (M205 X Y are classic jerk's)
     segments, lines = _Segments(), []
     position = np.zeros(_NA)
+    settings = None  # a segment's settings, until a line changes them
     for index, block in enumerate(blocks):
         if block.limits is not None:
             state.apply(block.limits, block.line_no)
             junction_mm = _first(block.limits.junction_deviation_mm, junction_mm)
+            settings = None
         b_word = _M205_B.match(block.raw)
         if b_word:
             min_segment_us = float(b_word.group(1))
+            settings = None
         lines.append((block.kind, bool(block.raw.split(b";")[0].strip()), block.dwell_s))
         if block.kind is Kind.STOP:  # (in whole steps, as the merge left the points: a G4 moves nothing)
             position = np.where(np.isnan(block.position_mm), position, _on_steps(block.position_mm, profile))
@@ -252,9 +258,11 @@ def _read(blocks: list[Block], profile: MachineProfile) -> tuple[_Segments, list
             segments.start.append(position)
             segments.end.append(point)
             segments.feed.append(block.feed_mm_s)
-            row = state.row()
-            row[3] = junction_mm
-            segments.settings.append([*row, state.scv, min_segment_us])
+            if settings is None:
+                row = state.row()
+                row[3] = junction_mm
+                settings = [*row, state.scv, min_segment_us]
+            segments.settings.append(settings)
             position = point
     return segments, lines
 

@@ -69,7 +69,7 @@ class CompensateOptions:
     # parallel_axes
     second_process: bool | None = None
     # Re-plan both programs on the firmware's planner before committing (verify.py); None: for
-    # the firmware whose planner differs from the blocks as written, up to VERIFY_AUTO_LINES.
+    # the firmware whose planner differs from the blocks as written (not Klipper's), at any length.
     verify: bool | None = False
 
 
@@ -135,10 +135,6 @@ class Report:
 
 SHAPING_LEFT_OFF = "input shaping is off after this program"  # (the warning's start)
 _CHUNK = 1 << 14  # samples planned, compensated and written at once
-# Verified by default up to this many written lines: the firmware models hold every block and
-# sample of a program at once, about 4 kB a line (measured: 85k Marlin lines 0.35 GB, 353k
-# RepRapFirmware lines 1 GB); Klipper runs the blocks as written (proven on klippy).
-VERIFY_AUTO_LINES = 100_000
 _SECOND_PROCESS_BYTES = 256_000  # (a second process starts in about 0.5 s: a program this long takes 5 s)
 _EXECUTED_BATCH = 1 << 14  # samples (ExecutedError)
 _POLL_S = 0.002  # how often the writer, waiting for an axis' process, answers the others' requests
@@ -443,12 +439,6 @@ class _Verification:
     def __call__(self, written: Path) -> None:
         from .verify import verify  # (simulate, which it measures with, compensates through this module)
 
-        if self.auto:
-            lines = _count_lines(written)
-            if lines > VERIFY_AUTO_LINES:
-                self.warnings.append(f"not verified on the firmware's planner: {lines} lines written, over "
-                                     f"{VERIFY_AUTO_LINES} (--verify to do it anyway: about 4 kB of memory a line)")
-                return
         started_s = time.perf_counter()
         try:
             self.verdict = verify(self.read_path, written, self.profile, self.flavor, self.plan.added_s)

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from fbspost import pipeline
+from fbspost import verify as verify_module
 from fbspost.cli import main
 from fbspost.firmware import replan
 from fbspost.gcode import read_gcode
@@ -23,10 +23,11 @@ from fbspost.pipeline import CompensateOptions, compensate_file
 from fbspost.profile import load_profile
 from fbspost.reprap import commanded_pieces
 from fbspost.simulate import PathDistance
-from fbspost.verify import MAX_TIME_INCREASE, contour_um, modelled, printed_path
+from fbspost.verify import MAX_TIME_INCREASE, FirmwareResult, contour_um, modelled, printed_path
 from reference import execute, serial, simulate_lsim
 
 DATA = Path(__file__).resolve().parent / "data"
+SAMPLES = Path(__file__).resolve().parents[1] / "samples"
 
 
 def gear(tmp_path, lines=400) -> Path:
@@ -99,17 +100,85 @@ def test_contour_error_is_the_distance_to_the_printed_path():
     assert rms_um == pytest.approx(np.sqrt((4.0**2 + 2.0**2) / 2))
 
 
-def test_long_prints_are_not_verified_unless_asked(tmp_path, monkeypatch):
-    """By default an output over VERIFY_AUTO_LINES is not verified (every block held at once), and
-    the summary says so; --verify does it anyway."""
-    monkeypatch.setattr(pipeline, "VERIFY_AUTO_LINES", 1000)  # the 400 lines give about 3000
+def test_outputs_longer_than_a_chunk_are_verified_by_default(tmp_path, monkeypatch):
+    """Verify streams, so it is on by default at any length: an output of many chunks (lowered to 500
+    lines: the 400 lines give about 3000) is verified without asking, and no warning says otherwise."""
+    monkeypatch.setattr(verify_module, "CHUNK_LINES", 500)
+    monkeypatch.setattr(verify_module, "OVERLAP_LINES", 200)
     source, target = gear(tmp_path), tmp_path / "out.gcode"
     auto = compensate_file(source, target, load_profile("printer-two-mode"), CompensateOptions(flavor="marlin",
                                                                                                 verify=None))
-    assert auto.verified is None and any("not verified" in w for w in auto.warnings)
-    asked = compensate_file(source, target, load_profile("printer-two-mode"), CompensateOptions(flavor="marlin",
-                                                                                                 verify=True))
-    assert asked.verified is not None and not any("not verified" in w for w in asked.warnings)
+    assert auto.lines_out > 5 * 500
+    assert auto.verified is not None and not any("not verified" in w for w in auto.warnings), auto.warnings
+
+
+def whole_program(source: Path, program: Path, profile, flavor: str) -> FirmwareResult:
+    """``program`` as the firmware's model plans it at once (firmware.replan: no chunks), modelled
+    at once, measured on the path of ``source`` searched at once: the verdict's independent reference."""
+    pieces = [piece for _, _, p in commanded_pieces(read_gcode(source, flavor, profile.home_mm)) for piece in p]
+    path, printer = printed_path(*(np.array(column)[:, :4] for column in zip(*pieces, strict=True)))
+    motion = replan(list(read_gcode(program, flavor, profile.home_mm)), profile, flavor)
+    command = motion.positions_mm[:, :4]
+    return FirmwareResult(motion.duration_s, *contour_um(modelled(command, profile), command, path, printer))
+
+
+def chunked(monkeypatch, source, output, profile, flavor, chunk_lines, overlap_lines):
+    """verify's figures with chunks of ``chunk_lines``, slices of 997 samples and the path in groups
+    of 64 pieces, 3 of them cached: every seam of the streaming crossed many times."""
+    monkeypatch.setattr(verify_module, "SLICE_SAMPLES", 997)
+    monkeypatch.setattr(verify_module, "GROUP_PIECES", 64)
+    monkeypatch.setattr(verify_module, "_CACHED_GROUPS", 3)
+    return verify_module.verify(source, output, profile, flavor, chunk_lines=chunk_lines, overlap_lines=overlap_lines)
+
+
+def test_chunked_verdict_is_the_whole_programs_on_marlin(tmp_path, monkeypatch):
+    """The gear's first 400 lines and their output (about 3000 lines) on the model of Marlin, in
+    chunks of 150 lines (3 and about 20 chunks): print time, RMS and max contour error as the whole
+    program planned, modelled and measured at once, to 1e-9."""
+    profile, source, output = load_profile("printer-two-mode"), gear(tmp_path), tmp_path / "out.gcode"
+    compensate_file(source, output, profile, CompensateOptions(flavor="marlin", verify=False))
+    verdict = chunked(monkeypatch, source, output, profile, "marlin", 150, 100)
+    for program, result in ((source, verdict.original), (output, verdict.output)):
+        truth = whole_program(source, program, profile, "marlin")
+        assert truth.rms_um > 1.0  # (um: there is an error to measure)
+        for name in ("duration_s", "rms_um", "max_um"):
+            assert getattr(result, name) == pytest.approx(getattr(truth, name), rel=1e-9), (program.name, name)
+
+
+@pytest.mark.slow
+def test_chunked_verdict_is_the_whole_programs_on_linuxcnc(tmp_path, monkeypatch):
+    """The butterfly as CAM chords on the model of LinuxCNC's planner, in 4 chunks of 1000 lines:
+    within 2 servo periods of the whole program's time and 0.5% (RMS) and 2% (max) of its
+    contour error. (Not exact: a chunk from rest runs its servo periods at another phase of the
+    program's samples.)"""
+    profile, source = load_profile("patent-xy-stage"), SAMPLES / "butterfly-polyline.gcode"
+    verdict = chunked(monkeypatch, source, source, profile, "linuxcnc", 1000, 300)
+    truth = whole_program(source, source, profile, "linuxcnc")
+    assert truth.rms_um > 10.0
+    for result in (verdict.original, verdict.output):
+        assert result.duration_s == pytest.approx(truth.duration_s, abs=2e-3)
+        assert result.rms_um == pytest.approx(truth.rms_um, rel=5e-3)
+        assert result.max_um == pytest.approx(truth.max_um, rel=2e-2)
+
+
+def test_path_file_is_the_brute_force_distance(tmp_path, monkeypatch):
+    """The original's path on disk in groups of 16 pieces, 3 cached, searched by their boxes: the
+    distance of points around the gear's path and over its box, to every extruding segment, brute force."""
+    monkeypatch.setattr(verify_module, "GROUP_PIECES", 16)
+    monkeypatch.setattr(verify_module, "_CACHED_GROUPS", 3)
+    source = gear(tmp_path, 300)
+    starts, stops = extruding_segments(source)
+    rng = np.random.default_rng(11)
+    pick = rng.integers(len(starts), size=1500)
+    near = starts[pick] + rng.random(1500)[:, None] * (stops - starts)[pick] + rng.normal(0.0, 0.3, (1500, 3))
+    low, high = starts.min(axis=0) - 2.0, starts.max(axis=0) + 2.0
+    points = np.concatenate([near, low + rng.random((1500, 3)) * (high - low)])
+    with open(tmp_path / "path", "w+b") as store:
+        path = verify_module._PathFile.of(source, load_profile("printer-two-mode"), "marlin", store)
+        assert path.printer and len(path.groups) > 10
+        distance = np.concatenate([path(part)[0] for part in np.array_split(points, 7)])
+    truth, _ = brute_distance(starts, stops, points)
+    np.testing.assert_allclose(distance, truth, rtol=0, atol=1e-12)
 
 
 def test_a_jump_of_the_command_starts_the_modes_anew_at_rest():
