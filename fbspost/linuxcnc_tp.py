@@ -24,7 +24,8 @@ and its jerk limits came with 2.10) and the INI documentation ([TRAJ] ARC_BLEND_
 - line-line blend arcs (``blendmath``: blendInit3FromLineLine, blendParamKinematics,
   blendComputeParameters, blendCheckConsume): tolerance min(P, lengths / 4) (P 0: lengths / 4),
   h = T / (1 - sin t), d = min(L1, L2, h cos t) with L1 = min(rest of the previous, half its
-  length), L2 half the next, a_n = 0.866 a_max in the plane, v_plan = min(sqrt(a_n R), v_goal),
+  length), L2 half the next, a_n = 0.866 a_max in the plane (0.5 a_max along the arc: a blend arc
+  keeps BLEND_ACC_RATIO_TANGENTIAL), v_plan = min(sqrt(a_n R), v_goal),
   R_plan = max(v_plan^2 / a_n, the parabolic-equivalent radius); the previous line consumed
   into the arc if its rest takes under ARC_BLEND_GAP_CYCLES (4) periods; the blend kept only if
   its maxvel beats the tangent kink_vel and half the parabolic blend velocity
@@ -233,12 +234,13 @@ class _Queue:
             tc.blend_prev = term == PARABOLIC
 
     def _finalize(self, tc: _Tc) -> None:
-        """tcFinalizeLength: the short-segment cap again (the length may have changed) and an
-        arc's share of normal acceleration (tcUpdateArcLimits)."""
+        """tcFinalizeLength: the short-segment cap again (the length may have changed) and a
+        G2/G3's share of normal acceleration (tcUpdateArcLimits: TC_CIRCULAR only; a blend arc,
+        TC_SPHERICAL, keeps BLEND_ACC_RATIO_TANGENTIAL)."""
         if tc.finalized:
             return
         tc.maxvel = min(tc.maxvel, tc.target / self.config.servo_period_s)
-        if tc.arc:
+        if tc.arc and tc.circle is None:
             a_max = tc.overall_accel()
             a_n_cutoff = _ACC_NORMAL * a_max
             if tc.maxvel ** 2 / tc.arc_radius > a_n_cutoff:

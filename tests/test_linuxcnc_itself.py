@@ -4,7 +4,6 @@ trajectory planner, headless (tests/linuxcnc_itself.py), run what fbspost comput
 
 Truth: the joint commands LinuxCNC itself outputs every servo period, against the written
 blocks run exactly as written (each at its F)."""
-import itertools
 from pathlib import Path
 
 import pytest
@@ -25,14 +24,12 @@ needs_linuxcnc = pytest.mark.skipif(not installed(),
 
 @pytest.fixture(scope="module")
 def butterfly_part(tmp_path_factory):
-    """The first 1.2 s of the dense butterfly (1 ms blocks) compensated for the patent's stage
-    (--no-verify: the output itself), its blocks as written (from their first motion, the
-    profile's grid) and their path."""
-    folder = tmp_path_factory.mktemp("butterfly")
-    program, output = folder / "part.ngc", folder / "out.ngc"
-    with open(DENSE, "rb") as f:
-        program.write_bytes(b"".join(itertools.islice(f, 1200)))
-    compensate_file(program, output, STAGE, CompensateOptions(flavor="linuxcnc", verify=False))
+    """The dense butterfly (1 ms blocks, 3.1 s) compensated for the patent's stage (--no-verify:
+    the output itself), its blocks as written (from their first motion, the profile's grid) and
+    their path. (Its first 1.2 s alone: LinuxCNC's start, a few ms that vary from run to run
+    under load, is 0.4 to 0.6% of it.)"""
+    output = tmp_path_factory.mktemp("butterfly") / "out.ngc"
+    compensate_file(DENSE, output, STAGE, CompensateOptions(flavor="linuxcnc", verify=False))
     blocks = list(read_gcode(output, "linuxcnc"))
     grid, starts, ends = as_written(blocks, STAGE.sample_rate_hz)
     return output, blocks, from_first_motion(grid), printed_path(starts, ends)[0]
@@ -42,9 +39,9 @@ def butterfly_part(tmp_path_factory):
 @needs_linuxcnc
 def test_linuxcnc_itself_runs_the_compensated_butterfly_on_its_path_and_time(butterfly_part):
     """LinuxCNC itself at SERVO_PERIOD 1 ms keeps within the tolerance + 2 um of the written
-    path and takes the written time within 0.5% (measured: 2.4 um, +0.44%; blocks of 1 servo
-    period, as before: 2.0 um but +4.3%, up to 133 ms late); the largest lag along the path is
-    under 1% of the time (measured 9.9 ms ahead of 1.27 s; 133 ms with 1 ms blocks)."""
+    path and takes the written time within 0.5%, the largest lag along the path under 1% of it
+    (measured, load average 12: 2.29 um, 3.0570 s for the written 3.0557 s, 12.5 ms ahead at
+    most; blocks of 1 servo period, as before: 35 um, 3.4160 s, 394 ms late)."""
     output, _, written, path = butterfly_part
     fs = STAGE.sample_rate_hz
     real = on_grid(joint_commands(output, STAGE), STAGE.firmware.linuxcnc.servo_period_s, fs)
@@ -59,12 +56,12 @@ def test_linuxcnc_itself_runs_the_compensated_butterfly_on_its_path_and_time(but
 
 @pytest.mark.slow
 @needs_linuxcnc
-@pytest.mark.xfail(strict=True, reason="the model runs the blocks ahead of LinuxCNC: 1.2650 s against 1.2730 s "
-                   "(-0.63%), up to 35 ms ahead of the written time where LinuxCNC is 9.9 ms")
 def test_the_model_of_linuxcnc_s_planner_agrees_with_linuxcnc_itself(butterfly_part):
     """Issue 31 item 3: on the same written program, fbspost's model of LinuxCNC's planner keeps
     to the written path as LinuxCNC does (the tolerance + 2 um) and takes LinuxCNC's time
-    within 0.5%, so that --verify judges the motion LinuxCNC makes."""
+    within 0.5%, so that --verify judges the motion LinuxCNC makes (measured: 1.70 um, 3.0580 s
+    against LinuxCNC's 3.0570 s; before the model's blend arcs ramped at half the
+    acceleration, as LinuxCNC's do: 3.0390 s, -0.59%)."""
     output, blocks, written, path = butterfly_part
     fs = STAGE.sample_rate_hz
     real = on_grid(joint_commands(output, STAGE), STAGE.firmware.linuxcnc.servo_period_s, fs)
