@@ -53,11 +53,15 @@ def joint_commands(program: Path, profile, timeout_s: float = 900.0) -> np.ndarr
     for _ in range(3):  # (now and then a run records no motion: LinuxCNC still ending the last one)
         joints = _record(program, profile, first, timeout_s)
         # the MDI move to the start may still run when the record starts: from where it is done
-        joints = joints[np.argmax(np.all(np.abs(joints[:, :2] - first) < 1e-9, axis=1)):]
+        # (halsampler prints 6 decimals; a closed path also ends at the start: the first time there
+        # that motion follows)
+        at = [k for k in np.flatnonzero(np.all(np.abs(joints[:, :2] - first) < 2e-6, axis=1))[:1]
+              if np.any(joints[k:] != joints[k])]
+        joints = joints[at[0] if at else 0:]
         if np.any(joints != joints[0]):
             return from_first_motion(joints)
         time.sleep(2.0)
-    raise RuntimeError(f"LinuxCNC ran no motion of {program}")
+    raise RuntimeError(f"LinuxCNC ran no motion of {program} ({len(joints)} periods recorded)")
 
 
 def _record(program: Path, profile, first: np.ndarray, timeout_s: float) -> np.ndarray:
