@@ -36,9 +36,7 @@ from __future__ import annotations
 
 import itertools
 import math
-import os
 import re
-import shutil
 import subprocess
 import sys
 import tempfile
@@ -51,7 +49,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
 
 from fbspost.firmware_shapers import REPRAP_SHAPERS, reprap_shaper, shaped_steps, stepper_positions  # noqa: E402
-from fbspost.gcode import AXES, Kind, detect_flavor, read_gcode  # noqa: E402
+from fbspost.gcode import AXES, detect_flavor, read_gcode  # noqa: E402
 from fbspost.linuxcnc_tp import run_linuxcnc  # noqa: E402
 from fbspost.marlin import MarlinConfig, run_marlin  # noqa: E402
 from fbspost.profile import load_profile  # noqa: E402
@@ -59,6 +57,7 @@ from fbspost.reprap import ReprapConfig, commanded_pieces, run_reprap  # noqa: E
 from fbspost.simulate import PathDistance, shaper_settings  # noqa: E402
 from fbspost.verify import contour_um, modelled, printed_path  # noqa: E402
 from firmware_results import klippy_run, move_ends, shaped_plans  # noqa: E402
+from linuxcnc_itself import as_written, joint_commands, on_grid  # noqa: E402
 
 SERIAL_LINES_PER_S = 300.0  # a serial host's budget where the profile gives none
 MODELS = {"marlin": (run_marlin, MarlinConfig, "Marlin's planner"),
@@ -115,61 +114,15 @@ def linuxcnc_run(path: Path, profile) -> Run:
 
 def linuxcnc_own_run(path: Path, profile) -> Run | None:
     """``path`` run by LinuxCNC itself (None where it is not installed): the joint commands every
-    servo period (1 ms), from the program's first point, to the 10 kHz grid linearly."""
-    if not shutil.which("linuxcnc"):
+    servo period (the profile's), from the program's first point, to the profile's grid linearly
+    (tests/linuxcnc_itself.py)."""
+    joints = joint_commands(path, profile)
+    if joints is None:
         return None
-    blocks = list(read_gcode(path, "linuxcnc", profile.home_mm))
-    first = next(b.position_mm[:2] for b in blocks if not np.isnan(b.position_mm[:2]).any())
-    limits = {f"{kind}{a}": getattr(profile.axes[a], f"max_{name}") if a in profile.axes else 1000.0
-              for a in "XYZ" for kind, name in (("v", "velocity_mm_s"), ("a", "acceleration_mm_s2"))}
-    sim = ROOT / "bench" / "linuxcnc_sim"
-    with tempfile.TemporaryDirectory() as tmp:
-        ini = Path(tmp) / "sim.ini"
-        ini.write_text((sim / "sim.ini.in").read_text().format(here=sim, tmp=tmp, **limits))
-        (Path(tmp) / "sim.var").touch()
-        (Path(tmp) / "tool.tbl").touch()
-        env = {**os.environ, "TP_PROGRAM": str(path), "TP_OUT": f"{tmp}/joints.txt",
-               "TP_START": f"{first[0]!r} {first[1]!r}", "RTAPI_FIFO_PATH": f"{tmp}/.rtapi_fifo"}
-        if os.geteuid() == 0:  # rtapi_app refuses root without a user to drop to
-            env["RTAPI_UID"] = "65534"
-            os.chmod(tmp, 0o777)
-        subprocess.run(["linuxcnc", str(ini)], env=env, cwd=tmp, capture_output=True, timeout=900)
-        joints = np.loadtxt(f"{tmp}/joints.txt", ndmin=2)[:, :3]
-    moving = np.flatnonzero(np.any(np.diff(joints, axis=0) != 0.0, axis=1))
-    joints = joints[moving[0]:moving[-1] + 2]
-    period_s = 1e-3
-    t = np.arange(math.floor((len(joints) - 1) * period_s * profile.sample_rate_hz) + 1) / profile.sample_rate_hz
-    samples = np.column_stack([np.interp(t, np.arange(len(joints)) * period_s, joints[:, i]) for i in range(3)]
-                              + [np.zeros(len(t))])
-    _, starts, ends = as_written(blocks, profile.sample_rate_hz)
-    return Run((len(joints) - 1) * period_s, samples, *printed_path(starts, ends), "LinuxCNC's own planner")
-
-
-def as_written(blocks, sample_rate_hz: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(X Y Z E on the sample grid, move starts, move ends) of ``blocks`` run exactly as written:
-    every piece at its F, at rest for a dwell; a move that stops the machine (from an unknown
-    place) takes no time."""
-    times, points, starts, ends = [0.0], [np.zeros(4)], [], []
-    for block in blocks:
-        here = points[-1]
-        if block.kind is Kind.STOP:
-            here = np.where(np.isnan(block.position_mm[:4]), here, block.position_mm[:4])
-            times += [times[-1], times[-1] + block.dwell_s]
-            points += [here, here]
-        elif block.kind is Kind.MOVE and block.points_mm is not None:
-            for point in block.points_mm[:, :4]:
-                point = np.where(np.isnan(point), here, point)
-                times.append(times[-1] + np.linalg.norm(point[:3] - here[:3]) / block.feed_mm_s)
-                points.append(point)
-                starts.append(here)
-                ends.append(point)
-                here = point
-    times, points = np.array(times), np.array(points)
-    t = np.arange(math.floor(times[-1] * sample_rate_hz) + 2) / sample_rate_hz
-    k = np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 2)
-    span = np.maximum(times[k + 1] - times[k], 1e-300)
-    frac = np.clip((t - times[k]) / span, 0.0, 1.0)[:, None]
-    return points[k] + (points[k + 1] - points[k]) * frac, np.array(starts), np.array(ends)
+    period_s = profile.firmware.linuxcnc.servo_period_s
+    _, starts, ends = as_written(list(read_gcode(path, "linuxcnc", profile.home_mm)), profile.sample_rate_hz)
+    return Run((len(joints) - 1) * period_s, on_grid(joints, period_s, profile.sample_rate_hz),
+               *printed_path(starts, ends), "LinuxCNC's own planner")
 
 
 def compensated(original: Path, machine: str, flavor: str, line_rate_hz: float | None = None) -> Path:

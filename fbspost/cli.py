@@ -143,7 +143,7 @@ def machines():
 @click.option("--tolerance", type=click.FloatRange(min=0, min_open=True), default=1e-3, show_default=True,
               help="Largest distance (mm) between the written blocks and the compensated command.")
 @click.option("--min-segment-time", type=click.FloatRange(min=0, min_open=True), default=1e-3, show_default=True,
-              help="Shortest block (s).")
+              help="Shortest block (s); LinuxCNC: at least 2 servo periods (the profile's servo_period).")
 @click.option("--flavor", type=click.Choice(FLAVORS), help="Firmware dialect (default: detected from the file).")
 @click.option("--lookahead", type=click.Choice(["limited", "complete"]), default="limited", show_default=True)
 @_margin_options
@@ -660,12 +660,13 @@ def excite(machine, axis, output, centre_mm, start_hz, end_hz, duration_s, ampli
     run, then `fbspost identify --accel-log LOG.csv --program PROGRAM --axis AXIS --machine PROFILE`.
     """
     from . import excite as excite_module
+    from .writer import shortest_block_s
 
     profile = load_profile(machine)
     axis = axis.upper()
     if axis not in profile.axes:
         raise ProfileError(f"{profile.source}: axes.{axis}: the profile has no axis {axis}")
-    shortest_s = excite_module.shortest_block_s(profile, flavor)
+    shortest_s = shortest_block_s(profile, flavor)
     if block_s is None:
         block_s = max(1e-3, shortest_s)
     elif block_s < shortest_s * (1 - 1e-9):

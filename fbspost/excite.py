@@ -22,12 +22,11 @@ import numpy as np
 
 from .firmware import replan
 from .gcode import AXES, FLAVORS, Kind, Modal, read_gcode
-from .linuxcnc_tp import LinuxCNCConfig
 from .pipeline import marlin_steps
 from .profile import AxisProfile, MachineProfile, bundled_profiles, load_profile
 from .trajectory import InputError
 from .transparency import FirmwareSettings, Transparency
-from .writer import WriteOptions, dwell_line, shortest_line_s, timed_blocks
+from .writer import WriteOptions, dwell_line, timed_blocks
 
 _BEGIN = "; fbspost excite: sweep begins"
 _END = "; fbspost excite: sweep ends"
@@ -95,17 +94,6 @@ def sweep_samples(axis: AxisProfile, centre_mm: float, start_hz: float, end_hz: 
 
 
 _TOLERANCE_MM = 1e-3  # LinuxCNC's G64 P: the sweep's blocks are collinear, nothing to blend
-
-
-def shortest_block_s(profile: MachineProfile, flavor: str) -> float:
-    """The shortest block time at which ``flavor``'s firmware runs a sweep as written on
-    ``profile``: the line budget of the profile's max_line_rate (``writer.shortest_line_s``);
-    on LinuxCNC also 2 servo periods (its planner caps a block's speed at length / 1.02 servo
-    periods)."""
-    shortest_s = shortest_line_s(profile.firmware.max_line_rate_hz)
-    if flavor == "linuxcnc":
-        shortest_s = max(shortest_s, 2.0 * LinuxCNCConfig.from_profile(profile).servo_period_s)
-    return shortest_s
 
 
 def sweep_program(profile: MachineProfile, axis_name: str, positions_mm: np.ndarray, block_s: float,

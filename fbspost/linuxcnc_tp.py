@@ -24,7 +24,8 @@ and its jerk limits came with 2.10) and the INI documentation ([TRAJ] ARC_BLEND_
 - line-line blend arcs (``blendmath``: blendInit3FromLineLine, blendParamKinematics,
   blendComputeParameters, blendCheckConsume): tolerance min(P, lengths / 4) (P 0: lengths / 4),
   h = T / (1 - sin t), d = min(L1, L2, h cos t) with L1 = min(rest of the previous, half its
-  length), L2 half the next, a_n = 0.866 a_max in the plane, v_plan = min(sqrt(a_n R), v_goal),
+  length), L2 half the next, a_n = 0.866 a_max in the plane (0.5 a_max along the arc: a blend arc
+  keeps BLEND_ACC_RATIO_TANGENTIAL), v_plan = min(sqrt(a_n R), v_goal),
   R_plan = max(v_plan^2 / a_n, the parabolic-equivalent radius); the previous line consumed
   into the arc if its rest takes under ARC_BLEND_GAP_CYCLES (4) periods; the blend kept only if
   its maxvel beats the tangent kink_vel and half the parabolic blend velocity
@@ -68,7 +69,8 @@ _MODE = re.compile(rb"[Gg]\s*0*6\s*(4|1\s*\.\s*1|1)(?![\d.])((?:\s*[PpQq]\s*[-+]
 
 @dataclass(frozen=True)
 class LinuxCNCConfig:
-    """The INI's limits and the TP's settings (LinuxCNC's defaults)."""
+    """The INI's limits and the TP's settings (LinuxCNC's defaults; ``from_profile``: the
+    profile's ``[firmware]`` ones, ``profile.LinuxCNCSettings``)."""
 
     axis_velocity_mm_s: tuple[float, float, float]  # [AXIS_X/Y/Z] MAX_VELOCITY
     axis_acceleration_mm_s2: tuple[float, float, float]  # [AXIS_X/Y/Z] MAX_ACCELERATION
@@ -79,6 +81,7 @@ class LinuxCNCConfig:
     ramp_frequency_hz: float = 100.0  # [TRAJ] ARC_BLEND_RAMP_FREQ
     kink_ratio: float = 0.1  # [TRAJ] ARC_BLEND_KINK_RATIO
     arc_blends: bool = True  # [TRAJ] ARC_BLEND_ENABLE
+    startup_tolerance_mm: float = 0.0  # the G64 P the machine starts in (RS274NGC_STARTUP_CODE)
 
     @classmethod
     def from_profile(cls, profile: MachineProfile, **changes) -> LinuxCNCConfig:
@@ -89,7 +92,12 @@ class LinuxCNCConfig:
         velocity = tuple(a.max_velocity_mm_s if a else min(g.max_velocity_mm_s for g in given) for a in limits)
         acceleration = tuple(a.max_acceleration_mm_s2 if a else min(g.max_acceleration_mm_s2 for g in given)
                              for a in limits)
-        return cls(**{"axis_velocity_mm_s": velocity, "axis_acceleration_mm_s2": acceleration, **changes})
+        ini = profile.firmware.linuxcnc  # (ARC_BLEND_FALLBACK_ENABLE: in the INI the bench runs, not modelled)
+        return cls(**{"axis_velocity_mm_s": velocity, "axis_acceleration_mm_s2": acceleration,
+                      "servo_period_s": ini.servo_period_s, "optimization_depth": ini.arc_blend_optimization_depth,
+                      "gap_cycles": float(ini.arc_blend_gap_cycles), "ramp_frequency_hz": ini.arc_blend_ramp_freq_hz,
+                      "kink_ratio": ini.arc_blend_kink_ratio, "arc_blends": ini.arc_blend_enable,
+                      "startup_tolerance_mm": ini.g64_p_mm, **changes})
 
 
 @dataclass
@@ -226,12 +234,13 @@ class _Queue:
             tc.blend_prev = term == PARABOLIC
 
     def _finalize(self, tc: _Tc) -> None:
-        """tcFinalizeLength: the short-segment cap again (the length may have changed) and an
-        arc's share of normal acceleration (tcUpdateArcLimits)."""
+        """tcFinalizeLength: the short-segment cap again (the length may have changed) and a
+        G2/G3's share of normal acceleration (tcUpdateArcLimits: TC_CIRCULAR only; a blend arc,
+        TC_SPHERICAL, keeps BLEND_ACC_RATIO_TANGENTIAL)."""
         if tc.finalized:
             return
         tc.maxvel = min(tc.maxvel, tc.target / self.config.servo_period_s)
-        if tc.arc:
+        if tc.arc and tc.circle is None:
             a_max = tc.overall_accel()
             a_n_cutoff = _ACC_NORMAL * a_max
             if tc.maxvel ** 2 / tc.arc_radius > a_n_cutoff:
@@ -632,7 +641,7 @@ def run_linuxcnc(blocks: list[Block], profile: MachineProfile, config: LinuxCNCC
     position = np.zeros(_NA)
     out, queue = [position], _Queue(config)
     line_time = np.full(len(blocks), np.nan)
-    mode = (PARABOLIC, 0.0)  # LinuxCNC starts in G64 without P
+    mode = (PARABOLIC, config.startup_tolerance_mm)  # LinuxCNC starts in G64 (P: its startup code's)
     for index, block in enumerate(blocks):
         mode = _mode(block.raw, mode)
         if block.kind is Kind.STOP:  # waits for the motion to end, then its dwell

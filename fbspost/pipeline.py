@@ -40,7 +40,7 @@ from .smoothing import half_width_samples
 from .trajectory import InputError
 from .transparency import FirmwareSettings
 from .varying import LoadModes, PositionModes
-from .writer import SampleWindow, WriteOptions, format_refusal, write_program
+from .writer import SampleWindow, WriteOptions, format_refusal, shortest_block_s, write_program
 
 if TYPE_CHECKING:
     from .verify import Verdict
@@ -233,15 +233,16 @@ def _compensate(read_path, input_path, output_path, profile, options, flavor, pr
         return feed.time_s if elsewhere else 0.0
 
     chunks = _timed(chunks, stages, "optimize", exclude=lambda: plan.time_s + shared_s())
+    min_segment_s = max(options.min_segment_time_s, shortest_block_s(profile, flavor))
     write_options = WriteOptions(
         flavor=flavor,
         output_format=options.output_format,
         tolerance_mm=options.tolerance_mm,
-        min_segment_time_s=options.min_segment_time_s,
+        min_segment_time_s=min_segment_s,
         header=(
             f"fbspost {__version__}: filtered B-spline compensation for machine profile {profile.name}",
             f"fbspost settings: format {options.output_format}, tolerance {options.tolerance_mm:g} mm, "
-            f"minimum segment {options.min_segment_time_s * 1e3:g} ms, flavor {flavor}, {options.lookahead} look-ahead",
+            f"minimum segment {min_segment_s * 1e3:g} ms, flavor {flavor}, {options.lookahead} look-ahead",
         ),
         firmware=FirmwareSettings.from_profile(profile),
         max_line_rate_hz=profile.firmware.max_line_rate_hz,

@@ -69,6 +69,32 @@ class AxisProfile:
 
 
 @dataclass(frozen=True)
+class LinuxCNCSettings:
+    """The INI and startup settings LinuxCNC's trajectory planner runs with (LinuxCNC 2.9's
+    defaults): ``[firmware]`` keys without the unit suffix (``servo_period``, ``g64_p``, ...)."""
+
+    servo_period_s: float = 0.001  # [EMCMOT] SERVO_PERIOD (ns there)
+    arc_blend_enable: bool = True  # [TRAJ] ARC_BLEND_ENABLE
+    arc_blend_fallback_enable: bool = False  # [TRAJ] ARC_BLEND_FALLBACK_ENABLE
+    arc_blend_optimization_depth: int = 50  # [TRAJ] ARC_BLEND_OPTIMIZATION_DEPTH
+    arc_blend_gap_cycles: int = 4  # [TRAJ] ARC_BLEND_GAP_CYCLES
+    arc_blend_ramp_freq_hz: float = 100.0  # [TRAJ] ARC_BLEND_RAMP_FREQ
+    arc_blend_kink_ratio: float = 0.1  # [TRAJ] ARC_BLEND_KINK_RATIO
+    # [RS274NGC] RS274NGC_STARTUP_CODE's G64 P and Q (mm): the blending the machine starts in
+    # and the output restores (0: LinuxCNC's G64 without P or Q)
+    g64_p_mm: float = 0.0
+    g64_q_mm: float = 0.0
+
+
+# [firmware] key -> LinuxCNCSettings field
+_LINUXCNC_KEYS = {"servo_period": "servo_period_s", "arc_blend_enable": "arc_blend_enable",
+                  "arc_blend_fallback_enable": "arc_blend_fallback_enable",
+                  "arc_blend_optimization_depth": "arc_blend_optimization_depth",
+                  "arc_blend_gap_cycles": "arc_blend_gap_cycles", "arc_blend_ramp_freq": "arc_blend_ramp_freq_hz",
+                  "arc_blend_kink_ratio": "arc_blend_kink_ratio", "g64_p": "g64_p_mm", "g64_q": "g64_q_mm"}
+
+
+@dataclass(frozen=True)
 class FirmwareProfile:
     """What the machine's firmware does with the blocks it is sent (``[firmware]``). Klipper's
     names and defaults (klippy/toolhead.py, kinematics/extruder.py) where it has the setting."""
@@ -90,6 +116,7 @@ class FirmwareProfile:
     min_steps_per_segment: int = 6  # Marlin MIN_STEPS_PER_SEGMENT: shorter blocks are merged with the next
     dda_ring_length: int = 50  # RepRapFirmware's DDA ring (M595 P; Move.h DdaRingLength on Duet 3)
     flavor: str | None = None  # the machine's firmware (one of FLAVORS): wins over the file's hints
+    linuxcnc: LinuxCNCSettings = field(default_factory=LinuxCNCSettings)
 
     @property
     def extrude_ratio(self) -> float:
@@ -180,7 +207,7 @@ _FIRMWARE_NUMBERS = {
 FLAVORS = ("marlin", "klipper", "reprap", "linuxcnc")  # the firmwares fbspost writes for
 _FIRMWARE_KEYS = {*_FIRMWARE_NUMBERS, "flavor", "steps_per_mm", "shaper_frequency", "block_buffer",
                   "minimum_cruise_ratio", "instantaneous_corner_velocity", "min_segment_time",
-                  "min_steps_per_segment", "dda_ring_length"}
+                  "min_steps_per_segment", "dda_ring_length", *_LINUXCNC_KEYS}
 
 
 def bundled_profiles() -> dict[str, Path]:
@@ -412,7 +439,30 @@ def _parse_firmware(raw: dict, fail, number) -> FirmwareProfile:
         values["flavor"] = flavor
     return FirmwareProfile(steps_per_mm=steps, shaper_frequency_hz=shaper, block_buffer=integer("block_buffer", 16),
                            min_steps_per_segment=integer("min_steps_per_segment", 6),
-                           dda_ring_length=integer("dda_ring_length", 50), **values)
+                           dda_ring_length=integer("dda_ring_length", 50), linuxcnc=_parse_linuxcnc(raw, fail, number),
+                           **values)
+
+
+def _parse_linuxcnc(raw: dict, fail, number) -> LinuxCNCSettings:
+    """The ``[firmware]`` keys of LinuxCNC's settings, checked as LinuxCNC reads them (INI
+    integers and booleans; ARC_BLEND_KINK_RATIO in (0, 1])."""
+    values = {}
+    for key, attr in _LINUXCNC_KEYS.items():
+        if key not in raw:
+            continue
+        value, default = raw[key], getattr(LinuxCNCSettings, attr)
+        if isinstance(default, bool):
+            if not isinstance(value, bool):
+                raise fail(f"firmware.{key}", f"must be true or false, got {value!r}")
+        elif isinstance(default, int):
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise fail(f"firmware.{key}", f"must be a whole number >= 0, got {value!r}")
+        else:
+            value = number(raw, key, f"firmware.{key}", positive=key in ("servo_period", "arc_blend_ramp_freq"))
+            if value < 0 or (key == "arc_blend_kink_ratio" and not 0 < value <= 1):
+                raise fail(f"firmware.{key}", f"must be {'in (0, 1]' if 'kink' in key else '>= 0'}, got {value!r}")
+        values[attr] = value
+    return LinuxCNCSettings(**values)
 
 
 def _axis_table(raw: dict, key: str, what: str, fail, number) -> dict[str, float]:
@@ -487,4 +537,10 @@ def _format_firmware(firmware: FirmwareProfile, number) -> list[str]:
               **{key: getattr(firmware, attr) for key, attr in _FIRMWARE_NUMBERS.items()}}
     if firmware.max_accel_to_decel_mm_s2 is not None:
         del values["minimum_cruise_ratio"]
-    return lines + [f"{key} = {number(value)}" for key, value in values.items() if value is not None]
+    lines += [f"{key} = {number(value)}" for key, value in values.items() if value is not None]
+    for key, attr in _LINUXCNC_KEYS.items():
+        value = getattr(firmware.linuxcnc, attr)
+        if value != getattr(LinuxCNCSettings, attr):  # (TOML's true / false; INI integers as such)
+            text = str(value).lower() if isinstance(value, bool) else str(value)
+            lines.append(f"{key} = {text if isinstance(value, (bool, int)) else number(value)}")
+    return lines

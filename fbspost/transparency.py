@@ -79,7 +79,11 @@ class FirmwareSettings:
     def from_profile(cls, profile: MachineProfile) -> FirmwareSettings:
         """What the firmware is configured with, as far as the profile tells."""
         fw = profile.firmware
-        return cls(profile.planner_acceleration_mm_s2,
+        # G64 with the P and Q of the machine's startup code (mm), as LinuxCNC starts; Q always
+        # written with P (without it Q is P)
+        p_mm, q_mm = fw.linuxcnc.g64_p_mm, fw.linuxcnc.g64_q_mm
+        blend = f"G64 P{_num(p_mm, 6)} Q{_num(q_mm, 6)}" if p_mm or q_mm else "G64"
+        return cls(profile.planner_acceleration_mm_s2, blend_words=blend,
                    square_corner_velocity_mm_s=profile.planner_square_corner_velocity_mm_s,
                    minimum_cruise_ratio=fw.minimum_cruise_ratio, max_accel_to_decel_mm_s2=fw.max_accel_to_decel_mm_s2,
                    min_segment_time_us=fw.min_segment_time_s * 1e6, shaper_frequency_hz=dict(fw.shaper_frequency_hz),

@@ -28,6 +28,7 @@ from scipy.ndimage import maximum_filter1d
 from .bezier import curve_lengths, fit_g5
 from .gcode import AXES, Block, Kind, Modal, feed_lengths
 from .planner import PlanStream
+from .profile import MachineProfile
 from .steps import rounding_for
 from .transparency import FirmwareSettings, Transparency
 
@@ -1106,6 +1107,17 @@ def shortest_line_s(max_line_rate_hz: float | None) -> float:
     """The shortest block at a line rate (None: no limit): a line's share of 90% of it, the rest
     left to the other lines (the copied ones), so that the host stays ahead of the firmware."""
     return 1.0 / (0.9 * (max_line_rate_hz or math.inf))
+
+
+def shortest_block_s(profile: MachineProfile, flavor: str) -> float:
+    """The shortest block time ``flavor``'s firmware runs as written on ``profile``: the line
+    budget of the profile's max_line_rate (``shortest_line_s``); on LinuxCNC also 2 servo
+    periods (its planner caps a block's speed at length / 1.02 servo periods, and shorter blocks
+    ran late and off the path on LinuxCNC itself: docs/linuxcnc.md)."""
+    shortest_s = shortest_line_s(profile.firmware.max_line_rate_hz)
+    if flavor == "linuxcnc":
+        shortest_s = max(shortest_s, 2.0 * profile.firmware.linuxcnc.servo_period_s)
+    return shortest_s
 
 
 def _still_as_dwell(emitter: _Emitter, dwell, from_s: float, ends_s: np.ndarray, targets_mm: np.ndarray,

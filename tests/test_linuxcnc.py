@@ -500,3 +500,35 @@ def test_g76_is_written_back_as_g33_with_rs274s_pitch(tmp_path):
     assert command_problems(program, expanded) == []
     expanded.write_text(expanded.read_text().replace(" K1.27", " K1.2701", 1))
     assert command_problems(program, expanded)[0].startswith("non-motion command")
+
+
+def test_blocks_last_two_servo_periods_and_the_startup_blending_is_restored(tmp_path):
+    """Issue 31: LinuxCNC caps a block's speed at its length / 1.02 servo periods, and 1 ms blocks
+    ran 4.3% late on LinuxCNC itself (tests/test_linuxcnc_itself.py): every compensated block
+    lasts 2 servo periods or more (2.5 ms at the profile's SERVO_PERIOD 1.25 ms; length over its
+    F, within F's 3 printed decimals), and the blending mode the machine starts in (the
+    profile's g64_p / g64_q, its RS274NGC_STARTUP_CODE) is what the output restores after the
+    compensated motion, not G64 alone (which sets P 0)."""
+    text = (Path(load_profile("patent-xy-stage").source).read_text()
+            .replace("[firmware]", "[firmware]\nservo_period = 0.00125\ng64_p = 0.02\ng64_q = 0.005"))
+    machine = tmp_path / "stage.toml"
+    machine.write_text(text)
+    program, output = tmp_path / "part.ngc", tmp_path / "out.ngc"
+    with open(Path(__file__).resolve().parents[1] / "samples" / "butterfly-dense.gcode", "rb") as f:
+        program.write_bytes(b"".join(f.readlines()[:400]) + b"M2\n")
+    result = CliRunner().invoke(main, ["compensate", str(program), "-m", str(machine), "--flavor", "linuxcnc",
+                                       "--no-verify", "-o", str(output)])
+    assert result.exit_code == 0, result.output
+    blocks = list(read_gcode(output, "linuxcnc"))
+    lines = output.read_text().splitlines()
+    first = next(i for i, b in enumerate(blocks) if b.raw.startswith(b"G1"))
+    durations = []
+    for before, block in zip(blocks[first - 1:], blocks[first:], strict=False):
+        if block.raw.startswith(b"G1"):
+            length = np.linalg.norm(np.nan_to_num(block.position_mm[:3] - before.position_mm[:3]))
+            durations.append(length / block.feed_mm_s)
+    assert len(durations) > 100
+    assert min(durations) >= 0.0025 * (1 - 1e-3)
+    restore = max(i for i, line in enumerate(lines) if line.startswith("G64"))
+    assert lines[restore] == "G64 P0.02 Q0.005"
+    assert restore > max(i for i, line in enumerate(lines) if line.startswith("G1"))

@@ -61,6 +61,22 @@ def test_a_long_line_cruises_at_f_and_ramps_at_half_the_acceleration_in_g64(tmp_
     assert done.cycle_positions_mm[-1, 0] == pytest.approx(20.0, abs=1e-12)
 
 
+def test_blend_arcs_ramp_at_half_the_acceleration_as_linuxcnc_s_do(tmp_path):
+    """A circle of 0.2 mm chords at F3000 (G64 P0.001): every junction a blend arc that takes
+    the chord before it (its turn is too much for a tangent junction: (v / T + a) 0.04 rad over
+    8000 = 0.27 > ARC_BLEND_KINK_RATIO 0.1). A blend arc is TC_SPHERICAL: tcUpdateArcLimits
+    (TC_CIRCULAR only) leaves its tangential share at BLEND_ACC_RATIO_TANGENTIAL 0.5, so the
+    machine speeds up at 4000 mm/s^2: 4 mm/s more each 1 ms period, as LinuxCNC 2.9 itself
+    did on this program (joint commands, 6 to 46 mm/s in steps of 4.0; the model gave 8.0
+    before)."""
+    chords = [f"G1 X{5 * math.cos(a):.4f} Y{5 * math.sin(a):.4f} F3000"
+              for a in np.arange(1, 158) * 2 * math.pi / 157]
+    done = run(tmp_path, ["G0 X5 Y0", "G64 P0.001 Q0", "G4 P0.01", *chords])
+    v = speeds(done)
+    start = int(np.flatnonzero(np.diff((v > 0).astype(int)) == 1)[-1]) + 1  # (after the rapid and the dwell)
+    assert np.diff(v[start + 1:start + 11]) == pytest.approx(0.5 * A * T, rel=1e-4)  # (speeds from chords of a curve)
+
+
 def test_an_axis_the_profile_leaves_out_moves_at_the_slowest_given_limits(tmp_path):
     """The patent stage has no Z: a plunge G1 Z-2 F100 alone (G61.1: ramps at the full
     acceleration) is the trapezoid d / v + v / a with X's and Y's 8000 mm/s^2; it used to

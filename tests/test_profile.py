@@ -340,6 +340,16 @@ FIRMWARE_BROKEN = [
     ("icv-negative", "instantaneous_corner_velocity = 1.0", "instantaneous_corner_velocity = -1.0",
      "firmware.instantaneous_corner_velocity"),
     ("filament-below-nozzle", "filament_diameter = 1.75", "filament_diameter = 0.3", "firmware.filament_diameter"),
+    ("servo-period-zero", "block_buffer = 16", "block_buffer = 16\nservo_period = 0", "firmware.servo_period"),
+    ("arc-blend-enable-number", "block_buffer = 16", "block_buffer = 16\narc_blend_enable = 1",
+     "firmware.arc_blend_enable"),
+    ("gap-cycles-fraction", "block_buffer = 16", "block_buffer = 16\narc_blend_gap_cycles = 2.5",
+     "firmware.arc_blend_gap_cycles"),
+    ("depth-negative", "block_buffer = 16", "block_buffer = 16\narc_blend_optimization_depth = -1",
+     "firmware.arc_blend_optimization_depth"),
+    ("kink-ratio-above-1", "block_buffer = 16", "block_buffer = 16\narc_blend_kink_ratio = 1.5",
+     "firmware.arc_blend_kink_ratio"),
+    ("g64-p-negative", "block_buffer = 16", "block_buffer = 16\ng64_p = -0.01", "firmware.g64_p"),
 ]
 
 
@@ -389,3 +399,30 @@ def test_broken_firmware_raises_profile_error(tmp_path, old, new, key):
     with pytest.raises(ProfileError) as info:
         load_profile(path)
     assert_one_line_naming(str(info.value), path, key)
+
+
+def test_linuxcnc_settings_default_to_linuxcnc_s_and_round_trip(tmp_path):
+    """Without them, LinuxCNC 2.9's defaults (its INI reading of [TRAJ]: ARC_BLEND_ENABLE 1,
+    FALLBACK 0, OPTIMIZATION_DEPTH 50, GAP_CYCLES 4, RAMP_FREQ 100, KINK_RATIO 0.1; SERVO_PERIOD
+    1 ms as the sample configurations; G64 without P or Q); given ones are read as written,
+    reach the model of its planner and the restored blending mode, and format_profile writes
+    them back."""
+    from fbspost.linuxcnc_tp import LinuxCNCConfig
+    from fbspost.profile import format_profile
+    from fbspost.transparency import FirmwareSettings
+
+    default = load_profile(write(tmp_path, BASE))
+    lc = default.firmware.linuxcnc
+    assert (lc.servo_period_s, lc.arc_blend_enable, lc.arc_blend_fallback_enable, lc.arc_blend_optimization_depth,
+            lc.arc_blend_gap_cycles, lc.arc_blend_ramp_freq_hz, lc.arc_blend_kink_ratio, lc.g64_p_mm,
+            lc.g64_q_mm) == (0.001, True, False, 50, 4, 100.0, 0.1, 0.0, 0.0)
+    assert FirmwareSettings.from_profile(default).blend_words == "G64"
+    text = BASE + FIRMWARE + ("servo_period = 0.00025\narc_blend_enable = false\narc_blend_optimization_depth = 20\n"
+                              "arc_blend_gap_cycles = 2\narc_blend_ramp_freq = 50.0\ng64_p = 0.01\n")
+    profile = load_profile(write(tmp_path, text))
+    config = LinuxCNCConfig.from_profile(profile)
+    assert (config.servo_period_s, config.arc_blends, config.optimization_depth, config.gap_cycles,
+            config.ramp_frequency_hz, config.startup_tolerance_mm) == (0.00025, False, 20, 2.0, 50.0, 0.01)
+    assert FirmwareSettings.from_profile(profile).blend_words == "G64 P0.01 Q0"  # (without Q, LinuxCNC's Q is P)
+    again = load_profile(write(tmp_path, format_profile(profile)))
+    assert again.firmware.linuxcnc == profile.firmware.linuxcnc

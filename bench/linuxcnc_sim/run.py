@@ -33,6 +33,7 @@ command.mode(linuxcnc.MODE_MDI)
 command.wait_complete()
 x, y = os.environ["TP_START"].split()
 command.mdi(f"G21 G90 G0 X{x} Y{y}")
+command.wait_complete()
 wait(idle)
 time.sleep(0.1)
 sampler = subprocess.Popen(["halsampler", "-c", "0"], stdout=open(os.environ["TP_OUT"], "w"))
@@ -41,8 +42,22 @@ command.wait_complete()
 command.program_open(os.environ["TP_PROGRAM"])
 command.wait_complete()
 command.auto(linuxcnc.AUTO_RUN, 0)
+command.wait_complete()  # (the task has the run: else idle() may still see the state before it)
 wait(lambda: not idle(), 10.0)
-finished = wait(idle)
+def settled(hold_s=0.3):
+    """At rest for ``hold_s`` on end: under load the queue runs dry for moments mid-program."""
+    if not idle():
+        return False
+    end = time.time() + hold_s
+    while time.time() < end:
+        time.sleep(0.01)
+        stat.poll()
+        if not idle():
+            return False
+    return True
+
+
+finished = wait(settled)
 time.sleep(0.1)
 sampler.terminate()
 print("LinuxCNC run " + ("done" if finished else "timed out"), file=sys.stderr)

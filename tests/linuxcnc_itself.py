@@ -1,0 +1,140 @@
+"""LinuxCNC 2.9 itself, headless: a program run by its own task, interpreter and trajectory
+planner on a sim configuration with the profile's limits and ``[firmware]`` LinuxCNC settings
+(bench/linuxcnc_sim: servo period, arc blends, the startup G64 P Q), recording the joints'
+commands every servo period. Takes a program and a profile; gives the X Y Z joint commands
+from the program's first motion until it is at rest (None where linuxcnc-uspace is not
+installed). One LinuxCNC at a time (its shared memory and FIFO are the machine's): runs wait
+on a lock file."""
+from __future__ import annotations
+
+import fcntl
+import math
+import os
+import shutil
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from fbspost.gcode import Kind, read_gcode
+
+SIM = Path(__file__).resolve().parents[1] / "bench" / "linuxcnc_sim"
+_LOCK = Path(tempfile.gettempdir()) / "fbspost-linuxcnc.lock"
+
+
+def installed() -> bool:
+    return shutil.which("linuxcnc") is not None
+
+
+def ini_text(profile, tmp: str) -> str:
+    """The sim configuration's INI for ``profile`` (its files in ``tmp``)."""
+    limits = {f"{kind}{a}": getattr(profile.axes[a], f"max_{name}") if a in profile.axes else 1000.0
+              for a in "XYZ" for kind, name in (("v", "velocity_mm_s"), ("a", "acceleration_mm_s2"))}
+    lc = profile.firmware.linuxcnc
+    # (RS274NGC_STARTUP_CODE = G64 alone left LinuxCNC 2.9 running no motion of the dense butterfly)
+    startup = f"RS274NGC_STARTUP_CODE = G64 P{lc.g64_p_mm!r} Q{lc.g64_q_mm!r}" if lc.g64_p_mm or lc.g64_q_mm else ""
+    return (SIM / "sim.ini.in").read_text().format(
+        here=SIM, tmp=tmp, servo_ns=round(lc.servo_period_s * 1e9), blend_enable=int(lc.arc_blend_enable),
+        blend_fallback=int(lc.arc_blend_fallback_enable), blend_depth=lc.arc_blend_optimization_depth,
+        blend_gap=lc.arc_blend_gap_cycles, blend_ramp=lc.arc_blend_ramp_freq_hz, blend_kink=lc.arc_blend_kink_ratio,
+        startup=startup, **limits)
+
+
+def joint_commands(program: Path, profile, timeout_s: float = 900.0) -> np.ndarray | None:
+    """(n, 3) X Y Z joint commands every servo period of ``program`` run by LinuxCNC itself,
+    from its first motion to the period after its last (the machine first moved by MDI to the
+    program's first X Y); None where LinuxCNC is not installed."""
+    if not installed():
+        return None
+    blocks = list(read_gcode(program, "linuxcnc", profile.home_mm))
+    first = next(b.position_mm[:2] for b in blocks if not np.isnan(b.position_mm[:2]).any())
+    for _ in range(3):  # (now and then a run records no motion: LinuxCNC still ending the last one)
+        joints = _record(program, profile, first, timeout_s)
+        # the MDI move to the start may still run when the record starts: from where it is done
+        # (halsampler prints 6 decimals; a closed path also ends at the start: the first time there
+        # that motion follows)
+        at = [k for k in np.flatnonzero(np.all(np.abs(joints[:, :2] - first) < 2e-6, axis=1))[:1]
+              if np.any(joints[k:] != joints[k])]
+        joints = joints[at[0] if at else 0:]
+        if np.any(joints != joints[0]):
+            return from_first_motion(joints)
+        time.sleep(2.0)
+    raise RuntimeError(f"LinuxCNC ran no motion of {program} ({len(joints)} periods recorded)")
+
+
+def _record(program: Path, profile, first: np.ndarray, timeout_s: float) -> np.ndarray:
+    """The joint commands LinuxCNC records while it runs ``program`` from ``first`` (X Y)."""
+    with tempfile.TemporaryDirectory() as tmp, open(_LOCK, "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        ini = Path(tmp) / "sim.ini"
+        ini.write_text(ini_text(profile, tmp))
+        (Path(tmp) / "sim.var").touch()
+        (Path(tmp) / "tool.tbl").touch()
+        env = {**os.environ, "TP_PROGRAM": str(program.resolve()), "TP_OUT": f"{tmp}/joints.txt",
+               "TP_START": f"{first[0]!r} {first[1]!r}", "RTAPI_FIFO_PATH": f"{tmp}/.rtapi_fifo"}
+        if os.geteuid() == 0:  # rtapi_app refuses root without a user to drop to
+            env["RTAPI_UID"] = "65534"
+            os.chmod(tmp, 0o777)
+        subprocess.run(["linuxcnc", str(ini)], env=env, cwd=tmp, capture_output=True, timeout=timeout_s)
+        return np.loadtxt(f"{tmp}/joints.txt", ndmin=2)[:, :3]
+
+
+def on_grid(joints: np.ndarray, period_s: float, sample_rate_hz: float) -> np.ndarray:
+    """(n, 4) X Y Z E (E 0) of joint commands every ``period_s``, linear between them, on the
+    profile's sample grid."""
+    t = np.arange(math.floor((len(joints) - 1) * period_s * sample_rate_hz) + 1) / sample_rate_hz
+    grid = np.arange(len(joints)) * period_s
+    return np.column_stack([np.interp(t, grid, joints[:, i]) for i in range(3)] + [np.zeros(len(t))])
+
+
+def as_written(blocks, sample_rate_hz: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(X Y Z E on the sample grid, move starts, move ends) of ``blocks`` run exactly as written:
+    every piece at its F, at rest for a dwell; a move that stops the machine (from an unknown
+    place) takes no time."""
+    times, points, starts, ends = [0.0], [np.zeros(4)], [], []
+    for block in blocks:
+        here = points[-1]
+        if block.kind is Kind.STOP:
+            here = np.where(np.isnan(block.position_mm[:4]), here, block.position_mm[:4])
+            times += [times[-1], times[-1] + block.dwell_s]
+            points += [here, here]
+        elif block.kind is Kind.MOVE and block.points_mm is not None:
+            for point in block.points_mm[:, :4]:
+                point = np.where(np.isnan(point), here, point)
+                times.append(times[-1] + np.linalg.norm(point[:3] - here[:3]) / block.feed_mm_s)
+                points.append(point)
+                starts.append(here)
+                ends.append(point)
+                here = point
+    times, points = np.array(times), np.array(points)
+    t = np.arange(math.floor(times[-1] * sample_rate_hz) + 2) / sample_rate_hz
+    k = np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 2)
+    span = np.maximum(times[k + 1] - times[k], 1e-300)
+    frac = np.clip((t - times[k]) / span, 0.0, 1.0)[:, None]
+    return points[k] + (points[k + 1] - points[k]) * frac, np.array(starts), np.array(ends)
+
+
+def follows(executed_mm: np.ndarray, written_mm: np.ndarray, path, sample_rate_hz: float,
+            min_speed_mm_s: float = 10.0) -> tuple[float, float]:
+    """How closely motion ``executed_mm`` follows the command ``written_mm`` (rows X Y Z ... on
+    the same grid, both from their first motion) whose path is ``path`` (simulate.PathDistance):
+    (the largest distance from the path, mm; the largest lag, s: at each sample where the
+    command moves faster than ``min_speed_mm_s``, the executed position's offset along the
+    command's velocity over its speed, the time the command takes to cover it; negative: ahead)."""
+    n = min(len(executed_mm), len(written_mm))
+    velocity = np.gradient(written_mm[:n, :3], axis=0) * sample_rate_hz
+    speed = np.linalg.norm(velocity, axis=1)
+    fast = speed > min_speed_mm_s
+    offset_mm = executed_mm[:n, :3][fast] - written_mm[:n, :3][fast]
+    ahead_s = np.einsum("ij,ij->i", offset_mm, velocity[fast]) / speed[fast] ** 2
+    distance_mm, _ = path(executed_mm[:, :3])
+    return float(distance_mm.max()), float(np.abs(ahead_s).max(initial=0.0))
+
+
+def from_first_motion(samples: np.ndarray) -> np.ndarray:
+    """``samples`` (rows X Y Z ...) from the last still one before the first motion to the first
+    still one after the last."""
+    moving = np.flatnonzero(np.any(np.diff(samples[:, :3], axis=0) != 0.0, axis=1))
+    return samples[moving[0]:moving[-1] + 2]
