@@ -233,21 +233,7 @@ def _compensate(read_path, input_path, output_path, profile, options, flavor, pr
         return feed.time_s if elsewhere else 0.0
 
     chunks = _timed(chunks, stages, "optimize", exclude=lambda: plan.time_s + shared_s())
-    min_segment_s = max(options.min_segment_time_s, shortest_block_s(profile, flavor))
-    write_options = WriteOptions(
-        flavor=flavor,
-        output_format=options.output_format,
-        tolerance_mm=options.tolerance_mm,
-        min_segment_time_s=min_segment_s,
-        header=(
-            f"fbspost {__version__}: filtered B-spline compensation for machine profile {profile.name}",
-            f"fbspost settings: format {options.output_format}, tolerance {options.tolerance_mm:g} mm, "
-            f"minimum segment {min_segment_s * 1e3:g} ms, flavor {flavor}, {options.lookahead} look-ahead",
-        ),
-        firmware=FirmwareSettings.from_profile(profile),
-        max_line_rate_hz=profile.firmware.max_line_rate_hz,
-        **marlin_steps(profile, flavor),
-    )
+    write_options = _write_options(profile, options, flavor)
     stats = []
     executed = ExecutedError(compensators, plan.runs)
     clock = time.perf_counter()
@@ -292,6 +278,26 @@ def _compensate(read_path, input_path, output_path, profile, options, flavor, pr
             report.axes[AXES[c]] = AxisReport.from_stats(before, after, *windows)
     report.compute_time_s = time.perf_counter() - started
     return report
+
+
+def _write_options(profile: MachineProfile, options: CompensateOptions, flavor: str) -> WriteOptions:
+    """The writer's settings: the options', the firmware's (its shortest block, its line rate,
+    Marlin's steps) and the output's header."""
+    min_segment_s = max(options.min_segment_time_s, shortest_block_s(profile, flavor))
+    return WriteOptions(
+        flavor=flavor,
+        output_format=options.output_format,
+        tolerance_mm=options.tolerance_mm,
+        min_segment_time_s=min_segment_s,
+        header=(
+            f"fbspost {__version__}: filtered B-spline compensation for machine profile {profile.name}",
+            f"fbspost settings: format {options.output_format}, tolerance {options.tolerance_mm:g} mm, "
+            f"minimum segment {min_segment_s * 1e3:g} ms, flavor {flavor}, {options.lookahead} look-ahead",
+        ),
+        firmware=FirmwareSettings.from_profile(profile),
+        max_line_rate_hz=profile.firmware.max_line_rate_hz,
+        **marlin_steps(profile, flavor),
+    )
 
 
 def _shaping_left_off(written, original_kept: bool) -> list[str]:
