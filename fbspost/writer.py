@@ -364,20 +364,7 @@ class _Emitter:
         else:
             length = _lengths(steps / scale * self.unit_mm)
         if curves is not None:
-            # Control points rounded as written: I J (P Q) are the rounded point minus the rounded
-            # start (end), as the controller adds them to the positions it has. The rounded curve
-            # is what it times: its length differs from the fitted one's by up to 1e-2 on short curves.
-            xy_scale = scale[:2]
-            origins = np.vstack([start, ints[:-1]])[:, :2]  # where each block starts
-            offsets = np.column_stack([
-                np.rint(self.to_program(curves.p1_mm, slice(0, 2)) * xy_scale).astype(np.int64) - origins,
-                np.rint(self.to_program(curves.p2_mm, slice(0, 2)) * xy_scale).astype(np.int64) - ints[:, :2]])
-            g5_rows = np.flatnonzero(curves.curve)
-            p0, p3 = origins[g5_rows], ints[g5_rows, :2]
-            length[g5_rows] = curve_lengths(p0 / xy_scale, (p0 + offsets[g5_rows, :2]) / xy_scale,
-                                            (p3 + offsets[g5_rows, 2:]) / xy_scale, p3 / xy_scale) * self.unit_mm
-            moved[:, :2] |= curves.curve[:, None]  # G5 needs its end point, also where it closes a loop
-            moving |= curves.curve
+            offsets = self._curve_offsets(curves, start, ints, scale, length, moved, moving)
         self.written_s, self.written_mm = ends_s[moving], targets_mm[moving]
         # where the firmware goes: Marlin's whole steps (else the targets: 0.1 um from them)
         self.stepped_mm = self.to_machine(ints[moving] / scale) if marlin else self.written_mm
@@ -405,6 +392,27 @@ class _Emitter:
         return b"".join(_lines(values[a:a + _LINES], shown[a:a + _LINES], digits, letters, self.newline,
                                g5[a:a + _LINES]) for a in range(0, len(feed), _LINES)), len(feed)
 
+
+    def _curve_offsets(self, curves: Curves, start: np.ndarray, ints: np.ndarray, scale: np.ndarray,
+                       length: np.ndarray, moved: np.ndarray, moving: np.ndarray) -> np.ndarray:
+        """The G5 blocks' I J P Q in integer units of the last digit; their rounded curves'
+        lengths into ``length``, and their ends shown (``moved``, ``moving``), in place.
+
+        Control points rounded as written: I J (P Q) are the rounded point minus the rounded
+        start (end), as the controller adds them to the positions it has. The rounded curve is
+        what it times: its length differs from the fitted one's by up to 1e-2 on short curves."""
+        xy_scale = scale[:2]
+        origins = np.vstack([start, ints[:-1]])[:, :2]  # where each block starts
+        offsets = np.column_stack([
+            np.rint(self.to_program(curves.p1_mm, slice(0, 2)) * xy_scale).astype(np.int64) - origins,
+            np.rint(self.to_program(curves.p2_mm, slice(0, 2)) * xy_scale).astype(np.int64) - ints[:, :2]])
+        g5_rows = np.flatnonzero(curves.curve)
+        p0, p3 = origins[g5_rows], ints[g5_rows, :2]
+        length[g5_rows] = curve_lengths(p0 / xy_scale, (p0 + offsets[g5_rows, :2]) / xy_scale,
+                                        (p3 + offsets[g5_rows, 2:]) / xy_scale, p3 / xy_scale) * self.unit_mm
+        moved[:, :2] |= curves.curve[:, None]  # G5 needs its end point, also where it closes a loop
+        moving |= curves.curve
+        return offsets
 
 def _lengths(delta_mm: np.ndarray, xyz_moves: np.ndarray | None = None) -> np.ndarray:
     """What a controller times each block by: its XYZ length where XYZ move (``xyz_moves``, by
