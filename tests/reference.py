@@ -271,6 +271,14 @@ def unbudgeted(profile):
     return dataclasses.replace(profile, firmware=firmware)
 
 
+def fine_servo(profile):
+    """``profile`` with LinuxCNC's servo period under half a sample: its shortest block (two
+    periods) no longer binds, so the blocks keep to the tolerance (the writer's own tests; what
+    the firmware's minimum costs is measured on LinuxCNC itself: docs/linuxcnc.md)."""
+    linuxcnc = dataclasses.replace(profile.firmware.linuxcnc, servo_period_s=0.4 / profile.sample_rate_hz)
+    return dataclasses.replace(profile, firmware=dataclasses.replace(profile.firmware, linuxcnc=linuxcnc))
+
+
 # What fbspost adds to a program: its header, the firmware's settings (transparency), dwells (a run's
 # unused settle margin), mode lines, the program's feed.
 INSERTED = (

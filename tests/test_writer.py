@@ -14,7 +14,7 @@ from fbspost.pipeline import CompensateOptions, compensate_file
 from fbspost.planner import RunMargins
 from fbspost.profile import load_profile
 from fbspost.writer import _Emitter, _lines, breakpoints
-from reference import execute, positions_at, rest_limits, unbudgeted
+from reference import execute, fine_servo, positions_at, rest_limits, unbudgeted
 
 PRINTER = unbudgeted(load_profile("bedslinger-example"))
 
@@ -106,7 +106,8 @@ def test_lines_and_extrusion_exact(tmp_path, e_relative, xyz_relative, inches, n
 
 def outputs(tmp_path, text: str, profile, flavor: str):
     """The program compensated to dense and to G5 output, each run through the executor. Blocks
-    may be one sample short: no minimum length wins over the tolerance (at sharp corners)."""
+    may be one sample short: no minimum length wins over the tolerance (at sharp corners; nor
+    LinuxCNC's shortest block: ``fine_servo``)."""
     source = tmp_path / "in.gcode"
     source.write_text(text)
     runs = []
@@ -114,7 +115,7 @@ def outputs(tmp_path, text: str, profile, flavor: str):
         target = tmp_path / f"{output_format}.gcode"
         options = CompensateOptions(flavor=flavor, output_format=output_format,
                                     min_segment_time_s=1 / profile.sample_rate_hz)
-        compensate_file(source, target, profile, options)
+        compensate_file(source, target, fine_servo(profile), options)
         runs.append(execute(target, profile.sample_rate_hz, dwell_p_seconds=flavor == "linuxcnc",
                             rests=rest_limits(profile)))
     return execute(source), *runs, (tmp_path / "g5.gcode").read_text().splitlines()
