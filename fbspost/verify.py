@@ -56,7 +56,7 @@ CHUNK_LINES = 50_000
 OVERLAP_LINES = 2000
 SLICE_SAMPLES = 1 << 17  # samples modelled and measured at once (a few MB each array)
 GROUP_PIECES = 4096  # the original's pieces searched together, within their box
-_CACHED_GROUPS = 16
+_CACHED_GROUPS = 4  # (a group of long pieces is some 10 MB searched: 0.25 mm sub-pieces)
 _E = AXES.index("E")
 _XYZ = slice(0, 3)
 
