@@ -34,6 +34,10 @@ from .planner import plan_blocks
 from .profile import MachineProfile
 from .reprap import run_reprap
 
+# The models of the firmwares' planners, by flavor: each takes (blocks, profile) and gives a run
+# (``at(t)``, ``positions_mm(sample_rate_hz)``, ``line_time_s``, ``duration_s``); Klipper's is the planner's
+PLANNER_MODELS = {"marlin": run_marlin, "reprap": run_reprap, "linuxcnc": run_linuxcnc}
+
 
 @dataclass
 class FirmwareMotion:
@@ -50,12 +54,11 @@ class FirmwareMotion:
 def replan(blocks: list[Block], profile: MachineProfile, flavor: str, every_axis: bool = False) -> FirmwareMotion:
     """``blocks`` planned as the firmware of ``flavor`` plans them (see the module docstring);
     ``every_axis`` (Klipper and the planner's other flavors): see ``planner.plan_blocks``."""
-    if flavor in ("marlin", "reprap"):
-        run = (run_marlin if flavor == "marlin" else run_reprap)(blocks, profile)
+    if flavor in PLANNER_MODELS:
+        run = PLANNER_MODELS[flavor](blocks, profile)
+        if flavor == "linuxcnc":
+            return FirmwareMotion(flavor, run.positions_mm(profile.sample_rate_hz), run.line_time_s, run.duration_s, [])
         return FirmwareMotion(flavor, run.positions_mm(profile.sample_rate_hz), run.line_time_s, run.duration_s,
                               run.merged_lines, run.starved)
-    if flavor == "linuxcnc":
-        run = run_linuxcnc(blocks, profile)
-        return FirmwareMotion(flavor, run.positions_mm(profile.sample_rate_hz), run.line_time_s, run.duration_s, [])
     plan = plan_blocks(blocks, profile, firmware="klipper" if flavor == "klipper" else None, every_axis=every_axis)
     return FirmwareMotion(flavor, plan.positions_mm, plan.line_time_s, plan.duration_s, [])

@@ -40,6 +40,7 @@ import math
 import numpy as np
 
 from .gcode import AXES
+from .marlin import lround
 from .shapers import _HUMP_AMPLITUDES, _HUMP_TIMES, Shaper, shape
 
 STEPPER_TIMER_RATE_HZ = 2_000_000  # Marlin's STEPPER_TIMER_RATE on AVR (F_CPU / 8) and most 32-bit HALs
@@ -109,11 +110,6 @@ def marlin_zv_shaper(frequency_hz: float, zeta: float) -> Shaper:
                   np.array([0.0, marlin_zv_delay_s(frequency_hz)]))
 
 
-def _lround(x: float) -> int:
-    """C's lround: halves away from zero."""
-    return int(math.copysign(math.floor(abs(x) + 0.5), x))
-
-
 def _k(zeta: float) -> float:
     return math.exp(-zeta * math.pi / math.sqrt(1.0 - zeta * zeta))
 
@@ -150,8 +146,8 @@ def ft_motion_shaper(name: str, frequency_hz: float, zeta: float, rate_hz: float
     """FT_MOTION's ``name`` as impulses: echoes a whole number of trajectory samples apart
     (lround of the spacing), shifted back by the centroid rounded to a sample."""
     amplitudes, spacing = ft_motion_amplitudes(name, zeta)
-    index = _lround(spacing / (frequency_hz * math.sqrt(1.0 - zeta * zeta)) * rate_hz) * np.arange(len(amplitudes))
-    index = index + _lround(-float(amplitudes @ index))  # Ni[0]: the centroid
+    index = int(lround(spacing / (frequency_hz * math.sqrt(1.0 - zeta * zeta)) * rate_hz)) * np.arange(len(amplitudes))
+    index = index + int(lround(-float(amplitudes @ index)))  # Ni[0]: the centroid
     return Shaper(f"ft_{name}", frequency_hz, zeta, amplitudes, index / rate_hz)
 
 

@@ -179,13 +179,13 @@ def merge_short_segments(blocks: list[Block], profile: MachineProfile) -> tuple[
     out, merged = [], []
     for block in blocks:
         if block.kind is Kind.STOP:  # the firmware's position is where the line leaves the machine
-            last = (_lround(block.position_mm * scale), block.position_mm)
+            last = (lround(block.position_mm * scale), block.position_mm)
         if block.kind is not Kind.MOVE or block.points_mm is None:
             out.append(block)
             continue
         kept = []
         for point in block.points_mm:
-            target = _lround(point * scale)
+            target = lround(point * scale)
             if last is not None:
                 moved = np.where(stepped, np.abs(target - last[0]), np.where(point != last[1], np.inf, 0.0))
                 if least > 0 and not (moved >= least).any():  # (NaN: an unknown axis, no steps)
@@ -210,10 +210,10 @@ def _step_scale(profile: MachineProfile) -> tuple[np.ndarray, np.ndarray]:
 def _on_steps(position_mm: np.ndarray, profile: MachineProfile) -> np.ndarray:
     """``position_mm`` where Marlin puts it: at whole steps of the axes with steps."""
     scale, stepped = _step_scale(profile)
-    return np.where(stepped, _lround(position_mm * scale) / scale, position_mm)
+    return np.where(stepped, lround(position_mm * scale) / scale, position_mm)
 
 
-def _lround(x: np.ndarray) -> np.ndarray:
+def lround(x: np.ndarray) -> np.ndarray:
     """C's lround: to the nearest whole number, halves away from zero."""
     return np.trunc(x + np.copysign(0.5, x))
 

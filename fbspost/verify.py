@@ -34,12 +34,13 @@ from pathlib import Path
 import numpy as np
 
 from .dynamics import AxisDynamics
+from .firmware import PLANNER_MODELS
 from .gcode import AXES, Block, Kind, read_gcode
-from .linuxcnc_tp import _MODE, run_linuxcnc
-from .marlin import _M205_B, run_marlin
+from .linuxcnc_tp import _MODE
+from .marlin import _M205_B
 from .planner import plan_blocks
 from .profile import MachineProfile
-from .reprap import _M566, commanded_pieces, run_reprap
+from .reprap import _M566, commanded_pieces
 from .simulate import PathDistance
 
 # Beyond the margins fbspost adds on purpose, more than this is the firmware falling behind the
@@ -211,8 +212,8 @@ class _Run:
     the chunk's own), the time each of its lines ends and its print time."""
 
     def __init__(self, blocks: list[Block], profile: MachineProfile, flavor: str):
-        if flavor in ("marlin", "reprap", "linuxcnc"):
-            run = {"marlin": run_marlin, "reprap": run_reprap, "linuxcnc": run_linuxcnc}[flavor](blocks, profile)
+        if flavor in PLANNER_MODELS:
+            run = PLANNER_MODELS[flavor](blocks, profile)
             self.at = lambda t: run.at(t)[:, :_E + 1]
         else:  # Klipper: the planner's samples, on the grid from 0 (one chunk: the program whole)
             run = plan_blocks(blocks, profile, firmware="klipper")

@@ -392,7 +392,6 @@ class _Emitter:
         return b"".join(_lines(values[a:a + _LINES], shown[a:a + _LINES], digits, letters, self.newline,
                                g5[a:a + _LINES]) for a in range(0, len(feed), _LINES)), len(feed)
 
-
     def _curve_offsets(self, curves: Curves, start: np.ndarray, ints: np.ndarray, scale: np.ndarray,
                        length: np.ndarray, moved: np.ndarray, moving: np.ndarray) -> np.ndarray:
         """The G5 blocks' I J P Q in integer units of the last digit; their rounded curves'
@@ -413,6 +412,7 @@ class _Emitter:
         moved[:, :2] |= curves.curve[:, None]  # G5 needs its end point, also where it closes a loop
         moving |= curves.curve
         return offsets
+
 
 def _lengths(delta_mm: np.ndarray, xyz_moves: np.ndarray | None = None) -> np.ndarray:
     """What a controller times each block by: its XYZ length where XYZ move (``xyz_moves``, by
