@@ -103,10 +103,13 @@ class Verdict:
 
 
 def verify(original: Path, output: Path, profile: MachineProfile, flavor: str, margins_s: float = 0.0,
-           chunk_lines: int = CHUNK_LINES, overlap_lines: int = OVERLAP_LINES) -> Verdict | None:
+           chunk_lines: float | None = None, overlap_lines: int | None = None) -> Verdict | None:
     """Both programs re-planned as ``flavor``'s firmware plans them and measured on the original's
     path (None: the original has no motion to measure); ``margins_s``: the time fbspost added;
-    ``chunk_lines``, ``overlap_lines``: see the module docstring."""
+    ``chunk_lines``, ``overlap_lines``: see the module docstring (None: ``CHUNK_LINES`` and
+    ``OVERLAP_LINES`` as they are at the call)."""
+    chunk_lines = CHUNK_LINES if chunk_lines is None else chunk_lines
+    overlap_lines = OVERLAP_LINES if overlap_lines is None else overlap_lines
     if flavor == "klipper":  # (its look-ahead has no bound: the program whole)
         chunk_lines = math.inf
     with tempfile.TemporaryFile() as store:

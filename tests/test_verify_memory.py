@@ -19,9 +19,8 @@ import sys
 from pathlib import Path
 from fbspost import verify
 from fbspost.profile import load_profile
-verify.CHUNK_LINES = 5000
 program = Path(sys.argv[1])
-verdict = verify.verify(program, program, load_profile("printer-two-mode"), "marlin")
+verdict = verify.verify(program, program, load_profile("printer-two-mode"), "marlin", chunk_lines=5000)
 print(verdict.original.duration_s, verdict.original.rms_um)
 print(next(l.split()[1] for l in open("/proc/self/status") if l.startswith("VmHWM:")))
 """
