@@ -68,7 +68,8 @@ class FirmwareSettings:
     min_segment_time_us: float | None = None  # Marlin M205 B
     axis_max_acceleration_mm_s2: dict[str, float] = field(default_factory=dict)  # M201
     shaper_frequency_hz: dict[str, float] = field(default_factory=dict)  # input shaping per axis
-    blend_words: str = "G64"  # LinuxCNC: the program's blending mode, as it wrote it
+    blend_words: str | None = None  # LinuxCNC: the program's blending mode, as it wrote it (None: the startup's)
+    startup_blend_mm: tuple[float, float] = (0.0, 0.0)  # LinuxCNC: the startup code's G64 P and Q (mm; 0: none)
     min_feed_mm_s: float | None = None  # RepRapFirmware M203 I (None: its default)
     max_velocity_mm_s: float | None = None  # Klipper max_velocity, along the path (None: not known, not raised)
     axis_max_velocity_mm_s: dict[str, float] = field(default_factory=dict)  # Marlin, RRF M203 as the program set it
@@ -79,11 +80,7 @@ class FirmwareSettings:
     def from_profile(cls, profile: MachineProfile) -> FirmwareSettings:
         """What the firmware is configured with, as far as the profile tells."""
         fw = profile.firmware
-        # G64 with the P and Q of the machine's startup code (mm), as LinuxCNC starts; Q always
-        # written with P (without it Q is P)
-        p_mm, q_mm = fw.linuxcnc.g64_p_mm, fw.linuxcnc.g64_q_mm
-        blend = f"G64 P{_num(p_mm, 6)} Q{_num(q_mm, 6)}" if p_mm or q_mm else "G64"
-        return cls(profile.planner_acceleration_mm_s2, blend_words=blend,
+        return cls(profile.planner_acceleration_mm_s2, startup_blend_mm=(fw.linuxcnc.g64_p_mm, fw.linuxcnc.g64_q_mm),
                    square_corner_velocity_mm_s=profile.planner_square_corner_velocity_mm_s,
                    minimum_cruise_ratio=fw.minimum_cruise_ratio, max_accel_to_decel_mm_s2=fw.max_accel_to_decel_mm_s2,
                    min_segment_time_us=fw.min_segment_time_s * 1e6, shaper_frequency_hz=dict(fw.shaper_frequency_hz),
@@ -135,6 +132,7 @@ class Transparency:
     def __init__(self, flavor: str, program: FirmwareSettings, tolerance_mm: float):
         self.flavor, self.program, self.tolerance_mm = flavor, program, tolerance_mm
         self.limits_set = self.shaping_off = False
+        self.inches = False  # the program's units (G20) where the settings are restored
         self.left_off = ""  # the axes whose shaping the last restore could not turn on again
         # the acceleration the firmware then ramps between the blocks' speeds at, where the time
         # that loses is made up (Klipper: verified on its own planner; Marlin's and RRF's junctions
@@ -144,6 +142,7 @@ class Transparency:
     def note(self, block: Block) -> None:
         """A copied program line: the program's settings (planner limits, LinuxCNC's blending mode
         G61, G61.1, G64 P Q) and the firmware's change with it."""
+        self.inches = block.modal.inches
         if block.limits is not None:
             self.program = self.program.changed(block.limits)
             self.limits_set = False
@@ -179,7 +178,7 @@ class Transparency:
     def apply(self, at_rest: bool, modal: Modal) -> list[str]:
         """Lines that make the firmware transparent before a compensated block (empty: it is);
         ``at_rest``: the machine is at rest there (shaping may be switched)."""
-        lines = []
+        lines, self.inches = [], modal.inches
         if not self.limits_set:
             lines += transparent_limits(self.flavor, self.tolerance_mm / (25.4 if modal.inches else 1.0),
                                         self.program)
@@ -198,7 +197,7 @@ class Transparency:
     def restore(self, shaping: bool = True) -> list[str]:
         """Lines that give the firmware back the program's settings (empty: it has them);
         ``shaping`` False: its limits only (before a move of E alone, which shaping does not touch)."""
-        lines = _program_limits(self.flavor, self.program) if self.limits_set else []
+        lines = _program_limits(self.flavor, self.program, self.inches) if self.limits_set else []
         self.limits_set = False
         if shaping and self.shaping_off:
             lines += _shaping_lines(self.flavor, self.program.shaper_frequency_hz)
@@ -244,7 +243,7 @@ def _m203(flavor: str, axes_mm_s: dict[str, float], slowest_mm_s: float | None =
     return " ".join(["M203", *words] + ([f"I{_num(slowest_mm_s * scale, 3)}"] if slowest_mm_s is not None else []))
 
 
-def _program_limits(flavor: str, program: FirmwareSettings) -> list[str]:
+def _program_limits(flavor: str, program: FirmwareSettings, inches: bool) -> list[str]:
     accel = _num(program.acceleration_mm_s2)
     travel = _num(_first(program.travel_acceleration_mm_s2, program.acceleration_mm_s2))
     scv = program.square_corner_velocity_mm_s
@@ -280,7 +279,12 @@ def _program_limits(flavor: str, program: FirmwareSettings) -> list[str]:
         jerk = [f"M566 X{_num(scv * 60, 3)} Y{_num(scv * 60, 3)}"] if scv is not None else []
         slowest = _first(program.min_feed_mm_s, RRF_DEFAULT_MIN_FEED_MM_S)
         return lines + [f"M204 P{accel} T{travel}"] + jerk + [_m203(flavor, raised, slowest)]
-    return [program.blend_words]
+    if program.blend_words is not None:
+        return [program.blend_words]
+    # the startup code's G64 P Q, in the program's units where they are restored; Q always written
+    # with P (without it Q is P)
+    p, q = (value / (25.4 if inches else 1.0) for value in program.startup_blend_mm)
+    return [f"G64 P{_num(p, 6)} Q{_num(q, 6)}" if p or q else "G64"]
 
 
 def _program_shaping(flavor: str, raw: bytes) -> dict[str, float]:

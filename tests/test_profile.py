@@ -416,13 +416,13 @@ def test_linuxcnc_settings_default_to_linuxcnc_s_and_round_trip(tmp_path):
     assert (lc.servo_period_s, lc.arc_blend_enable, lc.arc_blend_fallback_enable, lc.arc_blend_optimization_depth,
             lc.arc_blend_gap_cycles, lc.arc_blend_ramp_freq_hz, lc.arc_blend_kink_ratio, lc.g64_p_mm,
             lc.g64_q_mm) == (0.001, True, False, 50, 4, 100.0, 0.1, 0.0, 0.0)
-    assert FirmwareSettings.from_profile(default).blend_words == "G64"
+    assert FirmwareSettings.from_profile(default).startup_blend_mm == (0.0, 0.0)
     text = BASE + FIRMWARE + ("servo_period = 0.00025\narc_blend_enable = false\narc_blend_optimization_depth = 20\n"
                               "arc_blend_gap_cycles = 2\narc_blend_ramp_freq = 50.0\ng64_p = 0.01\n")
     profile = load_profile(write(tmp_path, text))
     config = LinuxCNCConfig.from_profile(profile)
     assert (config.servo_period_s, config.arc_blends, config.optimization_depth, config.gap_cycles,
             config.ramp_frequency_hz, config.startup_tolerance_mm) == (0.00025, False, 20, 2.0, 50.0, 0.01)
-    assert FirmwareSettings.from_profile(profile).blend_words == "G64 P0.01 Q0"  # (without Q, LinuxCNC's Q is P)
+    assert FirmwareSettings.from_profile(profile).startup_blend_mm == (0.01, 0.0)
     again = load_profile(write(tmp_path, format_profile(profile)))
     assert again.firmware.linuxcnc == profile.firmware.linuxcnc

@@ -69,6 +69,23 @@ def test_lines_per_flavor(flavor):
     assert Transparency("linuxcnc", program, 0.0254).apply(True, inches) == ["G64 P0.001 Q0"]
 
 
+def test_linuxcnc_startup_blending_restored_in_the_programs_units():
+    """The startup code's G64 P0.0254 Q0.0127 (mm, the profile's) given back where the program is
+    in G20: P0.001 Q0.0005 inches (P 25.4 times too loose else); in G21, as given; no P Q: G64."""
+    startup = FirmwareSettings(3000.0, startup_blend_mm=(0.0254, 0.0127))
+    for modal, expected in ((Modal(inches=True), "G64 P0.001 Q0.0005"), (Modal(), "G64 P0.0254 Q0.0127")):
+        t = Transparency("linuxcnc", startup, 0.0254)
+        t.apply(True, modal)
+        assert t.restore() == [expected]
+    t = Transparency("linuxcnc", startup, 0.0254)
+    t.apply(True, Modal())
+    t.note(Block(1, b"G20\n", Kind.PASS, Modal(inches=True), np.zeros(4)))  # units changed mid-run
+    assert t.restore() == ["G64 P0.001 Q0.0005"]
+    none = Transparency("linuxcnc", FirmwareSettings(3000.0), 1e-3)
+    none.apply(True, Modal())
+    assert none.restore() == ["G64"]
+
+
 @pytest.mark.parametrize("flavor, raised, restored", [
     ("klipper", "SQUARE_CORNER_VELOCITY=10000 VELOCITY=360.555", "SQUARE_CORNER_VELOCITY=5 VELOCITY=150"),
     ("marlin", "M203 X300", "M203 X150"),
