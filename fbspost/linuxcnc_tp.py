@@ -64,7 +64,7 @@ STOP, EXACT, PARABOLIC, TANGENT = "stop", "exact", "parabolic", "tangent"
 _MIN_SEGMENT_CYCLES = 1.02  # tp_types.h TP_MIN_SEGMENT_CYCLES
 _ACC_TAN, _ACC_NORMAL = 0.5, math.sqrt(0.75)  # BLEND_ACC_RATIO_TANGENTIAL / _NORMAL
 _SHARP_CORNER = (math.pi * 2.0 / 180.0) ** 2  # tpSetupTangent: SHARP_CORNER_DEG 2
-_MODE = re.compile(rb"[Gg]\s*0*6\s*(4|1\s*\.\s*1|1)(?![\d.])((?:\s*[PpQq]\s*[-+]?[\d.]+)*)")
+BLEND_MODE = re.compile(rb"[Gg]\s*0*6\s*(4|1\s*\.\s*1|1)(?![\d.])((?:\s*[PpQq]\s*[-+]?[\d.]+)*)")
 
 
 @dataclass(frozen=True)
@@ -607,7 +607,7 @@ def _radius(path: np.ndarray) -> float:
 
 def _mode(raw: bytes, mode: tuple[str, float]) -> tuple[str, float]:
     """G61 (exact path), G61.1 (exact stop), G64 [P tolerance] (blend) as a line sets them."""
-    found = _MODE.search(raw.split(b";")[0])
+    found = BLEND_MODE.search(raw.split(b";")[0])
     if not found:
         return mode
     code = found.group(1).replace(b" ", b"")

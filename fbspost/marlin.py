@@ -61,7 +61,7 @@ from .transparency import _first
 _NA = len(AXES)
 _E = AXES.index("E")
 _XYZ = slice(0, 3)
-_M205_B = re.compile(rb"^\s*(?:[Nn]\s*\d+\s*)?[Mm]\s*0*205\b[^;(]*?[Bb]\s*([-+]?[\d.]+)")
+M205_B = re.compile(rb"^\s*(?:[Nn]\s*\d+\s*)?[Mm]\s*0*205\b[^;(]*?[Bb]\s*([-+]?[\d.]+)")
 _REVERSAL_COS = 0.999999  # planner.cpp: junction_cos_theta > 0.999999, a 0 degree junction
 _OCTAGON_COS = -0.7071067812  # JD_HANDLE_SMALL_SEGMENTS: junctions over 135 degrees (turns under 45)
 _NO_STEPS_PER_MM = 1e6  # an axis without steps_per_mm: never merged, no minimum speed
@@ -243,7 +243,7 @@ def _read(blocks: list[Block], profile: MachineProfile) -> tuple[_Segments, list
             state.apply(block.limits, block.line_no)
             junction_mm = _first(block.limits.junction_deviation_mm, junction_mm)
             settings = None
-        b_word = _M205_B.match(block.raw)
+        b_word = M205_B.match(block.raw)
         if b_word:
             min_segment_us = float(b_word.group(1))
             settings = None

@@ -60,7 +60,7 @@ from .profile import MachineProfile
 _NA = len(AXES)
 _X, _Y, _E = AXES.index("X"), AXES.index("Y"), AXES.index("E")
 _OTHER = [i for i in range(_NA) if i > _E]
-_M566 = re.compile(rb"^\s*(?:[Nn]\s*\d+\s*)?[Mm]\s*0*566(?![\d.])([^;(]*)")
+M566 = re.compile(rb"^\s*(?:[Nn]\s*\d+\s*)?[Mm]\s*0*566(?![\d.])([^;(]*)")
 _WORD = re.compile(rb"([A-Za-z])\s*([-+]?[\d.]+)")
 _JERK_MM_S = {"Z": 10.0, "E": 5.0}  # DefaultZInstantDv, DefaultEInstantDv; other axes DefaultAxisInstantDv
 _AXIS_JERK_MM_S = 15.0
@@ -167,7 +167,7 @@ def _read(blocks: list[Block], profile: MachineProfile, config: ReprapConfig):
             state.apply(block.limits, block.line_no)
             if block.limits.min_feed_mm_s is not None:  # M203 I (Platform::SetMinMovementSpeed: at least 0.01)
                 min_feed = max(block.limits.min_feed_mm_s, MIN_FEED_FLOOR_MM_S)
-        m566 = _M566.match(block.raw)
+        m566 = M566.match(block.raw)
         if m566:
             for letter, value in _WORD.findall(m566.group(1).upper()):
                 if letter == b"P":

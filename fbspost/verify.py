@@ -36,11 +36,11 @@ import numpy as np
 from .dynamics import AxisDynamics
 from .firmware import PLANNER_MODELS
 from .gcode import AXES, Block, Kind, read_gcode
-from .linuxcnc_tp import _MODE
-from .marlin import _M205_B
+from .linuxcnc_tp import BLEND_MODE
+from .marlin import M205_B
 from .planner import plan_blocks
 from .profile import MachineProfile
-from .reprap import _M566, commanded_pieces
+from .reprap import M566, commanded_pieces
 from .simulate import PathDistance
 
 # Beyond the margins fbspost adds on purpose, more than this is the firmware falling behind the
@@ -230,8 +230,8 @@ def _setting(block: Block) -> bytes | None:
     """A line that changes what a firmware's model plans with (limits, Marlin's M205 B, RRF's M566,
     LinuxCNC's G61 / G64): its letters, which a later line with the same letters overrides; else None."""
     code = block.raw.split(b";")[0]
-    if (block.limits is None and _M205_B.match(code) is None and _M566.match(code) is None
-            and _MODE.search(code) is None):
+    if (block.limits is None and M205_B.match(code) is None and M566.match(code) is None
+            and BLEND_MODE.search(code) is None):
         return None
     return re.sub(rb"[^A-Za-z]", b"", code).upper()
 
