@@ -186,13 +186,26 @@ class _PathFile:
         best = np.full(len(points_mm), np.inf)
         if not len(points_mm):
             return best, None
+        # no point is nearer a group than the gap between their boxes: groups in the order of that
+        # gap, after the last ones used, until it passes the farthest point's distance found so far
+        # (searching every group for every point made a long print's check grow with its square)
+        gap = np.maximum(self.low - points_mm.max(axis=0), 0.0) + np.maximum(points_mm.min(axis=0) - self.high, 0.0)
+        bound = np.sqrt(np.einsum("ij,ij->i", gap, gap))
         recent = [self.groups.index(g) for g in reversed(self.cache)]
-        median = [np.median(self._outside(points_mm, k)) for k in range(len(self.groups))]
-        for k in dict.fromkeys([*recent, *np.argsort(median, kind="stable")]):
-            rows = np.flatnonzero(self._outside(points_mm, k) < best)
-            if rows.size:
-                best[rows] = np.minimum(best[rows], self._group(self.groups[k])(points_mm[rows])[0])
+        for k in recent:
+            self._search(points_mm, k, best)
+        for k in np.argsort(bound, kind="stable").tolist():
+            if bound[k] >= best.max():
+                break
+            if k not in recent:
+                self._search(points_mm, k, best)
         return best, None
+
+    def _search(self, points_mm: np.ndarray, k: int, best: np.ndarray) -> None:
+        """``best`` lowered to the distances to group ``k`` where its box may hold a nearer piece."""
+        rows = np.flatnonzero(self._outside(points_mm, k) < best)
+        if rows.size:
+            best[rows] = np.minimum(best[rows], self._group(self.groups[k])(points_mm[rows])[0])
 
     def _outside(self, points_mm: np.ndarray, k: int) -> np.ndarray:
         """The distance from each point to group ``k``'s box: no piece of it is nearer."""
