@@ -675,14 +675,22 @@ def excite(machine, axis, output, centre_mm, start_hz, end_hz, duration_s, ampli
     if not start_hz < end_hz <= 0.25 / block_s:
         raise click.UsageError(f"need --start-hz < --end-hz <= {0.25 / block_s:g} Hz (4 blocks of "
                                f"{block_s:g} s per period)")
-    positions = excite_module.sweep_samples(profile.axes[axis], centre_mm, start_hz, end_hz, duration_s,
-                                            amplitude_mm, block_s)
-    text, warnings = excite_module.sweep_program(profile, axis, positions, block_s, start_hz, end_hz, flavor)
+    if flavor == "linuxcnc":
+        period_s = profile.firmware.linuxcnc.servo_period_s
+        positions, *linuxcnc = excite_module.linuxcnc_sweep(profile.axes[axis], centre_mm, start_hz, end_hz,
+                                                             duration_s, amplitude_mm, period_s)
+        text, warnings = excite_module.sweep_program(profile, axis, positions, period_s, start_hz, end_hz, flavor,
+                                                     tuple(linuxcnc))
+    else:
+        positions = excite_module.sweep_samples(profile.axes[axis], centre_mm, start_hz, end_hz, duration_s,
+                                                amplitude_mm, block_s)
+        text, warnings = excite_module.sweep_program(profile, axis, positions, block_s, start_hz, end_hz, flavor)
     atomic_write(output, lambda f: f.write(text.encode()))
+    blocks = "one block per half period from rest to rest" if flavor == "linuxcnc" else \
+        f"{(len(positions) - 1) * block_s:g} s in {block_s * 1e3:g} ms blocks"
     click.echo("\n".join([f"fbspost {__version__}: wrote {output}: axis {axis} {start_hz:g}..{end_hz:g} Hz about "
-                          f"{centre_mm:g} mm, {(len(positions) - 1) * block_s:g} s in {block_s * 1e3:g} ms blocks "
-                          f"for {flavor}, largest amplitude {np.abs(positions - centre_mm).max():.4g} mm",
-                          *warnings]), err=True)
+                          f"{centre_mm:g} mm, {blocks} for {flavor}, largest amplitude "
+                          f"{np.abs(positions - centre_mm).max():.4g} mm", *warnings]), err=True)
 
 
 def _shaper_names(ctx, param, value: str) -> tuple[str, ...]:

@@ -31,7 +31,8 @@ from .writer import WriteOptions, dwell_line, timed_blocks
 _BEGIN = "; fbspost excite: sweep begins"
 _END = "; fbspost excite: sweep ends"
 _HEADER = {"band": re.compile(r"; band: ([0-9.]+) Hz to ([0-9.]+) Hz"), "flavor": re.compile(r"; flavor: (\w+)$"),
-           "machine": re.compile(r"; machine: (.+)$"), "mark": re.compile(r"; clock mark at ([0-9.]+) s")}
+           "machine": re.compile(r"; machine: (.+)$"), "mark": re.compile(r"; clock mark at ([0-9.]+) s"),
+           "accel": re.compile(r"; acceleration ([0-9.]+) mm/s\^2 \(LinuxCNC's")}
 # The clock mark: right after the sweep (a rest inside it would be a dwell, after which Marlin
 # waits for its buffer to fill), its first MARK_S again, so that identify can tell the recording's
 # clock rate from the machine's (a chip's own clock drifts 100 ppm and more: 3 ms over a 30 s
@@ -94,43 +95,82 @@ def sweep_samples(axis: AxisProfile, centre_mm: float, start_hz: float, end_hz: 
 
 
 _TOLERANCE_MM = 1e-3  # LinuxCNC's G64 P: the sweep's blocks are collinear, nothing to blend
+def linuxcnc_sweep(axis: AxisProfile, centre_mm: float, start_hz: float, end_hz: float, duration_s: float,
+                   amplitude_mm: float, servo_period_s: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """A sweep LinuxCNC 2.9 runs as written: (positions at the block ends, each block's F in mm/s,
+    the clock mark's first block).
+
+    LinuxCNC ramps at the INI's acceleration a (the axis' max_acceleration), which no G-code
+    changes, stops at every reversal, and runs short tangent blocks in ramps whose timing
+    depends on where their ends fall between servo periods. So the sweep is one block per
+    half period, each from rest to rest (the program runs it in G61.1, exact stop): m servo
+    periods at +a, c at F = a m T, m at -a, L = a T^2 m (m + c) (1 nm short, so that it ends
+    inside its last period, not on its edge: LinuxCNC starts the next block on the next period,
+    and a block that ends on the edge would lose one). A block's time is then a whole number
+    n = 2m + c of servo periods, L / F + F / a as written: the half periods of the exponential
+    sweep from start_hz to end_hz over duration_s, rounded to periods, the largest m whose
+    length keeps within 2 amplitude_mm and F within 90% of the axis' velocity (at least 1).
+    Then the move back to the start (from rest to rest at 90% of the axis' velocity or less)
+    and the clock mark: the sweep's first MARK_S again."""
+    a, T = axis.max_acceleration_mm_s2, servo_period_s
+    rate = math.log(end_hz / start_hz) / duration_s
+    halves = int(2 * start_hz * math.expm1(rate * duration_s) / rate)
+    ends = np.round(np.log1p(np.arange(halves + 1) * rate / (2 * start_hz)) / rate / T).astype(np.int64)
+    n = np.diff(ends)
+    m = np.arange(1, int(n.max()) // 2 + 1)[None, :]
+    fits = (m <= n[:, None] // 2) & (a * T * T * m * (n[:, None] - m) <= 2 * amplitude_mm) & \
+        (a * m * T <= 0.9 * axis.max_velocity_mm_s)
+    m = np.maximum(1, fits.sum(axis=1))
+    lengths_nm = np.floor(a * T * T * m * (n - m) * 1e6) - 1
+    feeds = a * m * T
+    mark = int(np.searchsorted(np.cumsum(n), round(MARK_S / T), side="right"))
+    signs = np.where(np.arange(halves) % 2 == 0, 1, -1)
+    steps_nm = signs * lengths_nm
+    start_nm = round((centre_mm - lengths_nm[0] * 0.5e-6) * 1e6)
+    sweep_nm = start_nm + np.cumsum(steps_nm)
+    back_mm = abs(sweep_nm[-1] - start_nm) * 1e-6
+    back_mm_s = min(0.9 * axis.max_velocity_mm_s, math.sqrt(a * back_mm))
+    positions_nm = np.concatenate([[start_nm], sweep_nm, [start_nm], start_nm + np.cumsum(steps_nm[:mark])])
+    return positions_nm * 1e-6, np.concatenate([feeds, [back_mm_s], feeds[:mark]]), halves + 1
+
+
 
 
 def sweep_program(profile: MachineProfile, axis_name: str, positions_mm: np.ndarray, block_s: float,
-                  start_hz: float, end_hz: float, flavor: str) -> tuple[str, list[str]]:
+                  start_hz: float, end_hz: float, flavor: str,
+                  linuxcnc: tuple[np.ndarray, int] | None = None) -> tuple[str, list[str]]:
     """The G-code of the sampled sweep for ``flavor``'s firmware: move to the start (at a tenth of
     the axis' maximum velocity), the firmware made transparent (``transparency``: limits raised,
     input shaping off), dwell, the sweep's G1 blocks as ``writer.timed_blocks`` writes them (each
     takes its time as the firmware runs it), the profile's settings restored, dwell; and warnings
-    (Marlin: how many blocks its short-segment merge leaves)."""
+    (Marlin: how many blocks its short-segment merge leaves). ``linuxcnc``: a ``linuxcnc_sweep``'s
+    blocks (F in mm/s, where the clock mark starts) in G61.1, ``block_s`` its servo period."""
     axis = profile.axes[axis_name]
     options = WriteOptions(flavor, tolerance_mm=_TOLERANCE_MM, firmware=FirmwareSettings.from_profile(profile),
                            max_line_rate_hz=profile.firmware.max_line_rate_hz, **marlin_steps(profile, flavor))
     settings = Transparency(flavor, options.firmware, options.tolerance_mm)
-    command = np.zeros((len(positions_mm), len(AXES)))
-    command[:, AXES.index(axis_name)] = positions_mm
-    speed = np.abs(np.diff(positions_mm)).max() / block_s
-    accel = np.abs(np.diff(positions_mm, 2)).max() / block_s**2
+    if linuxcnc is None:
+        command = np.zeros((len(positions_mm), len(AXES)))
+        command[:, AXES.index(axis_name)] = positions_mm
+        blocks, motion = timed_blocks(command, block_s, options), _motion_header(positions_mm, block_s, axis, flavor)
+    else:
+        # (F rounded up: the block reaches it in whole periods of acceleration, then ends inside its last period)
+        blocks = [f"G1 {axis_name}{x:.{_POSITION_DECIMALS}f} F{math.ceil(f * 60e4) / 1e4:.4f}"
+                  for x, f in zip(positions_mm[1:], linuxcnc[0], strict=True)]
+        motion = _linuxcnc_header(positions_mm, *linuxcnc, block_s, axis)
+    applied = settings.apply(True, Modal())  # (LinuxCNC: G61.1 instead; G64 restored after it all the same)
     header = [
         f"fbspost excite: a sine sweep of axis {axis_name} for identification",
         f"machine: {profile.name}",
         f"flavor: {flavor}",
-        f"band: {start_hz:g} Hz to {end_hz:g} Hz, exponential, {(len(positions_mm) - 1) * block_s:g} s with the "
-        f"ramps and the clock mark in {block_s * 1e3:.9g} ms blocks, about {positions_mm[0]:.3f} mm",
-        f"clock mark at {(len(positions_mm) - 1 - int(round(MARK_S / block_s))) * block_s:.9g} s: the sweep's first "
-        f"{MARK_S:g} s again, for the recording's clock rate",
-        f"largest amplitude {np.abs(positions_mm - positions_mm[0]).max():.4f} mm, velocity {speed:.4g} mm/s, "
-        f"acceleration {accel:.5g} mm/s^2; the axis' limits: {axis.max_velocity_mm_s:g} mm/s, "
-        f"{axis.max_acceleration_mm_s2:g} mm/s^2",
-        f"Written for {flavor}: the sweep runs with the firmware's limits raised and input shaping off, so that",
-        "its blocks take their written times; the profile's settings are restored after it.",
-        *settings.header(),
+        f"band: {start_hz:g} Hz to {end_hz:g} Hz, exponential, {motion[0]}",
+        *motion[1:],
+        *(settings.header() if linuxcnc is None else []),
         "Home the machine and make sure the axis is free to move there.",
         "Record an accelerometer on the moving part during the whole program, then:",
         f"  fbspost identify --accel-log LOG.csv --program THIS.gcode --axis {axis_name} --machine PROFILE "
         "-o OUT.toml",
     ]
-    blocks = timed_blocks(command, block_s, options)
     written = sum(line.startswith("G1 ") for line in blocks)
     warnings = [f"warning: Marlin merges blocks of fewer than {options.min_steps_per_segment} steps: {written} of "
                 f"{len(positions_mm) - 1} blocks written, the sweep is coarser where it moves less per block "
@@ -142,7 +182,7 @@ def sweep_program(profile: MachineProfile, axis_name: str, positions_mm: np.ndar
         "G21 ; millimetres",
         "G90 ; absolute positions",
         f"G1 {axis_name}{start:.{_POSITION_DECIMALS}f} F{60 * axis.max_velocity_mm_s / 10:.0f}",
-        *settings.apply(True, Modal()),
+        *(applied if linuxcnc is None else ["G61.1 ; exact stop: every block from rest to rest"]),
         dwell_line(flavor, _REST_S)[0],
         _BEGIN,
         *blocks,
@@ -153,6 +193,42 @@ def sweep_program(profile: MachineProfile, axis_name: str, positions_mm: np.ndar
         "",
     ]
     return "\n".join(lines), warnings
+
+
+def _motion_header(positions_mm: np.ndarray, block_s: float, axis: AxisProfile, flavor: str) -> list[str]:
+    """The header's account of a sampled sweep (its band line's end first)."""
+    speed = np.abs(np.diff(positions_mm)).max() / block_s
+    accel = np.abs(np.diff(positions_mm, 2)).max() / block_s**2
+    return [
+        f"{(len(positions_mm) - 1) * block_s:g} s with the ramps and the clock mark in {block_s * 1e3:.9g} ms "
+        f"blocks, about {positions_mm[0]:.3f} mm",
+        f"clock mark at {(len(positions_mm) - 1 - int(round(MARK_S / block_s))) * block_s:.9g} s: the sweep's first "
+        f"{MARK_S:g} s again, for the recording's clock rate",
+        f"largest amplitude {np.abs(positions_mm - positions_mm[0]).max():.4f} mm, velocity {speed:.4g} mm/s, "
+        f"acceleration {accel:.5g} mm/s^2; the axis' limits: {axis.max_velocity_mm_s:g} mm/s, "
+        f"{axis.max_acceleration_mm_s2:g} mm/s^2",
+        f"Written for {flavor}: the sweep runs with the firmware's limits raised and input shaping off, so that",
+        "its blocks take their written times; the profile's settings are restored after it.",
+    ]
+
+
+def _linuxcnc_header(positions_mm: np.ndarray, feeds_mm_s: np.ndarray, mark: int, servo_period_s: float,
+                     axis: AxisProfile) -> list[str]:
+    """The header's account of a ``linuxcnc_sweep`` (its band line's end first)."""
+    a = axis.max_acceleration_mm_s2
+    lengths = np.abs(np.diff(positions_mm))
+    times = np.concatenate([[0.0], np.cumsum(lengths / feeds_mm_s + feeds_mm_s / a)])
+    return [
+        f"{times[-1]:.9g} s with the move back and the clock mark, one block per half period from rest to rest, "
+        f"about {positions_mm[0]:.3f} mm",
+        f"clock mark at {times[mark]:.9g} s: the sweep's first {MARK_S:g} s again, for the recording's clock rate",
+        f"acceleration {a:g} mm/s^2 (LinuxCNC's INI, no G-code raises it): each block of length L at F takes "
+        "L / F + F / a",
+        f"largest amplitude {lengths.max() / 2:.4f} mm, velocity {feeds_mm_s.max():.4g} mm/s; the axis' limits: "
+        f"{axis.max_velocity_mm_s:g} mm/s, {a:g} mm/s^2",
+        f"Written for linuxcnc: each block from rest to rest (G61.1) in whole {servo_period_s * 1e3:g} ms servo "
+        "periods, so that it takes its written time; G64 is restored after it.",
+    ]
 
 
 _WORD = re.compile(r"([A-Za-z])\s*([-+]?(?:\d+\.?\d*|\.\d+))")
@@ -167,8 +243,8 @@ def read_sweep(path: str | Path, axis: str) -> Sweep:
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(path, None, f"cannot read: {exc}") from None
     position = feed = None
-    header = {"band": None, "flavor": "klipper", "machine": None, "mark": None}
-    times, positions, inside, ended = [], [], False, False
+    header = {"band": None, "flavor": "klipper", "machine": None, "mark": None, "accel": None}
+    times, positions, feeds, inside, ended = [], [], [], False, False
     for lineno, line in enumerate(text.splitlines(), start=1):
         stripped = line.strip()
         for key, pattern in _HEADER.items() if not inside else ():
@@ -180,7 +256,7 @@ def read_sweep(path: str | Path, axis: str) -> Sweep:
         if stripped == _BEGIN:
             if position is None:
                 raise InputError(path, lineno, f"the sweep begins before any G1 {axis} sets the start position")
-            inside, times, positions = True, [0.0], [position]
+            inside, times, positions, feeds = True, [0.0], [position], []
             continue
         if stripped == _END:
             ended = inside
@@ -193,6 +269,7 @@ def read_sweep(path: str | Path, axis: str) -> Sweep:
             dwell = next((v for k, v in words if k == "P"), 0.0)
             times.append(times[-1] + (dwell if flavor == "linuxcnc" else dwell / 1e3))
             positions.append(position)
+            feeds.append(0.0)
         elif {0, 1} & set(codes):
             target = next((v for k, v in words if k == axis), None)
             feed = next((v for k, v in words if k == "F"), feed)
@@ -203,6 +280,7 @@ def read_sweep(path: str | Path, axis: str) -> Sweep:
                 if inside:
                     times.append(times[-1] + abs(target - position) / (feed / 60))
                     positions.append(target)
+                    feeds.append(feed / 60)
                 position = target
     if not ended:
         raise InputError(path, None, f"no sweep of axis {axis} between '{_BEGIN}' and '{_END}': "
@@ -210,8 +288,16 @@ def read_sweep(path: str | Path, axis: str) -> Sweep:
     if header["band"] is None:
         raise InputError(path, None, "no '; band: ... Hz to ... Hz' line")
     start_hz, end_hz = (float(f) for f in header["band"])
+    if header["accel"] is not None:
+        times = _rest_to_rest(np.array(times), np.array(feeds), float(header["accel"]))
     return Sweep(axis, np.array(times), np.array(positions), start_hz, end_hz, flavor, header["machine"],
                  None if header["mark"] is None else float(header["mark"]))
+
+
+def _rest_to_rest(times_s: np.ndarray, feeds_mm_s: np.ndarray, accel_mm_s2: float) -> np.ndarray:
+    """The block ends of a LinuxCNC sweep (``read_sweep``'s, length / F) with each block from
+    rest to rest at ``accel_mm_s2`` (its header's): L / F + F / a; dwells (F 0) as written."""
+    return np.concatenate([[0.0], np.cumsum(np.diff(times_s) + feeds_mm_s / accel_mm_s2)])
 
 
 def firmware_sweep(path: str | Path, axis: str, profile: MachineProfile) -> Sweep:
