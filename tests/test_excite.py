@@ -24,6 +24,7 @@ from fbspost.linuxcnc_tp import run_linuxcnc
 from fbspost.marlin import run_marlin
 from fbspost.profile import load_profile
 from fbspost.reprap import run_reprap
+from linuxcnc_itself import rest_to_rest_ends
 from reference import execute, sample_blocks, simulate_lsim
 
 BEGIN, END = "; fbspost excite: sweep begins", "; fbspost excite: sweep ends"
@@ -309,24 +310,6 @@ def test_rrf_runs_the_sweep_within_issue_30s_bound(tmp_path):
     assert abs(ratio - 1.0) <= 0.01
 
 
-def rest_to_rest_ends(text: str, accel_mm_s2: float) -> tuple[np.ndarray, np.ndarray]:
-    """Every G1 between the markers of a LinuxCNC sweep, read here: (its line index, when it ends
-    from the begin marker, each block from rest to rest at ``accel_mm_s2``: L / F + F / a, the
-    closed form of a trapezoid)."""
-    lines = text.splitlines()
-    begin = lines.index(BEGIN)
-    x = next(float(m[1]) for line in reversed(lines[:begin]) if (m := re.match(r"G1 X([-\d.]+)", line)))
-    index, ends_s, end_s = [], [], 0.0
-    for i in range(begin + 1, lines.index(END)):
-        m = re.fullmatch(r"G1 X([-\d.]+) F([\d.]+)", lines[i])
-        feed_mm_s = float(m[2]) / 60.0
-        end_s += abs(float(m[1]) - x) / feed_mm_s + feed_mm_s / accel_mm_s2
-        x = float(m[1])
-        index.append(i)
-        ends_s.append(end_s)
-    return np.array(index), np.array(ends_s)
-
-
 @pytest.mark.slow
 def test_linuxcnc_model_runs_the_sweep_as_written(tmp_path):
     """The model of LinuxCNC's planner (1 ms servo period, the INI's 10000 mm/s^2) runs the 3 s
@@ -340,7 +323,7 @@ def test_linuxcnc_model_runs_the_sweep_as_written(tmp_path):
     profile's limits in G64): 39% long."""
     path = tmp_path / "sweep.ngc"
     text = write_sweep(path, "linuxcnc", PRINTER)
-    index, ends_s = rest_to_rest_ends(text, PRINTER.axes["X"].max_acceleration_mm_s2)
+    index, ends_s = rest_to_rest_ends(text, BEGIN, END, PRINTER.axes["X"].max_acceleration_mm_s2)
     motion = run_linuxcnc(list(read_gcode(path, "linuxcnc")), PRINTER)
     late_s = motion.line_time_s[index] - motion.line_time_s[text.splitlines().index(BEGIN)] - ends_s
     late_s -= late_s[0]  # (the first block starts on the servo period after the dwell)
