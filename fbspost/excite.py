@@ -313,7 +313,9 @@ def firmware_sweep(path: str | Path, axis: str, profile: MachineProfile) -> Swee
     motion = replan(blocks, profile, written.flavor, every_axis=True)  # (the axis may have no modes yet)
     marks = [b.raw.strip() for b in blocks]
     begin, end = marks.index(_BEGIN.encode()), marks.index(_END.encode())
-    begin_s, end_s = _done_s(motion.line_time_s, blocks, 0, begin), _done_s(motion.line_time_s, blocks, begin, end)
+    # (the model of LinuxCNC's planner times a stop after its dwell, the others before it)
+    dwells = [b.dwell_s if b.kind is Kind.STOP and written.flavor != "linuxcnc" else 0.0 for b in blocks]
+    begin_s, end_s = _done_s(motion.line_time_s, dwells, 0, begin), _done_s(motion.line_time_s, dwells, begin, end)
     fs = profile.sample_rate_hz
     times_s = np.arange(int(math.ceil((end_s - begin_s) * fs)) + 1) / fs
     grid_s = np.arange(len(motion.positions_mm)) / fs
@@ -322,13 +324,12 @@ def firmware_sweep(path: str | Path, axis: str, profile: MachineProfile) -> Swee
     return replace(written, times_s=times_s, positions_mm=positions_mm, mark_s=mark_s)
 
 
-def _done_s(line_time_s: np.ndarray, blocks: list, first: int, stop: int) -> float:
+def _done_s(line_time_s: np.ndarray, dwells_s: list[float], first: int, stop: int) -> float:
     """When the firmware is done with the lines ``first`` to ``stop`` - 1 (``line_time_s`` as
-    ``firmware.replan`` gives it): the end of their last motion or dwell (a stop's time is before
-    its dwell; Marlin, RRF: a line without motion is timed when the host sends it, ahead of the
-    motion, and a comment, not sent, not at all)."""
-    return float(np.nanmax([line_time_s[k] + (blocks[k].dwell_s if blocks[k].kind is Kind.STOP else 0.0)
-                            for k in range(first, stop)]))
+    ``firmware.replan`` gives it, ``dwells_s`` what each line dwells after it): the end of their
+    last motion or dwell (Marlin, RRF: a line without motion is timed when the host sends it,
+    ahead of the motion, and a comment, not sent, not at all)."""
+    return float(np.nanmax([line_time_s[k] + dwells_s[k] for k in range(first, stop)]))
 
 
 def commanded_sweep(path: str | Path, axis: str, machine: str | Path | None, lines: list[str]) -> Sweep:
