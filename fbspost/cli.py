@@ -645,7 +645,7 @@ def _fitted(frf_csv, accel_log, program, accel_column, axis, n_modes, max_modes,
               help="Largest amplitude (mm); smaller where the axis' limits require.")
 @click.option("--block-time", "block_s", type=_positive,
               help="Time of each G1 block (s). Default: 1 ms, or the shortest the firmware runs as written "
-                   "(the profile's max_line_rate; LinuxCNC: 2 servo periods).")
+                   "(the profile's max_line_rate). Not for LinuxCNC: one block per half period.")
 @click.option("--flavor", type=click.Choice(FLAVORS), default="klipper", show_default=True,
               help="The firmware the program is written for: its settings around the sweep, its dwells, "
                    "its rounding.")
@@ -656,7 +656,8 @@ def excite(machine, axis, output, centre_mm, start_hz, end_hz, duration_s, ampli
     blocks of --block-time, with the amplitude the axis' velocity, acceleration and jerk limits
     allow; it starts and ends at rest. Written for --flavor's firmware as `compensate` writes its
     blocks: its limits raised and input shaping off around the sweep (the profile's settings
-    restored after it), each block's F carrying the time the firmware loses. Record the whole
+    restored after it), each block's F carrying the time the firmware loses (LinuxCNC: one block
+    per half period from rest to rest at the INI's acceleration, in whole servo periods). Record the whole
     run, then `fbspost identify --accel-log LOG.csv --program PROGRAM --axis AXIS --machine PROFILE`.
     """
     from . import excite as excite_module
@@ -667,6 +668,8 @@ def excite(machine, axis, output, centre_mm, start_hz, end_hz, duration_s, ampli
     if axis not in profile.axes:
         raise ProfileError(f"{profile.source}: axes.{axis}: the profile has no axis {axis}")
     shortest_s = shortest_block_s(profile, flavor)
+    if flavor == "linuxcnc" and block_s is not None:
+        raise click.UsageError("--block-time does not apply to --flavor linuxcnc: one block per half period")
     if block_s is None:
         block_s = max(1e-3, shortest_s)
     elif block_s < shortest_s * (1 - 1e-9):

@@ -6,7 +6,9 @@ centre, sampled at the block time (the amplitude falling with frequency so that 
 velocity, acceleration and jerk stay within the axis' limits, tapered in and out so the motion
 starts and ends at rest), written as ``compensate`` writes its blocks so that the firmware runs
 them as written: the firmware made transparent around them (``transparency``), G1 blocks whose F
-carries the time residues and ramps (``writer.timed_blocks``), within the line budget.
+carries the time residues and ramps (``writer.timed_blocks``), within the line budget. LinuxCNC,
+whose planner ramps at the INI's acceleration: one block per half period from rest to rest in
+whole servo periods (``linuxcnc_sweep``), each taking L / F + F / a.
 ``read_sweep`` gives back a sweep program's motion as written, ``firmware_sweep`` as its
 firmware runs it (``firmware.replan``): what ``identify --accel-log`` relates to an
 accelerometer recording of it.
@@ -108,8 +110,8 @@ def linuxcnc_sweep(axis: AxisProfile, centre_mm: float, start_hz: float, end_hz:
     inside its last period, not on its edge: LinuxCNC starts the next block on the next period,
     and a block that ends on the edge would lose one). A block's time is then a whole number
     n = 2m + c of servo periods, L / F + F / a as written: the half periods of the exponential
-    sweep from start_hz to end_hz over duration_s, rounded to periods, the largest m whose
-    length keeps within 2 amplitude_mm and F within 90% of the axis' velocity (at least 1).
+    sweep from start_hz to end_hz over duration_s, rounded to periods, m (at least 1, F within
+    90% of the axis' velocity) the one that ends the block nearest centre_mm -/+ amplitude_mm.
     Then the move back to the start (from rest to rest at 90% of the axis' velocity or less)
     and the clock mark: the sweep's first MARK_S again."""
     a, T = axis.max_acceleration_mm_s2, servo_period_s
@@ -117,16 +119,18 @@ def linuxcnc_sweep(axis: AxisProfile, centre_mm: float, start_hz: float, end_hz:
     halves = int(2 * start_hz * math.expm1(rate * duration_s) / rate)
     ends = np.round(np.log1p(np.arange(halves + 1) * rate / (2 * start_hz)) / rate / T).astype(np.int64)
     n = np.diff(ends)
-    m = np.arange(1, int(n.max()) // 2 + 1)[None, :]
-    fits = (m <= n[:, None] // 2) & (a * T * T * m * (n[:, None] - m) <= 2 * amplitude_mm) & \
-        (a * m * T <= 0.9 * axis.max_velocity_mm_s)
-    m = np.maximum(1, fits.sum(axis=1))
-    lengths_nm = np.floor(a * T * T * m * (n - m) * 1e6) - 1
-    feeds = a * m * T
+    start_nm = round((centre_mm - amplitude_mm) * 1e6)
+    at_nm, steps_nm, feeds = start_nm, [], []
+    for k, periods in enumerate(n.tolist()):  # each end the nearest it can be to centre -/+ amplitude
+        m = np.arange(1, max(1, periods // 2) + 1)
+        m = m[(a * m * T <= 0.9 * axis.max_velocity_mm_s) | (m == 1)]
+        step = (1 if k % 2 == 0 else -1) * (np.floor(a * T * T * m * (periods - m) * 1e6) - 1)
+        best = int(np.argmin(np.abs(at_nm + step - (centre_mm + (1 if k % 2 == 0 else -1) * amplitude_mm) * 1e6)))
+        at_nm += int(step[best])
+        steps_nm.append(int(step[best]))
+        feeds.append(a * m[best] * T)
+    steps_nm, feeds = np.array(steps_nm), np.array(feeds)
     mark = int(np.searchsorted(np.cumsum(n), round(MARK_S / T), side="right"))
-    signs = np.where(np.arange(halves) % 2 == 0, 1, -1)
-    steps_nm = signs * lengths_nm
-    start_nm = round((centre_mm - lengths_nm[0] * 0.5e-6) * 1e6)
     sweep_nm = start_nm + np.cumsum(steps_nm)
     back_mm = abs(sweep_nm[-1] - start_nm) * 1e-6
     back_mm_s = min(0.9 * axis.max_velocity_mm_s, math.sqrt(a * back_mm))
@@ -220,7 +224,7 @@ def _linuxcnc_header(positions_mm: np.ndarray, feeds_mm_s: np.ndarray, mark: int
     times = np.concatenate([[0.0], np.cumsum(lengths / feeds_mm_s + feeds_mm_s / a)])
     return [
         f"{times[-1]:.9g} s with the move back and the clock mark, one block per half period from rest to rest, "
-        f"about {positions_mm[0]:.3f} mm",
+        f"about {(positions_mm.min() + positions_mm.max()) / 2:.3f} mm",
         f"clock mark at {times[mark]:.9g} s: the sweep's first {MARK_S:g} s again, for the recording's clock rate",
         f"acceleration {a:g} mm/s^2 (LinuxCNC's INI, no G-code raises it): each block of length L at F takes "
         "L / F + F / a",

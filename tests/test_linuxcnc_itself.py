@@ -76,18 +76,18 @@ def test_the_model_of_linuxcnc_s_planner_agrees_with_linuxcnc_itself(butterfly_p
 @pytest.mark.slow
 @needs_linuxcnc
 def test_linuxcnc_itself_runs_excite_s_sweep_as_written(tmp_path):
-    """Issue 30: `fbspost excite --flavor linuxcnc` (printer-two-mode's X, 2 s, 5-120 Hz: 3.8 s
+    """Issue 30: `fbspost excite --flavor linuxcnc` (printer-two-mode's X, 2 s, 5-120 Hz: 3.9 s
     with the move back and the clock mark, one block per half period from rest to rest) run by
     LinuxCNC itself at SERVO_PERIOD 1 ms: the axis turns back on the servo period each block's
     closed-form end (L / F + F / a at the INI's acceleration) falls in, up to the move back
-    (which ends inside a period and leaves the rest of it), on the one after it from there; the
-    duration within 0.05%. Measured (load average 7): every turn on its period, +0.8 ms from the
-    clock mark on, +0.016% (the 3 s sweep: 286 turns, 4.9100 s for 4.9092 s). Before (1 ms
-    blocks in G64): 5.4 to 6.4 s of motion for a 2.93 s sweep.
+    (which ends inside a period and leaves the rest of it), up to a period later from there; the
+    duration within 0.05%. Measured (load average 13): every turn within 4 us of its period,
+    +0.04 ms from the clock mark on, 3.9120 s for 3.9120 s. Before (1 ms blocks in G64): 5.4 to
+    6.4 s of motion for a 2.93 s sweep.
 
     And the model of LinuxCNC's planner: its points through LinuxCNC's cubic interpolator (the
-    joint commands are the planner's points filtered by 1/6, 2/3, 1/6: the 1.67 um LinuxCNC
-    falls short of every turn by) are LinuxCNC's within 1 um (measured: 0.5 nm, halsampler's
+    joint commands are the planner's points filtered by 1/6, 2/3, 1/6: LinuxCNC turns back 1.67
+    um short of every written end) are LinuxCNC's within 1 um (measured: 0.5 nm, halsampler's
     six decimals)."""
     from click.testing import CliRunner
 
@@ -144,8 +144,8 @@ def test_identify_recovers_the_patent_stage_from_excite_s_linuxcnc_sweep(tmp_pat
     the profile's own modes (the truth) recorded by a simulated ADXL345 (tests/accel_recording:
     3200 Hz on its own clock, offset and drift, noise), identified with --machine (the plan: the
     model of LinuxCNC's planner): the fitted FRF within 5% of the truth's peak over 5-100 Hz, the
-    first mode within 1% and its damping within 5%. Measured: from LinuxCNC itself 3.98% (20.538
-    Hz, 0.0909; LinuxCNC's cubic interpolator is not in the plan), from the model 1.25% (20.521
+    first mode within 1% and its damping within 5%. Measured: from LinuxCNC itself 4.32% (20.540
+    Hz, 0.0909; LinuxCNC's cubic interpolator is not in the plan), from the model 1.56% (20.521
     Hz, 0.0921); truth 20.52 Hz, 0.092."""
     from click.testing import CliRunner
 
