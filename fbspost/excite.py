@@ -133,11 +133,10 @@ def linuxcnc_sweep(axis: AxisProfile, centre_mm: float, start_hz: float, end_hz:
     mark = int(np.searchsorted(np.cumsum(n), round(MARK_S / T), side="right"))
     sweep_nm = start_nm + np.cumsum(steps_nm)
     back_mm = abs(sweep_nm[-1] - start_nm) * 1e-6
-    back_mm_s = min(0.9 * axis.max_velocity_mm_s, math.sqrt(a * back_mm))
-    positions_nm = np.concatenate([[start_nm], sweep_nm, [start_nm], start_nm + np.cumsum(steps_nm[:mark])])
-    return positions_nm * 1e-6, np.concatenate([feeds, [back_mm_s], feeds[:mark]]), halves + 1
-
-
+    back = [min(0.9 * axis.max_velocity_mm_s, math.sqrt(a * back_mm))] if back_mm else []  # (none if there)
+    positions_nm = np.concatenate([[start_nm], sweep_nm, [start_nm] * len(back),
+                                   start_nm + np.cumsum(steps_nm[:mark])])
+    return positions_nm * 1e-6, np.concatenate([feeds, back, feeds[:mark]]), halves + len(back)
 
 
 def sweep_program(profile: MachineProfile, axis_name: str, positions_mm: np.ndarray, block_s: float,
