@@ -645,7 +645,7 @@ def _fitted(frf_csv, accel_log, program, accel_column, axis, n_modes, max_modes,
               help="Largest amplitude (mm); smaller where the axis' limits require.")
 @click.option("--block-time", "block_s", type=_positive,
               help="Time of each G1 block (s). Default: 1 ms, or the shortest the firmware runs as written "
-                   "(the profile's max_line_rate; LinuxCNC: 2 servo periods).")
+                   "(the profile's max_line_rate). Not for LinuxCNC: one block per half period.")
 @click.option("--flavor", type=click.Choice(FLAVORS), default="klipper", show_default=True,
               help="The firmware the program is written for: its settings around the sweep, its dwells, "
                    "its rounding.")
@@ -656,7 +656,8 @@ def excite(machine, axis, output, centre_mm, start_hz, end_hz, duration_s, ampli
     blocks of --block-time, with the amplitude the axis' velocity, acceleration and jerk limits
     allow; it starts and ends at rest. Written for --flavor's firmware as `compensate` writes its
     blocks: its limits raised and input shaping off around the sweep (the profile's settings
-    restored after it), each block's F carrying the time the firmware loses. Record the whole
+    restored after it), each block's F carrying the time the firmware loses (LinuxCNC: one block
+    per half period from rest to rest at the INI's acceleration, in whole servo periods). Record the whole
     run, then `fbspost identify --accel-log LOG.csv --program PROGRAM --axis AXIS --machine PROFILE`.
     """
     from . import excite as excite_module
@@ -667,6 +668,8 @@ def excite(machine, axis, output, centre_mm, start_hz, end_hz, duration_s, ampli
     if axis not in profile.axes:
         raise ProfileError(f"{profile.source}: axes.{axis}: the profile has no axis {axis}")
     shortest_s = shortest_block_s(profile, flavor)
+    if flavor == "linuxcnc" and block_s is not None:
+        raise click.UsageError("--block-time does not apply to --flavor linuxcnc: one block per half period")
     if block_s is None:
         block_s = max(1e-3, shortest_s)
     elif block_s < shortest_s * (1 - 1e-9):
@@ -675,14 +678,22 @@ def excite(machine, axis, output, centre_mm, start_hz, end_hz, duration_s, ampli
     if not start_hz < end_hz <= 0.25 / block_s:
         raise click.UsageError(f"need --start-hz < --end-hz <= {0.25 / block_s:g} Hz (4 blocks of "
                                f"{block_s:g} s per period)")
-    positions = excite_module.sweep_samples(profile.axes[axis], centre_mm, start_hz, end_hz, duration_s,
-                                            amplitude_mm, block_s)
-    text, warnings = excite_module.sweep_program(profile, axis, positions, block_s, start_hz, end_hz, flavor)
+    if flavor == "linuxcnc":
+        period_s = profile.firmware.linuxcnc.servo_period_s
+        positions, *linuxcnc = excite_module.linuxcnc_sweep(profile.axes[axis], centre_mm, start_hz, end_hz,
+                                                             duration_s, amplitude_mm, period_s)
+        text, warnings = excite_module.sweep_program(profile, axis, positions, period_s, start_hz, end_hz, flavor,
+                                                     tuple(linuxcnc))
+    else:
+        positions = excite_module.sweep_samples(profile.axes[axis], centre_mm, start_hz, end_hz, duration_s,
+                                                amplitude_mm, block_s)
+        text, warnings = excite_module.sweep_program(profile, axis, positions, block_s, start_hz, end_hz, flavor)
     atomic_write(output, lambda f: f.write(text.encode()))
+    blocks = "one block per half period from rest to rest" if flavor == "linuxcnc" else \
+        f"{(len(positions) - 1) * block_s:g} s in {block_s * 1e3:g} ms blocks"
     click.echo("\n".join([f"fbspost {__version__}: wrote {output}: axis {axis} {start_hz:g}..{end_hz:g} Hz about "
-                          f"{centre_mm:g} mm, {(len(positions) - 1) * block_s:g} s in {block_s * 1e3:g} ms blocks "
-                          f"for {flavor}, largest amplitude {np.abs(positions - centre_mm).max():.4g} mm",
-                          *warnings]), err=True)
+                          f"{centre_mm:g} mm, {blocks} for {flavor}, largest amplitude "
+                          f"{np.abs(positions - centre_mm).max():.4g} mm", *warnings]), err=True)
 
 
 def _shaper_names(ctx, param, value: str) -> tuple[str, ...]:

@@ -6,7 +6,9 @@ centre, sampled at the block time (the amplitude falling with frequency so that 
 velocity, acceleration and jerk stay within the axis' limits, tapered in and out so the motion
 starts and ends at rest), written as ``compensate`` writes its blocks so that the firmware runs
 them as written: the firmware made transparent around them (``transparency``), G1 blocks whose F
-carries the time residues and ramps (``writer.timed_blocks``), within the line budget.
+carries the time residues and ramps (``writer.timed_blocks``), within the line budget. LinuxCNC,
+whose planner ramps at the INI's acceleration: one block per half period from rest to rest in
+whole servo periods (``linuxcnc_sweep``), each taking L / F + F / a.
 ``read_sweep`` gives back a sweep program's motion as written, ``firmware_sweep`` as its
 firmware runs it (``firmware.replan``): what ``identify --accel-log`` relates to an
 accelerometer recording of it.
@@ -31,7 +33,8 @@ from .writer import WriteOptions, dwell_line, timed_blocks
 _BEGIN = "; fbspost excite: sweep begins"
 _END = "; fbspost excite: sweep ends"
 _HEADER = {"band": re.compile(r"; band: ([0-9.]+) Hz to ([0-9.]+) Hz"), "flavor": re.compile(r"; flavor: (\w+)$"),
-           "machine": re.compile(r"; machine: (.+)$"), "mark": re.compile(r"; clock mark at ([0-9.]+) s")}
+           "machine": re.compile(r"; machine: (.+)$"), "mark": re.compile(r"; clock mark at ([0-9.]+) s"),
+           "accel": re.compile(r"; acceleration ([0-9.]+) mm/s\^2 \(LinuxCNC's")}
 # The clock mark: right after the sweep (a rest inside it would be a dwell, after which Marlin
 # waits for its buffer to fill), its first MARK_S again, so that identify can tell the recording's
 # clock rate from the machine's (a chip's own clock drifts 100 ppm and more: 3 ms over a 30 s
@@ -94,43 +97,83 @@ def sweep_samples(axis: AxisProfile, centre_mm: float, start_hz: float, end_hz: 
 
 
 _TOLERANCE_MM = 1e-3  # LinuxCNC's G64 P: the sweep's blocks are collinear, nothing to blend
+def linuxcnc_sweep(axis: AxisProfile, centre_mm: float, start_hz: float, end_hz: float, duration_s: float,
+                   amplitude_mm: float, servo_period_s: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """A sweep LinuxCNC 2.9 runs as written: (positions at the block ends, each block's F in mm/s,
+    the clock mark's first block).
+
+    LinuxCNC ramps at the INI's acceleration a (the axis' max_acceleration), which no G-code
+    changes, stops at every reversal, and runs short tangent blocks in ramps whose timing
+    depends on where their ends fall between servo periods. So the sweep is one block per
+    half period, each from rest to rest (the program runs it in G61.1, exact stop): m servo
+    periods at +a, c at F = a m T, m at -a, L = a T^2 m (m + c) (1 nm short, so that it ends
+    inside its last period, not on its edge: LinuxCNC starts the next block on the next period,
+    and a block that ends on the edge would lose one). A block's time is then a whole number
+    n = 2m + c of servo periods, L / F + F / a as written: the half periods of the exponential
+    sweep from start_hz to end_hz over duration_s, rounded to periods, m (at least 1, F within
+    90% of the axis' velocity) the one that ends the block nearest centre_mm -/+ amplitude_mm.
+    Then the move back to the start (from rest to rest at 90% of the axis' velocity or less)
+    and the clock mark: the sweep's first MARK_S again."""
+    a, T = axis.max_acceleration_mm_s2, servo_period_s
+    rate = math.log(end_hz / start_hz) / duration_s
+    halves = int(2 * start_hz * math.expm1(rate * duration_s) / rate)
+    ends = np.round(np.log1p(np.arange(halves + 1) * rate / (2 * start_hz)) / rate / T).astype(np.int64)
+    n = np.diff(ends)
+    start_nm = round((centre_mm - amplitude_mm) * 1e6)
+    at_nm, steps_nm, feeds = start_nm, [], []
+    for k, periods in enumerate(n.tolist()):  # each end the nearest it can be to centre -/+ amplitude
+        m = np.arange(1, max(1, periods // 2) + 1)
+        m = m[(a * m * T <= 0.9 * axis.max_velocity_mm_s) | (m == 1)]
+        step = (1 if k % 2 == 0 else -1) * (np.floor(a * T * T * m * (periods - m) * 1e6) - 1)
+        best = int(np.argmin(np.abs(at_nm + step - (centre_mm + (1 if k % 2 == 0 else -1) * amplitude_mm) * 1e6)))
+        at_nm += int(step[best])
+        steps_nm.append(int(step[best]))
+        feeds.append(a * m[best] * T)
+    steps_nm, feeds = np.array(steps_nm), np.array(feeds)
+    mark = int(np.searchsorted(np.cumsum(n), round(MARK_S / T), side="right"))
+    sweep_nm = start_nm + np.cumsum(steps_nm)
+    back_mm = abs(sweep_nm[-1] - start_nm) * 1e-6
+    back = [min(0.9 * axis.max_velocity_mm_s, math.sqrt(a * back_mm))] if back_mm else []  # (none if there)
+    positions_nm = np.concatenate([[start_nm], sweep_nm, [start_nm] * len(back),
+                                   start_nm + np.cumsum(steps_nm[:mark])])
+    return positions_nm * 1e-6, np.concatenate([feeds, back, feeds[:mark]]), halves + len(back)
 
 
 def sweep_program(profile: MachineProfile, axis_name: str, positions_mm: np.ndarray, block_s: float,
-                  start_hz: float, end_hz: float, flavor: str) -> tuple[str, list[str]]:
+                  start_hz: float, end_hz: float, flavor: str,
+                  linuxcnc: tuple[np.ndarray, int] | None = None) -> tuple[str, list[str]]:
     """The G-code of the sampled sweep for ``flavor``'s firmware: move to the start (at a tenth of
     the axis' maximum velocity), the firmware made transparent (``transparency``: limits raised,
     input shaping off), dwell, the sweep's G1 blocks as ``writer.timed_blocks`` writes them (each
     takes its time as the firmware runs it), the profile's settings restored, dwell; and warnings
-    (Marlin: how many blocks its short-segment merge leaves)."""
+    (Marlin: how many blocks its short-segment merge leaves). ``linuxcnc``: a ``linuxcnc_sweep``'s
+    blocks (F in mm/s, where the clock mark starts) in G61.1, ``block_s`` its servo period."""
     axis = profile.axes[axis_name]
     options = WriteOptions(flavor, tolerance_mm=_TOLERANCE_MM, firmware=FirmwareSettings.from_profile(profile),
                            max_line_rate_hz=profile.firmware.max_line_rate_hz, **marlin_steps(profile, flavor))
     settings = Transparency(flavor, options.firmware, options.tolerance_mm)
-    command = np.zeros((len(positions_mm), len(AXES)))
-    command[:, AXES.index(axis_name)] = positions_mm
-    speed = np.abs(np.diff(positions_mm)).max() / block_s
-    accel = np.abs(np.diff(positions_mm, 2)).max() / block_s**2
+    if linuxcnc is None:
+        command = np.zeros((len(positions_mm), len(AXES)))
+        command[:, AXES.index(axis_name)] = positions_mm
+        blocks, motion = timed_blocks(command, block_s, options), _motion_header(positions_mm, block_s, axis, flavor)
+    else:
+        # (F rounded up: the block reaches it in whole periods of acceleration, then ends inside its last period)
+        blocks = [f"G1 {axis_name}{x:.{_POSITION_DECIMALS}f} F{math.ceil(f * 60e4) / 1e4:.4f}"
+                  for x, f in zip(positions_mm[1:], linuxcnc[0], strict=True)]
+        motion = _linuxcnc_header(positions_mm, *linuxcnc, block_s, axis)
+    applied = settings.apply(True, Modal())  # (LinuxCNC: G61.1 instead; G64 restored after it all the same)
     header = [
         f"fbspost excite: a sine sweep of axis {axis_name} for identification",
         f"machine: {profile.name}",
         f"flavor: {flavor}",
-        f"band: {start_hz:g} Hz to {end_hz:g} Hz, exponential, {(len(positions_mm) - 1) * block_s:g} s with the "
-        f"ramps and the clock mark in {block_s * 1e3:.9g} ms blocks, about {positions_mm[0]:.3f} mm",
-        f"clock mark at {(len(positions_mm) - 1 - int(round(MARK_S / block_s))) * block_s:.9g} s: the sweep's first "
-        f"{MARK_S:g} s again, for the recording's clock rate",
-        f"largest amplitude {np.abs(positions_mm - positions_mm[0]).max():.4f} mm, velocity {speed:.4g} mm/s, "
-        f"acceleration {accel:.5g} mm/s^2; the axis' limits: {axis.max_velocity_mm_s:g} mm/s, "
-        f"{axis.max_acceleration_mm_s2:g} mm/s^2",
-        f"Written for {flavor}: the sweep runs with the firmware's limits raised and input shaping off, so that",
-        "its blocks take their written times; the profile's settings are restored after it.",
-        *settings.header(),
+        f"band: {start_hz:g} Hz to {end_hz:g} Hz, exponential, {motion[0]}",
+        *motion[1:],
+        *(settings.header() if linuxcnc is None else []),
         "Home the machine and make sure the axis is free to move there.",
         "Record an accelerometer on the moving part during the whole program, then:",
         f"  fbspost identify --accel-log LOG.csv --program THIS.gcode --axis {axis_name} --machine PROFILE "
         "-o OUT.toml",
     ]
-    blocks = timed_blocks(command, block_s, options)
     written = sum(line.startswith("G1 ") for line in blocks)
     warnings = [f"warning: Marlin merges blocks of fewer than {options.min_steps_per_segment} steps: {written} of "
                 f"{len(positions_mm) - 1} blocks written, the sweep is coarser where it moves less per block "
@@ -142,7 +185,7 @@ def sweep_program(profile: MachineProfile, axis_name: str, positions_mm: np.ndar
         "G21 ; millimetres",
         "G90 ; absolute positions",
         f"G1 {axis_name}{start:.{_POSITION_DECIMALS}f} F{60 * axis.max_velocity_mm_s / 10:.0f}",
-        *settings.apply(True, Modal()),
+        *(applied if linuxcnc is None else ["G61.1 ; exact stop: every block from rest to rest"]),
         dwell_line(flavor, _REST_S)[0],
         _BEGIN,
         *blocks,
@@ -153,6 +196,42 @@ def sweep_program(profile: MachineProfile, axis_name: str, positions_mm: np.ndar
         "",
     ]
     return "\n".join(lines), warnings
+
+
+def _motion_header(positions_mm: np.ndarray, block_s: float, axis: AxisProfile, flavor: str) -> list[str]:
+    """The header's account of a sampled sweep (its band line's end first)."""
+    speed = np.abs(np.diff(positions_mm)).max() / block_s
+    accel = np.abs(np.diff(positions_mm, 2)).max() / block_s**2
+    return [
+        f"{(len(positions_mm) - 1) * block_s:g} s with the ramps and the clock mark in {block_s * 1e3:.9g} ms "
+        f"blocks, about {positions_mm[0]:.3f} mm",
+        f"clock mark at {(len(positions_mm) - 1 - int(round(MARK_S / block_s))) * block_s:.9g} s: the sweep's first "
+        f"{MARK_S:g} s again, for the recording's clock rate",
+        f"largest amplitude {np.abs(positions_mm - positions_mm[0]).max():.4f} mm, velocity {speed:.4g} mm/s, "
+        f"acceleration {accel:.5g} mm/s^2; the axis' limits: {axis.max_velocity_mm_s:g} mm/s, "
+        f"{axis.max_acceleration_mm_s2:g} mm/s^2",
+        f"Written for {flavor}: the sweep runs with the firmware's limits raised and input shaping off, so that",
+        "its blocks take their written times; the profile's settings are restored after it.",
+    ]
+
+
+def _linuxcnc_header(positions_mm: np.ndarray, feeds_mm_s: np.ndarray, mark: int, servo_period_s: float,
+                     axis: AxisProfile) -> list[str]:
+    """The header's account of a ``linuxcnc_sweep`` (its band line's end first)."""
+    a = axis.max_acceleration_mm_s2
+    lengths = np.abs(np.diff(positions_mm))
+    times = np.concatenate([[0.0], np.cumsum(lengths / feeds_mm_s + feeds_mm_s / a)])
+    return [
+        f"{times[-1]:.9g} s with the move back and the clock mark, one block per half period from rest to rest, "
+        f"about {(positions_mm.min() + positions_mm.max()) / 2:.3f} mm",
+        f"clock mark at {times[mark]:.9g} s: the sweep's first {MARK_S:g} s again, for the recording's clock rate",
+        f"acceleration {a:g} mm/s^2 (LinuxCNC's INI, no G-code raises it): each block of length L at F takes "
+        "L / F + F / a",
+        f"largest amplitude {lengths.max() / 2:.4f} mm, velocity {feeds_mm_s.max():.4g} mm/s; the axis' limits: "
+        f"{axis.max_velocity_mm_s:g} mm/s, {a:g} mm/s^2",
+        f"Written for linuxcnc: each block from rest to rest (G61.1) in whole {servo_period_s * 1e3:g} ms servo "
+        "periods, so that it takes its written time; G64 is restored after it.",
+    ]
 
 
 _WORD = re.compile(r"([A-Za-z])\s*([-+]?(?:\d+\.?\d*|\.\d+))")
@@ -167,8 +246,8 @@ def read_sweep(path: str | Path, axis: str) -> Sweep:
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(path, None, f"cannot read: {exc}") from None
     position = feed = None
-    header = {"band": None, "flavor": "klipper", "machine": None, "mark": None}
-    times, positions, inside, ended = [], [], False, False
+    header = {"band": None, "flavor": "klipper", "machine": None, "mark": None, "accel": None}
+    times, positions, feeds, inside, ended = [], [], [], False, False
     for lineno, line in enumerate(text.splitlines(), start=1):
         stripped = line.strip()
         for key, pattern in _HEADER.items() if not inside else ():
@@ -180,7 +259,7 @@ def read_sweep(path: str | Path, axis: str) -> Sweep:
         if stripped == _BEGIN:
             if position is None:
                 raise InputError(path, lineno, f"the sweep begins before any G1 {axis} sets the start position")
-            inside, times, positions = True, [0.0], [position]
+            inside, times, positions, feeds = True, [0.0], [position], []
             continue
         if stripped == _END:
             ended = inside
@@ -193,6 +272,7 @@ def read_sweep(path: str | Path, axis: str) -> Sweep:
             dwell = next((v for k, v in words if k == "P"), 0.0)
             times.append(times[-1] + (dwell if flavor == "linuxcnc" else dwell / 1e3))
             positions.append(position)
+            feeds.append(0.0)
         elif {0, 1} & set(codes):
             target = next((v for k, v in words if k == axis), None)
             feed = next((v for k, v in words if k == "F"), feed)
@@ -203,6 +283,7 @@ def read_sweep(path: str | Path, axis: str) -> Sweep:
                 if inside:
                     times.append(times[-1] + abs(target - position) / (feed / 60))
                     positions.append(target)
+                    feeds.append(feed / 60)
                 position = target
     if not ended:
         raise InputError(path, None, f"no sweep of axis {axis} between '{_BEGIN}' and '{_END}': "
@@ -210,8 +291,16 @@ def read_sweep(path: str | Path, axis: str) -> Sweep:
     if header["band"] is None:
         raise InputError(path, None, "no '; band: ... Hz to ... Hz' line")
     start_hz, end_hz = (float(f) for f in header["band"])
+    if header["accel"] is not None:
+        times = _rest_to_rest(np.array(times), np.array(feeds), float(header["accel"]))
     return Sweep(axis, np.array(times), np.array(positions), start_hz, end_hz, flavor, header["machine"],
                  None if header["mark"] is None else float(header["mark"]))
+
+
+def _rest_to_rest(times_s: np.ndarray, feeds_mm_s: np.ndarray, accel_mm_s2: float) -> np.ndarray:
+    """The block ends of a LinuxCNC sweep (``read_sweep``'s, length / F) with each block from
+    rest to rest at ``accel_mm_s2`` (its header's): L / F + F / a; dwells (F 0) as written."""
+    return np.concatenate([[0.0], np.cumsum(np.diff(times_s) + feeds_mm_s / accel_mm_s2)])
 
 
 def firmware_sweep(path: str | Path, axis: str, profile: MachineProfile) -> Sweep:
@@ -227,7 +316,9 @@ def firmware_sweep(path: str | Path, axis: str, profile: MachineProfile) -> Swee
     motion = replan(blocks, profile, written.flavor, every_axis=True)  # (the axis may have no modes yet)
     marks = [b.raw.strip() for b in blocks]
     begin, end = marks.index(_BEGIN.encode()), marks.index(_END.encode())
-    begin_s, end_s = _done_s(motion.line_time_s, blocks, 0, begin), _done_s(motion.line_time_s, blocks, begin, end)
+    # (the model of LinuxCNC's planner times a stop after its dwell, the others before it)
+    dwells = [b.dwell_s if b.kind is Kind.STOP and written.flavor != "linuxcnc" else 0.0 for b in blocks]
+    begin_s, end_s = _done_s(motion.line_time_s, dwells, 0, begin), _done_s(motion.line_time_s, dwells, begin, end)
     fs = profile.sample_rate_hz
     times_s = np.arange(int(math.ceil((end_s - begin_s) * fs)) + 1) / fs
     grid_s = np.arange(len(motion.positions_mm)) / fs
@@ -236,13 +327,12 @@ def firmware_sweep(path: str | Path, axis: str, profile: MachineProfile) -> Swee
     return replace(written, times_s=times_s, positions_mm=positions_mm, mark_s=mark_s)
 
 
-def _done_s(line_time_s: np.ndarray, blocks: list, first: int, stop: int) -> float:
+def _done_s(line_time_s: np.ndarray, dwells_s: list[float], first: int, stop: int) -> float:
     """When the firmware is done with the lines ``first`` to ``stop`` - 1 (``line_time_s`` as
-    ``firmware.replan`` gives it): the end of their last motion or dwell (a stop's time is before
-    its dwell; Marlin, RRF: a line without motion is timed when the host sends it, ahead of the
-    motion, and a comment, not sent, not at all)."""
-    return float(np.nanmax([line_time_s[k] + (blocks[k].dwell_s if blocks[k].kind is Kind.STOP else 0.0)
-                            for k in range(first, stop)]))
+    ``firmware.replan`` gives it, ``dwells_s`` what each line dwells after it): the end of their
+    last motion or dwell (Marlin, RRF: a line without motion is timed when the host sends it,
+    ahead of the motion, and a comment, not sent, not at all)."""
+    return float(np.nanmax([line_time_s[k] + dwells_s[k] for k in range(first, stop)]))
 
 
 def commanded_sweep(path: str | Path, axis: str, machine: str | Path | None, lines: list[str]) -> Sweep:

@@ -743,7 +743,8 @@ def frf_from_recording(times_s: np.ndarray, accel: np.ndarray, sweep, clock_rate
     """The frequency response from the measured acceleration ``accel`` at ``times_s`` (its own
     time base) and the commanded motion of ``sweep`` (``excite.Sweep``): the recording is put on a
     uniform grid at its mean rate; the commanded acceleration, band-limited alike, is aligned with
-    it by cross-correlation and its clock rate found (``_clock_rate``; ``clock_rate``: known);
+    it by cross-correlation (both low-passed at _ALIGN_LOW_PASS times the band's start) and its
+    clock rate found (``_clock_rate``; ``clock_rate``: known);
     then ``_whole_record_frf`` of the program from a second before it to a second after it ends."""
     fs = (len(times_s) - 1) / (times_s[-1] - times_s[0])
     grid = times_s[0] + np.arange(len(times_s)) / fs
@@ -755,13 +756,19 @@ def frf_from_recording(times_s: np.ndarray, accel: np.ndarray, sweep, clock_rate
     # dominates the correlation.
     octave_s = duration_s * math.log(2) / math.log(sweep.end_hz / sweep.start_hz)
     octave = np.arange(int(octave_s * fs) + 1) / fs
-    offset_s, inverted = _aligned(measured, grid, _commanded_acceleration(sweep, octave, fs))
+    # both low-passed far below the modes: a sweep of pulses (LinuxCNC's, from rest to rest at its
+    # acceleration) excites the modes at every pulse, whose ringing matched the pulses 41 ms off
+    low = signal.butter(4, _ALIGN_LOW_PASS * sweep.start_hz, fs=fs, output="sos")
+    measured_low = signal.sosfiltfilt(low, measured)
+    template = signal.sosfiltfilt(low, _commanded_acceleration(sweep, octave, fs))
+    offset_s, inverted = _aligned(measured_low, grid, template)
     rate = clock_rate or 1.0
     if sweep.mark_s or clock_rate:
         rate = clock_rate or _clock_rate(measured, grid, fs, sweep, offset_s)
         # again on the recording's clock: a template on the machine's was 1.45 ms off at 100 ppm
         near_s = (offset_s - 0.01, offset_s + 0.01)
-        offset_s, inverted = _aligned(measured, grid, _commanded_acceleration(sweep, octave / rate, fs * rate), near_s)
+        template = signal.sosfiltfilt(low, _commanded_acceleration(sweep, octave / rate, fs * rate))
+        offset_s, inverted = _aligned(measured_low, grid, template, near_s)
     keep = (grid >= offset_s - 1.0) & (grid <= offset_s + rate * (duration_s + 1.0))
     y = -measured[keep] if inverted else measured[keep]
     fs_machine = fs * rate  # the recording's samples per second of the machine's
@@ -847,6 +854,9 @@ def _clock_rate(measured: np.ndarray, grid: np.ndarray, fs: float, sweep, offset
 
 _MARK_TEMPLATE_S = 1.3  # the mark's part well before its fade (at 1.5 s)
 _MARK_LOW_PASS = 2.5  # times the band's start, Hz: the mark's passage, far below the modes
+# times the band's start, Hz: the sweep's first passage, for its start; below the third harmonic
+# of the band's start (a sweep of pulses has all odd harmonics as strong as its fundamental)
+_ALIGN_LOW_PASS = 1.5
 
 
 def _aligned(measured: np.ndarray, grid: np.ndarray, template: np.ndarray,

@@ -10,6 +10,7 @@ from __future__ import annotations
 import fcntl
 import math
 import os
+import re
 import shutil
 import subprocess
 import tempfile
@@ -133,8 +134,33 @@ def follows(executed_mm: np.ndarray, written_mm: np.ndarray, path, sample_rate_h
     return float(distance_mm.max()), float(np.abs(ahead_s).max(initial=0.0))
 
 
+def turns(x_mm: np.ndarray) -> np.ndarray:
+    """The samples where ``x_mm`` turns back (its last sample before it moves the other way)."""
+    moves = np.flatnonzero(np.diff(x_mm) != 0.0)
+    direction = np.sign(np.diff(x_mm)[moves])
+    return moves[1:][direction[1:] != direction[:-1]]
+
+
 def from_first_motion(samples: np.ndarray) -> np.ndarray:
     """``samples`` (rows X Y Z ...) from the last still one before the first motion to the first
     still one after the last."""
     moving = np.flatnonzero(np.any(np.diff(samples[:, :3], axis=0) != 0.0, axis=1))
     return samples[moving[0]:moving[-1] + 2]
+
+
+def rest_to_rest_ends(text: str, begin: str, end: str, accel_mm_s2: float) -> tuple[np.ndarray, np.ndarray]:
+    """Every G1 between the lines ``begin`` and ``end`` of a LinuxCNC sweep (fbspost excite's),
+    read here: (its line index, when it ends from ``begin``, each block from rest to rest at
+    ``accel_mm_s2``: L / F + F / a, the closed form of a trapezoid)."""
+    lines = text.splitlines()
+    first = lines.index(begin)
+    x = next(float(m[1]) for line in reversed(lines[:first]) if (m := re.match(r"G1 X([-\d.]+)", line)))
+    index, ends_s, end_s = [], [], 0.0
+    for i in range(first + 1, lines.index(end)):
+        m = re.fullmatch(r"G1 X([-\d.]+) F([\d.]+)", lines[i])
+        feed_mm_s = float(m[2]) / 60.0
+        end_s += abs(float(m[1]) - x) / feed_mm_s + feed_mm_s / accel_mm_s2
+        x = float(m[1])
+        index.append(i)
+        ends_s.append(end_s)
+    return np.array(index), np.array(ends_s)
