@@ -251,14 +251,14 @@ class RunMargins:
 
 
 # The margins by what a run's end does, in half damped periods of the lowest mode: (lead before,
-# settle after) a run's end that prints, and a travel's. A travel's stop needs no settle margin:
-# the rest after it (its unretraction) settles it. Before every run some lead: none before a
-# travel leaves a transient that rings on into the print. Through klippy on the gear's first 8000
-# lines, printer-two-mode (half period 14.7 ms): 1 everywhere (the other flavors' default) ran
-# 1.33% long at 0.361 um RMS contour error; these 0.43% at 0.363 um; with a travel's lead 1/2 as
-# well 0.50% at 0.363 um; a lead of 1/4 before printing 0.83 um; none before a travel 1.83 um
-# (docs/compensate.md).
-BY_END = ((0.5, 0.5), (0.25, 0.0))
+# settle after) a run's end that prints, and a travel's. A travel's stop needs little settle
+# margin: the rest after it (its unretraction) settles it. Before every run some lead: none before
+# a travel leaves a transient that rings on into the print. Through klippy, printer-two-mode (half
+# period 14.7 ms), the gear's first 8000 lines: 1 everywhere (the other flavors' default) ran 1.33%
+# long at 0.361 um RMS contour error, these 0.47% at 0.362 um; a lead of 1/4 before printing
+# 0.83 um, none before a travel 1.83 um; no settle after a travel kept the gear's error but cost
+# the pocket (a print checked after) 15% of its gain (docs/compensate.md).
+BY_END = ((1 / 2, 1 / 3), (1 / 4, 1 / 5))
 BY_END_FLAVORS = ("klipper",)  # measured there (the other firmwares' planners: not yet)
 
 

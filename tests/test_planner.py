@@ -484,11 +484,12 @@ def test_margins_by_what_the_runs_end_does():
 
 
 def test_klippers_margins_by_end():
-    """For Klipper, once the program prints: half the other flavors' margins at a run's end that
-    prints; a quarter before a travel, none after it (BY_END). Either time given: that everywhere."""
+    """For Klipper, once the program prints: at a run's end that prints half the other flavors'
+    lead and a third of their settle margin; a quarter of the lead before a travel and a fifth of
+    the settle margin after it (BY_END). Either time given: that everywhere."""
     half_s = planner.RunMargins.for_profile(BED).lead_s
     assert planner.RunMargins.for_profile(BED, flavor="klipper") == planner.RunMargins(
-        half_s, half_s, (half_s / 2, half_s / 2), (half_s / 4, 0.0))
+        half_s, half_s, (half_s / 2, half_s / 3), (half_s / 4, half_s / 5))
     assert planner.RunMargins.for_profile(BED, 0.0, None, "klipper") == planner.RunMargins(0.0, half_s)
 
 
