@@ -163,15 +163,16 @@ def test_report_is_the_written_program_as_klipper_runs_it(tmp_path, klippy):
     plan = plan_blocks(read_gcode(source, "klipper", profile.home_mm), profile, firmware="klipper",
                        margins=RunMargins.for_profile(profile, flavor="klipper"))
     period_s = 1.0 / profile.sample_rate_hz
-    n = len(plan.positions_mm)
-    run = executed(target, profile).at(np.arange(n) * period_s)
     for c, axis in enumerate("XY"):
         modes = profile.axes[axis].modes
         settle = math.ceil(2.0 / (min(m.frequency_hz for m in modes) * period_s))
+        # the settling after the last run goes on past the program's end, the machine held there
+        n = len(plan.positions_mm) + settle
+        run = executed(target, profile).at(np.arange(n) * period_s)
         counted = np.zeros(n, dtype=bool)
         for first, last in plan.runs:
             counted[first:last + settle + 1] = True
-        desired = plan.positions_mm[:, c]
+        desired = np.pad(plan.positions_mm[:, c], (0, settle), mode="edge")
         before = desired - simulate_lsim(modes, period_s, desired)
         after = desired - simulate_lsim(modes, period_s, run[:, c])
         assert report.axes[axis].rms_error_before_um == pytest.approx(rms(before[counted]) * 1e3, rel=1e-3)
