@@ -28,7 +28,7 @@ import numpy as np
 
 from . import __version__
 from .atomicfile import atomic_write
-from .gcode import FLAVORS
+from .gcode import FLAVORS, detect_flavor
 from .planner import RunMargins
 from .profile import AXIS_NAMES, MachineProfile, ProfileError, bundled_profiles, load_profile
 from .shapers import MAX_DAMPING, SHAPERS
@@ -106,10 +106,12 @@ def _margin_options(command):
     """--lead-time and --settle-time (planner.RunMargins; None: from the dynamics)."""
     command = click.option("--settle-time", "settle_time_s", type=click.FloatRange(min=0),
                            help="Seconds the command may go on after each run of motion ends, the machine "
-                                "otherwise at rest (default: half the lowest mode's damped period).")(command)
+                                "otherwise at rest (default: half the lowest mode's damped period; for Klipper, "
+                                "once the program prints, by each run's end: docs/compensate.md).")(command)
     return click.option("--lead-time", "lead_time_s", type=click.FloatRange(min=0),
                         help="Seconds the command may move before each run of motion starts (default: half "
-                             "the lowest mode's damped period).")(command)
+                             "the lowest mode's damped period; for Klipper, once the program prints, by each "
+                             "run's end: docs/compensate.md).")(command)
 
 
 @click.group(cls=_FriendlyGroup)
@@ -384,7 +386,7 @@ def _summary(source: Path, target: Path, profile: MachineProfile, report: Report
                  f"{report.tolerance_used_at_s:.3f} s; RMS {report.rms_deviation_mm * 1e3:.3g} um), "
                  f"{report.loosened_s:.3f} s of them beyond the tolerance; print time {report.print_time_s:.1f} s, "
                  f"{report.added_time_s:.2f} s of it lead and settle margins ({report.lead_time_s * 1e3:.3g} + "
-                 f"{report.settle_time_s * 1e3:.3g} ms per run of motion)")
+                 f"{report.settle_time_s * 1e3:.3g} ms per run of motion at most)")
     lines.extend(f"warning: {w}" for w in report.warnings)
     return "\n".join(lines)
 
@@ -778,7 +780,8 @@ def simulate(input_path, machine, compensated, shapers, shaper_freq, shaper_damp
             if damping > MAX_DAMPING[name]:
                 raise click.UsageError(f"{name} is defined for damping ratios up to {MAX_DAMPING[name]:g}, axis {axis} "
                                        f"has {damping:g}: give --shaper-damping or leave {name} out of --shapers")
-    margins = RunMargins.for_profile(profile, lead_time_s, settle_time_s)
+    flavor = flavor or detect_flavor(input_path)
+    margins = RunMargins.for_profile(profile, lead_time_s, settle_time_s, flavor)
     sim = simulate_program(input_path, profile, shapers, settings, compensated, flavor, margins)
     if plot_path:
         write_plot(sim, plot_path)

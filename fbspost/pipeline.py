@@ -113,7 +113,7 @@ class Report:
     print_time_s: float
     compute_time_s: float
     added_time_s: float = 0.0  # the lead and settle margins given to the runs of motion (in print_time_s)
-    lead_time_s: float = 0.0  # per run
+    lead_time_s: float = 0.0  # per run, at most (planner.RunMargins: for Klipper, less by the run's end)
     settle_time_s: float = 0.0
     axes: dict[str, AxisReport] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
@@ -311,7 +311,7 @@ def _shaping_left_off(written, original_kept: bool) -> list[str]:
 
 def _plan_stream(blocks: Iterable[Block], profile: MachineProfile, options: CompensateOptions,
                  flavor: str) -> PlanStream:
-    margins = RunMargins.for_profile(profile, options.lead_time_s, options.settle_time_s)
+    margins = RunMargins.for_profile(profile, options.lead_time_s, options.settle_time_s, flavor)
     return PlanStream(blocks, profile, margins=margins, firmware=flavor)
 
 

@@ -166,7 +166,7 @@ def simulate_program(program: str | Path, profile: MachineProfile, shapers: tupl
     flavor = flavor or detect_flavor(program)
     profile = with_travel(profile, flavor)  # (as compensate: the command within the firmware's travel)
     blocks = list(read_gcode(program, flavor, profile.home_mm, profile.travel_mm("".join(AXES))))
-    margins = margins or RunMargins.for_profile(profile)
+    margins = margins or RunMargins.for_profile(profile, flavor=flavor)
     plan = plan_blocks(blocks, profile, margins=margins, firmware=flavor)
     if not plan.runs:
         raise InputError(program, None, "no motion to simulate")

@@ -39,7 +39,7 @@ def run_by_klipper(tmp_path, source, profile, tolerance_mm=TOLERANCE_MM):
     target = tmp_path / "out.gcode"
     report = compensate_file(source, target, profile, CompensateOptions(flavor="klipper", tolerance_mm=tolerance_mm))
     plan = plan_blocks(read_gcode(source, "klipper", profile.home_mm), profile, firmware="klipper",
-                       margins=RunMargins.for_profile(profile))
+                       margins=RunMargins.for_profile(profile, flavor="klipper"))
     for axis in report.axes.values():  # the gain as the firmware runs the output, and as the command has it
         executed_gain = axis.rms_error_before_um / axis.rms_error_after_um
         assert executed_gain >= 0.9 * axis.rms_error_before_um / axis.rms_error_command_um
@@ -128,7 +128,7 @@ def test_butterfly_runs_within_klippers_max_velocity(tmp_path, klippy, name, tol
         target = tmp_path / f"out-{velocity:g}.gcode"
         compensate_file(source, target, profile, CompensateOptions(flavor="klipper", tolerance_mm=tolerance_mm))
         plan = plan_blocks(read_gcode(source, "klipper", profile.home_mm), profile, firmware="klipper",
-                           margins=RunMargins.for_profile(profile))
+                           margins=RunMargins.for_profile(profile, flavor="klipper"))
         duration_s, gains[velocity] = klippy_gain(source, target, profile)
         assert duration_s == pytest.approx(plan.duration_s, rel=2e-3)
     assert "VELOCITY=141.421" in (tmp_path / "out-100.gcode").read_text()
@@ -161,17 +161,18 @@ def test_report_is_the_written_program_as_klipper_runs_it(tmp_path, klippy):
     profile = serial(load_profile("printer-two-mode"))
     report = compensate_file(source, target, profile, CompensateOptions(flavor="klipper"))
     plan = plan_blocks(read_gcode(source, "klipper", profile.home_mm), profile, firmware="klipper",
-                       margins=RunMargins.for_profile(profile))
+                       margins=RunMargins.for_profile(profile, flavor="klipper"))
     period_s = 1.0 / profile.sample_rate_hz
-    n = len(plan.positions_mm)
-    run = executed(target, profile).at(np.arange(n) * period_s)
     for c, axis in enumerate("XY"):
         modes = profile.axes[axis].modes
         settle = math.ceil(2.0 / (min(m.frequency_hz for m in modes) * period_s))
+        # the settling after the last run goes on past the program's end, the machine held there
+        n = len(plan.positions_mm) + settle
+        run = executed(target, profile).at(np.arange(n) * period_s)
         counted = np.zeros(n, dtype=bool)
         for first, last in plan.runs:
             counted[first:last + settle + 1] = True
-        desired = plan.positions_mm[:, c]
+        desired = np.pad(plan.positions_mm[:, c], (0, settle), mode="edge")
         before = desired - simulate_lsim(modes, period_s, desired)
         after = desired - simulate_lsim(modes, period_s, run[:, c])
         assert report.axes[axis].rms_error_before_um == pytest.approx(rms(before[counted]) * 1e3, rel=1e-3)

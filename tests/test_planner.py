@@ -455,6 +455,44 @@ def test_margins_lead_and_settle_every_run():
     assert stream.added_s == pytest.approx(2 * (lead + settle) / fs, rel=1e-12)
 
 
+def test_margins_by_what_the_runs_end_does():
+    """Up to the first run that prints (its pieces extrude), every run gets ``lead_s`` and
+    ``settle_s``; after it, a run's end that prints its ``printing`` margins, a travel's (E still)
+    its ``travel`` ones: the closed-form times of test_margins_lead_and_settle_every_run, each run
+    with its own margins."""
+    prog = Program()
+    prog.move((10, 0, 0, 1), feed=50.0)
+    prog.stop(dwell=0.5)
+    travel = prog.move((0, 0, 0, 1), feed=50.0)
+    prog.stop(dwell=0.5)
+    printing = prog.move((10, 0, 0, 2), feed=50.0)
+    fs, t1 = BED.sample_rate_hz, rest_to_rest(10, 50, 3000)
+    margins = planner.RunMargins(7 / fs, 12 / fs, printing=(5 / fs, 9 / fs), travel=(3 / fs, 0.0))
+    plan = plan_blocks(prog.blocks, BED, margins=margins)
+    first, last = 0, math.ceil((7 / fs + t1) * fs) + 12
+    for (lead, settle), block, run in zip([(3, 0), (5, 9)], [travel, printing], plan.runs[1:], strict=True):
+        first = last + 500
+        assert plan.move_start_s[block] == pytest.approx((first + lead) / fs, rel=1e-12)
+        last = math.ceil((first + lead) / fs * fs + t1 * fs) + settle
+        assert run == (first, last)
+    assert plan.runs[0] == (0, math.ceil((7 / fs + t1) * fs) + 12)
+    assert plan.duration_s == pytest.approx((first + 5) / fs + t1 + 9 / fs, rel=1e-12)
+    stream = planner.PlanStream(prog.blocks, BED, margins=margins)
+    while stream.advance():
+        pass
+    assert stream.added_s == pytest.approx((7 + 12 + 3 + 5 + 9) / fs, rel=1e-12)
+
+
+def test_klippers_margins_by_end():
+    """For Klipper, once the program prints: at a run's end that prints half the other flavors'
+    lead and a third of their settle margin; a quarter of the lead before a travel and a fifth of
+    the settle margin after it (BY_END). Either time given: that everywhere."""
+    half_s = planner.RunMargins.for_profile(BED).lead_s
+    assert planner.RunMargins.for_profile(BED, flavor="klipper") == planner.RunMargins(
+        half_s, half_s, (half_s / 2, half_s / 3), (half_s / 4, half_s / 5))
+    assert planner.RunMargins.for_profile(BED, 0.0, None, "klipper") == planner.RunMargins(0.0, half_s)
+
+
 def test_default_margins_are_half_the_lowest_damped_period():
     lowest = BED.axes["Y"].modes[0]  # 36 Hz: the lowest
     margins = planner.RunMargins.for_profile(BED)
