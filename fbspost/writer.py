@@ -29,7 +29,7 @@ from .bezier import curve_lengths, fit_g5
 from .gcode import AXES, Block, Kind, Modal, feed_lengths
 from .planner import PlanStream
 from .profile import MachineProfile
-from .steps import rounding_for
+from .steps import ModalRounding, crossing_ends, rounding_for
 from .transparency import FirmwareSettings, Transparency
 
 _DECIMALS = {**dict.fromkeys(AXES, 4), "E": 5}  # mm: 0.1 um (A B C: 1e-4 degree), E: 10 nm of filament
@@ -315,6 +315,40 @@ class _Emitter:
             ints[-1] = np.rint(units[-1])
         return ints, states
 
+    def _on_crossings(self, start: np.ndarray, ints: np.ndarray, scale: np.ndarray, durations_s: np.ndarray,
+                      ends_s: np.ndarray, targets_mm: np.ndarray, exact_last: bool) -> tuple:
+        """Marlin with MIN_STEPS_PER_SEGMENT above 1: the blocks Marlin would keep (``_merged`` of
+        the ends rounded), each end moved in time to where its block's dominant axis crosses a
+        whole step (``steps.crossing_ends``: that axis' end is exact), the other X Y Z axes
+        rounded there by ``steps`` over the kept blocks, the merged rows onto the kept end before
+        them (their time the next block's). Gives the ends (``ints``), the rows' durations and
+        end times, the targets (machine mm) and the rounding's states before each row and after
+        the last (``rounding_state`` carries them across calls); merged again where a rounding
+        left a block short of the minimum."""
+        n, spu = len(ints), self.steps_per_mm * self.unit_mm / scale
+        ints = _merged(start, ints, spu, self.min_steps, exact_last)
+        kept = np.flatnonzero((np.diff(np.vstack([start, ints]), axis=0) != 0).any(axis=1))
+        if not len(kept):
+            return ints, durations_s, ends_s, targets_mm, None
+        times_s = np.concatenate([[0.0], np.cumsum(durations_s)])
+        xyz_spu = np.where(np.arange(len(spu)) < 3, spu, 0.0)
+        t_s, ends = crossing_ends(times_s, np.vstack([start, self.to_program(targets_mm) * scale]), xyz_spu, kept + 1)
+        rounded, states = _rounded_ends(self.rounding, self.rounding_state, ends, spu, np.diff(t_s, prepend=0.0), kept,
+                                        exact_last, times_s, np.vstack([start, self.to_program(targets_mm) * scale]))
+        if exact_last and kept[-1] == n - 1:
+            rounded[-1] = ints[-1]
+        shift_s = t_s - times_s[kept + 1]
+        durations_s, ends_s, targets_mm = durations_s.copy(), ends_s.copy(), targets_mm.copy()
+        durations_s[kept] += shift_s
+        durations_s[kept[:-1] + 1] -= shift_s[:-1]  # (the last kept row is not moved)
+        ends_s[kept] += shift_s
+        targets_mm[kept] = self.to_machine(ends / scale)
+        source = np.maximum.accumulate(np.where(np.isin(np.arange(n), kept), np.arange(n) + 1, 0))
+        ints = np.vstack([start, np.zeros_like(ints)])
+        ints[kept + 1] = rounded
+        return (_merged(start, ints[source], spu, self.min_steps, exact_last), durations_s, ends_s, targets_mm,
+                states)
+
     def _keep_rounding(self, states: list[np.ndarray | None] | None, row: int) -> None:
         """The rounding's state before block ``row`` (of ``_shaped``'s), for the next call."""
         if states is not None:
@@ -344,7 +378,11 @@ class _Emitter:
         start = np.rint(self.written * scale).astype(np.int64)
         ints = np.rint(self.to_program(targets_mm) * scale).astype(np.int64)
         marlin = self.min_steps and curves is None
-        if marlin:
+        if marlin and self.min_steps > 1:
+            ints, durations_s, ends_s, targets_mm, states = self._on_crossings(
+                start, ints, scale, durations_s, ends_s, targets_mm, exact_last)
+            self._keep_rounding(states, len(ints))
+        elif marlin:
             ints, states = self._shaped(self.to_program(targets_mm) * scale, ints, scale, durations_s, exact_last)
             ints = _merged(start, ints, self.steps_per_mm * self.unit_mm / scale, self.min_steps, exact_last)
             self._keep_rounding(states, len(ints))
@@ -412,6 +450,27 @@ class _Emitter:
         moved[:, :2] |= curves.curve[:, None]  # G5 needs its end point, also where it closes a loop
         moving |= curves.curve
         return offsets
+
+
+def _rounded_ends(rounding: list, rounding_state: list, ends: np.ndarray, spu: np.ndarray, block_s: np.ndarray,
+                  kept: np.ndarray, exact_last: bool, times_s: np.ndarray, units: np.ndarray) -> tuple:
+    """The kept blocks' ``ends`` (written units; ``block_s`` long) with X Y Z on whole steps, each
+    axis by its ``rounding`` (``steps``) from its ``rounding_state``, an axis with modes told what
+    the chords between the kept rows leave out of the wanted rows (``units`` at ``times_s``, row 0
+    the start); and the rounding's states before each row and after the last."""
+    rounded, states = np.rint(ends).astype(np.int64), [None] * 3
+    before = np.searchsorted(kept, np.arange(len(units)))  # each row: how many kept rows come before it
+    for i in np.flatnonzero(spu[:3] > 0):
+        wanted = ends[:, i] * spu[i]
+        wanted = np.where(np.abs(wanted - np.rint(wanted)) < 1e-6, np.rint(wanted), wanted)  # (on a step)
+        chords = None
+        if isinstance(rounding[i], ModalRounding):
+            chords = rounding[i].chord_states(times_s, units[:, i] * spu[i], kept + 1)
+        counts, st = rounding[i].round(wanted, block_s, rounding_state[i], chords)
+        rounded[:, i], states[i] = np.rint(counts / spu[i]), st[before]
+        if exact_last:
+            states[i][-1] = 0.0
+    return rounded, states
 
 
 def _lengths(delta_mm: np.ndarray, xyz_moves: np.ndarray | None = None) -> np.ndarray:
