@@ -71,9 +71,9 @@ def fine_steps(machine: str, folder: Path, times: float = 100.0) -> Path:
 
 
 def rows(original: Path, output: Path, profile, budget: float | None,
-         floor: tuple[Path, object]) -> list[tuple[str, float, tuple]]:
+         floor: tuple[Path, object] | None = None) -> list[tuple[str, float, tuple]]:
     """(name, seconds, (RMS um, max um)) of every run (see the module docstring); ``floor``: the
-    output for fine steps and that profile."""
+    output for fine steps and that profile (None: no floor row)."""
     plain, fbs = model_run(original, profile, "marlin", budget), model_run(output, profile, "marlin", budget)
     settings = shaper_settings(profile)
 
@@ -97,8 +97,9 @@ def rows(original: Path, output: Path, profile, budget: float | None,
     out.append(best)
     out.append(("fbspost", fbs.seconds, error(stepper_positions(fbs.samples, spm), fbs.samples)))
     out.append(("fbspost, no stepper", fbs.seconds, error(fbs.samples, fbs.samples)))
-    fine = model_run(floor[0], floor[1], "marlin", budget)
-    out.append(("floor", fine.seconds, error(fine.samples, fine.samples)))
+    if floor is not None:
+        fine = model_run(floor[0], floor[1], "marlin", budget)
+        out.append(("floor", fine.seconds, error(fine.samples, fine.samples)))
     return out
 
 

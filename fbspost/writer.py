@@ -227,8 +227,8 @@ class _Emitter:
         # axis, 0 where not known): such blocks are merged here, where their time can go with them
         self.steps_per_mm, self.min_steps = steps_per_mm, min_steps
         self.held = None  # (targets, durations, ends) of blocks that wait for the next call
-        # Marlin: X Y Z block ends in whole steps, rounded where the axis feels it least (``steps``)
-        self.rounding = [rounding_for(axis_modes[i] if i < len(axis_modes) else ()) for i in range(3)]
+        self.crossing_from = self.plain = None  # on crossings: the last kept end written (_held_from), the merge
+        self.rounding = [rounding_for(axis_modes[i] if i < len(axis_modes) else ()) for i in range(3)]  # X Y Z
         self.rounding_state = [np.zeros(r.size) for r in self.rounding]
         self.shift_mm = np.zeros(len(AXES))  # controller frame minus program frame, per axis (G92 mid-motion)
         self.written = self.to_program(start_mm)
@@ -295,15 +295,11 @@ class _Emitter:
 
     def _shaped(self, units: np.ndarray, ints: np.ndarray, scale: np.ndarray, durations_s: np.ndarray,
                 exact_last: bool) -> tuple[np.ndarray, list[np.ndarray | None] | None]:
-        """Block ends (``units``: wanted, in written units; ``ints``: those rounded) with X Y Z at
-        whole steps that Marlin rounds back to those steps, chosen by ``steps``, and per
-        axis the rounding's state before each row and after the last (``rounding_state`` carries
-        it across calls). With ``exact_last`` the last end is the exact one and the rounding
-        restarts. Marlin with MIN_STEPS_PER_SEGMENT 1 only (else: plain rounding): a merge
-        moves the ends again, and the rounding would go on from the wrong ones (on the gear at
-        6 steps, the model's RMS, exact path: 9.2 -> 9.9 um without a line budget)."""
+        """MIN_STEPS_PER_SEGMENT 1: block ends (``units`` wanted, ``ints`` rounded) with X Y Z on
+        whole steps chosen by ``steps``, and per axis the rounding's state before each row and
+        after the last. With ``exact_last`` the last end is exact and the rounding restarts."""
         spu = (self.steps_per_mm * self.unit_mm / scale)[:3]  # steps per written unit
-        if self.min_steps > 1 or not (spu > 0).any() or not len(ints):
+        if not (spu > 0).any() or not len(ints):
             return ints, None
         ints, states = ints.copy(), [None] * 3
         for i in np.flatnonzero(spu > 0):
@@ -317,37 +313,45 @@ class _Emitter:
 
     def _on_crossings(self, start: np.ndarray, ints: np.ndarray, scale: np.ndarray, durations_s: np.ndarray,
                       ends_s: np.ndarray, targets_mm: np.ndarray, exact_last: bool) -> tuple:
-        """Marlin with MIN_STEPS_PER_SEGMENT above 1: the blocks Marlin would keep (``_merged`` of
-        the ends rounded), each end moved in time to where its block's dominant axis crosses a
-        whole step (``steps.crossing_ends``: that axis' end is exact), the other X Y Z axes
-        rounded there by ``steps`` over the kept blocks, the merged rows onto the kept end before
-        them (their time the next block's). Gives the ends (``ints``), the rows' durations and
-        end times, the targets (machine mm) and the rounding's states before each row and after
-        the last (``rounding_state`` carries them across calls); merged again where a rounding
-        left a block short of the minimum."""
+        """MIN_STEPS_PER_SEGMENT above 1: the blocks Marlin keeps (``_merged``), each end moved to
+        where its dominant axis crosses a step (``steps.crossing_ends``), the other axes rounded
+        against their modes, merged rows onto the kept end before them; merged again where the
+        rounding left a block short. Gives the ends, the rows' durations and end times, the
+        targets and the rounding's states before each row and after the last."""
         n, spu = len(ints), self.steps_per_mm * self.unit_mm / scale
-        ints = _merged(start, ints, spu, self.min_steps, exact_last)
-        kept = np.flatnonzero((np.diff(np.vstack([start, ints]), axis=0) != 0).any(axis=1))
+        # row 0: the last kept end's time, wanted and rounded ends, time moved (none: the start)
+        from_s, from_units, from_ints, ended_s = self.crossing_from or (ends_s[0] - durations_s[0], start, start, None)
+        ints = _merged(from_ints, ints, spu, self.min_steps, exact_last)
+        self.plain = np.vstack([from_ints, ints])
+        kept = np.flatnonzero((np.diff(np.vstack([from_ints, ints]), axis=0) != 0).any(axis=1))
         if not len(kept):
             return ints, durations_s, ends_s, targets_mm, None
-        times_s = np.concatenate([[0.0], np.cumsum(durations_s)])
+        times_s, units = np.append(from_s, ends_s), np.vstack([from_units, self.to_program(targets_mm) * scale])
         xyz_spu = np.where(np.arange(len(spu)) < 3, spu, 0.0)
-        t_s, ends = crossing_ends(times_s, np.vstack([start, self.to_program(targets_mm) * scale]), xyz_spu, kept + 1)
-        rounded, states = _rounded_ends(self.rounding, self.rounding_state, ends, spu, np.diff(t_s, prepend=0.0), kept,
-                                        exact_last, times_s, np.vstack([start, self.to_program(targets_mm) * scale]))
+        t_s, ends = crossing_ends(times_s, units, xyz_spu, kept + 1)
+        rounded, states = _rounded_ends(self.rounding, self.rounding_state, ends, spu,
+                                        np.diff(t_s, prepend=from_s if ended_s is None else ended_s),
+                                        kept, exact_last, times_s, units)
         if exact_last and kept[-1] == n - 1:
             rounded[-1] = ints[-1]
-        shift_s = t_s - times_s[kept + 1]
-        durations_s, ends_s, targets_mm = durations_s.copy(), ends_s.copy(), targets_mm.copy()
-        durations_s[kept] += shift_s
-        durations_s[kept[:-1] + 1] -= shift_s[:-1]  # (the last kept row is not moved)
-        ends_s[kept] += shift_s
+        durations_s, ends_s = _moved_in_time(kept, t_s - times_s[kept + 1], durations_s, ends_s)
+        targets_mm = targets_mm.copy()
         targets_mm[kept] = self.to_machine(ends / scale)
         source = np.maximum.accumulate(np.where(np.isin(np.arange(n), kept), np.arange(n) + 1, 0))
         ints = np.vstack([start, np.zeros_like(ints)])
         ints[kept + 1] = rounded
         return (_merged(start, ints[source], spu, self.min_steps, exact_last), durations_s, ends_s, targets_mm,
                 states)
+
+    def _held_from(self, kept: np.ndarray, wanted_s: np.ndarray, ends_s: np.ndarray, wanted_mm: np.ndarray,
+                   scale: np.ndarray) -> int:
+        """The first row held for the next call (``_last_in_both``); ``crossing_from``: the row
+        before's, for the next call to merge and move its rows as one call would."""
+        row = _last_in_both(self.plain, kept)
+        if row is not None:
+            self.crossing_from = (wanted_s[row], self.to_program(wanted_mm[row]) * scale, self.plain[row + 1],
+                                  ends_s[row])
+        return 0 if row is None else row + 1
 
     def _keep_rounding(self, states: list[np.ndarray | None] | None, row: int) -> None:
         """The rounding's state before block ``row`` (of ``_shaped``'s), for the next call."""
@@ -378,17 +382,23 @@ class _Emitter:
         start = np.rint(self.written * scale).astype(np.int64)
         ints = np.rint(self.to_program(targets_mm) * scale).astype(np.int64)
         marlin = self.min_steps and curves is None
-        if marlin and self.min_steps > 1:
-            ints, durations_s, ends_s, targets_mm, states = self._on_crossings(
-                start, ints, scale, durations_s, ends_s, targets_mm, exact_last)
+        if marlin:
+            crossing = self.min_steps > 1
+            wanted_mm, wanted_s = targets_mm, ends_s
+            if crossing:
+                ints, durations_s, ends_s, targets_mm, states = self._on_crossings(
+                    start, ints, scale, durations_s, ends_s, targets_mm, exact_last)
+            else:
+                ints, states = self._shaped(self.to_program(targets_mm) * scale, ints, scale, durations_s, exact_last)
+                ints = _merged(start, ints, self.steps_per_mm * self.unit_mm / scale, self.min_steps, exact_last)
             self._keep_rounding(states, len(ints))
-        elif marlin:
-            ints, states = self._shaped(self.to_program(targets_mm) * scale, ints, scale, durations_s, exact_last)
-            ints = _merged(start, ints, self.steps_per_mm * self.unit_mm / scale, self.min_steps, exact_last)
-            self._keep_rounding(states, len(ints))
-            if not exact_last:
+            if exact_last:
+                self.crossing_from = None
+            else:
+                # held: the last kept block (a later one may merge it); on crossings from the end before it
                 kept = np.flatnonzero((np.diff(np.vstack([start, ints]), axis=0) != 0).any(axis=1))
-                last = kept[-1] if len(kept) else 0
+                last = self._held_from(kept, wanted_s, ends_s, wanted_mm, scale) if crossing else \
+                    (kept[-1] if len(kept) else 0)
                 self._keep_rounding(states, last)
                 self.held = (targets_mm[last:], durations_s[last:], ends_s[last:])
                 targets_mm, durations_s, ends_s, ints = (x[:last] for x in (targets_mm, durations_s, ends_s, ints))
@@ -450,6 +460,24 @@ class _Emitter:
         moved[:, :2] |= curves.curve[:, None]  # G5 needs its end point, also where it closes a loop
         moving |= curves.curve
         return offsets
+
+
+def _moved_in_time(kept: np.ndarray, shift_s: np.ndarray, durations_s: np.ndarray,
+                   ends_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The rows' durations and end times with the ``kept`` rows' ends moved by ``shift_s``, the
+    next row taking up the difference (the last kept row is not moved)."""
+    durations_s, ends_s = durations_s.copy(), ends_s.copy()
+    durations_s[kept] += shift_s
+    durations_s[kept[:-1] + 1] -= shift_s[:-1]
+    ends_s[kept] += shift_s
+    return durations_s, ends_s
+
+
+def _last_in_both(plain: np.ndarray, kept: np.ndarray) -> int | None:
+    """The last row kept both by Marlin's merge of the rows rounded (``plain``: row 0 the start)
+    and in the end (``kept``), but for the merge's last (a later row may merge it); None: none."""
+    both = np.intersect1d(kept, np.flatnonzero((np.diff(plain, axis=0) != 0).any(axis=1))[:-1])
+    return int(both[-1]) if len(both) else None
 
 
 def _rounded_ends(rounding: list, rounding_state: list, ends: np.ndarray, spu: np.ndarray, block_s: np.ndarray,

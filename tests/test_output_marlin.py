@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import math
 import re
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -163,6 +165,23 @@ def test_block_ends_on_step_crossings_leave_the_modes_less_error():
     rounded = _felt_um(wanted, np.array(kept), np.array(plain) + start)
     print(f"felt: on crossings {crossing} um, plain rounding {rounded} um; {len(knots)} and {len(plain)} ends")
     assert crossing[0] < 0.1 * rounded[0] and crossing[1] < 0.4 * rounded[1]
+
+
+@pytest.mark.slow
+def test_contour_error_through_whole_steps_beats_marlins_zv(marlin_output):
+    """The gear's first 700 lines at 300 lines/s, each program through the model of Marlin's
+    planner (fbspost/marlin.py) and its whole steps, then printer-two-mode's modes
+    (bench/marlin_baseline.py's runs): fbspost's output at most half the RMS contour error of
+    Marlin's own ZV shaper (firmware_shapers.marlin_zv at the profile's modes, through its
+    steps), and its largest error below the original's."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+    from marlin_baseline import rows
+
+    source, target, _ = marlin_output
+    result = {name: (seconds, error) for name, seconds, error in rows(source, target, PROFILE, 300.0)}
+    print({name: f"{rms:.2f} um ({peak:.0f}), {seconds:.1f} s" for name, (seconds, (rms, peak)) in result.items()})
+    (rms, peak), (zv, _), (_, original_peak) = result["fbspost"][1], result["Marlin ZV"][1], result["original"][1]
+    assert rms <= 0.5 * zv and peak < original_peak
 
 
 def test_no_block_marlin_would_merge(marlin_output):
