@@ -219,13 +219,13 @@ class _Emitter:
     """
 
     def __init__(self, start_mm: np.ndarray, newline: bytes, steps_per_mm: np.ndarray | None = None,
-                 min_steps: int = 0, ramp_mm_s2: float = math.inf, axis_modes: tuple = ()):
+                 min_steps: int = 0, ramp_mm_s2: float = math.inf, axis_modes: tuple = (), crossings: bool = True):
         self.modal = Modal()  # the controller starts in its defaults
         # the firmware ramps each speed step at this acceleration, losing time the next blocks make up
         self.ramp_mm_s2, self.speed_mm_s = ramp_mm_s2, 0.0
         # Marlin merges a block of fewer than min_steps steps on every axis with the next (steps_per_mm per
         # axis, 0 where not known): such blocks are merged here, where their time can go with them
-        self.steps_per_mm, self.min_steps = steps_per_mm, min_steps
+        self.steps_per_mm, self.min_steps, self.crossings = steps_per_mm, min_steps, crossings
         self.held = None  # (targets, durations, ends) of blocks that wait for the next call
         self.crossing_from = self.plain = None  # on crossings: the last kept end written (_held_from), the merge
         self.rounding = [rounding_for(axis_modes[i] if i < len(axis_modes) else ()) for i in range(3)]  # X Y Z
@@ -297,9 +297,10 @@ class _Emitter:
                 exact_last: bool) -> tuple[np.ndarray, list[np.ndarray | None] | None]:
         """MIN_STEPS_PER_SEGMENT 1: block ends (``units`` wanted, ``ints`` rounded) with X Y Z on
         whole steps chosen by ``steps``, and per axis the rounding's state before each row and
-        after the last. With ``exact_last`` the last end is exact and the rounding restarts."""
+        after the last. With ``exact_last`` the last end is exact and the rounding restarts.
+        (Above 1 without crossings: plain rounding, as the merge moves the ends again.)"""
         spu = (self.steps_per_mm * self.unit_mm / scale)[:3]  # steps per written unit
-        if not (spu > 0).any() or not len(ints):
+        if self.min_steps > 1 or not (spu > 0).any() or not len(ints):
             return ints, None
         ints, states = ints.copy(), [None] * 3
         for i in np.flatnonzero(spu > 0):
@@ -313,11 +314,10 @@ class _Emitter:
 
     def _on_crossings(self, start: np.ndarray, ints: np.ndarray, scale: np.ndarray, durations_s: np.ndarray,
                       ends_s: np.ndarray, targets_mm: np.ndarray, exact_last: bool) -> tuple:
-        """MIN_STEPS_PER_SEGMENT above 1: the blocks Marlin keeps (``_merged``), each end moved to
-        where its dominant axis crosses a step (``steps.crossing_ends``), the other axes rounded
-        against their modes, merged rows onto the kept end before them; merged again where the
-        rounding left a block short. Gives the ends, the rows' durations and end times, the
-        targets and the rounding's states before each row and after the last."""
+        """MIN_STEPS_PER_SEGMENT above 1: the blocks Marlin keeps (``_merged``), each end moved to where
+        its dominant axis crosses a step (``steps.crossing_ends``), the others rounded against their
+        modes, merged rows onto the kept end before; merged again where the rounding left a block
+        short. Gives the ends, rows' durations and times, targets and rounding's states."""
         n, spu = len(ints), self.steps_per_mm * self.unit_mm / scale
         # row 0: the last kept end's time, wanted and rounded ends, time moved (none: the start)
         from_s, from_units, from_ints, ended_s = self.crossing_from or (ends_s[0] - durations_s[0], start, start, None)
@@ -383,7 +383,7 @@ class _Emitter:
         ints = np.rint(self.to_program(targets_mm) * scale).astype(np.int64)
         marlin = self.min_steps and curves is None
         if marlin:
-            crossing = self.min_steps > 1
+            crossing = self.min_steps > 1 and self.crossings
             wanted_mm, wanted_s = targets_mm, ends_s
             if crossing:
                 ints, durations_s, ends_s, targets_mm, states = self._on_crossings(
@@ -1241,7 +1241,8 @@ def timed_blocks(command_mm: np.ndarray, block_s: float, options: WriteOptions) 
     ramp_mm_s2 = math.inf if options.firmware is None else \
         Transparency(options.flavor, options.firmware, options.tolerance_mm).ramp_mm_s2
     steps = None if options.steps_per_mm is None else np.asarray(options.steps_per_mm)
-    emitter = _Emitter(command_mm[0], b"\n", steps, options.min_steps_per_segment, ramp_mm_s2, options.axis_modes)
+    emitter = _Emitter(command_mm[0], b"\n", steps, options.min_steps_per_segment, ramp_mm_s2, options.axis_modes,
+                       crossings=False)  # (blocks of equal time: identify's sweep)
     text = io.BytesIO()
     out = _Output(text, options.flavor)
     ends_s, targets_mm = np.arange(1, len(command_mm)) * block_s, command_mm[1:]
