@@ -173,7 +173,9 @@ def test_contour_error_through_whole_steps_beats_marlins_zv(marlin_output):
     planner (fbspost/marlin.py) and its whole steps, then printer-two-mode's modes
     (bench/marlin_baseline.py's runs): fbspost's output at most half the RMS contour error of
     Marlin's own ZV shaper (firmware_shapers.marlin_zv at the profile's modes, through its
-    steps), and its largest error below the original's."""
+    steps), and its largest error below the original's. Measured (the Marlin model): fbspost 8.53
+    um RMS (64 max), Marlin ZV 28.4 (96), the original 26.7 (231); FT_MOTION's best, MZV, 6.76
+    (39): fbspost does not beat it here."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
     from marlin_baseline import rows
 
