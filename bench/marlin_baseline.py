@@ -13,13 +13,16 @@ step its Bresenham gives, fbspost/firmware_shapers.py), then the profile's modes
   shaper's mean delay: not centred);
 - FT_MOTION: each of its shapers at the same modes on the original's plan (echoes on its 1 kHz
   grid, axes kept in step), the best by RMS;
-- fbspost: its default Marlin output (``compensate --flavor marlin``, written for the budget).
+- fbspost: its default Marlin output (``compensate --flavor marlin``, written for the budget);
+- the floor: fbspost's output for the same machine with 100 times the steps per mm (motors with
+  no whole steps to speak of: 0.125 um), written and run so; fbspost over it is the steps' cost.
 RMS and max contour error over the extruding samples to the original's commanded path
 (fbspost.verify), print time as the model runs it (a shaper adds its lead and lag).
 """
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 import tempfile
 from pathlib import Path
@@ -57,8 +60,20 @@ def shaped(plan: np.ndarray, profile, shapers: dict, shape_axis) -> tuple[np.nda
     return stepper_positions(command, profile.firmware.steps_per_mm), padded, added_s
 
 
-def rows(original: Path, output: Path, profile, budget: float | None) -> list[tuple[str, float, tuple]]:
-    """(name, seconds, (RMS um, max um)) of every run (see the module docstring)."""
+def fine_steps(machine: str, folder: Path, times: float = 100.0) -> Path:
+    """A copy of ``machine``'s profile in ``folder`` with ``times`` its steps per mm."""
+    text = Path(load_profile(machine).source).read_text()
+    line = re.search(r"(?m)^steps_per_mm\s*=.*$", text).group(0)
+    scaled = re.sub(r"=\s*([0-9.]+)", lambda m: f"= {float(m.group(1)) * times!r}", line[line.index("{"):])
+    copy = folder / f"{machine}-fine.toml"
+    copy.write_text(text.replace(line, "steps_per_mm = " + scaled))
+    return copy
+
+
+def rows(original: Path, output: Path, profile, budget: float | None,
+         floor: tuple[Path, object] | None = None) -> list[tuple[str, float, tuple]]:
+    """(name, seconds, (RMS um, max um)) of every run (see the module docstring); ``floor``: the
+    output for fine steps and that profile (None: no floor row)."""
     plain, fbs = model_run(original, profile, "marlin", budget), model_run(output, profile, "marlin", budget)
     settings = shaper_settings(profile)
 
@@ -82,6 +97,9 @@ def rows(original: Path, output: Path, profile, budget: float | None) -> list[tu
     out.append(best)
     out.append(("fbspost", fbs.seconds, error(stepper_positions(fbs.samples, spm), fbs.samples)))
     out.append(("fbspost, no stepper", fbs.seconds, error(fbs.samples, fbs.samples)))
+    if floor is not None:
+        fine = model_run(floor[0], floor[1], "marlin", budget)
+        out.append(("floor", fine.seconds, error(fine.samples, fine.samples)))
     return out
 
 
@@ -92,21 +110,25 @@ def main() -> None:
     parser.add_argument("--prints", nargs="*", default=list(PRINTS))
     args = parser.parse_args()
     print("| profile | program | line budget | original um (max) | Marlin ZV um (max) | FT_MOTION best um (max) "
-          "| fbspost um (max) | fbspost, no stepper um (max) | fbspost time vs original |")
-    print("|---|---|---|---|---|---|---|---|---|")
+          "| fbspost um (max) | fbspost, no stepper um (max) | floor um (max) | fbspost time vs original "
+          "| fbspost / ZV | fbspost / FT best | fbspost / floor |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for machine in args.profiles:
         profile = load_profile(machine)
         for program in args.prints:
             for budget in BUDGETS:
                 with tempfile.TemporaryDirectory() as tmp:
                     original = excerpt(f"tests/data/{program}", args.lines, Path(tmp))
-                    output = compensated(original, machine, "marlin", budget)
-                    result = rows(original, output, profile, budget)
+                    output = compensated(original, machine, "marlin", budget).rename(Path(tmp) / "fbspost.gcode")
+                    fine = fine_steps(machine, Path(tmp))
+                    floor = (compensated(original, str(fine), "marlin", budget), load_profile(fine))
+                    result = rows(original, output, profile, budget, floor)
                 cells = [f"{rms:.2f} ({peak:.0f})" for _, _, (rms, peak) in result]
                 cells[2] = f"{result[2][0].split()[-1]} {cells[2]}"
                 time = 100 * (result[3][1] / result[0][1] - 1)
+                ratios = " | ".join(f"{result[3][2][0] / result[k][2][0]:.2f}" for k in (1, 2, 5))
                 print(f"| {machine} | {program.split('-')[0]} | {f'{budget:g} lines/s' if budget else 'none'} | "
-                      f"{' | '.join(cells)} | {time:+.2f}% of {result[0][1]:.1f} s |", flush=True)
+                      f"{' | '.join(cells)} | {time:+.2f}% of {result[0][1]:.1f} s | {ratios} |", flush=True)
 
 
 if __name__ == "__main__":

@@ -35,7 +35,8 @@ class FedBackRounding:
 
     size = 1
 
-    def round(self, wanted: np.ndarray, durations_s: np.ndarray, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def round(self, wanted: np.ndarray, durations_s: np.ndarray, state: np.ndarray,
+              chords: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Whole steps for the block ends ``wanted`` (steps), from ``state``; and the state before
         each count and after the last (rows)."""
         counts, errors = np.empty(len(wanted)), np.empty((len(wanted) + 1, 1))
@@ -85,9 +86,28 @@ class ModalRounding:
         total = this + back.T @ ramp.T @ energy @ ramp @ back + after.T @ self.gramian @ after
         return to_state, this, total
 
-    def round(self, wanted: np.ndarray, durations_s: np.ndarray, state: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def chord_states(self, times_s: np.ndarray, wanted: np.ndarray, kept: np.ndarray) -> np.ndarray:
+        """For each kept row (``kept``, of rows 1..n of ``wanted`` at ``times_s``, row 0 the
+        start), the modal state at its end, from rest, of the response to the chord between the
+        kept rows before and at it minus the wanted rows between (linear between rows)."""
+        out, prev, times_s = np.zeros((len(kept), self.n)), 0, times_s.tolist()
+        for j, k in enumerate(kept.tolist()):
+            if k - prev > 1:
+                lam = (np.asarray(times_s[prev:k + 1]) - times_s[prev]) / (times_s[k] - times_s[prev])
+                chord = (wanted[prev] + lam * (wanted[k] - wanted[prev]) - wanted[prev:k + 1]).tolist()
+                z = np.zeros(self.n + 2)
+                for r in range(prev, k):
+                    z[self.n:] = chord[r - prev], chord[r + 1 - prev]
+                    z[:self.n] = self.block(round((times_s[r + 1] - times_s[r]) * 1e6))[0] @ z
+                out[j] = z[:self.n]
+            prev = k
+        return out
+
+    def round(self, wanted: np.ndarray, durations_s: np.ndarray, state: np.ndarray,
+              chords: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Whole steps for the block ends ``wanted`` (steps), from ``state``; and the state before
-        each count and after the last (rows)."""
+        each count and after the last (rows). ``chords``: per block, the modal state of what
+        its motion between its ends leaves out (``chord_states``), fed back with the rounding."""
         n = self.n
         counts, states = np.empty(len(wanted)), np.empty((len(wanted) + 1, n + 1))
         states[0] = state
@@ -100,6 +120,8 @@ class ModalRounding:
             counts[k] = min(max(round(w + best), math.floor(w)), math.ceil(w))
             xi[n + 1] = counts[k] - w
             xi[:n] = to_state @ xi
+            if chords is not None:
+                xi[:n] += chords[k]
             xi[n] = xi[n + 1]
             states[k + 1] = xi[:n + 1]
         return counts, states
@@ -108,3 +130,42 @@ class ModalRounding:
 def rounding_for(modes) -> FedBackRounding | ModalRounding:
     """The rounding for an axis with ``modes`` (empty or None: no modelled dynamics)."""
     return ModalRounding(modes) if modes else FedBackRounding()
+
+
+def crossing_ends(times_s: np.ndarray, units: np.ndarray, steps_per_unit: np.ndarray,
+                  kept: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Block ends moved in time to where the block's dominant axis crosses a whole step.
+
+    ``times_s`` (n + 1) and ``units`` (n + 1, columns) are the wanted ends, row 0 the first
+    block's start, the command linear in time between rows; ``steps_per_unit`` per column (0:
+    it does not step; it is moved along in time but decides nothing); ``kept`` the rows (1..n)
+    that end a block. For each kept row: its dominant axis (of the most steps from the kept row
+    before), that axis' whole step nearest the row, and the time on the neighbouring stretches
+    (the row before to the row, else the row to the row after) where the axis reaches it; every
+    column there. Not moved: the last kept row (it ends the run, or waits for the next rows),
+    and where the crossing is more than half the shorter of the block and the next away. Gives
+    the kept rows' times and ends."""
+    n, stepped = len(times_s) - 1, steps_per_unit > 0
+    steps = units[:, stepped] * steps_per_unit[stepped]
+    prev = np.concatenate([[0], kept[:-1]])
+    dominant = np.argmax(np.abs(steps[kept] - steps[prev]), axis=1)
+    w = steps[kept, dominant]
+    c = np.rint(w)
+    before, after = steps[kept - 1, dominant], steps[np.minimum(kept + 1, n), dominant]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        back = (c - before) / (w - before)  # of the stretch before, from its start
+        ahead = (c - w) / (after - w)  # of the stretch after
+    use_back = (back >= 0.0) & (back <= 1.0)
+    use_ahead = ~use_back & (ahead >= 0.0) & (ahead <= 1.0) & (kept < n)
+    lo = np.where(use_back, kept - 1, kept)
+    frac = np.where(use_back, back, np.where(use_ahead, ahead, 0.0))
+    t = times_s[lo] + frac * (times_s[np.minimum(lo + 1, n)] - times_s[lo])
+    next_s = np.append(times_s[kept[1:]], np.inf)  # (the last is not moved)
+    room = 0.5 * np.minimum(times_s[kept] - times_s[prev], next_s - times_s[kept])
+    move = (use_back | use_ahead) & (np.abs(t - times_s[kept]) <= room)
+    move[-1] = False
+    lo, frac = np.where(move, lo, kept), np.where(move, frac, 0.0)
+    ends = units[lo] + frac[:, None] * (units[np.minimum(lo + 1, n)] - units[lo])
+    rows = np.flatnonzero(move)
+    ends[rows, np.flatnonzero(stepped)[dominant[rows]]] = c[rows] / steps_per_unit[stepped][dominant[rows]]
+    return np.where(move, t, times_s[kept]), ends

@@ -29,7 +29,7 @@ from .bezier import curve_lengths, fit_g5
 from .gcode import AXES, Block, Kind, Modal, feed_lengths
 from .planner import PlanStream
 from .profile import MachineProfile
-from .steps import rounding_for
+from .steps import ModalRounding, crossing_ends, rounding_for
 from .transparency import FirmwareSettings, Transparency
 
 _DECIMALS = {**dict.fromkeys(AXES, 4), "E": 5}  # mm: 0.1 um (A B C: 1e-4 degree), E: 10 nm of filament
@@ -219,16 +219,16 @@ class _Emitter:
     """
 
     def __init__(self, start_mm: np.ndarray, newline: bytes, steps_per_mm: np.ndarray | None = None,
-                 min_steps: int = 0, ramp_mm_s2: float = math.inf, axis_modes: tuple = ()):
+                 min_steps: int = 0, ramp_mm_s2: float = math.inf, axis_modes: tuple = (), crossings: bool = True):
         self.modal = Modal()  # the controller starts in its defaults
         # the firmware ramps each speed step at this acceleration, losing time the next blocks make up
         self.ramp_mm_s2, self.speed_mm_s = ramp_mm_s2, 0.0
         # Marlin merges a block of fewer than min_steps steps on every axis with the next (steps_per_mm per
         # axis, 0 where not known): such blocks are merged here, where their time can go with them
-        self.steps_per_mm, self.min_steps = steps_per_mm, min_steps
+        self.steps_per_mm, self.min_steps, self.crossings = steps_per_mm, min_steps, crossings
         self.held = None  # (targets, durations, ends) of blocks that wait for the next call
-        # Marlin: X Y Z block ends in whole steps, rounded where the axis feels it least (``steps``)
-        self.rounding = [rounding_for(axis_modes[i] if i < len(axis_modes) else ()) for i in range(3)]
+        self.crossing_from = self.plain = None  # on crossings: the last kept end written (_held_from), the merge
+        self.rounding = [rounding_for(axis_modes[i] if i < len(axis_modes) else ()) for i in range(3)]  # X Y Z
         self.rounding_state = [np.zeros(r.size) for r in self.rounding]
         self.shift_mm = np.zeros(len(AXES))  # controller frame minus program frame, per axis (G92 mid-motion)
         self.written = self.to_program(start_mm)
@@ -295,13 +295,10 @@ class _Emitter:
 
     def _shaped(self, units: np.ndarray, ints: np.ndarray, scale: np.ndarray, durations_s: np.ndarray,
                 exact_last: bool) -> tuple[np.ndarray, list[np.ndarray | None] | None]:
-        """Block ends (``units``: wanted, in written units; ``ints``: those rounded) with X Y Z at
-        whole steps that Marlin rounds back to those steps, chosen by ``steps``, and per
-        axis the rounding's state before each row and after the last (``rounding_state`` carries
-        it across calls). With ``exact_last`` the last end is the exact one and the rounding
-        restarts. Marlin with MIN_STEPS_PER_SEGMENT 1 only (else: plain rounding): a merge
-        moves the ends again, and the rounding would go on from the wrong ones (on the gear at
-        6 steps, the model's RMS, exact path: 9.2 -> 9.9 um without a line budget)."""
+        """MIN_STEPS_PER_SEGMENT 1: block ends (``units`` wanted, ``ints`` rounded) with X Y Z on
+        whole steps chosen by ``steps``, and per axis the rounding's state before each row and
+        after the last. With ``exact_last`` the last end is exact and the rounding restarts.
+        (Above 1 without crossings: plain rounding, as the merge moves the ends again.)"""
         spu = (self.steps_per_mm * self.unit_mm / scale)[:3]  # steps per written unit
         if self.min_steps > 1 or not (spu > 0).any() or not len(ints):
             return ints, None
@@ -314,6 +311,47 @@ class _Emitter:
         if exact_last:
             ints[-1] = np.rint(units[-1])
         return ints, states
+
+    def _on_crossings(self, start: np.ndarray, ints: np.ndarray, scale: np.ndarray, durations_s: np.ndarray,
+                      ends_s: np.ndarray, targets_mm: np.ndarray, exact_last: bool) -> tuple:
+        """MIN_STEPS_PER_SEGMENT above 1: the blocks Marlin keeps (``_merged``), each end moved to where
+        its dominant axis crosses a step (``steps.crossing_ends``), the others rounded against their
+        modes, merged rows onto the kept end before; merged again where the rounding left a block
+        short. Gives the ends, rows' durations and times, targets and rounding's states."""
+        n, spu = len(ints), self.steps_per_mm * self.unit_mm / scale
+        # row 0: the last kept end's time, wanted and rounded ends, time moved (none: the start)
+        from_s, from_units, from_ints, ended_s = self.crossing_from or (ends_s[0] - durations_s[0], start, start, None)
+        ints = _merged(from_ints, ints, spu, self.min_steps, exact_last)
+        self.plain = np.vstack([from_ints, ints])
+        kept = np.flatnonzero((np.diff(np.vstack([from_ints, ints]), axis=0) != 0).any(axis=1))
+        if not len(kept):
+            return ints, durations_s, ends_s, targets_mm, None
+        times_s, units = np.append(from_s, ends_s), np.vstack([from_units, self.to_program(targets_mm) * scale])
+        xyz_spu = np.where(np.arange(len(spu)) < 3, spu, 0.0)
+        t_s, ends = crossing_ends(times_s, units, xyz_spu, kept + 1)
+        rounded, states = _rounded_ends(self.rounding, self.rounding_state, ends, spu,
+                                        np.diff(t_s, prepend=from_s if ended_s is None else ended_s),
+                                        kept, exact_last, times_s, units)
+        if exact_last and kept[-1] == n - 1:
+            rounded[-1] = ints[-1]
+        durations_s, ends_s = _moved_in_time(kept, t_s - times_s[kept + 1], durations_s, ends_s)
+        targets_mm = targets_mm.copy()
+        targets_mm[kept] = self.to_machine(ends / scale)
+        source = np.maximum.accumulate(np.where(np.isin(np.arange(n), kept), np.arange(n) + 1, 0))
+        ints = np.vstack([start, np.zeros_like(ints)])
+        ints[kept + 1] = rounded
+        return (_merged(start, ints[source], spu, self.min_steps, exact_last), durations_s, ends_s, targets_mm,
+                states)
+
+    def _held_from(self, kept: np.ndarray, wanted_s: np.ndarray, ends_s: np.ndarray, wanted_mm: np.ndarray,
+                   scale: np.ndarray) -> int:
+        """The first row held for the next call (``_last_in_both``); ``crossing_from``: the row
+        before's, for the next call to merge and move its rows as one call would."""
+        row = _last_in_both(self.plain, kept)
+        if row is not None:
+            self.crossing_from = (wanted_s[row], self.to_program(wanted_mm[row]) * scale, self.plain[row + 1],
+                                  ends_s[row])
+        return 0 if row is None else row + 1
 
     def _keep_rounding(self, states: list[np.ndarray | None] | None, row: int) -> None:
         """The rounding's state before block ``row`` (of ``_shaped``'s), for the next call."""
@@ -345,12 +383,22 @@ class _Emitter:
         ints = np.rint(self.to_program(targets_mm) * scale).astype(np.int64)
         marlin = self.min_steps and curves is None
         if marlin:
-            ints, states = self._shaped(self.to_program(targets_mm) * scale, ints, scale, durations_s, exact_last)
-            ints = _merged(start, ints, self.steps_per_mm * self.unit_mm / scale, self.min_steps, exact_last)
+            crossing = self.min_steps > 1 and self.crossings
+            wanted_mm, wanted_s = targets_mm, ends_s
+            if crossing:
+                ints, durations_s, ends_s, targets_mm, states = self._on_crossings(
+                    start, ints, scale, durations_s, ends_s, targets_mm, exact_last)
+            else:
+                ints, states = self._shaped(self.to_program(targets_mm) * scale, ints, scale, durations_s, exact_last)
+                ints = _merged(start, ints, self.steps_per_mm * self.unit_mm / scale, self.min_steps, exact_last)
             self._keep_rounding(states, len(ints))
-            if not exact_last:
+            if exact_last:
+                self.crossing_from = None
+            else:
+                # held: the last kept block (a later one may merge it); on crossings from the end before it
                 kept = np.flatnonzero((np.diff(np.vstack([start, ints]), axis=0) != 0).any(axis=1))
-                last = kept[-1] if len(kept) else 0
+                last = self._held_from(kept, wanted_s, ends_s, wanted_mm, scale) if crossing else \
+                    (kept[-1] if len(kept) else 0)
                 self._keep_rounding(states, last)
                 self.held = (targets_mm[last:], durations_s[last:], ends_s[last:])
                 targets_mm, durations_s, ends_s, ints = (x[:last] for x in (targets_mm, durations_s, ends_s, ints))
@@ -412,6 +460,45 @@ class _Emitter:
         moved[:, :2] |= curves.curve[:, None]  # G5 needs its end point, also where it closes a loop
         moving |= curves.curve
         return offsets
+
+
+def _moved_in_time(kept: np.ndarray, shift_s: np.ndarray, durations_s: np.ndarray,
+                   ends_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The rows' durations and end times with the ``kept`` rows' ends moved by ``shift_s``, the
+    next row taking up the difference (the last kept row is not moved)."""
+    durations_s, ends_s = durations_s.copy(), ends_s.copy()
+    durations_s[kept] += shift_s
+    durations_s[kept[:-1] + 1] -= shift_s[:-1]
+    ends_s[kept] += shift_s
+    return durations_s, ends_s
+
+
+def _last_in_both(plain: np.ndarray, kept: np.ndarray) -> int | None:
+    """The last row kept both by Marlin's merge of the rows rounded (``plain``: row 0 the start)
+    and in the end (``kept``), but for the merge's last (a later row may merge it); None: none."""
+    both = np.intersect1d(kept, np.flatnonzero((np.diff(plain, axis=0) != 0).any(axis=1))[:-1])
+    return int(both[-1]) if len(both) else None
+
+
+def _rounded_ends(rounding: list, rounding_state: list, ends: np.ndarray, spu: np.ndarray, block_s: np.ndarray,
+                  kept: np.ndarray, exact_last: bool, times_s: np.ndarray, units: np.ndarray) -> tuple:
+    """The kept blocks' ``ends`` (written units; ``block_s`` long) with X Y Z on whole steps, each
+    axis by its ``rounding`` (``steps``) from its ``rounding_state``, an axis with modes told what
+    the chords between the kept rows leave out of the wanted rows (``units`` at ``times_s``, row 0
+    the start); and the rounding's states before each row and after the last."""
+    rounded, states = np.rint(ends).astype(np.int64), [None] * 3
+    before = np.searchsorted(kept, np.arange(len(units)))  # each row: how many kept rows come before it
+    for i in np.flatnonzero(spu[:3] > 0):
+        wanted = ends[:, i] * spu[i]
+        wanted = np.where(np.abs(wanted - np.rint(wanted)) < 1e-6, np.rint(wanted), wanted)  # (on a step)
+        chords = None
+        if isinstance(rounding[i], ModalRounding):
+            chords = rounding[i].chord_states(times_s, units[:, i] * spu[i], kept + 1)
+        counts, st = rounding[i].round(wanted, block_s, rounding_state[i], chords)
+        rounded[:, i], states[i] = np.rint(counts / spu[i]), st[before]
+        if exact_last:
+            states[i][-1] = 0.0
+    return rounded, states
 
 
 def _lengths(delta_mm: np.ndarray, xyz_moves: np.ndarray | None = None) -> np.ndarray:
@@ -1154,7 +1241,8 @@ def timed_blocks(command_mm: np.ndarray, block_s: float, options: WriteOptions) 
     ramp_mm_s2 = math.inf if options.firmware is None else \
         Transparency(options.flavor, options.firmware, options.tolerance_mm).ramp_mm_s2
     steps = None if options.steps_per_mm is None else np.asarray(options.steps_per_mm)
-    emitter = _Emitter(command_mm[0], b"\n", steps, options.min_steps_per_segment, ramp_mm_s2, options.axis_modes)
+    emitter = _Emitter(command_mm[0], b"\n", steps, options.min_steps_per_segment, ramp_mm_s2, options.axis_modes,
+                       crossings=False)  # (blocks of equal time: identify's sweep)
     text = io.BytesIO()
     out = _Output(text, options.flavor)
     ends_s, targets_mm = np.arange(1, len(command_mm)) * block_s, command_mm[1:]

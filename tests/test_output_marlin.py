@@ -7,9 +7,12 @@ from __future__ import annotations
 
 import math
 import re
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy import signal
 
 from fbspost.gcode import AXES, Kind, read_gcode
 from fbspost.marlin import run_marlin
@@ -17,7 +20,7 @@ from fbspost.pipeline import CompensateOptions, compensate_file, compensated_sam
 from fbspost.planner import RunMargins, plan_blocks
 from fbspost.profile import load_profile, with_travel
 from fbspost.writer import _Emitter
-from reference import serial
+from reference import continuous_model, serial
 
 PROFILE = serial(load_profile("printer-two-mode"), 300.0)  # 80 steps/mm on X Y, 400 Z, 415 E; 300 lines/s
 MIN_STEPS = 6
@@ -111,6 +114,78 @@ def test_step_rounding_is_noise_shaped_across_calls():
     assert np.abs(np.cumsum(np.floor(wanted + 0.5) - wanted, axis=0)).max() > 2.0
 
 
+def _felt_um(wanted, knots_s, knots_mm) -> np.ndarray:
+    """RMS (um) per axis of the modes' response (printer-two-mode's X and Y, continuous, scipy's
+    lsim) to the error of a motion linear between ``knots_mm`` at ``knots_s`` from ``wanted(t)``,
+    on a 20 us grid over the knots."""
+    t = np.arange(knots_s[0], knots_s[-1], 2e-5)
+    error_mm = np.column_stack([np.interp(t, knots_s, knots_mm[:, c]) for c in range(2)]) - wanted(t)
+    felt = [signal.lsim(continuous_model(PROFILE.axes[a].modes), error_mm[:, c], t - t[0])[1]
+            for c, a in enumerate("XY")]
+    return 1e3 * np.sqrt(np.mean(np.square(felt), axis=1))
+
+
+def test_block_ends_on_step_crossings_leave_the_modes_less_error():
+    """A slow line (X 20 mm/s with a 0.5 mm 3 Hz swing, Y 6 mm/s with 0.3 mm at 2 Hz; ends every
+    ms, 80 steps/mm, Marlin's minimum of 6 steps, printer-two-mode's X and Y modes): the blocks
+    as Marlin reads the text (lround of each end; each block the length of its whole steps over
+    F), their error from the wanted curve through the modes (scipy's lsim of the continuous
+    modes), against Marlin's merge of the same ends rounded to the nearest step at their
+    samples (an end less than 6 steps from the last kept one on every axis dropped, its time
+    the next's; worked here), the plain rounding the writer did before: measured 0.24 and 2.75
+    um against 5.31 and 10.5 um RMS on X and Y (X, dominant, ends on its steps; Y rounded
+    against its mode). No block under 6 steps."""
+    def wanted(t):
+        return np.column_stack([20.0 * t + 0.5 * np.sin(2 * np.pi * 3.0 * t),
+                                6.0 * t + 0.3 * np.sin(2 * np.pi * 2.0 * t + 1.0)])
+
+    spm = np.array([80.0 if a in "XY" else 0.0 for a in AXES])
+    t_s = np.arange(1, 1001) * 1e-3
+    targets = np.zeros((1000, len(AXES)))
+    targets[:, :2] = wanted(t_s) - wanted(np.zeros(1))
+    emitter = _Emitter(np.zeros(len(AXES)), b"\n", spm, MIN_STEPS,
+                       axis_modes=(PROFILE.axes["X"].modes, PROFILE.axes["Y"].modes))
+    text, _ = emitter.blocks(targets, np.full(1000, 1e-3), t_s)
+    steps, feed_mm_s, knots_s, knots = np.zeros(2), math.nan, [0.0], [np.zeros(2)]
+    for line in text.decode().splitlines():
+        words = {w[0]: float(w[1:]) for w in line.split()[1:]}
+        moved = np.array([math.floor(words.get(a, s / 80.0) * 80.0 + 0.5) for a, s in zip("XY", steps, strict=True)])
+        assert np.abs(moved - steps).max() >= MIN_STEPS
+        feed_mm_s = words.get("F", 60.0 * feed_mm_s) / 60.0
+        knots_s.append(knots_s[-1] + np.linalg.norm(moved - steps) / 80.0 / feed_mm_s)
+        steps = moved
+        knots.append(steps / 80.0)
+    plain, kept = [np.zeros(2)], [0.0]
+    for t, row in zip(t_s, np.rint(targets[:, :2] * 80.0), strict=True):
+        if np.abs(row - plain[-1] * 80.0).max() >= MIN_STEPS or t == t_s[-1]:
+            plain.append(row / 80.0)
+            kept.append(t)
+    start = wanted(np.zeros(1))[0]
+    crossing = _felt_um(wanted, np.array(knots_s), np.array(knots) + start)
+    rounded = _felt_um(wanted, np.array(kept), np.array(plain) + start)
+    print(f"felt: on crossings {crossing} um, plain rounding {rounded} um; {len(knots)} and {len(plain)} ends")
+    assert crossing[0] < 0.1 * rounded[0] and crossing[1] < 0.4 * rounded[1]
+
+
+@pytest.mark.slow
+def test_contour_error_through_whole_steps_beats_marlins_zv(marlin_output):
+    """The gear's first 700 lines at 300 lines/s, each program through the model of Marlin's
+    planner (fbspost/marlin.py) and its whole steps, then printer-two-mode's modes
+    (bench/marlin_baseline.py's runs): fbspost's output at most half the RMS contour error of
+    Marlin's own ZV shaper (firmware_shapers.marlin_zv at the profile's modes, through its
+    steps), and its largest error below the original's. Measured (the Marlin model): fbspost 8.53
+    um RMS (64 max), Marlin ZV 28.4 (96), the original 26.7 (231); FT_MOTION's best, MZV, 6.76
+    (39): fbspost does not beat it here."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+    from marlin_baseline import rows
+
+    source, target, _ = marlin_output
+    result = {name: (seconds, error) for name, seconds, error in rows(source, target, PROFILE, 300.0)}
+    print({name: f"{rms:.2f} um ({peak:.0f}), {seconds:.1f} s" for name, (seconds, (rms, peak)) in result.items()})
+    (rms, peak), (zv, _), (_, original_peak) = result["fbspost"][1], result["Marlin ZV"][1], result["original"][1]
+    assert rms <= 0.5 * zv and peak < original_peak
+
+
 def test_no_block_marlin_would_merge(marlin_output):
     _, target, _ = marlin_output
     counts = np.array([steps for _, steps, _ in blocks(target) if steps is not None])
@@ -133,7 +208,9 @@ def test_accuracy_cost_reported(marlin_output):
     """The written blocks, each at constant speed from its start to its end as Marlin times them,
     against the command at every sample between any two rests (a constant delay aside: where the
     machine rests, Marlin's first-move delays): the report's largest distance (what the budget and
-    the merge cost), the rounding aside."""
+    the merge cost), the rounding aside: the report measures the wanted ends, the text has them
+    on whole steps, the step below or above on each axis (steps.py), so the two differ by less
+    than a step on X and Y."""
     source, target, report = marlin_output
     program = list(read_gcode(target, "marlin", PROFILE.home_mm))
     written = blocks(target)
@@ -144,7 +221,7 @@ def test_accuracy_cost_reported(marlin_output):
 
     off_mm = _off_command(program, written, _command(source), [t for t, _, _ in written], at)
     print(f"blocks vs command: max {off_mm.max() * 1e3:.2f} um; report {report.tolerance_used_mm * 1e3:.2f} um")
-    assert report.tolerance_used_mm == pytest.approx(off_mm.max(), abs=2e-4)
+    assert report.tolerance_used_mm == pytest.approx(off_mm.max(), abs=np.hypot(1 / 80.0, 1 / 80.0))
 
 
 def test_marlin_runs_the_output_as_written(marlin_output):
@@ -180,8 +257,8 @@ def test_marlin_output_lasts_as_planned(marlin_output):
 def _off_command(program, written, command, line_times_s, at) -> np.ndarray:
     """Distances from the command of the motion ``at(t, lines)`` (rows X Y Z at times t, for the
     sent lines ``lines``) whose lines end at ``line_times_s`` (per sent line), over every
-    stretch between rests, each delayed by its median delay (each block's end is a sample of
-    the command: its time there)."""
+    stretch between rests, each delayed by its median delay (each block's end is on the
+    command: its time there)."""
     fs = PROFILE.sample_rate_hz
     sent = [i for i, b in enumerate(program) if b.raw.split(b";")[0].strip()]
     assert len(sent) == len(written)
@@ -189,7 +266,7 @@ def _off_command(program, written, command, line_times_s, at) -> np.ndarray:
     for lines in _stretches(program, sent):
         samples = np.array([_on_command(command, written[k][0] * fs, written[k][2]) for k in lines])
         delay_s = np.median(np.asarray(line_times_s)[lines] - samples / fs)
-        grid = np.arange(samples[0], samples[-1] + 1)
+        grid = np.arange(math.ceil(samples[0]), math.floor(samples[-1]) + 1)
         off.append(np.linalg.norm(at(grid / fs + delay_s, lines) - command[grid, :3], axis=1))
     assert len(off) > 10
     return np.concatenate(off)
@@ -201,10 +278,13 @@ def _command(source):
     return compensated_samples(plan, with_travel(PROFILE, "marlin"))
 
 
-def _on_command(command, near: float, end_mm: np.ndarray) -> int:
-    """The sample of ``command`` within 5 of ``near`` closest to ``end_mm`` (X Y Z)."""
-    window = np.arange(max(int(near) - 5, 0), min(int(near) + 6, len(command)))
-    return int(window[np.argmin(np.linalg.norm(command[window, :3] - end_mm, axis=1))])
+def _on_command(command, near: float, end_mm: np.ndarray) -> float:
+    """The time (in samples, to a hundredth) within 5 samples of ``near`` where ``command``, linear
+    between its samples, comes closest to ``end_mm`` (X Y Z): a block's end is the command's at a
+    sample, or where an axis crosses a whole step between two."""
+    window = np.arange(max(int(near) - 5, 0), min(int(near) + 6, len(command)) - 1, 0.01)
+    at = np.column_stack([np.interp(window, np.arange(len(command)), command[:, c]) for c in range(3)])
+    return float(window[np.argmin(np.linalg.norm(at - end_mm, axis=1))])
 
 
 def _stretches(program, sent):

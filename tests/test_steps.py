@@ -10,7 +10,7 @@ from scipy.integrate import solve_ivp
 
 from fbspost.dynamics import AxisDynamics
 from fbspost.profile import load_profile
-from fbspost.steps import FedBackRounding, ModalRounding
+from fbspost.steps import FedBackRounding, ModalRounding, crossing_ends
 
 TWO_MODES = load_profile("printer-two-mode").axes["X"].modes  # 52 Hz + 96 Hz
 RHP_ZERO = load_profile("patent-xy-stage").axes["X"].modes  # beta != 0: a right-half-plane zero
@@ -101,3 +101,16 @@ def test_fed_back_rounding_never_drifts():
     assert np.abs(counts - wanted).max() < 1.0
     assert np.abs(np.cumsum(counts - wanted)).max() <= 0.5 + 1e-9
     assert errors[-1, 0] == pytest.approx(np.sum(counts - wanted))
+
+
+def test_crossing_ends_on_a_straight_line():
+    """X at 1.7 steps per ms, Y at 0.4 (1 step per unit, rows every ms, kept rows 4, 8 and 10):
+    each kept end but the last moves to where X reaches its nearest whole step, t = step / 1.7
+    ms (closed form), Y there at 0.4 t; the last stays."""
+    t_s = np.arange(11) * 1e-3
+    units = np.column_stack([1700.0 * t_s, 400.0 * t_s, np.zeros(11)])
+    times, ends = crossing_ends(t_s, units, np.array([1.0, 1.0, 0.0]), np.array([4, 8, 10]))
+    wanted_s = np.array([7.0 / 1.7e3, 14.0 / 1.7e3, 0.010])  # 6.8 -> 7, 13.6 -> 14; the last at 17
+    assert times == pytest.approx(wanted_s, abs=1e-15)
+    assert ends[:, 0] == pytest.approx([7.0, 14.0, 17.0], abs=1e-12)
+    assert ends[:, 1] == pytest.approx(400.0 * wanted_s, abs=1e-12)
