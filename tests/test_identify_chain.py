@@ -151,8 +151,9 @@ FIRMWARE_CHAINS = [
         "measured on the Marlin model through truth B, the gear's first 1500 lines (30 s sweeps): FBS from the "
         "recordings 8.87 um RMS (predicted 8.86; max 70.0 against the original's 139.5), Marlin's ZV 9.27 at the "
         "identified modes (X 41.0 Hz D 0.09, Y 45.0 Hz D 0.06) and 12.12 at shaper_calibrate's (X 39.2, Y 44.6 Hz): "
-        "1.05x, not 2x. Marlin's output is bound to whole-step block ends and its 6-step merge "
-        "(docs/identify.md: FBS with the exact model on the Marlin model)"))),
+        "1.05x, not 2x. Not the identification: FBS with the exact model leaves as much on the Marlin model "
+        "(the first 8000 lines: 6.98 um, measured 6.57, ZV 8.35): what Marlin runs of fbspost's output "
+        "(whole-step block ends, its short-segment merge) bounds it (docs/identify.md)"))),
 ]
 
 
