@@ -38,7 +38,7 @@ import os
 import subprocess
 import sys
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -135,7 +135,6 @@ class Measured:
     # (Klipper) from recordings of Klipper's own excitation (resonance_test), where measured
     shapers: dict[str, tuple[Baseline, dict[str, tuple[str, float, float]]]]
     identify_output: str
-    logs: dict[str, Path] = field(default_factory=dict)  # the recordings, by axis
 
 
 def user_profile(truth_path: Path, folder: Path) -> Path:
@@ -260,7 +259,7 @@ def measure(truth_path: Path, folder: Path, sweep_args=(), as_written: bool = Fa
             program.write_text(resonance_test(axis, CENTER_MM))
             tests[axis] = recorded(program, truth, user, folder / f"resonances_{axis.lower()}.csv", chip)
         shapers.update(firmware_choices("klipper", tests, identified, "TEST_RESONANCES"))
-    return Measured(flavor, user, identified, from_cfg, shapers, "".join(outputs), logs)
+    return Measured(flavor, user, identified, from_cfg, shapers, "".join(outputs))
 
 
 @dataclass
