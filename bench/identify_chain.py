@@ -1,8 +1,9 @@
-"""Issue 30's proof, end to end: from an accelerometer recording to the machine, against the input
-shaper Klipper's own shaper_calibrate picks from the same recordings (tests/identify_chain.py).
+"""Issue 30's proof, end to end: from an accelerometer recording to the machine, against the
+firmware's own input shaping as Klipper's own shaper_calibrate picks it from the same recordings
+(tests/identify_chain.py).
 
-Run from the repository root:  python bench/identify_chain.py [--as-written] [--drift-ppm PPM]
-[--lines N] [--duration S]
+Run from the repository root:  python bench/identify_chain.py [--flavor klipper|marlin|reprap]
+[--as-written] [--drift-ppm PPM] [--lines N] [--duration S]
 
 For each held-out truth (tests/data/truth-a.toml, truth-b.toml: never tuned on), as a Klipper
 user with an accelerometer would go: ``fbspost excite`` of X then Y (default sweep, 30 s), each
@@ -27,6 +28,14 @@ simulation), RMS and max contour error (um) on klippy's path of the original, pr
 klippy's (a shaper's plus its lag). "predicted": fbspost's own figure for its output, klippy's
 plan of it through the identified modes. A compensate over ``--timeout`` (300 s) is stopped and
 its row is NaN. Several minutes per truth.
+
+``--flavor marlin`` / ``reprap``: EVERY FIGURE COMES FROM FBSPOST'S MODEL OF MARLIN'S (RRF'S)
+PLANNER THROUGH THE TRUTH MODEL, on whole steps: the sweeps written for that firmware and recorded
+from the model's motion; the baseline that firmware's own input shaping through its whole steps
+(fbspost/firmware_shapers.py), shaper_calibrate picking among the types it has, damping 0.1 (Marlin:
+INPUT_SHAPING's ZV per axis, also at the identified dominant modes, and FT_MOTION's types; RRF: its
+M593 types, one shaper for X and Y, each axis' choice on both); fbspost's output written for that
+flavor and run by the same model; no --klipper-cfg or TEST_RESONANCES rows.
 """
 from __future__ import annotations
 
@@ -48,31 +57,38 @@ PRINTS = ("tests/data/gear-marlin2.gcode", "tests/data/bracket-reprapfirmware-re
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--flavor", choices=("klipper", "marlin", "reprap"), default="klipper",
+                        help="klippy, or fbspost's model of Marlin's or RRF's planner")
     parser.add_argument("--as-written", action="store_true", help="klippy runs the sweeps as written")
     parser.add_argument("--drift-ppm", type=float, default=100.0, help="the accelerometer clock's drift")
     parser.add_argument("--lines", type=int, default=8000, help="the first LINES lines of each print")
     parser.add_argument("--duration", type=float, default=None, help="sweep seconds (default: excite's)")
+    parser.add_argument("--prints", nargs="*", default=list(PRINTS), help="the prints (default: the gear, the bracket)")
     parser.add_argument("--timeout", type=float, default=300.0, help="longest compensate, s (then a NaN row)")
     args = parser.parse_args()
+    if args.as_written and args.flavor != "klipper":
+        parser.error("--as-written is Klipper's SET_VELOCITY_LIMIT: with --flavor klipper only")
     sweep = ("--duration", args.duration) if args.duration else ()
     chip = Accelerometer(drift_ppm=args.drift_ppm)
     how = "as written (SET_VELOCITY_LIMIT first)" if args.as_written else "as the program is"
-    print(f"sweeps run by klippy {how}; "
+    runner = "klippy" if args.flavor == "klipper" else f"the model of {args.flavor}'s planner"
+    print(f"sweeps run by {runner} {how}; "
           f"accelerometer clock drift {args.drift_ppm:g} ppm; prints: first {args.lines} lines")
     for truth in TRUTHS:
         with tempfile.TemporaryDirectory() as tmp:
             start = time.time()
-            measured = measure(ROOT / truth, Path(tmp), sweep, args.as_written, chip, klipper_test=True)
+            measured = measure(ROOT / truth, Path(tmp), sweep, args.as_written, chip,
+                               klipper_test=args.flavor == "klipper", flavor=args.flavor)
             print(f"\n{truth}: measured in {time.time() - start:.0f} s")
             print("identify's summary:\n" + "\n".join(line for line in measured.identify_output.splitlines()
                                                      if line.startswith(("recording", "axis", "fit error"))))
             print("identified modes:\n" + modes_text(measured.identified))
             print("true modes:\n" + modes_text(ROOT / truth))
-            for program in PRINTS:
+            for program in args.prints:
                 start = time.time()
                 rows = evaluate(excerpt(program, args.lines, Path(tmp)), ROOT / truth, measured, Path(tmp),
                                 args.timeout)
-                print(f"\n{truth} on {program} (first {args.lines} lines), klippy + truth model "
+                print(f"\n{truth} on {program} (first {args.lines} lines), {runner} + truth model "
                       f"({time.time() - start:.0f} s):\n{table(rows)}", flush=True)
 
 

@@ -1,6 +1,8 @@
-"""Issue 30's proof, end to end: from an accelerometer recording to the machine, as a Klipper user
-with an accelerometer would go, through Klipper's own planner, against the input shaper Klipper's
-own ``shaper_calibrate`` picks from the same recordings. For tests and benches.
+"""Issue 30's proof, end to end: from an accelerometer recording to the machine, as a user with an
+accelerometer would go, through Klipper's own planner (``flavor`` "klipper") or fbspost's models of
+Marlin's and RepRapFirmware's planners ("marlin", "reprap": ``firmware.PLANNER_MODELS``), against
+the input shaping that firmware has, chosen by Klipper's own ``shaper_calibrate`` from the same
+recordings. For tests and benches.
 
 Takes a truth (a profile whose modes are the machine's: tests/data/truth-*.toml) and a print.
 ``measure``: the user's profile is the truth without modes (its limits, planner and firmware);
@@ -17,6 +19,16 @@ planned by klippy; the chosen shapers on klippy's plan of the original (Klipper 
 motion); every command through the truth's modes; RMS and max contour error on klippy's path of
 the original, print time klippy's; fbspost's prediction of its output (klippy's plan of it
 through the identified modes).
+
+Marlin and RRF (``flavor``): the sweep written ``--flavor`` FLAVOR, run and recorded from the
+model of that firmware's planner (its motion, not its whole steps); shaper_calibrate picks among
+the types the firmware has (``BASELINES``: Marlin's INPUT_SHAPING ZV per axis, also at the
+identified dominant modes; FT_MOTION's types; RRF's M593 types, one shaper for X and Y: each
+axis' choice on both), damping 0.1 (its default), shaped as the firmware shapes, through whole
+steps (``fbspost.firmware_shapers``, bench/marlin_baseline.py ``shaped``); the prints compensated
+``--flavor`` FLAVOR and run by the same model; every run on its whole steps
+(``firmware_shapers.stepper_positions``) through the truth, the contour to the original's
+commanded path; no ``--klipper-cfg`` row.
 """
 from __future__ import annotations
 
@@ -25,6 +37,7 @@ import math
 import os
 import subprocess
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -33,16 +46,28 @@ from click.testing import CliRunner
 
 from accel_recording import Accelerometer, record, write_csv
 from fbspost.cli import main
+from fbspost.firmware import PLANNER_MODELS
+from fbspost.firmware_shapers import (
+    ft_motion_shaper,
+    marlin_zv,
+    marlin_zv_shaper,
+    reprap_shaper,
+    shaped_steps,
+    stepper_positions,
+)
+from fbspost.gcode import read_gcode
 from fbspost.profile import format_profile, load_profile
-from fbspost.shapers import klipper_shaper
-from fbspost.verify import contour_um, modelled, printed_path
-from firmware_results import klippy_run, move_ends, shaped_plans
+from fbspost.shapers import Shaper, klipper_shaper
+from fbspost.simulate import shaper_settings
+from fbspost.verify import contour_um, modelled
+from firmware_results import shaped_plans
 from klippy_motion import executed
 from klippy_planner import klippy_dir, load_klippy
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
-from firmware import excerpt  # noqa: E402, F401  (for the test and the bench)
+from firmware import excerpt, klippy_as_run, model_run  # noqa: E402, F401  (excerpt: for the test and the bench)
+from marlin_baseline import shaped  # noqa: E402
 
 CENTER_MM = 100.0  # the sweep's centre: mid-travel of a 200 mm axis
 KLIPPER_DAMPING = 0.1  # [input_shaper] damping_ratio_x/y default (shaper_defs.DEFAULT_DAMPING_RATIO)
@@ -54,6 +79,38 @@ REST_S = 1.0  # the recording runs this long before the program starts and after
 # A badly identified profile (a mode of damping 1e-5, one far below the band) can keep compensate
 # busy for many minutes: its row then says so instead of holding the whole run.
 COMPENSATE_TIMEOUT_S = 600.0
+
+
+@dataclass(frozen=True)
+class Baseline:
+    """A firmware's own input shaping: the types it has (Klipper's name -> the firmware's; None:
+    shaper_calibrate's own list), its shaper at (type, frequency Hz, damping), and how it shapes an
+    axis through whole steps (``shape_axis(steps_per_mm)`` gives ``shaped_plans``' ``shape_axis``;
+    None: Klipper's, on the plan, no steps)."""
+
+    label: str
+    types: dict[str, str] | None
+    make: Callable[[str, float, float], Shaper]
+    shape_axis: Callable[[dict], Callable] | None = None
+    one_for_all: bool = False  # one shaper for every axis (RRF's M593): each axis' choice on both
+
+
+def _on_steps(steps_per_mm: dict) -> Callable:
+    return lambda x, period_s, shaper, axis: shaped_steps(x, period_s, steps_per_mm[axis], shaper)
+
+
+def _marlin_steps(steps_per_mm: dict) -> Callable:
+    return lambda x, period_s, s, axis: marlin_zv(x, period_s, steps_per_mm[axis], s.frequency_hz, s.damping)
+
+
+MARLIN_ZV = Baseline("Marlin ZV", {"zv": "zv"}, lambda name, f, zeta: marlin_zv_shaper(f, zeta), _marlin_steps)
+BASELINES = {
+    "klipper": (Baseline("shaper_calibrate", None, klipper_shaper),),
+    "marlin": (MARLIN_ZV, Baseline("FT_MOTION", {"zv": "zv", "mzv": "mzv", "zvd": "zvd", "ei": "ei", "2hump_ei": "2hei",
+                                                  "3hump_ei": "3hei"}, ft_motion_shaper, _on_steps)),
+    "reprap": (Baseline("RRF M593", {"zvd": "zvd", "mzv": "mzv", "2hump_ei": "ei2", "3hump_ei": "ei3"}, reprap_shaper,
+                        _on_steps, one_for_all=True),),
+}
 
 
 def cli(*args) -> str:
@@ -69,13 +126,15 @@ def cli(*args) -> str:
 class Measured:
     """What the user has once both axes are measured."""
 
+    flavor: str
     user: Path  # the truth's limits, planner and firmware; no modes
     identified: Path  # the profile identify wrote from the recordings
-    from_cfg: Path  # identify --klipper-cfg of the printer.cfg with shaper_calibrate's choice
-    shapers: dict[str, tuple[str, float]]  # per axis, shaper_calibrate's (type, frequency Hz)
+    from_cfg: Path | None  # identify --klipper-cfg of the printer.cfg with shaper_calibrate's choice (Klipper)
+    # the firmware's shapers: by row name, (its baseline, per axis (the firmware's type, frequency Hz,
+    # damping)): shaper_calibrate's choices from the same recordings among the firmware's types, and
+    # (Klipper) from recordings of Klipper's own excitation (resonance_test), where measured
+    shapers: dict[str, tuple[Baseline, dict[str, tuple[str, float, float]]]]
     identify_output: str
-    # the same from Klipper's own excitation (resonance_test), where measured
-    klipper_test_shapers: dict[str, tuple[str, float]] | None = None
 
 
 def user_profile(truth_path: Path, folder: Path) -> Path:
@@ -89,20 +148,23 @@ def user_profile(truth_path: Path, folder: Path) -> Path:
 
 
 def recorded_sweep(truth, user, axis: str, folder: Path, sweep_args=(), as_written: bool = False,
-                   chip: Accelerometer | None = None) -> tuple[Path, Path]:
-    """(the program klippy ran, the recording): ``fbspost excite`` of ``axis`` run by klippy,
-    recorded through the truth."""
+                   chip: Accelerometer | None = None, flavor: str = "klipper") -> tuple[Path, Path]:
+    """(the program the firmware ran, the recording): ``fbspost excite --flavor`` of ``axis`` run
+    by the firmware (``recorded``), recorded through the truth; ``as_written``: Klipper's only."""
     program = folder / f"sweep-{axis}.gcode"
-    cli("excite", "-m", user, "--axis", axis, "--center", CENTER_MM, *sweep_args, "-o", program)
+    cli("excite", "-m", user, "--axis", axis, "--center", CENTER_MM, "--flavor", flavor, *sweep_args, "-o", program)
     if as_written:
         program.write_text(AS_WRITTEN + program.read_text())
-    return program, recorded(program, truth, user, folder / f"raw_data_{axis.lower()}.csv", chip)
+    return program, recorded(program, truth, user, folder / f"raw_data_{axis.lower()}.csv", chip, flavor)
 
 
-def recorded(program: Path, truth, user, log: Path, chip: Accelerometer | None = None) -> Path:
-    """The recording ``log`` of ``program`` run by klippy (configured from the profile ``user``)
-    through the truth's modes, from ``REST_S`` before to ``REST_S`` after."""
-    motion = executed(program, load_profile(user), "klipper")
+def recorded(program: Path, truth, user, log: Path, chip: Accelerometer | None = None, flavor: str = "klipper") -> Path:
+    """The recording ``log`` of ``program`` run by klippy (or by the model of ``flavor``'s planner),
+    configured from the profile ``user``, through the truth's modes, from ``REST_S`` before to
+    ``REST_S`` after."""
+    profile = load_profile(user)
+    motion = (executed(program, profile, "klipper") if flavor == "klipper"
+              else PLANNER_MODELS[flavor](list(read_gcode(program, flavor, profile.home_mm)), profile))
     t_s = np.arange(-REST_S, motion.duration_s + REST_S, 1e-4)
     modes = {name: truth.axes[name].modes for name in "XY"}
     return write_csv(log, record(t_s, motion.at(t_s)[:, :2], modes, chip or Accelerometer()))
@@ -129,96 +191,148 @@ def resonance_test(axis: str, center_mm: float, start_hz: float = 5.0, end_hz: f
     return "\n".join([*lines, "G4 P1000"]) + "\n"
 
 
-def shaper_calibrate(log: Path) -> tuple[str, float]:
+def shaper_calibrate(log: Path, types=None) -> tuple[str, float]:
     """(shaper type, frequency Hz) Klipper's calibrate_shaper.py picks from a raw recording: its
-    own ShaperCalibrate, with its defaults (no max_smoothing)."""
+    own ShaperCalibrate, with its defaults (no max_smoothing); among ``types`` (Klipper's names),
+    by default its own list (``AUTOTUNE_SHAPERS``), with its own rule."""
     load_klippy(klippy_dir())
     module = importlib.import_module("klippy.extras.shaper_calibrate")
     helper = module.ShaperCalibrate(printer=None)
     data = helper.process_accelerometer_data(np.loadtxt(log, comments="#", delimiter=","))
     data.normalize_to_frequencies()
-    best, _ = helper.find_best_shaper(data, None)
+    autotune = module.AUTOTUNE_SHAPERS
+    module.AUTOTUNE_SHAPERS = list(types or autotune)
+    try:
+        best, _ = helper.find_best_shaper(data, None)
+    finally:
+        module.AUTOTUNE_SHAPERS = autotune
     return best.name, float(best.freq)
 
 
+def firmware_choices(flavor: str, logs: dict[str, Path], identified: Path, label: str = ""
+                     ) -> dict[str, tuple[Baseline, dict[str, tuple[str, float, float]]]]:
+    """``Measured.shapers`` from the recordings ``logs`` (by axis): each of ``flavor``'s baselines at
+    shaper_calibrate's choice among its types (a one-for-all's: each axis' choice on every axis),
+    damping Klipper's default; Marlin's ZV also at the ``identified`` profile's dominant modes."""
+    out = {}
+    for baseline in BASELINES[flavor]:
+        chosen = {}
+        for axis, log in logs.items():
+            name, f_hz = shaper_calibrate(log, baseline.types)
+            chosen[axis] = ((baseline.types or {}).get(name, name), f_hz, KLIPPER_DAMPING)
+        runs = ({f"{axis}'s on every axis": {a: choice for a in logs} for axis, choice in chosen.items()}
+                if baseline.one_for_all else {"": chosen})
+        for how, choice in runs.items():
+            text = ", ".join(f"{a} {name} {f:.1f} Hz" for a, (name, f, _) in choice.items())
+            out[f"{label or baseline.label}{', ' if how else ''}{how}: {text}"] = (baseline, choice)
+    if flavor == "marlin":
+        dominant = shaper_settings(load_profile(identified))
+        text = ", ".join(f"{a} {f:.1f} Hz D {zeta:.3f}" for a, (f, zeta) in dominant.items())
+        out[f"Marlin ZV, identified modes: {text}"] = (MARLIN_ZV, {a: ("zv", *fz) for a, fz in dominant.items()})
+    return out
+
+
 def measure(truth_path: Path, folder: Path, sweep_args=(), as_written: bool = False,
-            chip: Accelerometer | None = None, klipper_test: bool = False) -> Measured:
-    """X then Y measured as the user would (see the module docstring); with ``klipper_test`` also
-    shaper_calibrate on recordings of Klipper's own excitation (``resonance_test``)."""
+            chip: Accelerometer | None = None, klipper_test: bool = False, flavor: str = "klipper") -> Measured:
+    """X then Y measured as the user would (see the module docstring), on ``flavor``'s firmware;
+    with ``klipper_test`` also shaper_calibrate on recordings of Klipper's own excitation
+    (``resonance_test``, run by klippy)."""
     truth = load_profile(truth_path)
     user = user_profile(truth_path, folder)
-    identified, outputs, shapers = folder / "identified.toml", [], {}
+    identified, outputs, logs = folder / "identified.toml", [], {}
     for axis in "XY":
-        program, log = recorded_sweep(truth, user, axis, folder, sweep_args, as_written, chip)
-        outputs.append(cli("identify", "--accel-log", log, "--program", program, "--axis", axis, "-o", identified,
-                           "--merge", identified if axis == "Y" else user))
-        shapers[axis] = shaper_calibrate(log)
-    cfg = folder / "printer.cfg"
-    cfg.write_text("[input_shaper]\n" + "".join(f"shaper_type_{a.lower()}: {name}\nshaper_freq_{a.lower()}: {f:.1f}\n"
-                                                for a, (name, f) in shapers.items()))
-    from_cfg = folder / "from-cfg.toml"
-    cli("identify", "--klipper-cfg", cfg, "--merge", user, "-o", from_cfg)
-    klipper_test_shapers = None
+        program, logs[axis] = recorded_sweep(truth, user, axis, folder, sweep_args, as_written, chip, flavor)
+        outputs.append(cli("identify", "--accel-log", logs[axis], "--program", program, "--machine", user,
+                           "--axis", axis, "-o", identified, "--merge", identified if axis == "Y" else user))
+    shapers = firmware_choices(flavor, logs, identified)
+    from_cfg = None
+    if flavor == "klipper":
+        ((_, choice),) = shapers.values()
+        cfg, from_cfg = folder / "printer.cfg", folder / "from-cfg.toml"
+        cfg.write_text("[input_shaper]\n" + "".join(f"shaper_type_{a.lower()}: {name}\nshaper_freq_{a.lower()}: "
+                                                    f"{f:.1f}\n" for a, (name, f, _) in choice.items()))
+        cli("identify", "--klipper-cfg", cfg, "--merge", user, "-o", from_cfg)
     if klipper_test:
-        klipper_test_shapers = {}
+        tests = {}
         for axis in "XY":
             program = folder / f"resonance-test-{axis}.gcode"
             program.write_text(resonance_test(axis, CENTER_MM))
-            log = recorded(program, truth, user, folder / f"resonances_{axis.lower()}.csv", chip)
-            klipper_test_shapers[axis] = shaper_calibrate(log)
-    return Measured(user, identified, from_cfg, shapers, "".join(outputs), klipper_test_shapers)
+            tests[axis] = recorded(program, truth, user, folder / f"resonances_{axis.lower()}.csv", chip)
+        shapers.update(firmware_choices("klipper", tests, identified, "TEST_RESONANCES"))
+    return Measured(flavor, user, identified, from_cfg, shapers, "".join(outputs))
 
 
 @dataclass
 class Row:
     """One way of running the print, on the truth."""
 
-    print_s: float  # klippy's (a shaper's: plus its lag)
+    print_s: float  # the firmware's (a shaper's: plus the time it adds)
     rms_um: float
     max_um: float
     predicted_rms_um: float | None = None  # fbspost's figure for its output (the identified modes)
     note: str = ""
 
 
-def compensate(program: Path, profile: Path, output: Path, timeout_s: float) -> bool:
-    """``fbspost compensate --flavor klipper`` in a process of its own; False if it took longer
+def compensate(program: Path, profile: Path, output: Path, timeout_s: float, flavor: str = "klipper") -> bool:
+    """``fbspost compensate --flavor FLAVOR`` in a process of its own; False if it took longer
     than ``timeout_s`` (then stopped)."""
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
     try:
         subprocess.run([sys.executable, "-m", "fbspost.cli", "compensate", str(program), "-m", str(profile), "-o",
-                        str(output), "--flavor", "klipper", "-q"], cwd=ROOT, env=env, check=True, timeout=timeout_s)
+                        str(output), "--flavor", flavor, "-q"], cwd=ROOT, env=env, check=True, timeout=timeout_s)
     except subprocess.TimeoutExpired:
         return False
     return True
 
 
+def firmware_run(program: Path, user, flavor: str):
+    """``program`` as the firmware runs it (bench/firmware.py's ``Run``): klippy's planner, or the
+    model of ``flavor``'s planner at the profile's line budget."""
+    if flavor == "klipper":
+        return klippy_as_run(program, user, "klipper")
+    return model_run(program, user, flavor, user.firmware.max_line_rate_hz)
+
+
+def shaped_run(plan: np.ndarray, user, baseline: Baseline, choice: dict) -> tuple[np.ndarray, np.ndarray, float]:
+    """(the command, the plan padded alike, the time the shaping adds) of ``baseline``'s shapers at
+    ``choice`` (per axis: type, frequency, damping) on ``plan``: Klipper's on the plan; a firmware's
+    through its whole steps (bench/marlin_baseline.py)."""
+    shapers = {axis: baseline.make(*setting) for axis, setting in choice.items()}
+    if baseline.shape_axis is None:
+        ((command, padded, lag_s),) = shaped_plans(plan, user, {"": shapers}).values()
+        return command, padded, lag_s
+    return shaped(plan, user, shapers, baseline.shape_axis(user.firmware.steps_per_mm))
+
+
+FBS_ROWS = ("FBS, --klipper-cfg", "FBS, measured", "FBS, exact model")
+
+
 def evaluate(program: Path, truth_path: Path, measured: Measured, folder: Path,
-             timeout_s: float = COMPENSATE_TIMEOUT_S) -> dict[str, Row]:
-    """The print's rows: original, shaper_calibrate's choice, FBS from printer.cfg, FBS measured,
-    FBS with the exact model (see the module docstring); a compensate over ``timeout_s``: NaN."""
-    truth, user = load_profile(truth_path), load_profile(measured.user)
-    seconds, moves, plan = klippy_run(program, user, "klipper")
-    path, printer = printed_path(*move_ends(moves))
+             timeout_s: float = COMPENSATE_TIMEOUT_S, fbs=FBS_ROWS) -> dict[str, Row]:
+    """The print's rows: original, the firmware's shapers, the ``fbs`` rows: FBS from printer.cfg
+    (Klipper), FBS measured, FBS with the exact model (see the module docstring); a compensate over
+    ``timeout_s``: NaN."""
+    truth, user, flavor = load_profile(truth_path), load_profile(measured.user), measured.flavor
+    original = firmware_run(program, user, flavor)
 
     def contour(command, reference, machine=truth):
-        return contour_um(modelled(command, machine), reference, path, printer)
+        stepped = command if flavor == "klipper" else stepper_positions(command, user.firmware.steps_per_mm)
+        return contour_um(modelled(stepped, machine), reference, original.path, original.printer)
 
-    rows = {"original": Row(seconds, *contour(plan, plan))}
-    for label, choice in (("shaper_calibrate", measured.shapers), ("TEST_RESONANCES", measured.klipper_test_shapers)):
-        if choice:
-            chosen = {a: klipper_shaper(name, freq, KLIPPER_DAMPING) for a, (name, freq) in choice.items()}
-            name = f"{label}: " + ", ".join(f"{a} {shaper} {freq:.1f} Hz" for a, (shaper, freq) in choice.items())
-            ((command, padded, lag_s),) = shaped_plans(plan, user, {name: chosen}).values()
-            rows[name] = Row(seconds + lag_s, *contour(command, padded))
-    for name, profile in (("FBS, --klipper-cfg", measured.from_cfg), ("FBS, measured", measured.identified),
-                          ("FBS, exact model", truth_path)):
+    rows = {"original": Row(original.seconds, *contour(original.samples, original.samples))}
+    for name, (baseline, choice) in measured.shapers.items():
+        command, padded, added_s = shaped_run(original.samples, user, baseline, choice)
+        rows[name] = Row(original.seconds + added_s, *contour(command, padded))
+    profiles = dict(zip(FBS_ROWS, (measured.from_cfg, measured.identified, truth_path), strict=True))
+    for name in (n for n in fbs if profiles[n]):
         output = folder / f"{program.stem}-{name.split()[-1].strip('-')}.gcode"
-        if not compensate(program, profile, output, timeout_s):
+        if not compensate(program, profiles[name], output, timeout_s, flavor):
             rows[name] = Row(math.nan, math.nan, math.nan, note=f"compensate stopped after {timeout_s:g} s")
             continue
-        out_s, _, out_plan = klippy_run(output, user, "klipper")
-        predicted = contour(out_plan, out_plan, load_profile(profile))[0] if profile == measured.identified else None
-        rows[name] = Row(out_s, *contour(out_plan, out_plan), predicted)
+        out = firmware_run(output, user, flavor)
+        predicted = (contour(out.samples, out.samples, load_profile(profiles[name]))[0]
+                     if name == "FBS, measured" else None)
+        rows[name] = Row(out.seconds, *contour(out.samples, out.samples), predicted)
     return rows
 
 

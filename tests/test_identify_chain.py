@@ -136,3 +136,46 @@ def test_measured_profile_beats_shaper_calibrate_on_klippy(tmp_path):
     assert fbs.rms_um <= 0.5 * shaper.rms_um
     assert fbs.max_um < original.max_um
     assert 0.5 <= fbs.predicted_rms_um / fbs.rms_um <= 2.0
+
+
+# Marlin's and RRF's chains (their planners' models, fbspost.firmware.PLANNER_MODELS): the sweep
+# written for the firmware and recorded from the model's run of it; the baseline the firmware's own
+# shaping through whole steps at what shaper_calibrate picks among its types (tests/identify_chain.py).
+# Sweeps: RRF 12 s; Marlin 30 s (truth A's 12 s Y recording on the Marlin model was refused by
+# identify: a second mode of damping 8.1e-5, uncertain by 393%; 30 s identifies it).
+FIRMWARE_CHAINS = [
+    ("reprap", "truth-a.toml", 12.0),
+    ("reprap", "truth-b.toml", 12.0),
+    ("marlin", "truth-a.toml", 30.0),
+    pytest.param("marlin", "truth-b.toml", 30.0, marks=pytest.mark.xfail(strict=True, reason=(
+        "measured on the Marlin model through truth B, the gear's first 1500 lines (30 s sweeps): FBS from the "
+        "recordings 8.87 um RMS (predicted 8.86; max 70.0 against the original's 139.5), Marlin's ZV 9.27 at the "
+        "identified modes (X 41.0 Hz D 0.09, Y 45.0 Hz D 0.06) and 12.12 at shaper_calibrate's (X 39.2, Y 44.6 Hz): "
+        "1.05x, not 2x. Not the identification: FBS with the exact model leaves as much on the Marlin model "
+        "(the first 8000 lines: 6.98 um, measured 6.57, ZV 8.35): what Marlin runs of fbspost's output "
+        "(whole-step block ends, its short-segment merge) bounds it (docs/identify.md)"))),
+]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("flavor, truth_name, sweep_s", FIRMWARE_CHAINS)
+def test_measured_profile_beats_the_firmwares_own_shaping(tmp_path, flavor, truth_name, sweep_s):
+    """Marlin's and RRF's chains (their planners' models), the gear's first 1500 lines: FBS from the
+    recordings leaves at most half the RMS contour error of the firmware's own shaping (Marlin:
+    INPUT_SHAPING's ZV per axis, the better of shaper_calibrate's ZV and the identified modes;
+    RRF: the better of its M593 shaper at X's and at Y's choice) from the same recordings, a
+    largest error below the original's, and predicts its error within 2x. Every figure: the
+    firmware model's plan on whole steps through the truth's modes. FT_MOTION is printed, not asserted."""
+    from identify_chain import evaluate, excerpt, measure, modes_text, table
+
+    truth = DATA / truth_name
+    measured = measure(truth, tmp_path, ("--duration", sweep_s), flavor=flavor)
+    print(measured.identify_output, modes_text(measured.identified), sep="\n")
+    rows = evaluate(excerpt("tests/data/gear-marlin2.gcode", 1500, tmp_path), truth, measured, tmp_path, 300.0,
+                    fbs=("FBS, measured",))
+    print(table(rows))
+    original, fbs = rows["original"], rows["FBS, measured"]
+    baseline = min(row.rms_um for name, row in rows.items() if name.startswith(("Marlin ZV", "RRF M593")))
+    assert fbs.rms_um <= 0.5 * baseline
+    assert fbs.max_um < original.max_um
+    assert 0.5 <= fbs.predicted_rms_um / fbs.rms_um <= 2.0
