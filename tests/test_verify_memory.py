@@ -1,6 +1,6 @@
 """--verify's memory does not grow with the program's length (issue 33 item 4): the gear stacked
-once and three times, each checked in a fresh process with chunks lowered to 5000 lines. (Before
-it streamed, verify held every block and sample: about 4 kB a line, 300 MB more for the 75,000
+once and twice, each checked in a fresh process with chunks lowered to 5000 lines. (Before
+it streamed, verify held every block and sample: about 4 kB a line, 150 MB more for the 37,000
 more lines here.)"""
 import importlib.util
 import os
@@ -37,10 +37,10 @@ def stacked(copies: int, path: Path) -> Path:
 
 @pytest.mark.slow
 def test_verify_memory_is_flat_with_length(tmp_path):
-    """Peak memory of the check of 37k and 112k lines: within 40 MB of each other; the print
-    three times as long takes three times as long on the model (a real run, not a shortcut)."""
+    """Peak memory of the check of 37k and 75k lines: within 40 MB of each other; the print
+    twice as long takes twice as long on the model (a real run, not a shortcut)."""
     results = []
-    for copies in (1, 3):
+    for copies in (1, 2):
         done = subprocess.run([sys.executable, "-c", _VERIFY, str(stacked(copies, tmp_path / f"gear{copies}.gcode"))],
                               capture_output=True, text=True, timeout=1800,
                               env={**os.environ, "OPENBLAS_NUM_THREADS": "1"})
@@ -48,6 +48,6 @@ def test_verify_memory_is_flat_with_length(tmp_path):
         (duration_s, rms_um), (peak_kb,) = (map(float, line.split()) for line in done.stdout.splitlines()[-2:])
         results.append((duration_s, rms_um, peak_kb))
     (short_s, short_um, short_kb), (long_s, long_um, long_kb) = results
-    assert long_s == pytest.approx(3 * short_s, rel=0.01)  # (the copies' travels between them: within 1%)
+    assert long_s == pytest.approx(2 * short_s, rel=0.01)  # (the copies' travels between them: within 1%)
     assert long_um == pytest.approx(short_um, rel=0.05)  # the same layers
     assert long_kb < short_kb + 40_000, (short_kb, long_kb)
