@@ -97,6 +97,8 @@ def sweep_samples(axis: AxisProfile, centre_mm: float, start_hz: float, end_hz: 
 
 
 _TOLERANCE_MM = 1e-3  # LinuxCNC's G64 P: the sweep's blocks are collinear, nothing to blend
+
+
 def linuxcnc_sweep(axis: AxisProfile, centre_mm: float, start_hz: float, end_hz: float, duration_s: float,
                    amplitude_mm: float, servo_period_s: float) -> tuple[np.ndarray, np.ndarray, int]:
     """A sweep LinuxCNC 2.9 runs as written: (positions at the block ends, each block's F in mm/s,

@@ -871,7 +871,6 @@ class _BlockReader:
             return cum_dwell + settle_s
         return cum_dwell
 
-
     def end_prints(self, key: int, extrudes: bool) -> bool | None:
         """Whether the end of run ``key`` whose piece there ``extrudes`` prints, or (None) the
         program has not printed before that run (``RunMargins``): known from the blocks read up to it."""

@@ -228,7 +228,7 @@ class _Emitter:
         self.steps_per_mm, self.min_steps, self.crossings = steps_per_mm, min_steps, crossings
         self.held = None  # (targets, durations, ends) of blocks that wait for the next call
         self.crossing_from = self.plain = None  # on crossings: the last kept end written (_held_from), the merge
-        self.rounding = [rounding_for(axis_modes[i] if i < len(axis_modes) else ()) for i in range(3)]  # X Y Z
+        self.rounding = [rounding_for(axis_modes[i] if i < len(axis_modes) else ()) for i in range(3)]  # X Y Z steps
         self.rounding_state = [np.zeros(r.size) for r in self.rounding]
         self.shift_mm = np.zeros(len(AXES))  # controller frame minus program frame, per axis (G92 mid-motion)
         self.written = self.to_program(start_mm)
