@@ -1,8 +1,9 @@
 """LinuxCNC 2.9's trajectory planner (TP) over a program's moves: the motion the machine makes.
 
 Takes the blocks of a program (``gcode.read_gcode``), a machine profile and a ``LinuxCNCConfig``
-(the INI's limits, LinuxCNC's defaults); gives ``LinuxCNCRun``: the commanded position every
-servo period, when each line's motion ends, and the positions on the profile's sample grid
+(the INI's limits, LinuxCNC's defaults); gives ``LinuxCNCRun``: the TP's position and the
+joints' commands every servo period, when each line's motion ends, and the joints' positions on
+the profile's sample grid
 (``firmware.replan(..., "linuxcnc")`` wraps it as ``FirmwareMotion``).
 
 Modelled from LinuxCNC/linuxcnc src/emc/tp (tp.c, tc.c, blendmath.c of the 2.8/2.9 line as the
@@ -43,9 +44,13 @@ and its jerk limits came with 2.10) and the INI documentation ([TRAJ] ARC_BLEND_
 Not modelled: feed override (1.0), spindle sync, naive-CAM merging (Q > 0: the writer sends
 Q0), the queue filling while motion runs (the whole run is queued before it starts; the TP's
 queue holds 2000 segments), blends into a segment already past a quarter of its length.
-Between servo periods the position is interpolated linearly (what a stepgen or drive in
-position mode does). A line that stops the machine (G4, M-codes: ``Kind.STOP``) waits for the
-queue to empty, then its dwell. Units: mm, s.
+The joints get the TP's points through the motion controller's cubic interpolator (cubic.c
+at interpolation rate 1, the servo period being the trajectory period): each period the way
+point (1/6, 2/3, 1/6) of the three points before the newest, so 2 periods late, a pass-band
+2/3 + 1/3 cos(2 pi f T) at frequency f; the first point fills the queue. Between servo periods
+the joints' position is interpolated linearly (what a stepgen or drive in position mode does).
+A line that stops the machine (G4, M-codes: ``Kind.STOP``) waits for the queue to empty, then its
+dwell. Units: mm, s.
 """
 from __future__ import annotations
 
@@ -557,18 +562,30 @@ class LinuxCNCRun:
     """What LinuxCNC does with a program (see the module docstring)."""
 
     servo_period_s: float
-    cycle_positions_mm: np.ndarray  # (n, NA) the commanded position at t = k * period
-    line_time_s: np.ndarray  # (lines,) when each line's motion ends (else when it is reached)
-    duration_s: float
+    cycle_positions_mm: np.ndarray  # (n, NA) the TP's position at t = k * period
+    joint_positions_mm: np.ndarray  # (n + 3, NA) the joints' commands at t = k * period (the interpolator's)
+    line_time_s: np.ndarray  # (lines,) when the joints end each line's motion (else reach it)
+    duration_s: float  # until the joints are at rest
 
     def positions_mm(self, sample_rate_hz: float) -> np.ndarray:
         """(n, NA) positions at t = k / sample_rate_hz through the end, linear between periods."""
         return self.at(np.arange(math.floor(self.duration_s * sample_rate_hz) + 2) / sample_rate_hz)
 
     def at(self, t: np.ndarray) -> np.ndarray:
-        """(len(t), NA) positions at the times ``t`` (s), linear between periods."""
-        grid = np.arange(len(self.cycle_positions_mm)) * self.servo_period_s
-        return np.column_stack([np.interp(t, grid, self.cycle_positions_mm[:, i]) for i in range(_NA)])
+        """(len(t), NA) the joints' positions at the times ``t`` (s), linear between periods."""
+        grid = np.arange(len(self.joint_positions_mm)) * self.servo_period_s
+        return np.column_stack([np.interp(t, grid, self.joint_positions_mm[:, i]) for i in range(_NA)])
+
+
+INTERPOLATOR_DELAY_PERIODS = 2  # cubic.c: the way point of x0 x1 x2, x3 the newest point
+
+
+def interpolated(tp_mm: np.ndarray) -> np.ndarray:
+    """The joints' commands (n + 3, NA) for the TP's points ``tp_mm`` (n, NA) every period: at
+    period k (p[k-3] + 4 p[k-2] + p[k-1]) / 6, the first point before the start, the last after
+    the end (at rest from period n + 2 on)."""
+    padded = np.vstack([tp_mm[:1]] * 3 + [tp_mm] + [tp_mm[-1:]] * 2)
+    return (padded[:-2] + 4.0 * padded[1:-1] + padded[2:]) / 6.0
 
 
 def _segment(block: Block, index: int, start: np.ndarray, mode: tuple[str, float],
@@ -655,5 +672,7 @@ def run_linuxcnc(blocks: list[Block], profile: MachineProfile, config: LinuxCNCC
                 position = tc.end
         line_time[index] = (len(out) - 1) * T
     _drain(queue.items, out[-1], config, out, line_time)
+    joints = interpolated(np.array(out))
     # a line blended away (consumed by a blend arc) or without motion: when the motion before it ends
-    return LinuxCNCRun(T, np.array(out), np.fmax.accumulate(line_time), (len(out) - 1) * T)
+    return LinuxCNCRun(T, np.array(out), joints, np.fmax.accumulate(line_time) + INTERPOLATOR_DELAY_PERIODS * T,
+                       (len(joints) - 1) * T)

@@ -27,13 +27,15 @@ def blocks_of(tmp_path, text: str, flavor: str):
     return list(read_gcode(path, flavor))
 
 
-@pytest.mark.parametrize("flavor, accel", [("klipper", 3000.0), ("linuxcnc", 5000.0)])
-def test_single_trapezoid(tmp_path, flavor, accel):
+@pytest.mark.parametrize("flavor, accel, periods", [("klipper", 3000.0, 0), ("linuxcnc", 5000.0, 3)])
+def test_single_trapezoid(tmp_path, flavor, accel, periods):
     """100 mm at 100 mm/s from rest to rest at 3000 mm/s^2: 1 + 100 / 3000 s (Marlin's:
     tests/test_marlin.py; RepRapFirmware's: tests/test_reprap.py). LinuxCNC ramps at the INI's X
-    acceleration (the profile's axis limit, 10000 mm/s^2), halved in G64 (tests/test_linuxcnc_tp.py)."""
+    acceleration (the profile's axis limit, 10000 mm/s^2), halved in G64 (tests/test_linuxcnc_tp.py);
+    its joints, through its cubic interpolator, are at rest 3 servo periods after its planner."""
     motion = replan(blocks_of(tmp_path, "G1 X0 Y0 F6000\nG1 X100 F6000\n", flavor), PRINTER, flavor)
-    assert motion.duration_s == pytest.approx(1.0 + 100.0 / accel, rel=1e-12)
+    period_s = PRINTER.firmware.linuxcnc.servo_period_s
+    assert motion.duration_s == pytest.approx(1.0 + 100.0 / accel + periods * period_s, rel=1e-12)
     assert motion.positions_mm[-1, 0] == pytest.approx(100.0, abs=1e-9)
 
 

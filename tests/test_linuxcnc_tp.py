@@ -18,7 +18,7 @@ import pytest
 
 from fbspost.firmware import replan
 from fbspost.gcode import read_gcode
-from fbspost.linuxcnc_tp import LinuxCNCConfig, _Queue, _segment, run_linuxcnc
+from fbspost.linuxcnc_tp import LinuxCNCConfig, _Queue, _segment, interpolated, run_linuxcnc
 from fbspost.profile import load_profile
 
 STAGE = load_profile("patent-xy-stage")
@@ -51,13 +51,18 @@ def speeds(run) -> np.ndarray:
     return np.linalg.norm(np.diff(run.cycle_positions_mm[:, :2], axis=0), axis=1) / run.servo_period_s
 
 
+def tp_duration_s(run) -> float:
+    """How long the TP itself runs (the joints follow it through the interpolator, later)."""
+    return (len(run.cycle_positions_mm) - 1) * run.servo_period_s
+
+
 def test_a_long_line_cruises_at_f_and_ramps_at_half_the_acceleration_in_g64(tmp_path):
     # G64: the last segment's terminal condition is parabolic, which halves its acceleration
     # (tcGetOverallMaxAccel) though no segment follows; G61.1 ramps at the INI's
     done = run(tmp_path, ["G64 P0.01", "G1 X20 F6000"])
     assert speeds(done)[100:150] == pytest.approx(100.0, rel=1e-9)
-    assert done.duration_s == pytest.approx(20.0 / 100.0 + 100.0 / (A / 2), abs=2 * T)
-    assert run(tmp_path, ["G61.1", "G1 X20 F6000"]).duration_s == pytest.approx(0.2 + 100.0 / A, abs=2 * T)
+    assert tp_duration_s(done) == pytest.approx(20.0 / 100.0 + 100.0 / (A / 2), abs=2 * T)
+    assert tp_duration_s(run(tmp_path, ["G61.1", "G1 X20 F6000"])) == pytest.approx(0.2 + 100.0 / A, abs=2 * T)
     assert done.cycle_positions_mm[-1, 0] == pytest.approx(20.0, abs=1e-12)
 
 
@@ -83,7 +88,7 @@ def test_an_axis_the_profile_leaves_out_moves_at_the_slowest_given_limits(tmp_pa
     never end (no limit: an infinite acceleration)."""
     done = run(tmp_path, ["G0 Z0", "G61.1", "G1 Z-2 F100"])
     v = 100.0 / 60.0
-    assert done.duration_s == pytest.approx(2.0 / v + v / A, abs=2 * T)
+    assert tp_duration_s(done) == pytest.approx(2.0 / v + v / A, abs=2 * T)
 
 
 @pytest.mark.parametrize("depth", [2, 50])
@@ -117,7 +122,7 @@ def test_an_exact_stop_corner_stops_and_each_line_is_a_trapezoid(tmp_path, mode,
     done = run(tmp_path, [mode, "G1 X10 F6000", "G1 X10 Y10"])
     corner = np.linalg.norm(done.cycle_positions_mm[:, :2] - [10.0, 0.0], axis=1)
     assert corner.min() < 1e-12  # it reaches the corner itself
-    assert done.duration_s == pytest.approx(2 * (10.0 / 100.0 + 100.0 / accel), abs=1.5 * T)
+    assert tp_duration_s(done) == pytest.approx(2 * (10.0 / 100.0 + 100.0 / accel), abs=1.5 * T)
 
 
 def test_a_g64_p_corner_gets_the_blend_arc_of_blendmath(tmp_path):
@@ -168,14 +173,46 @@ def test_a_tangent_junction_keeps_the_speed_and_replan_uses_the_model(tmp_path):
 
 def test_the_model_against_linuxcnc_s_own_trajectory_planner(tmp_path):
     """LinuxCNC 2.9's own TP ran the G64 P0.01 corner (tests/data/linuxcnc-corner-joints.txt, its
-    joint commands every servo period). Its joints get the TP's positions through the motion
-    controller's interpolation: (1, 5, 5, 1) / 12 of consecutive TP positions (the average of two
-    consecutive B-spline points of cubic.c), 2 periods later, as measured on that output; the
-    model's positions so filtered are within 3 um of LinuxCNC's (printed to 1 nm) all the way."""
+    joint commands every servo period, the record starting 3 periods before the motion). The
+    model's joint commands (the TP's points through the interpolator) are LinuxCNC's within 3 um
+    all the way (measured 2.57 um), half a period later: LinuxCNC's first period of this motion
+    ramps for half of it (its joints' first step is a T^2 / 24, the model's a T^2 / 12), the
+    same ramp from there on. Before the model had the interpolator, this test filtered its TP
+    points by (1, 5, 5, 1) / 12: the same half-period average, 2 periods later."""
     real = np.loadtxt(Path(__file__).parent / "data" / "linuxcnc-corner-joints.txt")
-    model = run(tmp_path, ["G64 P0.01", "G1 X10 F6000", "G1 X10 Y10"]).cycle_positions_mm[:, :2]
-    # the record starts 3 periods before the motion, the joints trail the TP by 2 more
-    model = np.vstack([np.zeros((5, 2)), model, np.repeat(model[-1:], 8, axis=0)])
-    joints = (model[:-3] + 5 * model[1:-2] + 5 * model[2:-1] + model[3:]) / 12
-    assert np.abs(real - joints[:len(real)]).max() < 0.003
-    assert np.abs(joints[len(real):] - [10.0, 10.0]).max() < 1e-12  # and at rest when LinuxCNC is
+    done = run(tmp_path, ["G64 P0.01", "G1 X10 F6000", "G1 X10 Y10"])
+    model = done.at((np.arange(len(real) + 20) - 1.5) * T)[:, :2]
+    assert real[3, 0] == pytest.approx(A * T * T / 24, abs=1e-6)  # (6 decimals)
+    assert model[3, 0] == pytest.approx(A * T * T / 24, abs=1e-12)
+    assert np.abs(real - model[:len(real)]).max() < 0.003
+    assert np.abs(model[len(real):] - [10.0, 10.0]).max() < 1e-12  # and at rest when LinuxCNC is
+
+
+def cubic_c(points: np.ndarray) -> list[float]:
+    """LinuxCNC's cubic.c at interpolation rate 1 as control.c drives it, step by step: each
+    servo period the TP's newest point is added (the first fills all four slots; after the end
+    the TP stays at its last), then the cubic is evaluated at its start, its way point wp0."""
+    x, out = [], []
+    for p in list(points) + [points[-1]] * 3:
+        x = [p] * 4 if not x else x[1:] + [p]
+        out.append((x[0] + 4 * x[1] + x[2]) / 6)
+    return out
+
+
+def test_the_joints_get_the_tp_s_points_through_linuxcnc_s_cubic_interpolator(tmp_path):
+    """The joints' commands are the TP's points through cubic.c (each period the way point
+    (1, 4, 1) / 6 of the three points before the newest: 2 periods late), checked against a step
+    by step rendering of cubic.c on a corner and against the closed form of its pass-band on a
+    sine: 2/3 + 1/3 cos(2 pi f T), 2 periods late. The run ends when the joints are at rest."""
+    done = run(tmp_path, ["G64 P0.01", "G1 X10 F6000", "G1 X10 Y10"])
+    tp = done.cycle_positions_mm
+    for axis in (0, 1):
+        assert done.joint_positions_mm[:, axis] == pytest.approx(cubic_c(tp[:, axis]), abs=1e-12)
+    assert done.duration_s == pytest.approx((len(tp) + 2) * T, abs=1e-12)
+    at_rest = np.abs(done.joint_positions_mm[:, :2] - [10.0, 10.0]).max(axis=1) < 1e-12
+    assert at_rest[-1] and not at_rest[-2]
+    f_hz = 100.0
+    k = np.arange(400)
+    joints = interpolated(np.sin(2 * np.pi * f_hz * k * T)[:, None])[:, 0]
+    gain = 2 / 3 + np.cos(2 * np.pi * f_hz * T) / 3  # 0.9738 at 100 Hz, 1 ms
+    assert joints[10:400] == pytest.approx(gain * np.sin(2 * np.pi * f_hz * (k[10:400] - 2) * T), abs=1e-12)
