@@ -2,7 +2,7 @@
 firmware's own input shaping as Klipper's own shaper_calibrate picks it from the same recordings
 (tests/identify_chain.py).
 
-Run from the repository root:  python bench/identify_chain.py [--flavor klipper|marlin|reprap]
+Run from the repository root:  python bench/identify_chain.py [--flavor klipper|marlin|reprap|linuxcnc]
 [--as-written] [--drift-ppm PPM] [--lines N] [--duration S]
 
 For each held-out truth (tests/data/truth-a.toml, truth-b.toml: never tuned on), as a Klipper
@@ -36,6 +36,16 @@ from the model's motion; the baseline that firmware's own input shaping through 
 INPUT_SHAPING's ZV per axis, also at the identified dominant modes, and FT_MOTION's types; RRF: its
 M593 types, one shaper for X and Y, each axis' choice on both); fbspost's output written for that
 flavor and run by the same model; no --klipper-cfg or TEST_RESONANCES rows.
+
+``--flavor linuxcnc`` (needs linuxcnc-uspace): EVERY FIGURE BUT "predicted" COMES FROM LINUXCNC
+2.9 ITSELF THROUGH THE TRUTH MODEL: the held-out CNC truth tests/data/truth-stage.toml, sweeps of
+10 s, 5-100 Hz (``--duration``) at the middle of the travel, written ``--flavor linuxcnc`` and run
+by LinuxCNC itself (its joint commands every servo period), recorded alike; identify plans them
+with the model of LinuxCNC's planner; the prints the dense butterfly and the 0.05 mm chords
+(samples/), whole, compensated ``--flavor linuxcnc`` and run by LinuxCNC itself (its task is not
+real-time here: the load average matters); the baseline Klipper's shaper at shaper_calibrate's
+choice (LinuxCNC has none) on LinuxCNC's run of the original; no whole steps (a servo stage);
+"predicted" the model of LinuxCNC's planner's run of the output through the identified modes.
 """
 from __future__ import annotations
 
@@ -53,28 +63,37 @@ from identify_chain import evaluate, excerpt, measure, modes_text, table  # noqa
 
 TRUTHS = ("tests/data/truth-a.toml", "tests/data/truth-b.toml")
 PRINTS = ("tests/data/gear-marlin2.gcode", "tests/data/bracket-reprapfirmware-relative-e.gcode")
+LINUXCNC_TRUTHS = ("tests/data/truth-stage.toml",)
+LINUXCNC_PRINTS = ("samples/butterfly-dense.gcode", "samples/butterfly-polyline.gcode")
+LINUXCNC_SWEEP = ("--duration", 10.0, "--end-hz", 100.0)  # (short: one LinuxCNC runs at a time)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--flavor", choices=("klipper", "marlin", "reprap"), default="klipper",
-                        help="klippy, or fbspost's model of Marlin's or RRF's planner")
+    parser.add_argument("--flavor", choices=("klipper", "marlin", "reprap", "linuxcnc"), default="klipper",
+                        help="klippy, fbspost's model of Marlin's or RRF's planner, or LinuxCNC itself")
     parser.add_argument("--as-written", action="store_true", help="klippy runs the sweeps as written")
     parser.add_argument("--drift-ppm", type=float, default=100.0, help="the accelerometer clock's drift")
     parser.add_argument("--lines", type=int, default=8000, help="the first LINES lines of each print")
     parser.add_argument("--duration", type=float, default=None, help="sweep seconds (default: excite's)")
-    parser.add_argument("--prints", nargs="*", default=list(PRINTS), help="the prints (default: the gear, the bracket)")
+    parser.add_argument("--prints", nargs="*", default=None,
+                        help="the prints (default: the gear, the bracket; LinuxCNC: both butterflies)")
     parser.add_argument("--timeout", type=float, default=300.0, help="longest compensate, s (then a NaN row)")
     args = parser.parse_args()
     if args.as_written and args.flavor != "klipper":
         parser.error("--as-written is Klipper's SET_VELOCITY_LIMIT: with --flavor klipper only")
+    cnc = args.flavor == "linuxcnc"
     sweep = ("--duration", args.duration) if args.duration else ()
+    if cnc:
+        sweep = LINUXCNC_SWEEP if not args.duration else ("--duration", args.duration, *LINUXCNC_SWEEP[2:])
+    prints = args.prints or list(LINUXCNC_PRINTS if cnc else PRINTS)
     chip = Accelerometer(drift_ppm=args.drift_ppm)
     how = "as written (SET_VELOCITY_LIMIT first)" if args.as_written else "as the program is"
-    runner = "klippy" if args.flavor == "klipper" else f"the model of {args.flavor}'s planner"
+    runner = {"klipper": "klippy", "linuxcnc": "LinuxCNC itself"}.get(args.flavor,
+                                                                     f"the model of {args.flavor}'s planner")
     print(f"sweeps run by {runner} {how}; "
           f"accelerometer clock drift {args.drift_ppm:g} ppm; prints: first {args.lines} lines")
-    for truth in TRUTHS:
+    for truth in LINUXCNC_TRUTHS if cnc else TRUTHS:
         with tempfile.TemporaryDirectory() as tmp:
             start = time.time()
             measured = measure(ROOT / truth, Path(tmp), sweep, args.as_written, chip,
@@ -84,7 +103,7 @@ def main() -> None:
                                                      if line.startswith(("recording", "axis", "fit error"))))
             print("identified modes:\n" + modes_text(measured.identified))
             print("true modes:\n" + modes_text(ROOT / truth))
-            for program in args.prints:
+            for program in prints:
                 start = time.time()
                 rows = evaluate(excerpt(program, args.lines, Path(tmp)), ROOT / truth, measured, Path(tmp),
                                 args.timeout)

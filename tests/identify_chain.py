@@ -29,6 +29,16 @@ steps (``fbspost.firmware_shapers``, bench/marlin_baseline.py ``shaped``); the p
 ``--flavor`` FLAVOR and run by the same model; every run on its whole steps
 (``firmware_shapers.stepper_positions``) through the truth, the contour to the original's
 commanded path; no ``--klipper-cfg`` row.
+
+LinuxCNC (``flavor`` "linuxcnc"): the sweep written ``--flavor linuxcnc`` at the middle of the
+travel and run by LinuxCNC 2.9 itself (tests/linuxcnc_itself.py: its joint commands every servo
+period, linear between them as a drive in position mode follows them), recorded through the
+truth; identify plans the sweep with the model of LinuxCNC's planner (``--machine``). LinuxCNC
+has no input shaper: the baseline is Klipper's shaper at shaper_calibrate's choice (its own
+list) applied to LinuxCNC's run of the original, as Klipper shapes its plan. The prints
+compensated ``--flavor linuxcnc`` and run by LinuxCNC itself; no whole steps (a servo stage
+follows the joint commands); fbspost's prediction is the model of LinuxCNC's planner's run of its
+output through the identified modes. Needs linuxcnc-uspace.
 """
 from __future__ import annotations
 
@@ -63,13 +73,14 @@ from fbspost.verify import contour_um, modelled
 from firmware_results import shaped_plans
 from klippy_motion import executed
 from klippy_planner import klippy_dir, load_klippy
+from linuxcnc_itself import joint_commands
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
-from firmware import excerpt, klippy_as_run, model_run  # noqa: E402, F401  (excerpt: for the test and the bench)
+from firmware import excerpt, klippy_as_run, linuxcnc_own_run, linuxcnc_run, model_run  # noqa: E402, F401
 from marlin_baseline import shaped  # noqa: E402
 
-CENTER_MM = 100.0  # the sweep's centre: mid-travel of a 200 mm axis
+CENTER_MM = 100.0  # the sweep's centre where the profile gives no travel: mid-travel of a 200 mm axis
 KLIPPER_DAMPING = 0.1  # [input_shaper] damping_ratio_x/y default (shaper_defs.DEFAULT_DAMPING_RATIO)
 # What lets klippy run a sweep's 1 ms blocks as written (transparency): no acceleration limit
 # that matters, no forced cruise, corners at any speed.
@@ -110,6 +121,7 @@ BASELINES = {
                                                   "3hump_ei": "3hei"}, ft_motion_shaper, _on_steps)),
     "reprap": (Baseline("RRF M593", {"zvd": "zvd", "mzv": "mzv", "2hump_ei": "ei2", "3hump_ei": "ei3"}, reprap_shaper,
                         _on_steps, one_for_all=True),),
+    "linuxcnc": (Baseline("shaper_calibrate (Klipper's, on LinuxCNC's run)", None, klipper_shaper),),
 }
 
 
@@ -147,27 +159,51 @@ def user_profile(truth_path: Path, folder: Path) -> Path:
     return path
 
 
+def centre_mm(profile, axis: str) -> float:
+    """The middle of ``axis``' travel as the profile gives it, else ``CENTER_MM``."""
+    lo, hi = profile.axes[axis].position_min_mm, profile.axes[axis].position_max_mm
+    return CENTER_MM if lo is None or hi is None else 0.5 * (lo + hi)
+
+
 def recorded_sweep(truth, user, axis: str, folder: Path, sweep_args=(), as_written: bool = False,
                    chip: Accelerometer | None = None, flavor: str = "klipper") -> tuple[Path, Path]:
     """(the program the firmware ran, the recording): ``fbspost excite --flavor`` of ``axis`` run
     by the firmware (``recorded``), recorded through the truth; ``as_written``: Klipper's only."""
     program = folder / f"sweep-{axis}.gcode"
-    cli("excite", "-m", user, "--axis", axis, "--center", CENTER_MM, "--flavor", flavor, *sweep_args, "-o", program)
+    cli("excite", "-m", user, "--axis", axis, "--center", centre_mm(truth, axis), "--flavor", flavor, *sweep_args,
+        "-o", program)
     if as_written:
         program.write_text(AS_WRITTEN + program.read_text())
     return program, recorded(program, truth, user, folder / f"raw_data_{axis.lower()}.csv", chip, flavor)
 
 
 def recorded(program: Path, truth, user, log: Path, chip: Accelerometer | None = None, flavor: str = "klipper") -> Path:
-    """The recording ``log`` of ``program`` run by klippy (or by the model of ``flavor``'s planner),
-    configured from the profile ``user``, through the truth's modes, from ``REST_S`` before to
-    ``REST_S`` after."""
+    """The recording ``log`` of ``program`` run by klippy (or by the model of ``flavor``'s planner;
+    LinuxCNC: by LinuxCNC itself), configured from the profile ``user``, through the truth's modes,
+    from ``REST_S`` before to ``REST_S`` after."""
     profile = load_profile(user)
-    motion = (executed(program, profile, "klipper") if flavor == "klipper"
-              else PLANNER_MODELS[flavor](list(read_gcode(program, flavor, profile.home_mm)), profile))
-    t_s = np.arange(-REST_S, motion.duration_s + REST_S, 1e-4)
+    if flavor == "linuxcnc":
+        duration_s, at = run_by_linuxcnc(program, profile, truth)
+    else:
+        motion = (executed(program, profile, "klipper") if flavor == "klipper"
+                  else PLANNER_MODELS[flavor](list(read_gcode(program, flavor, profile.home_mm)), profile))
+        duration_s, at = motion.duration_s, motion.at
+    t_s = np.arange(-REST_S, duration_s + REST_S, 1e-4)
     modes = {name: truth.axes[name].modes for name in "XY"}
-    return write_csv(log, record(t_s, motion.at(t_s)[:, :2], modes, chip or Accelerometer()))
+    return write_csv(log, record(t_s, at(t_s)[:, :2], modes, chip or Accelerometer()))
+
+
+def run_by_linuxcnc(program: Path, profile, truth) -> tuple[float, Callable]:
+    """(its duration s, X Y at times s) of ``program`` run by LinuxCNC itself from the middle of
+    the travel (the harness moves there first; the record starts at the first motion), the joint
+    commands linear between servo periods; RuntimeError where LinuxCNC is not installed."""
+    run = program.with_name(f"{program.stem}-run.ngc")
+    run.write_text(f"G0 X{centre_mm(truth, 'X')!r} Y{centre_mm(truth, 'Y')!r}\n" + program.read_text())
+    joints = joint_commands(run, profile)
+    if joints is None:
+        raise RuntimeError("LinuxCNC is not installed (apt-get install linuxcnc-uspace)")
+    grid_s = np.arange(len(joints)) * profile.firmware.linuxcnc.servo_period_s
+    return grid_s[-1], lambda t: np.column_stack([np.interp(t, grid_s, joints[:, i]) for i in range(2)])
 
 
 def resonance_test(axis: str, center_mm: float, start_hz: float = 5.0, end_hz: float = 10000.0 / 75.0,
@@ -286,10 +322,15 @@ def compensate(program: Path, profile: Path, output: Path, timeout_s: float, fla
 
 
 def firmware_run(program: Path, user, flavor: str):
-    """``program`` as the firmware runs it (bench/firmware.py's ``Run``): klippy's planner, or the
-    model of ``flavor``'s planner at the profile's line budget."""
+    """``program`` as the firmware runs it (bench/firmware.py's ``Run``): klippy's planner, LinuxCNC
+    itself, or the model of ``flavor``'s planner at the profile's line budget."""
     if flavor == "klipper":
         return klippy_as_run(program, user, "klipper")
+    if flavor == "linuxcnc":
+        run = linuxcnc_own_run(program, user)
+        if run is None:
+            raise RuntimeError("LinuxCNC is not installed (apt-get install linuxcnc-uspace)")
+        return run
     return model_run(program, user, flavor, user.firmware.max_line_rate_hz)
 
 
@@ -316,7 +357,8 @@ def evaluate(program: Path, truth_path: Path, measured: Measured, folder: Path,
     original = firmware_run(program, user, flavor)
 
     def contour(command, reference, machine=truth):
-        stepped = command if flavor == "klipper" else stepper_positions(command, user.firmware.steps_per_mm)
+        on_steps = flavor not in ("klipper", "linuxcnc")
+        stepped = stepper_positions(command, user.firmware.steps_per_mm) if on_steps else command
         return contour_um(modelled(stepped, machine), reference, original.path, original.printer)
 
     rows = {"original": Row(original.seconds, *contour(original.samples, original.samples))}
@@ -330,7 +372,9 @@ def evaluate(program: Path, truth_path: Path, measured: Measured, folder: Path,
             rows[name] = Row(math.nan, math.nan, math.nan, note=f"compensate stopped after {timeout_s:g} s")
             continue
         out = firmware_run(output, user, flavor)
-        predicted = (contour(out.samples, out.samples, load_profile(profiles[name]))[0]
+        # (LinuxCNC: fbspost's model of its planner, not LinuxCNC's own run)
+        planned = linuxcnc_run(output, user) if flavor == "linuxcnc" else out
+        predicted = (contour(planned.samples, planned.samples, load_profile(profiles[name]))[0]
                      if name == "FBS, measured" else None)
         rows[name] = Row(out.seconds, *contour(out.samples, out.samples), predicted)
     return rows

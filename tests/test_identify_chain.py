@@ -4,7 +4,8 @@ proof on a held-out truth (tests/identify_chain.py).
 Truths used: the continuous modal model's steady-state response to a sine, written out here
 (|G| w^2 A and the phase of G, G(s) = sum (alpha + beta s) / (s^2 + 2 zeta w s + w^2)); the
 chip's clock, offset plus drift, at a known event; for the chain, klippy's own planner and
-shaper_calibrate, the truth's modes (tests/data/truth-a.toml, held out) and its exact simulation.
+shaper_calibrate, the truth's modes (tests/data/truth-a.toml, held out) and its exact simulation;
+on LinuxCNC, LinuxCNC 2.9 itself and the held-out tests/data/truth-stage.toml.
 """
 from __future__ import annotations
 
@@ -177,5 +178,43 @@ def test_measured_profile_beats_the_firmwares_own_shaping(tmp_path, flavor, trut
     original, fbs = rows["original"], rows["FBS, measured"]
     baseline = min(row.rms_um for name, row in rows.items() if name.startswith(("Marlin ZV", "RRF M593")))
     assert fbs.rms_um <= 0.5 * baseline
+    assert fbs.max_um < original.max_um
+    assert 0.5 <= fbs.predicted_rms_um / fbs.rms_um <= 2.0
+
+
+@pytest.mark.slow
+def test_measured_profile_beats_shaper_calibrate_on_linuxcnc_itself(tmp_path):
+    """LinuxCNC's chain, run by LinuxCNC 2.9 itself (skipped where linuxcnc-uspace is not
+    installed): the held-out CNC truth tests/data/truth-stage.toml, excite's LinuxCNC sweeps of X
+    and Y (10 s, 5-100 Hz) run by LinuxCNC and recorded through the truth, identify with the model
+    of LinuxCNC's planner as the plan; the dense butterfly compensated --flavor linuxcnc and run by
+    LinuxCNC: at most half the RMS contour error of Klipper's shaper at shaper_calibrate's choice
+    from the same recordings on LinuxCNC's run of the original (LinuxCNC has none), a largest
+    error below the original's, and fbspost's prediction (the model of LinuxCNC's planner through
+    the identified modes) within 2x. First, the identified responses within 10% of the truth's
+    peak over the band."""
+    from identify_chain import evaluate, measure, modes_text, table
+    from klippy_planner import klippy_or_skip
+    from linuxcnc_itself import installed
+
+    if not installed():
+        pytest.skip("LinuxCNC is not installed (apt-get install linuxcnc-uspace)")
+    klippy_or_skip()
+    truth = DATA / "truth-stage.toml"
+    measured = measure(truth, tmp_path, ("--duration", 10, "--end-hz", 100), flavor="linuxcnc")
+    print(measured.identify_output, modes_text(measured.identified), measured.shapers, sep="\n")
+    f_hz = np.linspace(5.0, 100.0, 2000)
+    for axis in "XY":
+        true_g = g_of(load_profile(truth).axes[axis].modes, f_hz)
+        error = float(np.abs(g_of(load_profile(measured.identified).axes[axis].modes, f_hz) - true_g).max()
+                      / np.abs(true_g).max())
+        print(f"{axis}: identified response off the truth's by {100 * error:.1f}% of its peak")
+        assert error <= 0.1
+    dense = Path(__file__).resolve().parents[1] / "samples" / "butterfly-dense.gcode"
+    rows = evaluate(dense, truth, measured, tmp_path, 300.0, fbs=("FBS, measured",))
+    print(table(rows))
+    original, fbs = rows["original"], rows["FBS, measured"]
+    (shaper,) = (row for name, row in rows.items() if name.startswith("shaper_calibrate"))
+    assert fbs.rms_um <= 0.5 * shaper.rms_um
     assert fbs.max_um < original.max_um
     assert 0.5 <= fbs.predicted_rms_um / fbs.rms_um <= 2.0
