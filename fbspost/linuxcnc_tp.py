@@ -43,7 +43,8 @@ and its jerk limits came with 2.10) and the INI documentation ([TRAJ] ARC_BLEND_
   cycles at segment ends (the next segment runs the rest of the period).
 Not modelled: feed override (1.0), spindle sync, naive-CAM merging (Q > 0: the writer sends
 Q0), the queue filling while motion runs (the whole run is queued before it starts; the TP's
-queue holds 2000 segments), blends into a segment already past a quarter of its length.
+queue holds 2000 segments), blends into a segment already past a quarter of its length, and
+LinuxCNC's half-period first ramp of a G64 corner from rest (its joints half a period later).
 The joints get the TP's points through the motion controller's cubic interpolator (cubic.c
 at interpolation rate 1, the servo period being the trajectory period): each period the way
 point (1/6, 2/3, 1/6) of the three points before the newest, so 2 periods late, a pass-band
