@@ -77,6 +77,7 @@ from linuxcnc_itself import joint_commands
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
+# (excerpt: for the test and the bench)
 from firmware import excerpt, klippy_as_run, linuxcnc_own_run, linuxcnc_run, model_run  # noqa: E402, F401
 from marlin_baseline import shaped  # noqa: E402
 
@@ -372,10 +373,10 @@ def evaluate(program: Path, truth_path: Path, measured: Measured, folder: Path,
             rows[name] = Row(math.nan, math.nan, math.nan, note=f"compensate stopped after {timeout_s:g} s")
             continue
         out = firmware_run(output, user, flavor)
-        # (LinuxCNC: fbspost's model of its planner, not LinuxCNC's own run)
-        planned = linuxcnc_run(output, user) if flavor == "linuxcnc" else out
-        predicted = (contour(planned.samples, planned.samples, load_profile(profiles[name]))[0]
-                     if name == "FBS, measured" else None)
+        predicted = None
+        if name == "FBS, measured":  # (LinuxCNC: fbspost's model of its planner, not LinuxCNC's own run)
+            planned = linuxcnc_run(output, user) if flavor == "linuxcnc" else out
+            predicted = contour(planned.samples, planned.samples, load_profile(profiles[name]))[0]
         rows[name] = Row(out.seconds, *contour(out.samples, out.samples), predicted)
     return rows
 
