@@ -175,26 +175,33 @@ def merge_short_segments(blocks: list[Block], profile: MachineProfile) -> tuple[
     Returns the blocks (a MOVE whose points all went keeps none) and the lines of dropped points."""
     scale, stepped = _step_scale(profile)
     least = profile.firmware.min_steps_per_segment
+    moving = [b for b in blocks if b.kind is Kind.MOVE and b.points_mm is not None]
+    points = np.concatenate([b.points_mm for b in moving]) if moving else np.zeros((0, _NA))
+    # the whole steps of every point at once; the scan below in Python floats (a numpy call a
+    # point was most of the model's time), comparing as numpy did: NaN >= n and NaN != x as IEEE
+    targets = lround(points * scale)
+    on_steps = np.where(stepped, targets / scale, points)
+    steps_at, mm_at, axes = targets.tolist(), points.tolist(), list(enumerate(stepped.tolist()))
     last = None  # the planner's position: (steps, mm) of the last block's end (NaN: unknown)
-    out, merged = [], []
+    out, merged, row = [], [], 0
     for block in blocks:
         if block.kind is Kind.STOP:  # the firmware's position is where the line leaves the machine
-            last = (lround(block.position_mm * scale), block.position_mm)
+            last = (lround(block.position_mm * scale).tolist(), block.position_mm.tolist())
         if block.kind is not Kind.MOVE or block.points_mm is None:
             out.append(block)
             continue
         kept = []
-        for point in block.points_mm:
-            target = lround(point * scale)
-            if last is not None:
-                moved = np.where(stepped, np.abs(target - last[0]), np.where(point != last[1], np.inf, 0.0))
-                if least > 0 and not (moved >= least).any():  # (NaN: an unknown axis, no steps)
-                    merged.append(block.line_no)
-                    continue
+        for k in range(row, row + len(block.points_mm)):
+            target, point = steps_at[k], mm_at[k]
+            if last is not None and least > 0 and not any(
+                    abs(target[i] - last[0][i]) >= least if s else point[i] != last[1][i] for i, s in axes):
+                merged.append(block.line_no)
+                continue
             last = (target, point)
-            kept.append(np.where(stepped, target / scale, point))
+            kept.append(k)
+        row += len(block.points_mm)
         block = copy.copy(block)  # (dataclasses.replace runs __init__: a fifth of the model's time)
-        block.points_mm = np.array(kept) if kept else None
+        block.points_mm = on_steps[kept] if kept else None
         out.append(block)
     return out, merged
 
