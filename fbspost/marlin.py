@@ -46,10 +46,10 @@ chords), sync blocks of G92 and M-codes taking buffer slots, serial buffer and c
 """
 from __future__ import annotations
 
-import copy
 import math
 import re
 from dataclasses import dataclass, field
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -200,9 +200,11 @@ def merge_short_segments(blocks: list[Block], profile: MachineProfile) -> tuple[
             last = (target, point)
             kept.append(k)
         row += len(block.points_mm)
-        block = copy.copy(block)  # (dataclasses.replace runs __init__: a fifth of the model's time)
-        block.points_mm = on_steps[kept] if kept else None
-        out.append(block)
+        # a shallow copy (dataclasses.replace runs __init__, copy.copy the reduce protocol: each
+        # several times this)
+        copied = object.__new__(Block)
+        copied.__dict__.update(block.__dict__, points_mm=on_steps[kept] if kept else None)
+        out.append(copied)
     return out, merged
 
 
@@ -357,12 +359,16 @@ class _Buffer:
     BLOCK_BUFFER_SIZE - 3 blocks after it."""
 
     def __init__(self, geo: _Geometry, config: MarlinConfig):
-        self.geo, self.config = geo, config
+        # Python floats in lists: the scan reads and writes them one at a time, where a numpy
+        # scalar costs several times more (the same IEEE doubles: the same results)
+        self.geo = SimpleNamespace(**{name: column.tolist() if column.ndim == 1 else column
+                                      for name, column in vars(geo).items()})
+        self.config = config
         m = len(geo.line)
-        self.arrive, self.slot_wait = np.full(m, np.inf), np.zeros(m, dtype=bool)
-        self.start, self.end = np.full(m, np.nan), np.full(m, np.nan)
-        self.entry2, self.exit2 = np.zeros(m), np.zeros(m)
-        self.nominal, self.max_entry2, self.min_speed2 = np.zeros(m), np.zeros(m), np.zeros(m)
+        self.arrive, self.slot_wait = [math.inf] * m, [False] * m
+        self.start, self.end = [math.nan] * m, [math.nan] * m
+        self.entry2, self.exit2 = [0.0] * m, [0.0] * m
+        self.nominal, self.max_entry2, self.min_speed2 = [0.0] * m, [0.0] * m, [0.0] * m
         self.added = self.done = self.run_first = 0
         self.free_s = 0.0  # when the stepper was last left idle by a line that waits for it
         self.starved: list[tuple[float, float]] = []
@@ -516,11 +522,12 @@ def run_marlin(blocks: list[Block], profile: MachineProfile, config: MarlinConfi
     buffer = _Buffer(geo, config)
     first_block = np.searchsorted(geo.line, np.arange(len(lines) + 1))
     taken, line_time = send_lines(lines, first_block, buffer, config.line_rate_hz)
-    ends = np.append(buffer.end, np.nan)
+    start, end, nominal, entry2, exit2 = (np.array(column, dtype=float) for column in (
+        buffer.start, buffer.end, buffer.nominal, buffer.entry2, buffer.exit2))
+    ends = np.append(end, np.nan)
     moves = np.array([kind is Kind.MOVE for kind, _, _ in lines])
     owner = first_block[1:] - (first_block[1:] > first_block[:-1])  # its last block; merged away: the next
     line_time = np.where(moves, ends[owner], np.where(np.isnan(line_time), taken, line_time))
-    duration = float(np.nanmax(np.concatenate([[0.0], buffer.end, taken])))
-    return MarlinRun(geo.start, geo.end, geo.line, geo.length, geo.accel, buffer.nominal, np.sqrt(buffer.entry2),
-                     np.sqrt(buffer.exit2), buffer.start, buffer.end, line_time, taken, duration, buffer.starved,
-                     merged)
+    duration = float(np.nanmax(np.concatenate([[0.0], end, taken])))
+    return MarlinRun(geo.start, geo.end, geo.line, geo.length, geo.accel, nominal, np.sqrt(entry2), np.sqrt(exit2),
+                     start, end, line_time, taken, duration, buffer.starved, merged)
