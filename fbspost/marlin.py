@@ -177,33 +177,37 @@ def merge_short_segments(blocks: list[Block], profile: MachineProfile) -> tuple[
     least = profile.firmware.min_steps_per_segment
     moving = [b for b in blocks if b.kind is Kind.MOVE and b.points_mm is not None]
     points = np.concatenate([b.points_mm for b in moving]) if moving else np.zeros((0, _NA))
-    # the whole steps of every point at once; the scan below in Python floats (a numpy call a
-    # point was most of the model's time), comparing as numpy did: NaN >= n and NaN != x as IEEE
     targets = lround(points * scale)
     on_steps = np.where(stepped, targets / scale, points)
+    # whether each point is a block after the point before it, all at once (a numpy call a point
+    # was most of the model's time); after any other last end (a merged point, a STOP) the scan
+    # compares in Python floats as numpy does: NaN >= n is false, NaN != x true
+    moved = np.where(stepped, np.abs(np.diff(targets, axis=0, prepend=np.nan)),
+                     np.where(points != np.roll(points, 1, axis=0), np.inf, 0.0))
+    after_previous = ((moved >= least).any(axis=1) | (least <= 0)).tolist()
     steps_at, mm_at, axes = targets.tolist(), points.tolist(), list(enumerate(stepped.tolist()))
-    last = None  # the planner's position: (steps, mm) of the last block's end (NaN: unknown)
+    last, last_row = None, None  # the planner's position: (steps, mm) of the last block's end (NaN: unknown), its point
     out, merged, row = [], [], 0
     for block in blocks:
         if block.kind is Kind.STOP:  # the firmware's position is where the line leaves the machine
-            last = (lround(block.position_mm * scale).tolist(), block.position_mm.tolist())
+            last, last_row = (lround(block.position_mm * scale).tolist(), block.position_mm.tolist()), None
         if block.kind is not Kind.MOVE or block.points_mm is None:
             out.append(block)
             continue
         kept = []
         for k in range(row, row + len(block.points_mm)):
-            target, point = steps_at[k], mm_at[k]
-            if last is not None and least > 0 and not any(
-                    abs(target[i] - last[0][i]) >= least if s else point[i] != last[1][i] for i, s in axes):
+            if last is not None and not (after_previous[k] if last_row == k - 1 else least <= 0 or any(
+                    abs(steps_at[k][i] - last[0][i]) >= least if s else mm_at[k][i] != last[1][i] for i, s in axes)):
                 merged.append(block.line_no)
                 continue
-            last = (target, point)
+            last, last_row = (steps_at[k], mm_at[k]), k
             kept.append(k)
         row += len(block.points_mm)
         # a shallow copy (dataclasses.replace runs __init__, copy.copy the reduce protocol: each
         # several times this)
         copied = object.__new__(Block)
-        copied.__dict__.update(block.__dict__, points_mm=on_steps[kept] if kept else None)
+        kept_mm = on_steps[kept[0]:kept[-1] + 1] if kept and len(kept) == kept[-1] + 1 - kept[0] else on_steps[kept]
+        copied.__dict__.update(block.__dict__, points_mm=kept_mm if kept else None)
         out.append(copied)
     return out, merged
 
