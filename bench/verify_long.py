@@ -6,7 +6,9 @@ The print is the corpus gear (tests/data/gear-marlin2.gcode, Marlin, about 30 mi
 printer-two-mode as the model of Marlin's planner runs it) stacked ``--copies`` times, each copy
 10 mm above the last: 12 copies make a 6 h print. Fresh processes, so that each peak is its
 own: compensate without the check, compensate with it (the default for Marlin), and with
-``--alone`` the check alone on the written output. Per process: wall time, the stages' times and VmHWM (the peak
+``--alone`` the check alone on the written output. Per process: wall time, CPU time (its own and
+its axes' processes': on a shared machine the wall time grows with the load, the CPU time
+much less), the stages' times and VmHWM (the peak
 resident memory, from /proc/self/status: the check runs in the process that writes, after the
 axes' processes have ended; ru_maxrss would count a forked parent's memory too).
 """
@@ -15,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import re
+import resource
 import subprocess
 import sys
 import tempfile
@@ -65,9 +68,12 @@ def stacked_gear(copies: int, path: Path) -> int:
 
 
 def run(mode: str, source: Path, output: Path) -> dict:
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     done = subprocess.run([sys.executable, "-c", _RUN, mode, str(source), str(output), PROFILE], capture_output=True,
                           text=True, cwd=ROOT, check=True)
-    return json.loads(done.stdout.splitlines()[-1])
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)  # (the axes' processes are waited for: counted)
+    cpu_s = after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime
+    return {**json.loads(done.stdout.splitlines()[-1]), "cpu_s": cpu_s}
 
 
 def main():
@@ -92,11 +98,13 @@ def main():
                 with open(output, "rb") as f:
                     print(f"output: {sum(1 for _ in f)} lines, {output.stat().st_size / 1e6:.1f} MB")
             stages = ", ".join(f"{k} {v:.1f}" for k, v in r["stages"].items())
-            print(f"{title}: {r['wall_s']:.1f} s wall, VmHWM {r['vmhwm_mb']:.0f} MB"
+            print(f"{title}: {r['wall_s']:.1f} s wall, {r['cpu_s']:.1f} s CPU, VmHWM {r['vmhwm_mb']:.0f} MB"
                   + (f" (stages s: {stages})" if stages else ""), flush=True)
         print(f"verified: {results['on']['verdict']}")
-        print(f"time with the check: {100 * (results['on']['wall_s'] / results['off']['wall_s'] - 1):+.1f}%; "
-              f"peak memory with it {results['on']['vmhwm_mb']:.0f} MB", flush=True)
+        on, off = results["on"], results["off"]
+        print(f"time with the check: {100 * (on['wall_s'] / off['wall_s'] - 1):+.1f}% wall, "
+              f"{100 * (on['cpu_s'] / off['cpu_s'] - 1):+.1f}% CPU; "
+              f"peak memory with it {on['vmhwm_mb']:.0f} MB", flush=True)
 
 
 if __name__ == "__main__":

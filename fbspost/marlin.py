@@ -46,10 +46,10 @@ chords), sync blocks of G92 and M-codes taking buffer slots, serial buffer and c
 """
 from __future__ import annotations
 
-import copy
 import math
 import re
 from dataclasses import dataclass, field
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -175,27 +175,40 @@ def merge_short_segments(blocks: list[Block], profile: MachineProfile) -> tuple[
     Returns the blocks (a MOVE whose points all went keeps none) and the lines of dropped points."""
     scale, stepped = _step_scale(profile)
     least = profile.firmware.min_steps_per_segment
-    last = None  # the planner's position: (steps, mm) of the last block's end (NaN: unknown)
-    out, merged = [], []
+    moving = [b for b in blocks if b.kind is Kind.MOVE and b.points_mm is not None]
+    points = np.concatenate([b.points_mm for b in moving]) if moving else np.zeros((0, _NA))
+    targets = lround(points * scale)
+    on_steps = np.where(stepped, targets / scale, points)
+    # whether each point is a block after the point before it, all at once (a numpy call a point
+    # was most of the model's time); after any other last end (a merged point, a STOP) the scan
+    # compares in Python floats as numpy does: NaN >= n is false, NaN != x true
+    moved = np.where(stepped, np.abs(np.diff(targets, axis=0, prepend=np.nan)),
+                     np.where(points != np.roll(points, 1, axis=0), np.inf, 0.0))
+    after_previous = ((moved >= least).any(axis=1) | (least <= 0)).tolist()
+    steps_at, mm_at, axes = targets.tolist(), points.tolist(), list(enumerate(stepped.tolist()))
+    last, last_row = None, None  # the planner's position: (steps, mm) of the last block's end (NaN: unknown), its point
+    out, merged, row = [], [], 0
     for block in blocks:
         if block.kind is Kind.STOP:  # the firmware's position is where the line leaves the machine
-            last = (lround(block.position_mm * scale), block.position_mm)
+            last, last_row = (lround(block.position_mm * scale).tolist(), block.position_mm.tolist()), None
         if block.kind is not Kind.MOVE or block.points_mm is None:
             out.append(block)
             continue
         kept = []
-        for point in block.points_mm:
-            target = lround(point * scale)
-            if last is not None:
-                moved = np.where(stepped, np.abs(target - last[0]), np.where(point != last[1], np.inf, 0.0))
-                if least > 0 and not (moved >= least).any():  # (NaN: an unknown axis, no steps)
-                    merged.append(block.line_no)
-                    continue
-            last = (target, point)
-            kept.append(np.where(stepped, target / scale, point))
-        block = copy.copy(block)  # (dataclasses.replace runs __init__: a fifth of the model's time)
-        block.points_mm = np.array(kept) if kept else None
-        out.append(block)
+        for k in range(row, row + len(block.points_mm)):
+            if last is not None and not (after_previous[k] if last_row == k - 1 else least <= 0 or any(
+                    abs(steps_at[k][i] - last[0][i]) >= least if s else mm_at[k][i] != last[1][i] for i, s in axes)):
+                merged.append(block.line_no)
+                continue
+            last, last_row = (steps_at[k], mm_at[k]), k
+            kept.append(k)
+        row += len(block.points_mm)
+        # a shallow copy (dataclasses.replace runs __init__, copy.copy the reduce protocol: each
+        # several times this)
+        copied = object.__new__(Block)
+        kept_mm = on_steps[kept[0]:kept[-1] + 1] if kept and len(kept) == kept[-1] + 1 - kept[0] else on_steps[kept]
+        copied.__dict__.update(block.__dict__, points_mm=kept_mm if kept else None)
+        out.append(copied)
     return out, merged
 
 
@@ -350,12 +363,16 @@ class _Buffer:
     BLOCK_BUFFER_SIZE - 3 blocks after it."""
 
     def __init__(self, geo: _Geometry, config: MarlinConfig):
-        self.geo, self.config = geo, config
+        # Python floats in lists: the scan reads and writes them one at a time, where a numpy
+        # scalar costs several times more (the same IEEE doubles: the same results)
+        self.geo = SimpleNamespace(**{name: column.tolist() if column.ndim == 1 else column
+                                      for name, column in vars(geo).items()})
+        self.config = config
         m = len(geo.line)
-        self.arrive, self.slot_wait = np.full(m, np.inf), np.zeros(m, dtype=bool)
-        self.start, self.end = np.full(m, np.nan), np.full(m, np.nan)
-        self.entry2, self.exit2 = np.zeros(m), np.zeros(m)
-        self.nominal, self.max_entry2, self.min_speed2 = np.zeros(m), np.zeros(m), np.zeros(m)
+        self.arrive, self.slot_wait = [math.inf] * m, [False] * m
+        self.start, self.end = [math.nan] * m, [math.nan] * m
+        self.entry2, self.exit2 = [0.0] * m, [0.0] * m
+        self.nominal, self.max_entry2, self.min_speed2 = [0.0] * m, [0.0] * m, [0.0] * m
         self.added = self.done = self.run_first = 0
         self.free_s = 0.0  # when the stepper was last left idle by a line that waits for it
         self.starved: list[tuple[float, float]] = []
@@ -509,11 +526,12 @@ def run_marlin(blocks: list[Block], profile: MachineProfile, config: MarlinConfi
     buffer = _Buffer(geo, config)
     first_block = np.searchsorted(geo.line, np.arange(len(lines) + 1))
     taken, line_time = send_lines(lines, first_block, buffer, config.line_rate_hz)
-    ends = np.append(buffer.end, np.nan)
+    start, end, nominal, entry2, exit2 = (np.array(column, dtype=float) for column in (
+        buffer.start, buffer.end, buffer.nominal, buffer.entry2, buffer.exit2))
+    ends = np.append(end, np.nan)
     moves = np.array([kind is Kind.MOVE for kind, _, _ in lines])
     owner = first_block[1:] - (first_block[1:] > first_block[:-1])  # its last block; merged away: the next
     line_time = np.where(moves, ends[owner], np.where(np.isnan(line_time), taken, line_time))
-    duration = float(np.nanmax(np.concatenate([[0.0], buffer.end, taken])))
-    return MarlinRun(geo.start, geo.end, geo.line, geo.length, geo.accel, buffer.nominal, np.sqrt(buffer.entry2),
-                     np.sqrt(buffer.exit2), buffer.start, buffer.end, line_time, taken, duration, buffer.starved,
-                     merged)
+    duration = float(np.nanmax(np.concatenate([[0.0], end, taken])))
+    return MarlinRun(geo.start, geo.end, geo.line, geo.length, geo.accel, nominal, np.sqrt(entry2), np.sqrt(exit2),
+                     start, end, line_time, taken, duration, buffer.starved, merged)

@@ -138,8 +138,9 @@ def _kinds(start_mm: np.ndarray, end_mm: np.ndarray) -> tuple[np.ndarray, np.nda
 
 class _PathFile:
     """The original's path (``printed_path``) in a file, in groups of ``GROUP_PIECES`` pieces with
-    their boxes: a point's distance is searched in the groups whose box is nearer than the
-    nearest piece found so far, those most often near first (the last ones used)."""
+    their boxes: a point's distance is searched first in the group whose box is nearest it, then
+    in every other group whose box is nearer than the nearest piece found there (the last
+    ``_CACHED_GROUPS`` groups searched are kept in memory)."""
 
     def __init__(self, rows: np.ndarray, printer: bool):
         self.rows, self.printer = rows, printer  # (n, 7): X Y Z start, X Y Z end, chosen
@@ -187,23 +188,31 @@ class _PathFile:
         if not len(points_mm):
             return best, None
         # no point is nearer a group than the gap between their boxes: groups in the order of that
-        # gap, after the last ones used, until it passes the farthest point's distance found so far
-        # (searching every group for every point made a long print's check grow with its square)
+        # gap (searching every group for every point made a long print's check grow with its square)
         gap = np.maximum(self.low - points_mm.max(axis=0), 0.0) + np.maximum(points_mm.min(axis=0) - self.high, 0.0)
         bound = np.sqrt(np.einsum("ij,ij->i", gap, gap))
-        recent = [self.groups.index(g) for g in reversed(self.cache)]
-        for k in recent:
-            self._search(points_mm, k, best)
-        for k in np.argsort(bound, kind="stable").tolist():
+        order = np.argsort(bound, kind="stable").tolist()
+        # each point first in the group whose box is nearest it (mostly the one that holds it: a
+        # point searched in several groups cost twice the check's search)
+        own, own_box = np.full(len(points_mm), -1), np.full(len(points_mm), np.inf)
+        for k in order:
+            if bound[k] >= own_box.max():
+                break
+            outside = self._outside(points_mm, k)
+            nearer = outside < own_box
+            own[nearer], own_box[nearer] = k, outside[nearer]
+        for k in np.unique(own).tolist():
+            self._search(points_mm, k, best, own == k)
+        # then in every other group whose box is nearer than the nearest piece found
+        for k in order:
             if bound[k] >= best.max():
                 break
-            if k not in recent:
-                self._search(points_mm, k, best)
+            self._search(points_mm, k, best, (own != k) & (self._outside(points_mm, k) < best))
         return best, None
 
-    def _search(self, points_mm: np.ndarray, k: int, best: np.ndarray) -> None:
-        """``best`` lowered to the distances to group ``k`` where its box may hold a nearer piece."""
-        rows = np.flatnonzero(self._outside(points_mm, k) < best)
+    def _search(self, points_mm: np.ndarray, k: int, best: np.ndarray, chosen: np.ndarray) -> None:
+        """``best`` lowered to the distances to group ``k`` of the ``chosen`` points."""
+        rows = np.flatnonzero(chosen)
         if rows.size:
             best[rows] = np.minimum(best[rows], self._group(self.groups[k])(points_mm[rows])[0])
 

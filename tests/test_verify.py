@@ -181,6 +181,32 @@ def test_path_file_is_the_brute_force_distance(tmp_path, monkeypatch):
     np.testing.assert_allclose(distance, truth, rtol=0, atol=1e-12)
 
 
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_path_file_search_is_the_brute_force_distance_on_random_paths(monkeypatch, seed):
+    """Random walks (some of their pieces not chosen, some of no length) in groups of 7 pieces, 2
+    cached, whose boxes overlap, nest and lie apart: the distance of points along the walks,
+    over their box and far beyond it, to every chosen piece, brute force (to rounding)."""
+    monkeypatch.setattr(verify_module, "GROUP_PIECES", 7)
+    monkeypatch.setattr(verify_module, "_CACHED_GROUPS", 2)
+    rng = np.random.default_rng(seed)
+    walks = [rng.normal(0.0, 5.0, 3) + np.cumsum(rng.normal(0.0, scale, (n, 3)), axis=0)
+             for n, scale in ((120, 0.3), (80, 2.0), (60, 0.01), (150, 1.0))]
+    ends = np.concatenate(walks)
+    starts, stops = ends[:-1], ends[1:].copy()
+    stops[::17] = starts[::17]  # (no length)
+    chosen = rng.random(len(starts)) < 0.8
+    path = verify_module._PathFile(np.column_stack([starts, stops, chosen]).astype(float), True)
+    assert len(path.groups) > 40
+    pick = rng.integers(len(starts), size=2000)
+    along = starts[pick] + rng.random(2000)[:, None] * (stops - starts)[pick] + rng.normal(0.0, 0.05, (2000, 3))
+    low, high = ends.min(axis=0), ends.max(axis=0)
+    points = np.concatenate([along, low + rng.random((1000, 3)) * (high - low),
+                             low + (rng.random((200, 3)) * 5.0 - 2.0) * (high - low)])
+    distance = np.concatenate([path(part)[0] for part in np.array_split(points, 9)])
+    truth, _ = brute_distance(starts[chosen], stops[chosen], points)
+    np.testing.assert_allclose(distance, truth, rtol=0, atol=1e-12)
+
+
 def test_a_jump_of_the_command_starts_the_modes_anew_at_rest():
     """A move from an unknown position is a jump in the firmware's motion (no model plans it):
     at rest on both sides, the modelled machine is where it is commanded (the modes' DC gain is
