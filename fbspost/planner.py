@@ -210,12 +210,17 @@ class RunMargins:
     a start (right-half-plane zeros, lightly damped modes) and cancels the ringing after a stop.
     Once a program has printed (after its first run whose pieces extrude), ``printing`` and
     ``travel`` (each (lead s, settle s); None: the same everywhere) at a run's end whose piece
-    extrudes and at one whose piece does not. Rounded to whole samples."""
+    extrudes and at one whose piece does not. Rounded to whole samples. ``travel_share``: the
+    margins are paid for in the travel: a piece that moves a compensated axis and does not extrude
+    is planned at up to that share of the axes' hard acceleration limits (never below the
+    firmware's): the contour error counts only where the print extrudes, and the compensated
+    command may use the hard limits anyway (0: as the firmware plans it)."""
 
     lead_s: float = 0.0
     settle_s: float = 0.0
     printing: tuple[float, float] | None = None
     travel: tuple[float, float] | None = None
+    travel_share: float = 0.0
 
     def lead_at(self, prints: bool | None, fs: float) -> int:
         """The lead (samples at ``fs``) before a run whose first piece extrudes (``prints``), or
@@ -246,7 +251,7 @@ class RunMargins:
         if lead_s is None and settle_s is None and flavor in BY_END_FLAVORS:
             (lead, settle), (travel_lead, travel_settle) = BY_END
             margins = replace(margins, printing=(half_s * lead, half_s * settle),
-                              travel=(half_s * travel_lead, half_s * travel_settle))
+                              travel=(half_s * travel_lead, half_s * travel_settle), travel_share=TRAVEL_SHARE)
         return margins
 
 
@@ -259,7 +264,8 @@ class RunMargins:
 # 0.83 um, none before a travel 1.83 um; no settle after a travel kept the gear's error but cost
 # the pocket (a print checked after) 15% of its gain (docs/compensate.md).
 BY_END = ((1 / 2, 1 / 3), (1 / 4, 1 / 5))
-BY_END_FLAVORS = ("klipper",)  # measured there (the other firmwares' planners: not yet)
+BY_END_FLAVORS = ("klipper", "marlin", "reprap")
+TRAVEL_SHARE = 0.5
 
 
 # ---- limits in force, block by block ---------------------------------------------------------
@@ -480,8 +486,12 @@ class _PieceMaker:
     (``_PIECE_FIELDS``) with the junction limit before each; fills the positions not known (the
     notes say where) and counts the feeds clamped by the machine's limits."""
 
-    def __init__(self, profile: MachineProfile, klipper: bool, notes: list[str]):
+    def __init__(self, profile: MachineProfile, klipper: bool, notes: list[str], travel_share: float = 0.0):
         self._klipper = klipper
+        # a travel's acceleration along each axis (inf: none): a share of its hard limit, on the compensated axes
+        hard = [profile.axes[a].max_acceleration_mm_s2 if a in profile.axes else math.inf for a in AXES]
+        self._travel_a = np.array(hard) * travel_share if travel_share else None
+        self._moves_compensated = np.array([a in profile.axes and bool(profile.axes[a].modes) for a in AXES])
         self._rules = klipper_rules.constants(profile) if klipper else None
         self._notes = notes
         self.last_row: np.ndarray | None = None  # the last waypoint, filled (None: the prologue)
@@ -516,9 +526,9 @@ class _PieceMaker:
             return None
         table = np.asarray([r[4] for r in moving])[group]
         feed = np.asarray([r[3] for r in moving])[group]
-        unit, max_v, accel, delta_v2, smooth_delta_v2, clamped = self.piece_limits(delta, length, extrude_only, feed,
-                                                                                   table)
-        inner = self._junction_limits(unit, max_v, accel, length, delta_v2, table[:, 3])
+        unit, max_v, accel, delta_v2, smooth_delta_v2, clamped, corner_a = self.piece_limits(
+            delta, length, extrude_only, feed, table)
+        inner = self._junction_limits(unit, max_v, corner_a, length, 2.0 * corner_a * length, table[:, 3])
         self._count_clamped(clamped, feed, max_v, piece_block, piece_line)
 
         # junction limits: limit_v2[i] is the junction before piece i (the first after the last
@@ -586,21 +596,34 @@ class _PieceMaker:
 
     def piece_limits(self, delta, length, extrude_only, feed, table):
         """Per piece, from its row of the limits table (``_LimitState.row``): its direction per mm,
-        cruise limit, accel, 2 a d, the same for Klipper's smoothing (2 a d where there is none) and
-        whether its feed is clamped by the machine's limits."""
+        cruise limit, accel, 2 a d, the same for Klipper's smoothing (2 a d where there is none),
+        whether its feed is clamped by the machine's limits, and the accel its junctions are
+        limited with (the firmware's: a travel planned faster keeps its corners)."""
         accel_print, accel_travel, planner_v = table[:, 0], table[:, 1], table[:, 2]
         if self._klipper:
             z_limits, e_limits, _ = self._rules
-            unit, max_v, accel = klipper_rules.piece_limits(delta, length, extrude_only, feed, planner_v, accel_print,
-                                                            z_limits, e_limits)
-            delta_v2 = 2.0 * length * accel
-            smooth_delta_v2 = np.minimum(2.0 * length * table[:, -1], delta_v2)
-            return unit, max_v, accel, delta_v2, smooth_delta_v2, np.isfinite(feed) & (max_v < feed) & ~extrude_only
-        axis_v, axis_a = table[:, 4:4 + _NA], table[:, 4 + _NA:4 + 2 * _NA]
-        unit, max_v, accel, clamped = axis_piece_limits(delta, length, extrude_only, feed, planner_v, accel_print,
-                                                        accel_travel, axis_v, axis_a)
+            unit, max_v, firmware_a = klipper_rules.piece_limits(delta, length, extrude_only, feed, planner_v,
+                                                                 accel_print, z_limits, e_limits)
+            clamped = np.isfinite(feed) & (max_v < feed) & ~extrude_only
+            smooth_a = np.minimum(table[:, -1], firmware_a)
+        else:
+            axis_v, axis_a = table[:, 4:4 + _NA], table[:, 4 + _NA:4 + 2 * _NA]
+            unit, max_v, firmware_a, clamped = axis_piece_limits(delta, length, extrude_only, feed, planner_v,
+                                                                 accel_print, accel_travel, axis_v, axis_a)
+            smooth_a = firmware_a
+        accel = self._in_travel(unit, firmware_a, delta, extrude_only)
         delta_v2 = 2.0 * accel * length
-        return unit, max_v, accel, delta_v2, delta_v2, clamped
+        return unit, max_v, accel, delta_v2, 2.0 * length * smooth_a * (accel / firmware_a), clamped, firmware_a
+
+    def _in_travel(self, unit, accel, delta, extrude_only) -> np.ndarray:
+        """``accel`` with the travels' raised to ``RunMargins.travel_share`` of the hard limits."""
+        if self._travel_a is None:
+            return accel
+        travel = ~extrude_only & ~(delta[:, _E] > 0) & (delta[:, self._moves_compensated] != 0).any(axis=1)
+        abs_unit = np.abs(unit)
+        with np.errstate(divide="ignore"):
+            fast = np.where(abs_unit > 0, self._travel_a / abs_unit, np.inf).min(axis=1)
+        return np.where(travel, np.maximum(accel, fast), accel)
 
     def _junction_limits(self, unit, max_v, accel, length, delta_v2, jd) -> np.ndarray:
         """The junction limit before each piece (with the last piece made before): Klipper's rules,
@@ -978,7 +1001,7 @@ class PlanStream:
         self.notes: list[str] = []
         self.warnings: list[str] = []
         self.time_s = 0.0  # spent in advance(), reading included
-        self._pieces = _PieceMaker(profile, klipper, self.notes)
+        self._pieces = _PieceMaker(profile, klipper, self.notes, margins.travel_share)
         self._reader = _BlockReader(blocks, profile, klipper, batch_blocks or BATCH_BLOCKS,
                                     functools.partial(margins.settle_at, fs=self._fs), self._pieces.piece_limits,
                                     every_axis)
