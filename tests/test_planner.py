@@ -363,12 +363,16 @@ def test_travel_and_print_acceleration():
 
 @pytest.mark.parametrize("firmware", [None, "klipper"])
 def test_travels_at_a_share_of_the_hard_accelerations(firmware):
-    """RunMargins.travel_share 0.5 on BED (hard limits X 10000, Y 8000, Z 500): a travel (X or Y
-    moved, E not advanced) accelerates at half the hard limits along its direction, its corner
-    with a printing move at the firmware's junction speed (the profile's scv at 90 degrees);
-    printing, a retraction and a Z move (a rest of X and Y, copied) keep the firmware's 3000 and
-    500: closed-form trapezoids. A share under the firmware's acceleration changes nothing."""
+    """RunMargins.travel_share 0.5 on BED (hard limits X 10000, Y 8000, Z 500), once the program
+    has printed (a run before): a travel (X or Y moved, E not advanced) accelerates at half the
+    hard limits along its direction, its corner with a printing move at the firmware's junction
+    speed (the profile's scv at 90 degrees); printing, a retraction and a Z move (a rest of X and
+    Y, copied) keep the firmware's 3000 and 500: closed-form trapezoids. A share under the
+    firmware's acceleration changes nothing, nor does it before the program prints."""
     prog = Program()
+    first_travel = prog.move((0, 100, 0, 0.0), feed=100.0)
+    prog.move((0, 0, 0, 1.0), feed=100.0)
+    prog.stop(dwell=0.1)
     printing = prog.move((100, 0, 0, 3.0), feed=100.0)
     travel = prog.move((100, 100, 0, 3.0), feed=100.0)  # Y alone: 0.5 * 8000
     prog.stop(dwell=0.1)
@@ -377,10 +381,12 @@ def test_travels_at_a_share_of_the_hard_accelerations(firmware):
     lift = prog.move((0, 0, 1, 1.0), feed=10.0)
     margins = planner.RunMargins(travel_share=0.5)
     plan = plan_blocks(prog.blocks, BED, margins=margins, firmware=firmware)
+    assert plan.line_time_s[first_travel] == pytest.approx(rest_to_rest(100, 100, 3000), rel=1e-12)
     t1 = trapezoid_time(100, 0, 100, 5.0, 3000)
-    assert plan.pieces.start_v_mm_s[1] == pytest.approx(5.0, rel=1e-12)
-    assert plan.line_time_s[printing] == pytest.approx(t1, rel=1e-12)
-    assert plan.line_time_s[travel] == pytest.approx(t1 + trapezoid_time(100, 5.0, 100, 0, 4000), rel=1e-12)
+    assert plan.pieces.start_v_mm_s[3] == pytest.approx(5.0, rel=1e-12)
+    assert plan.line_time_s[printing] - plan.move_start_s[printing] == pytest.approx(t1, rel=1e-12)
+    assert plan.line_time_s[travel] - plan.move_start_s[printing] == pytest.approx(
+        t1 + trapezoid_time(100, 5.0, 100, 0, 4000), rel=1e-12)
     retract_s = rest_to_rest(2, 40, 3000 if firmware is None else BED.extrude_only_accel_mm_s2)
     diagonal_s = rest_to_rest(100 * math.sqrt(2), 100, 4000 * math.sqrt(2))
     assert plan.line_time_s[diagonal] - plan.move_start_s[diagonal] == pytest.approx(diagonal_s, rel=1e-12)
@@ -389,7 +395,8 @@ def test_travels_at_a_share_of_the_hard_accelerations(firmware):
     slow = plan_blocks(prog.blocks, BED, margins=planner.RunMargins(travel_share=0.2), firmware=firmware)
     plain = plan_blocks(prog.blocks, BED, firmware=firmware)
     assert slow.duration_s == plain.duration_s
-    assert plain.line_time_s[travel] == pytest.approx(t1 + trapezoid_time(100, 5.0, 100, 0, 3000), rel=1e-12)
+    assert plain.line_time_s[travel] - plain.move_start_s[printing] == pytest.approx(
+        t1 + trapezoid_time(100, 5.0, 100, 0, 3000), rel=1e-12)
 
 
 def test_limit_change_mid_program_applies_to_later_moves():
