@@ -484,6 +484,20 @@ def _trapezoids(length, accel, v0_2, peak2, v1_2) -> tuple:
     return (v0, vp, v1), d_accel, t_accel, t_cruise, t_accel + t_cruise + t_decel
 
 
+def _travel_saved_s(taken: dict, speeds: tuple, duration: np.ndarray) -> float:
+    """What the travels planned faster (``RunMargins.travel_share``) among the pieces ``taken``
+    save: each at the firmware's acceleration between the same squared speeds, its peak Klipper's
+    smoothed one (exact from rest to rest on the other firmwares)."""
+    fast = np.flatnonzero(taken["accel"] != taken["firmware_accel"])
+    if not fast.size:
+        return 0.0
+    v0_2, _, v1_2 = (v[fast] for v in speeds)
+    length, accel, max_v = taken["length"][fast], taken["firmware_accel"][fast], taken["max_v"][fast]
+    smooth_v2 = taken["smooth_delta_v2"][fast] * (accel / taken["accel"][fast])
+    peak2 = np.maximum(np.minimum(max_v * max_v, 0.5 * (v0_2 + v1_2 + smooth_v2)), np.maximum(v0_2, v1_2))
+    return float((_trapezoids(length, accel, v0_2, peak2, v1_2)[-1] - duration[fast]).sum())
+
+
 class _PieceMaker:
     """Waypoints to pieces. Takes the rows of waypoints read (per block: its index, line, whether
     it is motion, feed, row of the limits table, points) and gives the new pieces' columns
@@ -998,8 +1012,7 @@ class PlanStream:
                  every_axis: bool = False):
         self.sample_rate_hz = self._fs = float(profile.sample_rate_hz)
         self.margins = margins = margins or RunMargins()
-        self.added_s = 0.0  # the margins' time, over the runs settled
-        self.travel_saved_s = 0.0  # what the travels planned faster save (RunMargins.travel_share), as settled
+        self.added_s = self.travel_saved_s = 0.0  # as settled: the margins' time; what faster travels save
         self._keep = keep
         klipper = firmware == "klipper"
         # settled, for the consumers
@@ -1119,9 +1132,8 @@ class PlanStream:
     def _settle_pieces(self, n: int, v2: np.ndarray | None = None, speeds: list | None = None) -> None:
         """Settle the next ``n`` pieces, their squared junction speeds ``v2`` (n + 1) given, or
         their (start, cruise, end) squared speeds ``speeds`` (Klipper's)."""
-        pending = self._pending
-        taken = {name: value[:n] for name, value in pending.items()}
-        self._pending = {name: value[n:] for name, value in pending.items()}
+        taken = {name: value[:n] for name, value in self._pending.items()}
+        self._pending = {name: value[n:] for name, value in self._pending.items()}
         p0 = self._p0
         self._p0 += n
         block, key, start, end, length = taken["block"], taken["run"], taken["start"], taken["end"], taken["length"]
@@ -1132,7 +1144,7 @@ class PlanStream:
                                np.maximum(v0_2, v1_2))
             speeds = (v0_2, peak2, v1_2)
         (v0, vp, v1), d_accel, t_accel, t_cruise, duration = _trapezoids(length, accel, *speeds)
-        self._count_travel_saved(taken, speeds, duration)
+        self.travel_saved_s += _travel_saved_s(taken, speeds, duration)
         cum = np.cumsum(np.concatenate([[self._cum_dur], duration]))  # (the running sum's bits)
 
         # runs: pieces between the same two STOP blocks, one after the other, separated by the
@@ -1170,18 +1182,6 @@ class PlanStream:
         segments.append(_Timeline.phases(p0, piece_start, piece_end, t_accel, t_cruise, start, end, d_accel, length,
                                          accel, (v0, vp, v1)))
         self._timeline.add(segments)
-
-    def _count_travel_saved(self, taken: dict, speeds: tuple, duration: np.ndarray) -> None:
-        """``travel_saved_s``: what the travels planned faster (``RunMargins.travel_share``) save,
-        each at the firmware's acceleration between the same speeds, its peak Klipper's smoothed one
-        (exact from rest to rest on the other firmwares)."""
-        fast = np.flatnonzero(taken["accel"] != taken["firmware_accel"])
-        if fast.size:
-            v0_2, _, v1_2 = (v[fast] for v in speeds)
-            length, accel, max_v = taken["length"][fast], taken["firmware_accel"][fast], taken["max_v"][fast]
-            smooth_v2 = taken["smooth_delta_v2"][fast] * (accel / taken["accel"][fast])
-            peak2 = np.maximum(np.minimum(max_v * max_v, 0.5 * (v0_2 + v1_2 + smooth_v2)), np.maximum(v0_2, v1_2))
-            self.travel_saved_s += float((_trapezoids(length, accel, v0_2, peak2, v1_2)[-1] - duration[fast]).sum())
 
     def _settled_to(self, piece: int, cum: float, end: np.ndarray, block: int) -> None:
         """The last piece settled (a run closing ends there)."""
