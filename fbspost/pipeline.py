@@ -115,6 +115,7 @@ class Report:
     added_time_s: float = 0.0  # the lead and settle margins given to the runs of motion (in print_time_s)
     lead_time_s: float = 0.0  # per run, at most (planner.RunMargins: for Klipper, less by the run's end)
     settle_time_s: float = 0.0
+    travel_saved_s: float = 0.0  # less by the travels planned faster (planner.RunMargins.travel_share), about
     axes: dict[str, AxisReport] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     max_line_rate_hz: float = 0.0  # the most lines sent in any second (comments not counted)
@@ -261,7 +262,7 @@ def _compensate(read_path, input_path, output_path, profile, options, flavor, pr
     written = stats[0]
     report = Report(str(input_path), str(output_path), profile.name, flavor, plan.n_blocks, written.lines_out,
                     plan.duration_s, 0.0, plan.added_s, plan.margins.lead_s, plan.margins.settle_s,
-                    warnings=plan.warnings + outcome.warnings, stage_time_s=stages,
+                    travel_saved_s=plan.travel_saved_s, warnings=plan.warnings + outcome.warnings, stage_time_s=stages,
                     max_line_rate_hz=written.max_line_rate_hz, line_rate_budget_hz=profile.firmware.max_line_rate_hz,
                     tolerance_used_mm=written.max_deviation_mm, tolerance_used_at_s=written.max_deviation_s,
                     loosened_s=written.loosened_s, rms_deviation_mm=written.rms_deviation_mm)

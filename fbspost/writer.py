@@ -977,8 +977,12 @@ class _RunWriter:
         self._run_breaks = self._run_g5 = None
         # A run's end where the command no longer moves (a settle margin unused) is a dwell:
         # its time must not slow the next run's first block, nor be lost (the lines after it
-        # run at the plan's times).
-        self.emitter.residue_s -= self._out.dwell(self.emitter.residue_s)
+        # run at the plan's times). Not on Marlin: its G4 empties the buffer, and a copied move
+        # after it (a layer's Z move) would be alone there before the next run's G4, held 100 ms
+        # (_start_dwell); the next run's G4 takes the time up (_still_as_dwell), the copied lines
+        # run that much earlier, X and Y at rest already.
+        if self.latency_s is None:
+            self.emitter.residue_s -= self._out.dwell(self.emitter.residue_s)
         if self._settings is not None and not self.runs_from(self.run_index):
             self._out.lines(*self._settings.restore())  # the program's own, as it left them
 
@@ -1219,10 +1223,12 @@ def _still_as_dwell(emitter: _Emitter, dwell, from_s: float, ends_s: np.ndarray,
                     latency_s: float | None) -> int:
     """At a run's start (from ``from_s``), the first blocks (ends ``ends_s``, ``targets_mm``) that round
     to no motion as a dwell (``dwell``: writes one for about the seconds given, gives how long it
-    dwells), not as a slow first block: how many it stands for (0: none, or the dwell rounds to none)."""
+    dwells), not as a slow first block: how many it stands for (0: none, or the dwell rounds to none).
+    On Marlin (``latency_s`` not None) the dwell also takes up what the last run's end left
+    (``_RunWriter._end_run``), with or without such blocks."""
     still = emitter.still(targets_mm[:-1])
-    if still:
-        span_s = ends_s[still - 1] - from_s
+    if still or latency_s is not None:
+        span_s = ends_s[still - 1] - from_s if still else 0.0
         dwell_s, late_s = _start_dwell(dwell, span_s + emitter.residue_s, latency_s)
         if dwell_s > 0:
             emitter.residue_s += span_s - dwell_s - late_s

@@ -361,6 +361,44 @@ def test_travel_and_print_acceleration():
     assert plan.duration_s - plan.line_time_s[retract] == pytest.approx(2 / 40 + 40 / 5000, rel=1e-12)
 
 
+@pytest.mark.parametrize("firmware", [None, "klipper"])
+def test_travels_at_a_share_of_the_hard_accelerations(firmware):
+    """RunMargins.travel_share 0.5 on BED (hard limits X 10000, Y 8000, Z 500), once the program
+    has printed (a run before): a travel (X or Y moved, E not advanced) accelerates at half the
+    hard limits along its direction, its corner with a printing move at the firmware's junction
+    speed (the profile's scv at 90 degrees); printing, a retraction and a Z move (a rest of X and
+    Y, copied) keep the firmware's 3000 and 500: closed-form trapezoids. A share under the
+    firmware's acceleration changes nothing, nor does it before the program prints."""
+    prog = Program()
+    first_travel = prog.move((0, 100, 0, 0.0), feed=100.0)
+    prog.move((0, 0, 0, 1.0), feed=100.0)
+    prog.stop(dwell=0.1)
+    printing = prog.move((100, 0, 0, 3.0), feed=100.0)
+    travel = prog.move((100, 100, 0, 3.0), feed=100.0)  # Y alone: 0.5 * 8000
+    prog.stop(dwell=0.1)
+    diagonal = prog.move((0, 0, 0, 3.0), feed=100.0)  # |u| 1/sqrt2: Y's 4000 sqrt2 rules (X 5000 sqrt2)
+    retract = prog.move((0, 0, 0, 1.0), feed=40.0)
+    lift = prog.move((0, 0, 1, 1.0), feed=10.0)
+    margins = planner.RunMargins(travel_share=0.5)
+    plan = plan_blocks(prog.blocks, BED, margins=margins, firmware=firmware)
+    assert plan.line_time_s[first_travel] == pytest.approx(rest_to_rest(100, 100, 3000), rel=1e-12)
+    t1 = trapezoid_time(100, 0, 100, 5.0, 3000)
+    assert plan.pieces.start_v_mm_s[3] == pytest.approx(5.0, rel=1e-12)
+    assert plan.line_time_s[printing] - plan.move_start_s[printing] == pytest.approx(t1, rel=1e-12)
+    assert plan.line_time_s[travel] - plan.move_start_s[printing] == pytest.approx(
+        t1 + trapezoid_time(100, 5.0, 100, 0, 4000), rel=1e-12)
+    retract_s = rest_to_rest(2, 40, 3000 if firmware is None else BED.extrude_only_accel_mm_s2)
+    diagonal_s = rest_to_rest(100 * math.sqrt(2), 100, 4000 * math.sqrt(2))
+    assert plan.line_time_s[diagonal] - plan.move_start_s[diagonal] == pytest.approx(diagonal_s, rel=1e-12)
+    assert plan.line_time_s[lift] - plan.line_time_s[retract] == pytest.approx(retract_s, rel=1e-12)
+    assert plan.duration_s - plan.line_time_s[lift] == pytest.approx(rest_to_rest(1, 10, 500), rel=1e-12)
+    slow = plan_blocks(prog.blocks, BED, margins=planner.RunMargins(travel_share=0.2), firmware=firmware)
+    plain = plan_blocks(prog.blocks, BED, firmware=firmware)
+    assert slow.duration_s == plain.duration_s
+    assert plain.line_time_s[travel] - plain.move_start_s[printing] == pytest.approx(
+        t1 + trapezoid_time(100, 5.0, 100, 0, 3000), rel=1e-12)
+
+
 def test_limit_change_mid_program_applies_to_later_moves():
     prog = Program()
     first = prog.move((50, 0, 0, 0), feed=100.0)
@@ -489,7 +527,7 @@ def test_klippers_margins_by_end():
     the settle margin after it (BY_END). Either time given: that everywhere."""
     half_s = planner.RunMargins.for_profile(BED).lead_s
     assert planner.RunMargins.for_profile(BED, flavor="klipper") == planner.RunMargins(
-        half_s, half_s, (half_s / 2, half_s / 3), (half_s / 4, half_s / 5))
+        half_s, half_s, (half_s / 2, half_s / 3), (half_s / 4, half_s / 5), planner.TRAVEL_SHARE)
     assert planner.RunMargins.for_profile(BED, 0.0, None, "klipper") == planner.RunMargins(0.0, half_s)
 
 

@@ -44,7 +44,7 @@ PRINTER = unbudgeted(load_profile("bedslinger-example"))
 PRINTER = replace(PRINTER, axes={**PRINTER.axes, **{a: replace(PRINTER.axes[a], position_min_mm=-1000.0)
                                                     for a in "XY"}})
 OPTIONS = CompensateOptions(flavor="marlin")
-MARGINS = RunMargins.for_profile(PRINTER)
+MARGINS = RunMargins.for_profile(PRINTER, flavor="marlin")
 PASSTHROUGH = [b"M106 S128", b"M107", b"M104 S205", b"M140 S60", b"M117 Layer 2", b"; LAYER_CHANGE",
                b"(a CNC comment)", b"", b"M204 S2500", b"M221 S95"]
 STOPS = [b"T0", b"M400"]  # the machine rests there, as at G4

@@ -58,7 +58,7 @@ def resimulate(program, profile, report, compensated=None):
     period_s = 1.0 / profile.sample_rate_hz
     seconds = detect_flavor(program) == "linuxcnc"  # its G4 P
     blocks = list(read_gcode(program, detect_flavor(program), profile.home_mm))
-    plan = plan_blocks(blocks, profile, margins=RunMargins.for_profile(profile))
+    plan = plan_blocks(blocks, profile, margins=RunMargins.for_profile(profile, flavor=detect_flavor(program)))
     modelled = [a for a in "XYZ" if a in profile.axes and profile.axes[a].modes]
     shapers = {m["name"]: m["shaper"] for m in report["methods"] if m["shaper"]}
     lead = max([-s["times_s"][0] for row in shapers.values() for s in row.values()], default=0.0)

@@ -95,11 +95,12 @@ def test_lines_and_extrusion_exact(tmp_path, e_relative, xyz_relative, inches, n
     moves = sum(line.startswith(b"G1 ") for line in settling)
     assert moves >= 5
     # That motion (the executor's ends: one per G1 line, the retract last; G91 words are relative)
-    # ends where the program does, to the written decimals, and stays within 10 um of it: the
-    # command's last approach after E stops and the settling of the ringing it cancels (9.5 um at
-    # most on this square; not within 2 um, as this test once said without checking it).
+    # ends where the program does, to the written decimals, and stays within 10.5 um of it: the
+    # command's last approach after E stops and the settling of the ringing it cancels (10.2 um at
+    # most on this square with the margins by each run's end, 9.5 um with 14.7 ms before and
+    # after every run; not within 2 um, as this test once said without checking it).
     settle_xy = np.array(compensated.ends)[-1 - moves:-1, 1:3] - original.ends[-1][1:3]
-    assert np.abs(settle_xy[-1]).max() <= 1e-9 and np.abs(settle_xy).max() <= 10e-3
+    assert np.abs(settle_xy[-1]).max() <= 1e-9 and np.abs(settle_xy).max() <= 10.5e-3
     if newline == "\r\n":
         assert out.count(b"\n") == out.count(b"\r\n")
 
