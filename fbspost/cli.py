@@ -106,13 +106,12 @@ def _margin_options(command):
     """--lead-time and --settle-time (planner.RunMargins; None: from the dynamics)."""
     command = click.option("--settle-time", "settle_time_s", type=click.FloatRange(min=0),
                            help="Seconds the command may go on after each run of motion ends, the machine "
-                                "otherwise at rest (default: half the lowest mode's damped period; a sixth of it for "
-                                "LinuxCNC; for Klipper, once the program prints, by each run's end: "
-                                "docs/compensate.md).")(command)
+                                "otherwise at rest (default: half the lowest mode's damped period; for Klipper, "
+                                "once the program prints, by each run's end: docs/compensate.md).")(command)
     return click.option("--lead-time", "lead_time_s", type=click.FloatRange(min=0),
                         help="Seconds the command may move before each run of motion starts (default: half "
-                             "the lowest mode's damped period; a quarter of it for LinuxCNC; for Klipper, once the "
-                             "program prints, by each run's end: docs/compensate.md).")(command)
+                             "the lowest mode's damped period; for Klipper, once the program prints, by each "
+                             "run's end: docs/compensate.md).")(command)
 
 
 @click.group(cls=_FriendlyGroup)

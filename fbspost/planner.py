@@ -236,14 +236,13 @@ class RunMargins:
         """The given times, at every run; each one not given: what the shortest input shaper (ZV)
         for the profile's lowest mode shifts the motion by, half its damped period (no margin
         without modes). With neither given, for a flavor of ``BY_END_FLAVORS``, once the program
-        prints: that times ``BY_END``'s fractions; for LinuxCNC, ``LINUXCNC_MARGINS``' fractions."""
+        prints: that times ``BY_END``'s fractions."""
         modes = [m for axis in profile.axes.values() for m in axis.modes]
         half_s = 0.0
         if modes:
             lowest = min(modes, key=lambda m: m.frequency_hz)
             half_s = 0.5 / (lowest.frequency_hz * math.sqrt(1.0 - lowest.damping**2))
-        lead, settle = LINUXCNC_MARGINS if flavor == "linuxcnc" else (1.0, 1.0)
-        margins = cls(half_s * lead if lead_s is None else lead_s, half_s * settle if settle_s is None else settle_s)
+        margins = cls(half_s if lead_s is None else lead_s, half_s if settle_s is None else settle_s)
         if lead_s is None and settle_s is None and flavor in BY_END_FLAVORS:
             (lead, settle), (travel_lead, travel_settle) = BY_END
             margins = replace(margins, printing=(half_s * lead, half_s * settle),
@@ -261,11 +260,6 @@ class RunMargins:
 # the pocket (a print checked after) 15% of its gain (docs/compensate.md).
 BY_END = ((1 / 2, 1 / 3), (1 / 4, 1 / 5))
 BY_END_FLAVORS = ("klipper",)  # measured there (the other firmwares' planners: not yet)
-# LinuxCNC's margins, in the same half periods: its output must last what the original lasts on
-# LinuxCNC, +1% (issue 31), and a run's margins are its whole excess. On the model of its planner,
-# the dense butterfly at 0.25 ms (half period 28.2 ms): 1 and 1 ran +1.69% at 18.4 um RMS contour
-# error, these +0.60% at 17.4 um (docs/linuxcnc.md).
-LINUXCNC_MARGINS = (1 / 2, 1 / 3)
 
 
 # ---- limits in force, block by block ---------------------------------------------------------
