@@ -106,7 +106,7 @@ def _chunk_feeds(blocks: list[Block], lengths_mm: np.ndarray, runs: np.ndarray, 
     from_s = np.maximum(start_s - WINDOW_S / 2, start_s[first][index])
     to_s = np.minimum(end_s + WINDOW_S / 2, end_s[last][index])
     from_mm, to_mm = np.interp(from_s, times, lengths), np.interp(to_s, times, lengths)
-    # the same stretch of path in fbspost's plan of the written feeds: the feed scaled by its
+    # the same stretch of path in fbspost's plan of the capped feeds: the feed scaled by its
     # time there over LinuxCNC's (where the plan's own limits slow it, the feed is raised)
     planned_s = np.interp(to_mm, lengths, plan_times) - np.interp(from_mm, lengths, plan_times)
     written = np.array([blocks[int(k)].feed_mm_s for k in line])
