@@ -15,7 +15,7 @@ and its jerk limits came with 2.10) and the INI documentation ([TRAJ] ARC_BLEND_
   with ``tcUpdateArcLimits``' normal acceleration share (radius from its chords).
 - the short-segment cap: maxvel <= length / servo period when added and finalized
   (``tcClampVelocityByLength``) and <= length / (1.02 period) in the optimizer
-  (``tpComputeOptimalVelocity``, TP_MIN_SEGMENT_CYCLES): every segment lasts a period or more.
+  (``tpComputeOptimalVelocity``, TPMIN_SEGMENT_CYCLES): every segment lasts a period or more.
 - terminal conditions: G61.1 stop, G61 exact (no blend; tangent if the kink allows), G64 P
   parabolic unless a better blend is found; a rapid next to a feed move stops
   (``handleModeChange``); a turn within 2 degrees of a reversal stops (``tpSetupTangent``).
@@ -67,7 +67,7 @@ from .profile import MachineProfile
 _NA = len(AXES)
 _XYZ = slice(0, 3)
 STOP, EXACT, PARABOLIC, TANGENT = "stop", "exact", "parabolic", "tangent"
-_MIN_SEGMENT_CYCLES = 1.02  # tp_types.h TP_MIN_SEGMENT_CYCLES
+MIN_SEGMENT_CYCLES = 1.02  # tp_types.h TPMIN_SEGMENT_CYCLES
 _ACC_TAN, _ACC_NORMAL = 0.5, math.sqrt(0.75)  # BLEND_ACC_RATIO_TANGENTIAL / _NORMAL
 _SHARP_CORNER = (math.pi * 2.0 / 180.0) ** 2  # tpSetupTangent: SHARP_CORNER_DEG 2
 BLEND_MODE = re.compile(rb"[Gg]\s*0*6\s*(4|1\s*\.\s*1|1)(?![\d.])((?:\s*[PpQq]\s*[-+]?[\d.]+)*)")
@@ -397,7 +397,7 @@ class _Queue:
             vs_back = limit
             prev.at_max = True
         prev.finalvel = vs_back
-        tc.maxvel = min(tc.maxvel, tc.target / (self.config.servo_period_s * _MIN_SEGMENT_CYCLES))
+        tc.maxvel = min(tc.maxvel, tc.target / (self.config.servo_period_s * MIN_SEGMENT_CYCLES))
 
 
 def _blend_tolerance(prev: _Tc, tc: _Tc) -> float:

@@ -213,7 +213,11 @@ def _compensate_expanded(input_path, output_path, profile, options, reason, prog
 def _compensate(read_path, input_path, output_path, profile, options, flavor, progress, started) -> Report:
     """Compensates the program at ``read_path`` (``input_path`` itself or its expansion)."""
     stages = dict.fromkeys(("read", "plan", "optimize", "fallback", "write"), 0.0)
-    plan = _plan_stream(_read(read_path, flavor, profile, stages, progress), profile, options, flavor)
+    blocks = _read(read_path, flavor, profile, stages, progress)
+    if flavor == "linuxcnc":  # the original's time as LinuxCNC runs it
+        from .linuxcnc_time import retimed  # (it reads the program as verify does, which imports this module)
+        blocks = retimed(blocks, read_path, profile)
+    plan = _plan_stream(blocks, profile, options, flavor)
     compensators = _compensators(profile, options)
     follows_plan = np.array([c not in compensators for c in range(len(AXES))])
     elsewhere = bool(compensators) and _in_second_process(read_path, options)

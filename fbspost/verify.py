@@ -258,7 +258,7 @@ def _setting(block: Block) -> bytes | None:
     return re.sub(rb"[^A-Za-z]", b"", code).upper()
 
 
-def _chunks(program: Path, profile: MachineProfile, flavor: str, chunk_lines: float, overlap_lines: int):
+def program_chunks(program: Path, profile: MachineProfile, flavor: str, chunk_lines: float, overlap_lines: int):
     """The chunks of ``program`` (see the module docstring): (its blocks, the index among them of
     the line before its first measured one (None: the program's start), that of its last measured
     one (None: the program's end)). A chunk's last measured line is a MOVE: both chunks plan its end."""
@@ -307,7 +307,7 @@ def _measure(program: Path, profile: MachineProfile, flavor: str, path: _PathFil
     modes, contour = _Modes(profile), _Contour(path.printer)
     offset_s = cut_s = 0.0  # the chunk's time 0 on the program's; the end of its line before its first
     n_from = 0  # the first sample the chunk measures
-    for blocks, before, last in _chunks(program, profile, flavor, chunk_lines, overlap_lines):
+    for blocks, before, last in program_chunks(program, profile, flavor, chunk_lines, overlap_lines):
         run = _Run(blocks, profile, flavor)
         del blocks
         if before is not None:

@@ -12,6 +12,7 @@ from click.testing import CliRunner
 from fbspost.cli import main
 from fbspost.fallback import FALLBACK
 from fbspost.gcode import read_gcode
+from fbspost.linuxcnc_tp import run_linuxcnc
 from fbspost.pipeline import SHAPING_LEFT_OFF, CompensateOptions, compensate_file
 from fbspost.planner import CLAMPED, RunMargins, plan_blocks
 from fbspost.profile import load_profile
@@ -32,6 +33,14 @@ SAMPLES = ROOT / "samples"
 DATA = Path(__file__).resolve().parent / "data"
 PATENT = load_profile("patent-xy-stage")
 PRINTER = unbudgeted(load_profile("bedslinger-example"))  # (the line budget's cost: test_output_marlin)
+
+
+def linuxcnc_s(source, profile) -> float:
+    """How long fbspost's LinuxCNC output of ``source`` should last: the original as the model of
+    LinuxCNC's planner runs it (linuxcnc_time), and its one run's margins."""
+    margins = RunMargins.for_profile(profile, flavor="linuxcnc")
+    blocks = list(read_gcode(source, "linuxcnc", profile.home_mm))
+    return run_linuxcnc(blocks, profile).duration_s + margins.lead_s + margins.settle_s
 
 
 def modelled_xy(profile, commands_xy, period_s):
@@ -68,8 +77,8 @@ def test_butterfly_programs_on_patent_stage(butterfly_runs, name, duration_toler
     _, command = sample_blocks(compensated.ends, PATENT.sample_rate_hz)
     after = contour_error(path, modelled_xy(PATENT, command[:, :2], period_s))
     assert rms(after) * 20 <= rms(before), f"{rms(before) * 1e3:.3f} -> {rms(after) * 1e3:.3f} um"
-    # As long as the original planned with the profile's planner (what the controller would run).
-    reference_s = plan.duration_s
+    # As long as LinuxCNC runs the original (the model of its planner), with the margins.
+    reference_s = linuxcnc_s(source, PATENT)
     assert abs(compensated.ends[-1][0] - reference_s) <= duration_tolerance * reference_s
     # Block-to-block velocity and acceleration within the profile's limits.
     ends = np.array(compensated.ends)
@@ -116,8 +125,8 @@ def test_butterfly_g5_follows_the_command_in_fewer_blocks(butterfly_g5_runs, nam
     _, g5_samples = sample_blocks(g5.path, PATENT.sample_rate_hz)
     assert len(g5_samples) == len(dense_samples)
     assert np.hypot(*(g5_samples[:, :2] - dense_samples[:, :2]).T).max() <= 2.2e-3
-    plan = plan_blocks(list(read_gcode(source, "linuxcnc")), PATENT, margins=RunMargins.for_profile(PATENT))
-    assert abs(g5.ends[-1][0] - plan.duration_s) <= duration_tolerance * plan.duration_s
+    reference_s = linuxcnc_s(source, fine_servo(PATENT))
+    assert abs(g5.ends[-1][0] - reference_s) <= duration_tolerance * reference_s
     assert abs(g5.ends[-1][0] - dense.ends[-1][0]) <= 1e-5
     assert [line for line in g5.nonmotion if line in original.nonmotion] == original.nonmotion
     assert g5.nonmotion[-1] == original.nonmotion[-1]

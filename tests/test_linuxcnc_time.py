@@ -1,0 +1,50 @@
+"""fbspost.linuxcnc_time: the feeds at which LinuxCNC runs the original, and fbspost's plan of them.
+
+Truths: LinuxCNC's TP caps a segment's speed at its length / (1.02 servo periods)
+(tcClampVelocityByLength, TP_MIN_SEGMENT_CYCLES); a move from rest to rest at speed v over d in
+fbspost's trapezoidal plan (acceleration a, the profile's planner) takes d / v + v / a. The patent
+stage: planner 5000 mm/s^2, servo period 1 ms.
+"""
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from fbspost.gcode import read_gcode
+from fbspost.linuxcnc_time import linuxcnc_feeds, retimed
+from fbspost.planner import plan_blocks
+from fbspost.profile import load_profile
+
+STAGE = load_profile("patent-xy-stage")
+T = STAGE.firmware.linuxcnc.servo_period_s
+CAPPED_MM_S = 0.05 / (1.02 * T)  # 49.02 mm/s: 0.05 mm segments at F6000 (100 mm/s)
+
+
+def chain(tmp_path, n: int = 400):
+    """``n`` collinear 0.05 mm segments at F6000 after a rapid to the start, then a dwell and
+    one more such chain back."""
+    lines = ["G21 G90 G17", "G0 X0 Y0", "G1 X0.05 F6000", *(f"X{0.05 * (k + 2):.2f}" for k in range(n - 1)),
+             "G4 P0.5", *(f"G1 X{0.05 * (n - k - 1):.2f}" for k in range(n)), "M2"]
+    path = tmp_path / "chain.ngc"
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def test_short_segments_get_linuxcnc_s_capped_speed_and_the_plan_its_time(tmp_path):
+    path = chain(tmp_path)
+    feeds = list(linuxcnc_feeds(path, STAGE))
+    blocks = list(read_gcode(path, "linuxcnc", STAGE.home_mm))
+    assert len(feeds) == len(blocks)
+    moving = [k for k, b in enumerate(blocks) if b.kind.name == "MOVE" and math.isfinite(b.feed_mm_s)]
+    assert [k for k, f in enumerate(feeds) if f is not None] == moving  # not the rapid, nor the dwell
+    middle = [feeds[k] for k in moving[100:300] + moving[500:700]]  # cruising, away from the stops
+    assert min(middle) == pytest.approx(CAPPED_MM_S, rel=1e-3)
+    assert max(middle) == pytest.approx(CAPPED_MM_S, rel=1e-3)
+    # fbspost's plan of the retimed program: each chain from rest to rest at the capped speed
+    # (F6000 would have taken 20 mm / 100 mm/s + 100 / 5000 = 0.22 s each); measured 0.04% short
+    plan = plan_blocks(retimed(iter(blocks), path, STAGE), STAGE)
+    v, a = CAPPED_MM_S, STAGE.planner_acceleration_mm_s2
+    one_chain_s = 20.0 / v + v / a
+    moving_s = plan.n_samples / STAGE.sample_rate_hz - 0.5
+    assert moving_s == pytest.approx(2 * one_chain_s, rel=0.002)
