@@ -301,3 +301,25 @@ def _stretches(program, sent):
         run = []
     if len(run) >= 10:
         yield run
+
+
+@pytest.mark.slow
+def test_contour_error_through_whole_steps_beats_ft_motion(tmp_path):
+    """The blob's first 1500 lines from an SD card (no line budget), each program through the
+    model of Marlin's planner and its whole steps, then printer-two-mode's modes
+    (bench/marlin_baseline.py's runs): fbspost's output, its block ends on the lattice
+    (steps.Lattice), has less RMS contour error than the best of FT_MOTION's shapers at the
+    profile's modes (firmware_shapers.ft_motion_shaper, through its steps), and its largest
+    error is below the original's. Measured (the Marlin model): MEASURED."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+    from marlin_baseline import rows
+
+    profile = load_profile("printer-two-mode")  # no max_line_rate: an SD card
+    source, target = tmp_path / "blob.gcode", tmp_path / "out.gcode"
+    with open("tests/data/blob-reprap-relative-e.gcode", "rb") as f:
+        source.write_bytes(b"".join(f.readlines()[:1500]))
+    compensate_file(source, target, profile, CompensateOptions(flavor="marlin"))
+    result = {name.split()[0]: error for name, _, error in rows(source, target, profile, None)}
+    print(result)
+    (rms, peak), (ft_best, _), (_, original_peak) = result["fbspost"], result["FT_MOTION"], result["original"]
+    assert rms < ft_best and peak < original_peak
