@@ -941,6 +941,7 @@ class _RunWriter:
         self.copied_sample = -1  # of the last copied line
         self.dwelt_s = 0.0  # the dwells of the lines at rest since the last block (the controller's time: +)
         self.run_index = 0  # the run being written
+        self.run_from_s = None  # the run's start while none of its blocks is written (then None)
         self.latency_s = _marlin_start_latency_s(options)
         self._run_breaks, self._run_g5 = None, None  # the current run's block ends (dense) or blocks and curves (g5)
 
@@ -992,10 +993,13 @@ class _RunWriter:
             if still:
                 from_s, ends, targets = ends[still - 1], ends[still:], targets[still:]
                 curves = None if curves is None else curves[still:]
+            if run_start:  # (its first blocks may all be held for a later call: they start here)
+                self.run_from_s = from_s
             text, count = emitter.blocks(targets, np.diff(np.append(from_s, ends)), ends, curves,
                                          exact_last=ends[-1] >= stop_s)
             out.text(text, count)
-            self.deviation.add(from_s if run_start else None, emitter.written_s, emitter.written_mm, emitter.stepped_mm)
+            self.deviation.add(self.run_from_s, emitter.written_s, emitter.written_mm, emitter.stepped_mm)
+            self.run_from_s = None if len(emitter.written_s) else self.run_from_s
             out.rate.add(emitter.written_s)
             out.stats.motion_blocks += count
             from_s = start_s = out.written_until_s = float(ends[-1])
