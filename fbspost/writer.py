@@ -857,12 +857,15 @@ class _Deviation:
             knots_mm = np.vstack([first_mm, ends_mm])[:, :3]
             return np.column_stack([np.interp(grid_s, knots_s, knots_mm[:, c]) for c in range(3)])
 
-        chord = chords(targets_mm, self.last_mm)
-        off_mm = np.linalg.norm(chord - self.samples.at(grid_s, self.fs)[:, :3], axis=1)
+        chord, command = chords(targets_mm, self.last_mm), self.samples.at(grid_s, self.fs)[:, :3]
+        off_mm = np.linalg.norm(chord - command, axis=1)
         self.sum_squares_mm2 += float(off_mm @ off_mm)
         self.count += len(off_mm)
-        if len(off_mm) and off_mm.max() > self.max_mm:
-            self.max_mm, self.at_s = float(off_mm.max()), float(grid_s[off_mm.argmax()])
+        # the largest: of the blocks as the firmware runs them (Marlin's ends on the lattice can be steps away)
+        executed = chord if stepped_mm is targets_mm else chords(stepped_mm, self.last_stepped_mm)
+        far_mm = np.linalg.norm(executed - command, axis=1)
+        if len(far_mm) and far_mm.max() > self.max_mm:
+            self.max_mm, self.at_s = float(far_mm.max()), float(grid_s[far_mm.argmax()])
         block = np.searchsorted(ends_s, grid_s, "left")
         worst = np.zeros(len(ends_s))
         np.maximum.at(worst, block, off_mm)
@@ -872,7 +875,6 @@ class _Deviation:
             first = round(grid_s[0] * self.fs)
             self.rest_until(first)
             skip = max(self.executed.next - first, 0)  # (a block's start is the last one's end)
-            executed = chord if stepped_mm is targets_mm else chords(stepped_mm, self.last_stepped_mm)
             planned = self.samples.at(grid_s[skip:], self.fs, planned=True)[:, :3]
             self.executed.add(first + skip, executed[skip:], planned)
         self.last_s, self.last_mm, self.last_stepped_mm = float(ends_s[-1]), targets_mm[-1], stepped_mm[-1]

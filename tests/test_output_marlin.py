@@ -207,10 +207,10 @@ def test_line_rate_within_budget(marlin_output):
 def test_accuracy_cost_reported(marlin_output):
     """The written blocks, each at constant speed from its start to its end as Marlin times them,
     against the command at every sample between any two rests (a constant delay aside: where the
-    machine rests, Marlin's first-move delays): the report's largest distance (what the budget and
-    the merge cost), the rounding aside: the report measures the wanted ends, the text has them
-    on whole steps, the step below or above on each axis (steps.py), so the two differ by less
-    than a step on X and Y."""
+    machine rests, Marlin's first-move delays): the report's largest distance (what the budget, the
+    merge and the steps cost), of the blocks on their whole steps (steps.Lattice can place an end
+    several steps from the wanted one: the wanted ends' largest was 100 um here, the text's 72),
+    within a step on X and Y (this reader's timing against the writer's)."""
     source, target, report = marlin_output
     program = list(read_gcode(target, "marlin", PROFILE.home_mm))
     written = blocks(target)
