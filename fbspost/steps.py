@@ -165,8 +165,9 @@ class ModalRounding:
 class Lattice:
     """One axis' block ends at given times (the firmware runs the chords between them), solved
     through its modes: the ends' positions that leave the least error energy from the wanted
-    motion over every block and after the last (a linear least squares on the filtered hat
-    functions, solved backwards by dynamic programming: ``gains``), then taken forwards one by
+    motion over the blocks of an end's stretch (``HORIZON_S``) and the next, and after them (a
+    linear least squares on the filtered hat functions, solved backwards by dynamic programming:
+    ``gains``), then taken forwards one by
     one (``best``, ``take``) on whole steps, each with the ends before it as taken and those
     after it free. Variables: each end's offset from the wanted motion there (steps), well
     scaled. ``states``: the rounding's state (``ModalRounding``'s) before each end and after the last."""
