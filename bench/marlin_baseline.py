@@ -3,6 +3,7 @@
 Run from the repository root:  python bench/marlin_baseline.py [PROFILE ...] [--lines N] [--prints P ...]
 Default: printer-two-mode and bedslinger-example, the first 8000 lines of every sliced print in
 tests/data, once at a serial host's 300 lines/s and once without a line budget (an SD card).
+A print named with a path is read from there (a print sliced anew: bench/sliced_anew.py).
 
 Every run is *the model of Marlin's planner* (fbspost/marlin.py: whole-step block ends, the
 6-step merge, its buffer and look-ahead), then *the model of its stepper* (each axis on the whole
@@ -118,7 +119,7 @@ def main() -> None:
         for program in args.prints:
             for budget in BUDGETS:
                 with tempfile.TemporaryDirectory() as tmp:
-                    original = excerpt(f"tests/data/{program}", args.lines, Path(tmp))
+                    original = excerpt(program if "/" in program else f"tests/data/{program}", args.lines, Path(tmp))
                     output = compensated(original, machine, "marlin", budget).rename(Path(tmp) / "fbspost.gcode")
                     fine = fine_steps(machine, Path(tmp))
                     floor = (compensated(original, str(fine), "marlin", budget), load_profile(fine))
@@ -127,7 +128,8 @@ def main() -> None:
                 cells[2] = f"{result[2][0].split()[-1]} {cells[2]}"
                 time = 100 * (result[3][1] / result[0][1] - 1)
                 ratios = " | ".join(f"{result[3][2][0] / result[k][2][0]:.2f}" for k in (1, 2, 5))
-                print(f"| {machine} | {program.split('-')[0]} | {f'{budget:g} lines/s' if budget else 'none'} | "
+                name = Path(program).name.split("-")[0]
+                print(f"| {machine} | {name} | {f'{budget:g} lines/s' if budget else 'none'} | "
                       f"{' | '.join(cells)} | {time:+.2f}% of {result[0][1]:.1f} s | {ratios} |", flush=True)
 
 

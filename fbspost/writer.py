@@ -29,7 +29,7 @@ from .bezier import curve_lengths, fit_g5
 from .gcode import AXES, Block, Kind, Modal, feed_lengths
 from .planner import PlanStream
 from .profile import MachineProfile
-from .steps import ModalRounding, crossing_ends, rounding_for
+from .steps import ModalRounding, crossing_ends, lattice_counts, rounding_for, settled_before
 from .transparency import FirmwareSettings, Transparency
 
 _DECIMALS = {**dict.fromkeys(AXES, 4), "E": 5}  # mm: 0.1 um (A B C: 1e-4 degree), E: 10 nm of filament
@@ -315,12 +315,13 @@ class _Emitter:
     def _on_crossings(self, start: np.ndarray, ints: np.ndarray, scale: np.ndarray, durations_s: np.ndarray,
                       ends_s: np.ndarray, targets_mm: np.ndarray, exact_last: bool) -> tuple:
         """MIN_STEPS_PER_SEGMENT above 1: the blocks Marlin keeps (``_merged``), each end moved to where
-        its dominant axis crosses a step (``steps.crossing_ends``), the others rounded against their
-        modes, merged rows onto the kept end before; merged again where the rounding left a block
-        short. Gives the ends, rows' durations and times, targets and rounding's states."""
+        its dominant axis crosses a step (``steps.crossing_ends``), the ends then on whole steps
+        (``_rounded_ends``), merged rows onto the kept end before; merged again where that left a
+        block short. Gives the ends, rows' durations and times, targets and rounding's states."""
         n, spu = len(ints), self.steps_per_mm * self.unit_mm / scale
-        # row 0: the last kept end's time, wanted and rounded ends, time moved (none: the start)
-        from_s, from_units, from_ints, ended_s = self.crossing_from or (ends_s[0] - durations_s[0], start, start, None)
+        # row 0: the last kept end's time, wanted and rounded ends, its time and end moved (none: the start)
+        t0_s = ends_s[0] - durations_s[0]
+        from_s, from_units, from_ints, ended_s, ended_units = self.crossing_from or (t0_s, start, start, t0_s, start)
         ints = _merged(from_ints, ints, spu, self.min_steps, exact_last)
         self.plain = np.vstack([from_ints, ints])
         kept = np.flatnonzero((np.diff(np.vstack([from_ints, ints]), axis=0) != 0).any(axis=1))
@@ -329,9 +330,8 @@ class _Emitter:
         times_s, units = np.append(from_s, ends_s), np.vstack([from_units, self.to_program(targets_mm) * scale])
         xyz_spu = np.where(np.arange(len(spu)) < 3, spu, 0.0)
         t_s, ends = crossing_ends(times_s, units, xyz_spu, kept + 1)
-        rounded, states = _rounded_ends(self.rounding, self.rounding_state, ends, spu,
-                                        np.diff(t_s, prepend=from_s if ended_s is None else ended_s),
-                                        kept, exact_last, times_s, units)
+        rounded, states = _rounded_ends(self.rounding, self.rounding_state, ends, spu, np.append(ended_s, t_s),
+                                        kept, exact_last, times_s, units, ended_units, self.plain, self.min_steps)
         if exact_last and kept[-1] == n - 1:
             rounded[-1] = ints[-1]
         durations_s, ends_s = _moved_in_time(kept, t_s - times_s[kept + 1], durations_s, ends_s)
@@ -344,13 +344,13 @@ class _Emitter:
                 states)
 
     def _held_from(self, kept: np.ndarray, wanted_s: np.ndarray, ends_s: np.ndarray, wanted_mm: np.ndarray,
-                   scale: np.ndarray) -> int:
+                   ends_mm: np.ndarray, scale: np.ndarray) -> int:
         """The first row held for the next call (``_last_in_both``); ``crossing_from``: the row
         before's, for the next call to merge and move its rows as one call would."""
-        row = _last_in_both(self.plain, kept)
+        row = _last_in_both(self.plain, kept, ends_s)
         if row is not None:
             self.crossing_from = (wanted_s[row], self.to_program(wanted_mm[row]) * scale, self.plain[row + 1],
-                                  ends_s[row])
+                                  ends_s[row], self.to_program(ends_mm[row]) * scale)
         return 0 if row is None else row + 1
 
     def _keep_rounding(self, states: list[np.ndarray | None] | None, row: int) -> None:
@@ -384,7 +384,7 @@ class _Emitter:
         marlin = self.min_steps and curves is None
         if marlin:
             crossing = self.min_steps > 1 and self.crossings
-            wanted_mm, wanted_s = targets_mm, ends_s
+            wanted = targets_mm, durations_s, ends_s  # (the rows before they are moved onto crossings)
             if crossing:
                 ints, durations_s, ends_s, targets_mm, states = self._on_crossings(
                     start, ints, scale, durations_s, ends_s, targets_mm, exact_last)
@@ -397,10 +397,10 @@ class _Emitter:
             else:
                 # held: the last kept block (a later one may merge it); on crossings from the end before it
                 kept = np.flatnonzero((np.diff(np.vstack([start, ints]), axis=0) != 0).any(axis=1))
-                last = self._held_from(kept, wanted_s, ends_s, wanted_mm, scale) if crossing else \
+                last = self._held_from(kept, wanted[2], ends_s, wanted[0], targets_mm, scale) if crossing else \
                     (kept[-1] if len(kept) else 0)
                 self._keep_rounding(states, last)
-                self.held = (targets_mm[last:], durations_s[last:], ends_s[last:])
+                self.held = _held(*wanted, ends_s, last)
                 targets_mm, durations_s, ends_s, ints = (x[:last] for x in (targets_mm, durations_s, ends_s, ints))
         steps = np.diff(np.vstack([start, ints]), axis=0)
         moved = steps != 0
@@ -462,6 +462,15 @@ class _Emitter:
         return offsets
 
 
+def _held(targets_mm: np.ndarray, durations_s: np.ndarray, ends_s: np.ndarray, moved_ends_s: np.ndarray,
+          last: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The rows from ``last`` on, held for the next call: as wanted (not moved onto crossings, so
+    that the next call sees the rows one call would), the first from the end written before it
+    (``moved_ends_s``: the ends as moved)."""
+    before_s = moved_ends_s[last - 1] if last else ends_s[0] - durations_s[0]
+    return targets_mm[last:], np.diff(np.append(before_s, ends_s[last:])), ends_s[last:]
+
+
 def _moved_in_time(kept: np.ndarray, shift_s: np.ndarray, durations_s: np.ndarray,
                    ends_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The rows' durations and end times with the ``kept`` rows' ends moved by ``shift_s``, the
@@ -473,31 +482,52 @@ def _moved_in_time(kept: np.ndarray, shift_s: np.ndarray, durations_s: np.ndarra
     return durations_s, ends_s
 
 
-def _last_in_both(plain: np.ndarray, kept: np.ndarray) -> int | None:
+def _last_in_both(plain: np.ndarray, kept: np.ndarray, ends_s: np.ndarray) -> int | None:
     """The last row kept both by Marlin's merge of the rows rounded (``plain``: row 0 the start)
-    and in the end (``kept``), but for the merge's last (a later row may merge it); None: none."""
+    and in the end (``kept``), but for the merge's last (a later row may merge it), that ends
+    (``ends_s``) where the lattice has settled its end given the rows up to that one
+    (``steps.settled_before``); None: none."""
     both = np.intersect1d(kept, np.flatnonzero((np.diff(plain, axis=0) != 0).any(axis=1))[:-1])
+    if len(both):
+        both = both[ends_s[both] < settled_before(ends_s[both[-1]])]
     return int(both[-1]) if len(both) else None
 
 
-def _rounded_ends(rounding: list, rounding_state: list, ends: np.ndarray, spu: np.ndarray, block_s: np.ndarray,
-                  kept: np.ndarray, exact_last: bool, times_s: np.ndarray, units: np.ndarray) -> tuple:
-    """The kept blocks' ``ends`` (written units; ``block_s`` long) with X Y Z on whole steps, each
-    axis by its ``rounding`` (``steps``) from its ``rounding_state``, an axis with modes told what
-    the chords between the kept rows leave out of the wanted rows (``units`` at ``times_s``, row 0
+def _rounded_ends(rounding: list, rounding_state: list, ends: np.ndarray, spu: np.ndarray, knots_s: np.ndarray,
+                  kept: np.ndarray, exact_last: bool, times_s: np.ndarray, units: np.ndarray,
+                  knot_from: np.ndarray, plain: np.ndarray, min_steps: int) -> tuple:
+    """The kept blocks' ``ends`` (written units, at ``knots_s[1:]``; ``knots_s[0]`` the end
+    before them, at ``knot_from``) with X Y Z on whole steps, each axis by its ``rounding``
+    (``steps``) from its ``rounding_state``: the axes with modes together on the lattice
+    (``steps.Lattice``: the chords between the ends solved through the modes against the
+    wanted rows, ``units`` at ``times_s``, row 0 the start), each block kept by Marlin's merge
+    (``min_steps`` on some axis; the other axes' steps as in ``plain``, the merge's ends, row 0
     the start); and the rounding's states before each row and after the last."""
     rounded, states = np.rint(ends).astype(np.int64), [None] * 3
     before = np.searchsorted(kept, np.arange(len(units)))  # each row: how many kept rows come before it
+    later = times_s > knots_s[0]  # the wanted motion from the end before the kept ones
+    wanted_s = np.append(knots_s[0], times_s[later])
+    on_lattice = np.array([isinstance(r, ModalRounding) for r in rounding] + [False] * (len(spu) - 3)) & (spu > 0)
+    lattices = []
     for i in np.flatnonzero(spu[:3] > 0):
         wanted = ends[:, i] * spu[i]
         wanted = np.where(np.abs(wanted - np.rint(wanted)) < 1e-6, np.rint(wanted), wanted)  # (on a step)
-        chords = None
-        if isinstance(rounding[i], ModalRounding):
-            chords = rounding[i].chord_states(times_s, units[:, i] * spu[i], kept + 1)
-        counts, st = rounding[i].round(wanted, block_s, rounding_state[i], chords)
+        if on_lattice[i]:
+            last = float(np.rint(wanted[-1])) if exact_last else None
+            lattices.append(rounding[i].lattice(wanted_s, np.append(knot_from[i], units[later, i]) * spu[i],
+                                                knots_s[1:], rounding_state[i], last, wanted))
+            continue
+        counts, st = rounding[i].round(wanted, np.diff(knots_s), rounding_state[i])
         rounded[:, i], states[i] = np.rint(counts / spu[i]), st[before]
-        if exact_last:
-            states[i][-1] = 0.0
+    others = np.flatnonzero((spu > 0) & ~on_lattice)
+    at_steps = np.rint(plain[np.append(0, kept + 1)][:, others] * spu[others])
+    lattice_counts(lattices, (np.abs(np.diff(at_steps, axis=0)) >= min_steps).any(axis=1), min_steps)
+    for i, lattice in zip(np.flatnonzero(on_lattice), lattices, strict=True):
+        rounded[:, i], states[i] = np.rint(lattice.counts / spu[i]), lattice.states[before]
+    if exact_last:
+        for st in states:
+            if st is not None:
+                st[-1] = 0.0
     return rounded, states
 
 
@@ -827,12 +857,15 @@ class _Deviation:
             knots_mm = np.vstack([first_mm, ends_mm])[:, :3]
             return np.column_stack([np.interp(grid_s, knots_s, knots_mm[:, c]) for c in range(3)])
 
-        chord = chords(targets_mm, self.last_mm)
-        off_mm = np.linalg.norm(chord - self.samples.at(grid_s, self.fs)[:, :3], axis=1)
+        chord, command = chords(targets_mm, self.last_mm), self.samples.at(grid_s, self.fs)[:, :3]
+        off_mm = np.linalg.norm(chord - command, axis=1)
         self.sum_squares_mm2 += float(off_mm @ off_mm)
         self.count += len(off_mm)
-        if len(off_mm) and off_mm.max() > self.max_mm:
-            self.max_mm, self.at_s = float(off_mm.max()), float(grid_s[off_mm.argmax()])
+        # the largest: of the blocks as the firmware runs them (Marlin's ends on the lattice can be steps away)
+        executed = chord if stepped_mm is targets_mm else chords(stepped_mm, self.last_stepped_mm)
+        far_mm = np.linalg.norm(executed - command, axis=1)
+        if len(far_mm) and far_mm.max() > self.max_mm:
+            self.max_mm, self.at_s = float(far_mm.max()), float(grid_s[far_mm.argmax()])
         block = np.searchsorted(ends_s, grid_s, "left")
         worst = np.zeros(len(ends_s))
         np.maximum.at(worst, block, off_mm)
@@ -842,7 +875,6 @@ class _Deviation:
             first = round(grid_s[0] * self.fs)
             self.rest_until(first)
             skip = max(self.executed.next - first, 0)  # (a block's start is the last one's end)
-            executed = chord if stepped_mm is targets_mm else chords(stepped_mm, self.last_stepped_mm)
             planned = self.samples.at(grid_s[skip:], self.fs, planned=True)[:, :3]
             self.executed.add(first + skip, executed[skip:], planned)
         self.last_s, self.last_mm, self.last_stepped_mm = float(ends_s[-1]), targets_mm[-1], stepped_mm[-1]
@@ -911,6 +943,7 @@ class _RunWriter:
         self.copied_sample = -1  # of the last copied line
         self.dwelt_s = 0.0  # the dwells of the lines at rest since the last block (the controller's time: +)
         self.run_index = 0  # the run being written
+        self.run_from_s = None  # the run's start while none of its blocks is written (then None)
         self.latency_s = _marlin_start_latency_s(options)
         self._run_breaks, self._run_g5 = None, None  # the current run's block ends (dense) or blocks and curves (g5)
 
@@ -962,10 +995,13 @@ class _RunWriter:
             if still:
                 from_s, ends, targets = ends[still - 1], ends[still:], targets[still:]
                 curves = None if curves is None else curves[still:]
+            if run_start:  # (its first blocks may all be held for a later call: they start here)
+                self.run_from_s = from_s
             text, count = emitter.blocks(targets, np.diff(np.append(from_s, ends)), ends, curves,
                                          exact_last=ends[-1] >= stop_s)
             out.text(text, count)
-            self.deviation.add(from_s if run_start else None, emitter.written_s, emitter.written_mm, emitter.stepped_mm)
+            self.deviation.add(self.run_from_s, emitter.written_s, emitter.written_mm, emitter.stepped_mm)
+            self.run_from_s = None if len(emitter.written_s) else self.run_from_s
             out.rate.add(emitter.written_s)
             out.stats.motion_blocks += count
             from_s = start_s = out.written_until_s = float(ends[-1])

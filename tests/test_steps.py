@@ -114,3 +114,55 @@ def test_crossing_ends_on_a_straight_line():
     assert times == pytest.approx(wanted_s, abs=1e-15)
     assert ends[:, 0] == pytest.approx([7.0, 14.0, 17.0], abs=1e-12)
     assert ends[:, 1] == pytest.approx(400.0 * wanted_s, abs=1e-12)
+
+
+@pytest.mark.slow  # (30 s under load: 13 simulations of 1.3 s at 20 kHz)
+def test_lattice_solves_the_chords_least_squares():
+    """The lattice's ends, taken at their optimum (no whole steps), are the least-squares solution
+    found by brute force: the chords' hat functions (and the wanted motion's own chord error)
+    simulated by scipy's lsim at 20 kHz through the modes, the error after the last end ramped
+    back to zero over as long a block, the chord's energy and slope weighed as the module says
+    (steps.CHORD_WEIGHT, SLOPE_WEIGHT_S2), solved by numpy's lstsq; and taken on whole steps,
+    every block moving the minimum (6 steps)."""
+    from scipy import signal
+
+    from fbspost import steps
+    from reference import continuous_model
+
+    rng = np.random.default_rng(5)
+    knots_s = np.cumsum(rng.uniform(0.004, 0.012, 12))  # 12 blocks, all in one stretch and its look-ahead
+    assert knots_s[-1] < 2 * steps.HORIZON_S
+    times_s = np.linspace(0.0, knots_s[-1], 61)
+    wanted = 80.0 * (25.0 * times_s + 0.04 * np.sin(2 * np.pi * 52.0 * times_s))  # steps: 25 mm/s and a swing
+    lattice = ModalRounding(TWO_MODES).lattice(times_s, wanted, knots_s, np.zeros(5))
+    solved = np.empty(len(knots_s))
+    for k in range(len(knots_s)):
+        solved[k] = lattice.best(k)[0]
+        lattice.take(k, solved[k])
+
+    fs = 20000.0
+    t = np.arange(0.0, knots_s[-1] + 1.2, 1.0 / fs)
+    end_s = knots_s[-1] + (knots_s[-1] - knots_s[-2])  # the ramp back to zero after the last end
+    at_knots = np.interp(knots_s, times_s, wanted)
+
+    def error(offsets):  # the chord through wanted + offsets minus the wanted, then the ramp back
+        chord = np.interp(t, np.append(0.0, knots_s), np.append(wanted[0], at_knots + offsets))
+        e = np.where(t <= knots_s[-1], chord - np.interp(t, times_s, wanted), 0.0)
+        return np.where((t > knots_s[-1]) & (t < end_s), offsets[-1] * (end_s - t) / (end_s - knots_s[-1]), e)
+
+    inside = t <= knots_s[-1]
+    rows = []
+    for column in [np.zeros(len(knots_s))] + list(np.eye(len(knots_s))):
+        e = error(column)
+        _, y, _ = signal.lsim(continuous_model(TWO_MODES), e, t)
+        slope = np.gradient(e, 1.0 / fs)
+        rows.append(np.concatenate([y, np.sqrt(steps.CHORD_WEIGHT) * e[inside],
+                                    np.sqrt(steps.SLOPE_WEIGHT_S2) * slope[inside]]) / np.sqrt(fs))
+    base, hats = rows[0], np.column_stack(rows[1:]) - rows[0][:, None]
+    brute, *_ = np.linalg.lstsq(hats, -base, rcond=None)
+    assert solved - at_knots == pytest.approx(brute, abs=0.01 * np.abs(brute).max())  # (measured: 0.004)
+
+    lattice = ModalRounding(TWO_MODES).lattice(times_s, wanted, knots_s, np.zeros(5))
+    steps.lattice_counts([lattice], np.zeros(len(knots_s), bool), 6)
+    assert np.all(np.abs(np.diff(np.append(wanted[0], lattice.counts))) >= 6)
+    assert np.all(lattice.counts == np.rint(lattice.counts))

@@ -146,6 +146,16 @@ def twisted_star(points: int = 5, twist_deg: float = 40.0, height_mm: float = 4.
     return triangles
 
 
+def wavy_cup(lobes: int = 6, height_mm: float = 5.0):
+    """A cup 20 mm across whose outer wall waves in and out 1.5 mm ``lobes`` times, with an 8 mm
+    hole: curves of changing curvature as short segments, none of them an arc. Sliced anew for
+    issue 32 (``bench/sliced_anew.py``), no change tuned on it."""
+    t = np.linspace(0, 2 * np.pi, 180, endpoint=False)
+    radius = 10.0 + 1.5 * np.sin(lobes * t)
+    outer = np.column_stack([radius * np.cos(t), radius * np.sin(t)])
+    return ring(outer, circle(4.0, 180), 0.0, height_mm)
+
+
 # name -> (model, flavor options)
 PROGRAMS = {
     "tube-marlin2": (tube, ["--gcode-flavor", "marlin2"]),
