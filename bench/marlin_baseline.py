@@ -72,10 +72,12 @@ def fine_steps(machine: str, folder: Path, times: float = 100.0) -> Path:
 
 
 def rows(original: Path, output: Path, profile, budget: float | None,
-         floor: tuple[Path, object] | None = None) -> list[tuple[str, float, tuple]]:
+         floor: tuple[Path, object] | None = None, **config_changes) -> list[tuple[str, float, tuple]]:
     """(name, seconds, (RMS um, max um)) of every run (see the module docstring); ``floor``: the
-    output for fine steps and that profile (None: no floor row)."""
-    plain, fbs = model_run(original, profile, "marlin", budget), model_run(output, profile, "marlin", budget)
+    output for fine steps and that profile (None: no floor row); ``config_changes``: MarlinConfig
+    fields the profile does not set (``classic_jerk=True``), for every run."""
+    plain = model_run(original, profile, "marlin", budget, **config_changes)
+    fbs = model_run(output, profile, "marlin", budget, **config_changes)
     settings = shaper_settings(profile)
 
     spm = profile.firmware.steps_per_mm
@@ -99,7 +101,7 @@ def rows(original: Path, output: Path, profile, budget: float | None,
     out.append(("fbspost", fbs.seconds, error(stepper_positions(fbs.samples, spm), fbs.samples)))
     out.append(("fbspost, no stepper", fbs.seconds, error(fbs.samples, fbs.samples)))
     if floor is not None:
-        fine = model_run(floor[0], floor[1], "marlin", budget)
+        fine = model_run(floor[0], floor[1], "marlin", budget, **config_changes)
         out.append(("floor", fine.seconds, error(fine.samples, fine.samples)))
     return out
 
