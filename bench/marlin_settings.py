@@ -4,7 +4,7 @@ Run from the repository root:
     python bench/marlin_settings.py [--machine PROFILE] [--program GCODE] [--lines N]
                                     [--budget LINES_PER_S] [--only LABEL ...]
 Default: printer-two-mode, the first 2000 lines of tests/data/gear-marlin2.gcode, no line budget
-(an SD card), every setting below. Each setting goes into a copy of the profile's ``[firmware]``
+(an SD card), every setting below (the last row: the two that gain most, together). Each setting goes into a copy of the profile's ``[firmware]``
 table (classic jerk has no key there: it is a ``MarlinConfig`` field of the model, given to every
 run), the program is compensated for that copy (``compensate --flavor marlin``) and
 ``marlin_baseline.rows`` runs the original, Marlin's ZV, FT_MOTION's best shaper and fbspost's
@@ -28,24 +28,26 @@ from marlin_baseline import rows  # noqa: E402
 
 from fbspost.profile import load_profile  # noqa: E402
 
-# (label, a [firmware] line replacing the one with its key or added, MarlinConfig changes)
+FINE_STEPS = "steps_per_mm = { X = 160.0, Y = 160.0, Z = 400.0, E = 415.0 }"
+# (label, [firmware] lines replacing the ones with their keys or added, MarlinConfig changes)
 SETTINGS = (
-    ("Marlin's defaults", None, {}),
-    ("MIN_STEPS_PER_SEGMENT 1", "min_steps_per_segment = 1", {}),
-    ("MIN_STEPS_PER_SEGMENT 3", "min_steps_per_segment = 3", {}),
-    ("BLOCK_BUFFER_SIZE 32", "block_buffer = 32", {}),
-    ("BLOCK_BUFFER_SIZE 64", "block_buffer = 64", {}),
-    ("CLASSIC_JERK", None, {"classic_jerk": True}),
-    ("M205 B0", "min_segment_time = 0.0", {}),
-    ("160 steps/mm on X and Y", "steps_per_mm = { X = 160.0, Y = 160.0, Z = 400.0, E = 415.0 }", {}),
+    ("Marlin's defaults", (), {}),
+    ("MIN_STEPS_PER_SEGMENT 1", ("min_steps_per_segment = 1",), {}),
+    ("MIN_STEPS_PER_SEGMENT 3", ("min_steps_per_segment = 3",), {}),
+    ("BLOCK_BUFFER_SIZE 32", ("block_buffer = 32",), {}),
+    ("BLOCK_BUFFER_SIZE 64", ("block_buffer = 64",), {}),
+    ("CLASSIC_JERK", (), {"classic_jerk": True}),
+    ("M205 B0", ("min_segment_time = 0.0",), {}),
+    ("160 steps/mm on X and Y", (FINE_STEPS,), {}),
+    ("both: MIN_STEPS_PER_SEGMENT 1, 160 steps/mm", ("min_steps_per_segment = 1", FINE_STEPS), {}),
 )
 
 
-def with_firmware(machine: str, line: str | None, folder: Path) -> Path:
-    """A copy of ``machine``'s profile in ``folder`` with ``line`` in its ``[firmware]`` table
-    (replacing the line of the same key)."""
+def with_firmware(machine: str, lines: tuple[str, ...], folder: Path) -> Path:
+    """A copy of ``machine``'s profile in ``folder`` with ``lines`` in its ``[firmware]`` table
+    (each replacing the line of the same key)."""
     text = Path(load_profile(machine).source).read_text()
-    if line is not None:
+    for line in lines:
         key = line.split("=")[0].strip()
         text, found = re.subn(rf"(?m)^{key}\s*=.*$", line, text)
         if not found:
@@ -66,11 +68,11 @@ def main() -> None:
     print("| setting | line budget | original um (max) | Marlin ZV um (max) | FT_MOTION best um (max) "
           "| fbspost um (max) | fbspost time vs original |")
     print("|---|---|---|---|---|---|---|")
-    for label, line, changes in SETTINGS:
+    for label, lines, changes in SETTINGS:
         if args.only and label not in args.only:
             continue
         with tempfile.TemporaryDirectory() as tmp:
-            machine = with_firmware(args.machine, line, Path(tmp))
+            machine = with_firmware(args.machine, lines, Path(tmp))
             original = excerpt(args.program, args.lines, Path(tmp))
             output = compensated(original, str(machine), "marlin", args.budget).rename(Path(tmp) / "fbspost.gcode")
             result = rows(original, output, load_profile(machine), args.budget, **changes)
