@@ -4,13 +4,14 @@ Run from the repository root:
     python bench/marlin_settings.py [--machine PROFILE] [--program GCODE] [--lines N]
                                     [--budget LINES_PER_S] [--only LABEL ...]
 Default: printer-two-mode, the first 2000 lines of tests/data/gear-marlin2.gcode, no line budget
-(an SD card), every setting below (the last row: the two that gain most, together). Each setting goes into a copy of the profile's ``[firmware]``
-table (classic jerk has no key there: it is a ``MarlinConfig`` field of the model, given to every
-run), the program is compensated for that copy (``compensate --flavor marlin``) and
-``marlin_baseline.rows`` runs the original, Marlin's ZV, FT_MOTION's best shaper and fbspost's
-output through *the model of Marlin's planner and its whole steps* (fbspost/marlin.py), then the
-profile's modes. One markdown row per setting: RMS (max) contour error in um, fbspost's time
-against the original's as the model runs it.
+(an SD card), every setting below (the last row: the two that gain most, together). Each
+setting goes into a copy of the profile's ``[firmware]`` table (classic jerk has no key there: it
+is a ``MarlinConfig`` field of the model, given to every run), the program is compensated for
+that copy (``compensate --flavor marlin``) and ``marlin_baseline.rows`` runs the original,
+Marlin's ZV, FT_MOTION's best shaper and fbspost's output through *the model of Marlin's planner
+and its whole steps* (fbspost/marlin.py), then the profile's modes. One markdown row per
+setting: RMS (max) contour error in um, fbspost's time against the original's as the model runs
+it.
 """
 from __future__ import annotations
 
