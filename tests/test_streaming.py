@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from fbspost import pipeline, planner, writer
+from fbspost import pipeline, planner, verify, writer
 from fbspost.pipeline import CompensateOptions, compensate_file
 from fbspost.profile import load_profile
 
@@ -72,12 +72,15 @@ def raster(path: Path, rows: int) -> Path:
     return path
 
 
-def test_memory_does_not_grow_with_the_program(tmp_path):
+def test_memory_does_not_grow_with_the_program(tmp_path, monkeypatch):
     """The same kind of program, twice as long: the peak of the memory Python and numpy allocate
     (tracemalloc) barely grows. Held whole, the plan alone grew by about 0.5 kB per move. (The
     axes' processes, which these programs go to, are sent the plan up to 65536 samples ahead of
     the writer, whose process holds those blocks: the peak stops growing after about 25k moves,
-    so the shorter program here is longer than that.)"""
+    so the shorter program here is longer than that. The model of LinuxCNC's planner, which times
+    the original (linuxcnc_time) and checks the output (verify), holds a chunk of the program at a
+    time: chunks of 20k lines here, so that both programs are several, as a long one is.)"""
+    monkeypatch.setattr(verify, "CHUNK_LINES", 20_000)
     peaks = []
     for rows in (300, 600):  # 36k and 73k moves
         source = raster(tmp_path / f"raster-{rows}.ngc", rows)
