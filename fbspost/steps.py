@@ -122,7 +122,6 @@ class ModalRounding:
             states[k + 1] = xi[:n + 1]
         return counts, states
 
-
     def chord_block(self, grid_s: np.ndarray, lam: np.ndarray, wanted: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One block of a chord against the wanted positions ``wanted`` (steps) at ``grid_s``
         (the block's start, the rows inside it, its end; ``lam`` their fractions of it): over
