@@ -30,8 +30,8 @@ from .trajectory import InputError
 from .transparency import FirmwareSettings, Transparency
 from .writer import WriteOptions, dwell_line, timed_blocks
 
-_BEGIN = "; fbspost excite: sweep begins"
-_END = "; fbspost excite: sweep ends"
+SWEEP_BEGINS = "; fbspost excite: sweep begins"
+SWEEP_ENDS = "; fbspost excite: sweep ends"
 _HEADER = {"band": re.compile(r"; band: ([0-9.]+) Hz to ([0-9.]+) Hz"), "flavor": re.compile(r"; flavor: (\w+)$"),
            "machine": re.compile(r"; machine: (.+)$"), "mark": re.compile(r"; clock mark at ([0-9.]+) s"),
            "accel": re.compile(r"; acceleration ([0-9.]+) mm/s\^2 \(LinuxCNC's")}
@@ -189,9 +189,9 @@ def sweep_program(profile: MachineProfile, axis_name: str, positions_mm: np.ndar
         f"G1 {axis_name}{start:.{_POSITION_DECIMALS}f} F{60 * axis.max_velocity_mm_s / 10:.0f}",
         *(applied if linuxcnc is None else ["G61.1 ; exact stop: every block from rest to rest"]),
         dwell_line(flavor, _REST_S)[0],
-        _BEGIN,
+        SWEEP_BEGINS,
         *blocks,
-        _END,
+        SWEEP_ENDS,
         *settings.restore(),
         dwell_line(flavor, _REST_S)[0],
         *(["M2"] if flavor == "linuxcnc" else []),
@@ -258,12 +258,12 @@ def read_sweep(path: str | Path, axis: str) -> Sweep:
         flavor = header["flavor"]
         if flavor not in FLAVORS:
             raise InputError(path, lineno, f"flavor {flavor!r}: expected one of {', '.join(FLAVORS)}")
-        if stripped == _BEGIN:
+        if stripped == SWEEP_BEGINS:
             if position is None:
                 raise InputError(path, lineno, f"the sweep begins before any G1 {axis} sets the start position")
             inside, times, positions, feeds = True, [0.0], [position], []
             continue
-        if stripped == _END:
+        if stripped == SWEEP_ENDS:
             ended = inside
             break
         words = [(k.upper(), float(v)) for k, v in _WORD.findall(line.split(";", 1)[0])]
@@ -288,7 +288,7 @@ def read_sweep(path: str | Path, axis: str) -> Sweep:
                     feeds.append(feed / 60)
                 position = target
     if not ended:
-        raise InputError(path, None, f"no sweep of axis {axis} between '{_BEGIN}' and '{_END}': "
+        raise InputError(path, None, f"no sweep of axis {axis} between '{SWEEP_BEGINS}' and '{SWEEP_ENDS}': "
                                      "not a program written by fbspost excite?")
     if header["band"] is None:
         raise InputError(path, None, "no '; band: ... Hz to ... Hz' line")
@@ -317,7 +317,7 @@ def firmware_sweep(path: str | Path, axis: str, profile: MachineProfile) -> Swee
     profile = replace(profile, sample_rate_hz=max(profile.sample_rate_hz, _PLAN_RATE_HZ))
     motion = replan(blocks, profile, written.flavor, every_axis=True)  # (the axis may have no modes yet)
     marks = [b.raw.strip() for b in blocks]
-    begin, end = marks.index(_BEGIN.encode()), marks.index(_END.encode())
+    begin, end = marks.index(SWEEP_BEGINS.encode()), marks.index(SWEEP_ENDS.encode())
     # (the model of LinuxCNC's planner times a stop after its dwell, the others before it)
     dwells = [b.dwell_s if b.kind is Kind.STOP and written.flavor != "linuxcnc" else 0.0 for b in blocks]
     begin_s, end_s = _done_s(motion.line_time_s, dwells, 0, begin), _done_s(motion.line_time_s, dwells, begin, end)

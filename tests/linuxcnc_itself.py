@@ -75,10 +75,13 @@ def _record(program: Path, profile, first: np.ndarray, timeout_s: float) -> np.n
         (Path(tmp) / "tool.tbl").touch()
         env = {**os.environ, "TP_PROGRAM": str(program.resolve()), "TP_OUT": f"{tmp}/joints.txt",
                "TP_START": f"{first[0]!r} {first[1]!r}", "RTAPI_FIFO_PATH": f"{tmp}/.rtapi_fifo"}
+        command = ["linuxcnc", str(ini)]
         if os.geteuid() == 0:  # rtapi_app refuses root without a user to drop to
             env["RTAPI_UID"] = "65534"
             os.chmod(tmp, 0o777)
-        subprocess.run(["linuxcnc", str(ini)], env=env, cwd=tmp, capture_output=True, timeout=timeout_s)
+            # (not real-time here: ahead of the other tests' work, its task keeps its queue fed)
+            command = ["nice", "-n", "-10", *command]
+        subprocess.run(command, env=env, cwd=tmp, capture_output=True, timeout=timeout_s)
         return np.loadtxt(f"{tmp}/joints.txt", ndmin=2)[:, :3]
 
 

@@ -288,7 +288,7 @@ def simulated_recording(program: Path, log: Path, modes, offset_s=1234.5678, rat
         for ti, a, n in zip(t_log - start_s + offset_s, measured, rng.standard_normal(t_log.size), strict=True)
     )
     log.write_text("#time,accel_x,accel_y,accel_z\n" + rows)
-    return offset_s + 1.0 + dwells_s(program.read_text().split(excite_module._BEGIN)[0]) - start_s
+    return offset_s + 1.0 + dwells_s(program.read_text().split(excite_module.SWEEP_BEGINS)[0]) - start_s
 
 
 def dwells_s(text: str) -> float:
