@@ -51,6 +51,7 @@ def joint_commands(program: Path, profile, timeout_s: float = 900.0) -> np.ndarr
         return None
     blocks = list(read_gcode(program, "linuxcnc", profile.home_mm))
     first = next(b.position_mm[:2] for b in blocks if not np.isnan(b.position_mm[:2]).any())
+    last = next(b.position_mm[:2] for b in reversed(blocks) if not np.isnan(b.position_mm[:2]).any())
     for _ in range(3):  # (now and then a run records no motion: LinuxCNC still ending the last one)
         joints = _record(program, profile, first, timeout_s)
         # the MDI move to the start may still run when the record starts: from where it is done
@@ -59,10 +60,12 @@ def joint_commands(program: Path, profile, timeout_s: float = 900.0) -> np.ndarr
         at = [k for k in np.flatnonzero(np.all(np.abs(joints[:, :2] - first) < 2e-6, axis=1))[:1]
               if np.any(joints[k:] != joints[k])]
         joints = joints[at[0] if at else 0:]
-        if np.any(joints != joints[0]):
+        # (a record that stops before the program's end is no run of it: never figures from it)
+        if np.any(joints != joints[0]) and np.abs(joints[-1, :2] - last).max() < 2e-6:
             return from_first_motion(joints)
         time.sleep(2.0)
-    raise RuntimeError(f"LinuxCNC ran no motion of {program} ({len(joints)} periods recorded)")
+    raise RuntimeError(f"LinuxCNC ran no whole run of {program} ({len(joints)} periods recorded, "
+                       f"ending at X Y {joints[-1, :2]} for {last})")
 
 
 def _record(program: Path, profile, first: np.ndarray, timeout_s: float) -> np.ndarray:
