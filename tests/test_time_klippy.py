@@ -47,9 +47,9 @@ def klippy_figures(name: str, lines: int, tmp_path) -> tuple[float, float, float
 # (print, its first lines, the old default's RMS contour error through klippy, where the output ran
 # +0.83%, +1.33%, +0.67%, +2.24%, +1.10%, +0.67% longer than the original)
 CASES = [("gear-marlin2", 2000, 0.2600)]
-# (not yet within it: the tube's first 8000 lines +0.78%; the bracket keeps 89% of the gain; the travels
-# planned faster, planner.TRAVEL_SHARE, met both but are not used for Klipper: planner.TRAVEL_SHARE_FLAVORS)
-SLOW_CASES = [("gear-marlin2", 8000, 0.3611), ("blob-reprap-relative-e", 8000, 0.2794)]
+SLOW_CASES = [("gear-marlin2", 8000, 0.3611), ("blob-reprap-relative-e", 8000, 0.2794),
+              ("tube-marlin2", 8000, 0.3376), ("bracket-reprapfirmware-relative-e", 8000, 0.2047),
+              ("pocket-klipper", 8000, 0.2266)]
 
 
 def takes_no_longer(klippy, tmp_path, name, lines, old_rms_um):
