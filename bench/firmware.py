@@ -26,9 +26,10 @@ output (``python -m fbspost.cli compensate``) through Klipper's own planner (kli
 toolhead.py, tests/klippy_planner.py; the program compensated as a Klipper program, or as
 FLAVOR), samples the motion klippy plans on the profile's grid,
 runs it through the profile's modelled dynamics (fbspost/dynamics.py) and measures the contour
-error as ``fbspost simulate`` does (simulate.PathDistance: the distance from the modelled
-position to the original's path, its extruding moves for a printer, at the samples where the
-executed E rises on both sides; every move for a machine without E, while it moves). For
+error as ``--verify`` does (verify.contour_um: the distance from the modelled position to the
+original's path, its extruding moves for a printer, at the samples where the executed E rises on
+both sides, neither rise under verify.END_SLIVER of the other; every move for a machine without
+E, while it moves). For
 comparison, each of ``fbspost simulate``'s input shapers, tuned to the profile's dominant modes
 and applied to klippy's plan of the original. Print time is klippy's: moves and dwells.
 """

@@ -252,8 +252,7 @@ class RunMargins:
         if lead_s is None and settle_s is None and flavor in BY_END_FLAVORS:
             (lead, settle), (travel_lead, travel_settle) = BY_END
             margins = replace(margins, printing=(half_s * lead, half_s * settle),
-                              travel=(half_s * travel_lead, half_s * travel_settle),
-                              travel_share=TRAVEL_SHARE if flavor in TRAVEL_SHARE_FLAVORS else 0.0)
+                              travel=(half_s * travel_lead, half_s * travel_settle), travel_share=TRAVEL_SHARE)
         return margins
 
 
@@ -271,10 +270,6 @@ BY_END_FLAVORS = ("klipper", "marlin", "reprap")  # (LinuxCNC: every move's cont
 # in fbspost's plan of the gear's and the tube's first 8000 lines for Klipper 0.4 left them +0.20%
 # and +0.35%, 0.5 +0.04% and +0.05% (through klippy alike, at 94% and 95% of the old gain).
 TRAVEL_SHARE = 0.5
-# Not Klipper: klippy ran the faster travels otherwise than fbspost's model of it (on the gear's
-# first 1000 lines at 300 lines/s, the largest contour error 32 um through klippy, 17.6 um by
-# --verify's model), so --verify would not tell what Klipper does; not traced yet.
-TRAVEL_SHARE_FLAVORS = ("marlin", "reprap")
 
 
 # ---- limits in force, block by block ---------------------------------------------------------

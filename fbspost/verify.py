@@ -5,7 +5,8 @@ each program's print time and contour error as that firmware plans it (Klipper's
 model of Marlin's, RepRapFirmware's or LinuxCNC's planner, ``firmware.py``), through the
 profile's modes. The contour error is the distance from the modelled position to the original's
 commanded path (its extruding pieces for a printer, at the samples where the firmware's E rises
-on both sides; every piece for a machine without E, while it moves): what the part shows.
+on both sides, neither rise a sliver of the other: ``END_SLIVER``; every piece for a machine
+without E, while it moves): what the part shows.
 
 Streams, in memory that does not grow with the program's length (Klipper's planner excepted: it
 takes the program whole). The original's path goes to a temporary file first, in groups with
@@ -57,6 +58,11 @@ CHUNK_LINES = 50_000
 OVERLAP_LINES = 2000
 SLICE_SAMPLES = 1 << 17  # samples modelled and measured at once (a few MB each array)
 GROUP_PIECES = 4096  # the original's pieces searched together, within their box
+# A sample prints where E rises on both sides by more than this share of the other side's rise:
+# one that extrudes for less of a sample period on a side is at the extrusion's end. klippy's
+# timing runs microseconds off the written grid (11 us after 80 s of the gear's output), so at an
+# end its next sample rose by 1% of a sample's extrusion and counted a sample the model does not.
+END_SLIVER = 0.1
 _CACHED_GROUPS = 4  # (a group of long pieces is some 10 MB searched: 0.25 mm sub-pieces)
 _E = AXES.index("E")
 _XYZ = slice(0, 3)
@@ -364,6 +370,14 @@ def modelled(command_mm: np.ndarray, profile: MachineProfile) -> np.ndarray:
     return _Modes(profile)(command_mm)
 
 
+def _printing_samples(e_mm: np.ndarray) -> np.ndarray:
+    """Whether each sample of E (mm) prints: E rises on both sides, each rise more than
+    ``END_SLIVER`` of the other."""
+    rise = np.diff(e_mm)
+    inside = np.minimum(rise[:-1], rise[1:]) > END_SLIVER * np.maximum(rise[:-1], rise[1:])
+    return np.concatenate([[False], inside, [False]])[:e_mm.size]
+
+
 class _Contour:
     """The contour error's sums over the samples that print (see the module docstring), slice by
     slice. A machine without E: from the first sample that moves to the one after the last; the
@@ -379,8 +393,7 @@ class _Contour:
         """Rows ``i0``..``i1`` of ``command_mm`` (the samples measured, with their neighbours) and
         ``actual_mm`` (those samples alone)."""
         if self.printer:
-            rising = np.diff(command_mm[:, _E]) > 0
-            chosen = (np.append(rising, False) & np.insert(rising, 0, False))[i0:i1]
+            chosen = _printing_samples(command_mm[:, _E])[i0:i1]
             self._add(self.sums, path(actual_mm[chosen, _XYZ])[0])
             return
         moving = np.flatnonzero(np.abs(np.diff(command_mm[:, _XYZ], axis=0)).max(axis=1) > 0)

@@ -177,7 +177,8 @@ def test_report_is_the_written_program_as_klipper_runs_it(tmp_path, klippy):
         after = desired - simulate_lsim(modes, period_s, run[:, c])
         assert report.axes[axis].rms_error_before_um == pytest.approx(rms(before[counted]) * 1e3, rel=1e-3)
         assert report.axes[axis].rms_error_after_um == pytest.approx(rms(after[counted]) * 1e3, rel=0.05)
-        assert report.axes[axis].rms_error_after_um > 1.02 * report.axes[axis].rms_error_command_um  # the chords show
+        # the chords show (with the travels planned faster, X's ran 3.43 um, the command's own 3.66)
+        assert abs(report.axes[axis].rms_error_after_um / report.axes[axis].rms_error_command_um - 1) > 0.02
 
 
 def test_verify_gives_klippys_figures(tmp_path, klippy):

@@ -527,8 +527,7 @@ def test_klippers_margins_by_end():
     the settle margin after it (BY_END). Either time given: that everywhere."""
     half_s = planner.RunMargins.for_profile(BED).lead_s
     assert planner.RunMargins.for_profile(BED, flavor="klipper") == planner.RunMargins(
-        half_s, half_s, (half_s / 2, half_s / 3), (half_s / 4, half_s / 5))
-    assert planner.RunMargins.for_profile(BED, flavor="marlin").travel_share == planner.TRAVEL_SHARE
+        half_s, half_s, (half_s / 2, half_s / 3), (half_s / 4, half_s / 5), planner.TRAVEL_SHARE)
     assert planner.RunMargins.for_profile(BED, 0.0, None, "klipper") == planner.RunMargins(0.0, half_s)
 
 

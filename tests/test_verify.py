@@ -100,6 +100,24 @@ def test_contour_error_is_the_distance_to_the_printed_path():
     assert rms_um == pytest.approx(np.sqrt((4.0**2 + 2.0**2) / 2))
 
 
+@pytest.mark.parametrize("after, counted", [(0.01, False), (0.2, True)])
+def test_a_sample_at_an_extrusions_end_does_not_print(after, counted):
+    """Closed form: a line printed a sample at a time ends ``after`` of a sample past sample 5,
+    then a travel leaves it; sample 5 alone is 30 um off the line. Extruding a hundredth of a
+    sample on (klippy's timing runs microseconds off the written grid, so its E still rose there
+    where the model's had stopped on the sample) it is the line's end and not counted; a fifth on,
+    it prints."""
+    path, printer = printed_path(np.array([[0, 0, 0, 0.0]]), np.array([[10, 0, 0, 1.0]]))
+    x = np.append(np.arange(6.0), [5 + after, 5 + after])
+    e = np.append(0.1 * np.arange(6.0), [0.5 + 0.1 * after] * 2)
+    command = np.column_stack([x, [0] * 7 + [1.0], np.zeros(8), e])
+    actual = command.copy()
+    actual[5, 1] = 0.03
+    rms_um, max_um = contour_um(actual, command, path, printer)
+    assert max_um == pytest.approx(30.0 if counted else 0.0, abs=1e-9)
+    assert rms_um == pytest.approx(30.0 / np.sqrt(5) if counted else 0.0, abs=1e-9)  # samples 1 to 5 or 1 to 4
+
+
 def test_outputs_longer_than_a_chunk_are_verified_by_default(tmp_path, monkeypatch):
     """Verify streams, so it is on by default at any length: an output of many chunks (lowered to 500
     lines: the 400 lines give about 3000) is verified without asking, and no warning says otherwise."""
@@ -361,7 +379,7 @@ def test_path_distance_is_the_brute_force_distance(tmp_path):
 
 def test_contour_error_is_the_brute_force_distance_of_the_modelled_motion(tmp_path):
     """verify's figures on a sliced print: the modelled motion (lsim of the modes) at the samples
-    whose E rises on both sides, its distance to every extruding segment of the program as an
+    whose E rises on both sides (``verify.END_SLIVER``), its distance to every extruding segment of the program as an
     independent reader runs it, brute force: RMS and max."""
     profile, command, source = gear_motion(tmp_path)
     blocks = list(read_gcode(source, "klipper", profile.home_mm))
@@ -372,7 +390,9 @@ def test_contour_error_is_the_brute_force_distance_of_the_modelled_motion(tmp_pa
     actual = np.column_stack([simulate_lsim(profile.axes[a].modes, period_s, command[:, i])
                               for i, a in enumerate("XY")])
     e = command[:, 3]
-    printing = [k for k in range(1, len(e) - 1) if e[k - 1] < e[k] < e[k + 1]]
+    # E rises on both sides, neither rise under a tenth of the other (a sliver: an extrusion's end)
+    printing = [k for k in range(1, len(e) - 1)
+                if min(e[k] - e[k - 1], e[k + 1] - e[k]) > 0.1 * max(e[k] - e[k - 1], e[k + 1] - e[k])]
     assert printer and len(printing) > 1000
     points = np.column_stack([actual[printing], command[printing, 2]])
     truth, _ = brute_distance(*extruding_segments(source), points)
