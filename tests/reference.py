@@ -35,6 +35,13 @@ def simulate_lsim(modes, period_s, command):
     return y + command[0]
 
 
+def modelled_xy(profile, commands_xy, period_s):
+    """X Y through the profile's modes (``simulate_lsim``) of commanded X Y every ``period_s``."""
+    return np.column_stack(
+        [simulate_lsim(profile.axes[a].modes, period_s, commands_xy[:, i]) for i, a in enumerate("XY")]
+    )
+
+
 def simulate_varying(modes, period_s, command, scale):
     """Actual position for a zero-order-hold command, from rest at command[0], of modes (beta = 0)
     whose every frequency is ``scale[k]`` times its own over sample k, the DC gain kept: per mode

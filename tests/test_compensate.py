@@ -10,21 +10,19 @@ import pytest
 from click.testing import CliRunner
 
 from fbspost.cli import main
-from fbspost.fallback import FALLBACK
 from fbspost.gcode import read_gcode
 from fbspost.linuxcnc_tp import run_linuxcnc
-from fbspost.pipeline import SHAPING_LEFT_OFF, CompensateOptions, compensate_file
-from fbspost.planner import CLAMPED, RunMargins, plan_blocks
+from fbspost.pipeline import CompensateOptions, compensate_file
+from fbspost.planner import RunMargins, plan_blocks
 from fbspost.profile import load_profile
 from reference import (
-    INSERTED,
     contour_error,
     execute,
     fine_servo,
+    modelled_xy,
     positions_at,
     rms,
     sample_blocks,
-    simulate_lsim,
     unbudgeted,
 )
 
@@ -41,12 +39,6 @@ def linuxcnc_s(source, profile) -> float:
     margins = RunMargins.for_profile(profile, flavor="linuxcnc")
     blocks = list(read_gcode(source, "linuxcnc", profile.home_mm))
     return run_linuxcnc(blocks, profile).duration_s + margins.lead_s + margins.settle_s
-
-
-def modelled_xy(profile, commands_xy, period_s):
-    return np.column_stack(
-        [simulate_lsim(profile.axes[a].modes, period_s, commands_xy[:, i]) for i, a in enumerate("XY")]
-    )
 
 
 @pytest.fixture(scope="module")
@@ -133,93 +125,6 @@ def test_butterfly_g5_follows_the_command_in_fewer_blocks(butterfly_g5_runs, nam
     assert np.allclose(g5.ends[-1][1:3], original.ends[-1][1:3], atol=1e-9)
     assert g5.g5_blocks > len(g5.ends) / 3
     assert len(g5.ends) < 0.7 * len(dense.ends)
-
-
-# ---- real slicer output on the printer profile -------------------------------------------------
-
-CORPUS = ["gear-marlin2.gcode", "blob-reprap-relative-e.gcode",
-          # Short prints sliced here by tests/data/make_sliced.py (PrusaSlicer 2.5).
-          "tube-marlin2.gcode", "pocket-klipper.gcode", "bracket-reprapfirmware-relative-e.gcode"]
-
-
-@pytest.fixture(scope="module", params=CORPUS)
-def sliced(request, tmp_path_factory):
-    source = DATA / request.param
-    target = tmp_path_factory.mktemp("sliced") / request.param
-    return source, target, compensate_file(source, target, PRINTER)
-
-
-@pytest.mark.slow
-def test_sliced_nonmotion_lines_and_extrusion_exact(sliced):
-    source, target, report = sliced
-    original, compensated = execute(source), execute(target)
-    inserted = [line for line in compensated.nonmotion if line not in set(original.nonmotion)]
-    kept = [line for line in compensated.nonmotion if line in set(original.nonmotion)]
-    assert kept == original.nonmotion  # every non-motion line, byte-exact, in order
-    for line in inserted:  # what fbspost adds: its header, the firmware's settings, mode lines
-        assert line.startswith(INSERTED), line
-    # E at every non-motion line of the original, matched in order, within 1e-4 mm.
-    e_out = [
-        e
-        for line, e in zip(compensated.nonmotion, compensated.e_at_lines, strict=True)
-        if line in set(original.nonmotion)
-    ]
-    assert np.abs(np.array(e_out) - np.array(original.e_at_lines)).max() <= 1e-4
-    assert abs(compensated.extruded - original.extruded) <= 1e-4
-
-
-@pytest.mark.slow
-def test_sliced_output_within_axis_limits(sliced):
-    """Run block by block, the output never asks an axis for more than the profile allows:
-    velocity per block, and acceleration from block to block (5% for the chords' approximation
-    of the sampled command, as for the butterfly)."""
-    _, target, report = sliced
-    # (Z moves at travel feeds; stretches where compensating would raise the modelled error)
-    # (and the profile states no input shaping: the output leaves it off, and says so)
-    assert not [w for w in report.warnings if not w.startswith((CLAMPED, FALLBACK, SHAPING_LEFT_OFF))]
-    ends = np.array(execute(target).ends)
-    dt = np.diff(ends[:, 0])
-    moving = dt > 0
-    for column, name in ((1, "X"), (2, "Y")):
-        axis = PRINTER.axes[name]
-        velocity = np.diff(ends[:, column])[moving] / dt[moving]
-        assert np.abs(velocity).max() <= axis.max_velocity_mm_s * (1 + 1e-3), name
-        mid_dt = (dt[moving][1:] + dt[moving][:-1]) / 2
-        assert np.abs(np.diff(velocity) / mid_dt).max() <= axis.max_acceleration_mm_s2 * 1.05, name
-
-
-@pytest.mark.slow
-def test_sliced_contour_error_time_and_speed(sliced):
-    source, target, report = sliced
-    period_s = 1.0 / PRINTER.sample_rate_hz
-    original = execute(source)
-    plan = plan_blocks(list(read_gcode(source, report.flavor)), PRINTER)
-    compensated = execute(target)
-    _, command = sample_blocks(compensated.ends, PRINTER.sample_rate_hz)
-    # Print time within 3% of the planned original (compute speed is bench/'s business).
-    assert abs(compensated.ends[-1][0] - plan.duration_s) <= 0.03 * plan.duration_s
-    # Per layer, extruding motion: contour error of the modelled machine against the original path.
-    ends = np.array(original.ends)
-    extruding = np.diff(ends[:, 4]) > 0
-    before_xy = modelled_xy(PRINTER, plan.positions_mm[:, :2], period_s)
-    after_xy = modelled_xy(PRINTER, command[:, :2], period_s)
-    plan_extruding = np.append(np.diff(plan.positions_mm[:, 3]) > 0, False)
-    run_extruding = np.append(np.diff(command[:, 3]) > 0, False)
-    layers = np.unique(np.round(ends[1:][extruding, 3], 3))
-    checked = 0
-    for z in layers:
-        segments = extruding & (np.round(ends[1:, 3], 3) == z)
-        pieces = [np.array([ends[i, 1:3], ends[i + 1, 1:3]]) for i in np.flatnonzero(segments)]
-        path = np.concatenate(pieces)
-        in_plan = plan_extruding & (np.abs(plan.positions_mm[:, 2] - z) < 1e-6)
-        in_run = run_extruding & (np.abs(command[:, 2] - z) < 1e-6)
-        if in_plan.sum() < 200 or in_run.sum() < 200:
-            continue
-        before = rms(contour_error(path, before_xy[in_plan]))
-        after = rms(contour_error(path, after_xy[in_run]))
-        assert after * 5 <= before, f"layer z={z}: {before * 1e3:.2f} -> {after * 1e3:.2f} um"
-        checked += 1
-    assert checked >= 3
 
 
 # ---- the command line --------------------------------------------------------------------------

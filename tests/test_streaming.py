@@ -1,16 +1,15 @@
 """Streaming: a program planned, compensated and written a stretch at a time comes out byte for byte
 as the same program done whole, with all its blocks and samples in memory at once."""
 import math
-import tracemalloc
 from pathlib import Path
 
 import pytest
 
-from fbspost import pipeline, planner, verify, writer
+from fbspost import pipeline, planner, writer
 from fbspost.pipeline import CompensateOptions, compensate_file
 from fbspost.profile import load_profile
 
-pytestmark = pytest.mark.slow  # whole programs, streamed and whole, and a long one for memory
+pytestmark = pytest.mark.slow  # whole programs, streamed and whole (memory: bench/streaming_memory.py)
 
 ROOT = Path(__file__).resolve().parent.parent
 WHOLE = 10**9  # blocks or samples: more than any program here has
@@ -63,7 +62,7 @@ def test_streamed_output_is_the_whole_programs(tmp_path, monkeypatch, name, prof
 
 def raster(path: Path, rows: int) -> Path:
     """A LinuxCNC finishing pass, 121 segments of 0.25 mm per row: one run of motion as long as
-    the program."""
+    the program (bench/streaming_memory.py's long program)."""
     lines = ["G21 G90 G17", "G0 X0 Y0 Z1", "G1 Z0 F600"]
     for row in range(rows):
         xs = [i * 0.25 for i in range(121)][:: 1 if row % 2 == 0 else -1]
@@ -72,25 +71,3 @@ def raster(path: Path, rows: int) -> Path:
     return path
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "since 29 November 2026 (LinuxCNC's planner model run on the original too, linuxcnc_time; its cubic "
-    "interpolator; verify's search): 122.8 -> 144.3 MB (+17.5%) with 20k-line chunks, 139.7 -> 198.4 MB with "
-    "verify's 50k; before, under 15%: what grows with the program is not traced yet"))
-def test_memory_does_not_grow_with_the_program(tmp_path, monkeypatch):
-    """The same kind of program, twice as long: the peak of the memory Python and numpy allocate
-    (tracemalloc) barely grows. Held whole, the plan alone grew by about 0.5 kB per move. (The
-    axes' processes, which these programs go to, are sent the plan up to 65536 samples ahead of
-    the writer, whose process holds those blocks: the peak stops growing after about 25k moves,
-    so the shorter program here is longer than that. The model of LinuxCNC's planner, which times
-    the original (linuxcnc_time) and checks the output (verify), holds a chunk of the program at a
-    time: chunks of 20k lines here, so that both programs are several, as a long one is.)"""
-    monkeypatch.setattr(verify, "CHUNK_LINES", 20_000)
-    peaks = []
-    for rows in (300, 600):  # 36k and 73k moves
-        source = raster(tmp_path / f"raster-{rows}.ngc", rows)
-        tracemalloc.start()
-        compensate_file(source, tmp_path / "out.ngc", load_profile("bedslinger-example"))
-        peaks.append(tracemalloc.get_traced_memory()[1] / 1e6)
-        tracemalloc.stop()
-    print(f"peak traced memory: {peaks[0]:.1f} MB, {peaks[1]:.1f} MB")
-    assert peaks[1] < 1.15 * peaks[0]
