@@ -347,9 +347,9 @@ def test_contour_error_through_whole_steps_beats_ft_motion(tmp_path):
     fbspost's output, its block ends on the lattice (steps.Lattice), has less RMS contour error
     than the best of FT_MOTION's shapers at the profile's modes (firmware_shapers.ft_motion_shaper,
     through its steps), and its largest error is below the original's. Measured (the Marlin
-    model, 29 November 2026): fbspost 6.35 um (93 max), FT_MOTION MZV 7.02 (86), the original
-    30.5 (204); the greedy rounding before the lattice: 8.0 um on the gear's first 700 lines,
-    6.8 with it. (Its first 1500 lines: 6.10 against MZV's 5.62; 3500: 6.33 and 6.33.)"""
+    model, 29 November 2026): fbspost 5.55 um (58 max), FT_MOTION MZV 7.02 (86), the original
+    30.5 (204); 6.35 um (93) with the blocks at a 1 um tolerance (before STEP_TOLERANCE_SHARE);
+    the greedy rounding before the lattice: 8.0 um on the gear's first 700 lines, 6.8 with it."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
     from marlin_baseline import rows
 
