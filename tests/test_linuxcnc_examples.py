@@ -16,6 +16,7 @@ pytestmark = pytest.mark.skipif(shutil.which("rs274") is None,
                                 reason="LinuxCNC's rs274 is not installed (apt-get install linuxcnc-uspace)")
 
 
+@pytest.mark.slow
 def test_lengths_in_mm_from_inches(tmp_path):
     # a full circle of radius 0.5 in (G2 back to its start), two turns of radius 0.25 in (P2),
     # a quarter counterclockwise, a 0.01 in line and a 2 in line at 1 in depth; one rapid (from a known
