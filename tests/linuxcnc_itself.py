@@ -46,18 +46,20 @@ def ini_text(profile, tmp: str) -> str:
 def joint_commands(program: Path, profile, timeout_s: float = 900.0) -> np.ndarray | None:
     """(n, 3) X Y Z joint commands every servo period of ``program`` run by LinuxCNC itself,
     from its first motion to the period after its last (the machine first moved by MDI to the
-    program's first X Y); None where LinuxCNC is not installed."""
+    program's first X Y, and Z where it gives one: where the path fbspost reads starts, its first
+    move from an unknown position being no part of it); None where LinuxCNC is not installed."""
     if not installed():
         return None
     blocks = list(read_gcode(program, "linuxcnc", profile.home_mm))
-    first = next(b.position_mm[:2] for b in blocks if not np.isnan(b.position_mm[:2]).any())
+    start = next(b.position_mm[:3] for b in blocks if not np.isnan(b.position_mm[:2]).any())
+    given = np.isfinite(start)
     last = next(b.position_mm[:2] for b in reversed(blocks) if not np.isnan(b.position_mm[:2]).any())
     for _ in range(3):  # (now and then a run records no motion: LinuxCNC still ending the last one)
-        joints = _record(program, profile, first, timeout_s)
+        joints = _record(program, profile, start, timeout_s)
         # the MDI move to the start may still run when the record starts: from where it is done
         # (halsampler prints 6 decimals; a closed path also ends at the start: the first time there
         # that motion follows)
-        at = [k for k in np.flatnonzero(np.all(np.abs(joints[:, :2] - first) < 2e-6, axis=1))[:1]
+        at = [k for k in np.flatnonzero(np.all(np.abs(joints[:, given] - start[given]) < 2e-6, axis=1))[:1]
               if np.any(joints[k:] != joints[k])]
         joints = joints[at[0] if at else 0:]
         # (a record that stops before the program's end is no run of it: never figures from it)
@@ -69,7 +71,8 @@ def joint_commands(program: Path, profile, timeout_s: float = 900.0) -> np.ndarr
 
 
 def _record(program: Path, profile, first: np.ndarray, timeout_s: float) -> np.ndarray:
-    """The joint commands LinuxCNC records while it runs ``program`` from ``first`` (X Y)."""
+    """The joint commands LinuxCNC records while it runs ``program`` from ``first`` (X Y Z; Z NaN:
+    where it is)."""
     with tempfile.TemporaryDirectory() as tmp, open(_LOCK, "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         ini = Path(tmp) / "sim.ini"
@@ -77,7 +80,8 @@ def _record(program: Path, profile, first: np.ndarray, timeout_s: float) -> np.n
         (Path(tmp) / "sim.var").touch()
         (Path(tmp) / "tool.tbl").touch()
         env = {**os.environ, "TP_PROGRAM": str(program.resolve()), "TP_OUT": f"{tmp}/joints.txt",
-               "TP_START": f"{first[0]!r} {first[1]!r}", "RTAPI_FIFO_PATH": f"{tmp}/.rtapi_fifo"}
+               "TP_START": " ".join(repr(float(v)) for v in first if np.isfinite(v)),  # (numpy's repr: np.float64(..))
+               "RTAPI_FIFO_PATH": f"{tmp}/.rtapi_fifo"}
         command = ["linuxcnc", str(ini)]
         if os.geteuid() == 0:  # rtapi_app refuses root without a user to drop to
             env["RTAPI_UID"] = "65534"

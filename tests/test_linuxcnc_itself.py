@@ -189,3 +189,20 @@ def test_identify_recovers_the_patent_stage_from_excite_s_linuxcnc_sweep(tmp_pat
           f"damping {first.damping:.4f}")
     assert error <= 0.05
     assert first.frequency_hz == pytest.approx(20.52, rel=0.01) and first.damping == pytest.approx(0.092, rel=0.05)
+
+
+@pytest.mark.slow
+@needs_linuxcnc
+def test_linuxcnc_itself_is_recorded_from_where_the_program_s_path_starts(tmp_path):
+    """A program whose first move (from a place the file does not give) rises in Z, as
+    arcspiral.ngc's `G0 X0 Y0 Z1` in inches: that move is no part of the path fbspost reads, so
+    LinuxCNC must start there. Before, the sim started at Z 0 and its record rose 25.4 mm off the
+    path. Truth: the path's own segments, at a feed slow enough that LinuxCNC stays on them
+    within its G64 P (1 um here)."""
+    program = tmp_path / "rise.ngc"
+    program.write_text("G21 G90 G64 P0.001 Q0\nG0 X0 Y0 Z25.4\nG1 X5 F600\nG1 Y5\nG1 Z20\nM2\n")
+    blocks = list(read_gcode(program, "linuxcnc"))
+    _, starts, ends = as_written(blocks, STAGE.sample_rate_hz)
+    joints = joint_commands(program, STAGE)
+    assert np.abs(joints[0] - [0.0, 0.0, 25.4]).max() < 1e-5
+    assert printed_path(starts, ends)[0](joints)[0].max() < 0.001 + 0.002

@@ -1,6 +1,6 @@
 #!/usr/bin/python3
-"""The headless "display" of bench/firmware.py's LinuxCNC runs: moves to $TP_START (X Y) by MDI,
-then records joint.0/1/2.motor-pos-cmd every servo period (halsampler, sim.hal's sampler) to
+"""The headless "display" of bench/firmware.py's LinuxCNC runs: moves to $TP_START (X Y, and Z where
+given) by MDI, then records joint.0/1/2.motor-pos-cmd every servo period (halsampler, sim.hal's sampler) to
 $TP_OUT while $TP_PROGRAM runs in auto mode, and stops recording once the machine is at rest."""
 import os
 import subprocess
@@ -31,8 +31,8 @@ for state in (linuxcnc.STATE_ESTOP_RESET, linuxcnc.STATE_ON):
     command.wait_complete()
 command.mode(linuxcnc.MODE_MDI)
 command.wait_complete()
-x, y = os.environ["TP_START"].split()
-command.mdi(f"G21 G90 G0 X{x} Y{y}")
+start = os.environ["TP_START"].split()  # X Y, and Z where the program gives it
+command.mdi("G21 G90 G0 " + " ".join(f"{axis}{value}" for axis, value in zip("XYZ", start, strict=False)))
 command.wait_complete()
 wait(idle)
 time.sleep(0.1)
