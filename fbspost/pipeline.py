@@ -139,6 +139,9 @@ _CHUNK = 1 << 14  # samples planned, compensated and written at once
 _SECOND_PROCESS_BYTES = 256_000  # (a second process starts in about 0.5 s: a program this long takes 5 s)
 _EXECUTED_BATCH = 1 << 14  # samples (ExecutedError)
 _ANNOUNCE_BYTES = 1 << 20  # of the output written, told the check's process at once (a few hundred ms of writing)
+# Chunks of the original the check (LinuxCNC: their line times) may be ahead of the feeds that
+# need them: 64 chunks of 50,000 lines, at most about 26 MB held here
+_CHECK_AHEAD = 64
 _POLL_S = 0.002  # how often the writer, waiting for an axis' process, answers the others' requests
 
 
@@ -214,15 +217,15 @@ def _compensate_expanded(input_path, output_path, profile, options, reason, prog
 def _compensate(read_path, input_path, output_path, profile, options, flavor, progress, started) -> Report:
     """Compensates the program at ``read_path`` (``input_path`` itself or its expansion)."""
     stages = dict.fromkeys(("read", "plan", "optimize", "fallback", "write"), 0.0)
+    verification = _Verification(read_path, input_path, profile, flavor, options.verify, stages)
     blocks = _read(read_path, flavor, profile, stages, progress)
     if flavor == "linuxcnc":  # the original's time as LinuxCNC runs it
         from .linuxcnc_time import retimed  # (it reads the program as verify does, which imports this module)
-        blocks = retimed(blocks, read_path, profile)
-    plan = _plan_stream(blocks, profile, options, flavor)
+        blocks = retimed(blocks, read_path, profile, verification.line_times())
+    plan = verification.plan = _plan_stream(blocks, profile, options, flavor)
     compensators = _compensators(profile, options)
     follows_plan = np.array([c not in compensators for c in range(len(AXES))])
     elsewhere = bool(compensators) and _in_second_process(read_path, options)
-    verification = _Verification(read_path, input_path, profile, flavor, options.verify, plan, stages)
     if elsewhere:  # a process per axis, sent the plan made here
         requests: queue.Queue = queue.Queue()
         feed = PlanFeed(plan, {c: _columns(c, compensator) for c, compensator in compensators.items()})
@@ -440,9 +443,11 @@ class _Verification:
     the written file. The wait for its verdict goes to ``stages["verify"]``."""
 
     def __init__(self, read_path, input_path, profile: MachineProfile, flavor: str, option: bool | None,
-                 plan: PlanStream, stages: dict[str, float]):
+                 stages: dict[str, float]):
         self.read_path, self.input_path, self.profile, self.flavor = read_path, input_path, profile, flavor
-        self.plan, self.stages = plan, stages
+        self.stages = stages
+        self.plan: PlanStream | None = None  # (its margins: the time fbspost added)
+        self.failed: Exception | None = None
         self.auto = option is None and flavor != "klipper"
         self.wanted = bool(option) or self.auto
         self.verdict: Verdict | None = None
@@ -451,7 +456,8 @@ class _Verification:
         self.written: _Announced | None = None
         if self.wanted:  # (forked here, before the axes' processes and any thread: see Offloaded.start)
             from .verify import measured_beside  # (simulate, which it measures with, compensates through this module)
-            self.worker = Offloaded(measured_beside, read_path, profile, flavor, requests=queue.Queue(), start=False)
+            self.worker = Offloaded(measured_beside, read_path, profile, flavor, requests=queue.Queue(), start=False,
+                                    ahead=_CHECK_AHEAD)
 
     @property
     def original_kept(self) -> bool:
@@ -460,6 +466,17 @@ class _Verification:
     def start(self) -> None:
         if self.worker is not None:
             self.worker.start()
+
+    def line_times(self) -> Iterator[np.ndarray]:
+        """For LinuxCNC, the check's plan of the original (``verify.measure``'s items) as it comes;
+        none once the check failed (it says so in its verdict's place)."""
+        while self.worker is not None and self.failed is None:
+            try:
+                yield self.worker.get()
+            except StopIteration:
+                return
+            except Exception as exc:  # noqa: BLE001 (as in __call__)
+                self.failed = exc
 
     def opened(self, written: Path) -> None:
         """The output's temporary file, made: its name to the check's process."""
@@ -476,14 +493,16 @@ class _Verification:
         started_s = time.perf_counter()
         self.worker.send((str(written), self.written.size, True))  # (written and closed)
         try:
-            for _ in self.worker:
+            for _ in self.worker:  # (LinuxCNC: the plan of the original's chunks past what the feeds needed)
                 pass
-            measured = self.worker.value
         except Exception as exc:  # noqa: BLE001 (a model's gap must not cost the user the output)
+            self.failed = exc
+        measured = self.worker.value
+        if self.failed is not None:
             self.warnings.append(f"not verified on the firmware's planner: its model failed "
-                                 f"({type(exc).__name__}: {' '.join(str(exc).split())})")
-        else:
-            self.verdict = None if measured is None else Verdict(self.flavor, *measured, self.plan.added_s)
+                                 f"({type(self.failed).__name__}: {' '.join(str(self.failed).split())})")
+        elif measured is not None:
+            self.verdict = Verdict(self.flavor, *measured, self.plan.added_s)
         if self.original_kept:
             shutil.copyfile(self.input_path, written)
             self.warnings.append("the original was written unchanged: the output is no better on the firmware "

@@ -114,15 +114,24 @@ def verify(original: Path, output: Path, profile: MachineProfile, flavor: str, m
     path (None: the original has no motion to measure); ``margins_s``: the time fbspost added;
     ``chunk_lines``, ``overlap_lines``: see the module docstring (None: ``CHUNK_LINES`` and
     ``OVERLAP_LINES`` as they are at the call)."""
-    measured = measure(original, profile, flavor, lambda: (output, None), chunk_lines, overlap_lines)
+    measuring = measure(original, profile, flavor, lambda: (output, None), chunk_lines, overlap_lines)
+    while True:
+        try:
+            next(measuring)
+        except StopIteration as done:
+            measured = done.value
+            break
     return None if measured is None else Verdict(flavor, *measured, margins_s)
 
 
 def measure(original: Path, profile: MachineProfile, flavor: str, output, chunk_lines: float | None = None,
-            overlap_lines: int | None = None) -> tuple[FirmwareResult, FirmwareResult] | None:
-    """``verify``'s measures of the original and of the output, the original's first: ``output()``
-    gives the output's path and its lines (None: the file itself), asked once the original is
-    measured (None: the original has no motion to measure)."""
+            overlap_lines: int | None = None):
+    """A generator: ``verify``'s measures of the original and of the output (its value; None: the
+    original has no motion to measure), the original's first; ``output()`` gives the output's path
+    and its lines (None: the file itself), asked once the original is measured. Its items: for
+    LinuxCNC, when each chunk of the original (``program_chunks`` with ``CHUNK_LINES`` and
+    ``OVERLAP_LINES``) has been planned, the time each of its lines ends there
+    (``linuxcnc_time.linuxcnc_feeds``' plan of the original, made once)."""
     chunk_lines = CHUNK_LINES if chunk_lines is None else chunk_lines
     overlap_lines = OVERLAP_LINES if overlap_lines is None else overlap_lines
     if flavor == "klipper":  # (its look-ahead has no bound: the program whole)
@@ -131,16 +140,17 @@ def measure(original: Path, profile: MachineProfile, flavor: str, output, chunk_
         path = _PathFile.of(original, profile, flavor, store)
         if path is None:
             return None
-        before = _measure(original, None, profile, flavor, path, chunk_lines, overlap_lines)
-        return before, _measure(*output(), profile, flavor, path, chunk_lines, overlap_lines)
+        before = yield from _measure(original, None, profile, flavor, path, chunk_lines, overlap_lines,
+                                     share=flavor == "linuxcnc")
+        after = yield from _measure(*output(), profile, flavor, path, chunk_lines, overlap_lines)
+        return before, after
 
 
 def measured_beside(channel, original: Path, profile: MachineProfile, flavor: str):
-    """``measure`` in a process of its own (``offload.Offloaded``, its value): the original
-    measured while the output is made; the output read as it is written, up to the length the
-    writer last announced through ``channel`` (``following``)."""
-    return measure(original, profile, flavor, lambda: following(channel))
-    yield  # (a generator, as Offloaded runs one: its value is all it gives)
+    """``measure`` in a process of its own (``offload.Offloaded``: its items and value): the
+    original measured while the output is made; the output read as it is written, up to the
+    length the writer last announced through ``channel`` (``following``)."""
+    return (yield from measure(original, profile, flavor, lambda: following(channel)))
 
 
 def following(channel) -> tuple[Path, Iterator[bytes]]:
@@ -353,8 +363,9 @@ def _with_start(held: list[Block], held_from: int, settings: dict[bytes, Block])
 
 
 def _measure(program: Path, lines: Iterable[bytes] | None, profile: MachineProfile, flavor: str, path: _PathFile,
-             chunk_lines: float, overlap_lines: int) -> FirmwareResult:
-    """``program`` (its ``lines``, None: its file) as the firmware runs it, chunk by chunk, measured on ``path``."""
+             chunk_lines: float, overlap_lines: int, share: bool = False):
+    """A generator: ``program`` (its ``lines``, None: its file) as the firmware runs it, chunk by
+    chunk, measured on ``path`` (its value); with ``share``, each chunk's ``line_time_s`` (its items)."""
     rate_hz = profile.sample_rate_hz
     modes, contour = _Modes(profile), _Contour(path.printer)
     offset_s = cut_s = 0.0  # the chunk's time 0 on the program's; the end of its line before its first
@@ -362,6 +373,8 @@ def _measure(program: Path, lines: Iterable[bytes] | None, profile: MachineProfi
     for blocks, before, last in program_chunks(program, profile, flavor, chunk_lines, overlap_lines, lines):
         run = _Run(blocks, profile, flavor)
         del blocks
+        if share:
+            yield run.line_time_s
         if before is not None:
             offset_s = cut_s - float(run.line_time_s[before])
         if last is None:

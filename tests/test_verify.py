@@ -15,11 +15,12 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from fbspost import pipeline
+from fbspost import linuxcnc_time, pipeline
 from fbspost import verify as verify_module
 from fbspost.cli import main
 from fbspost.firmware import replan
 from fbspost.gcode import read_gcode
+from fbspost.linuxcnc_tp import run_linuxcnc
 from fbspost.pipeline import CompensateOptions, compensate_file
 from fbspost.profile import load_profile
 from fbspost.reprap import commanded_pieces
@@ -429,3 +430,22 @@ def test_following_gives_the_lines_of_a_file_as_it_is_written(tmp_path, monkeypa
                                                  (str(written), len(text), True)]))
     with open(written, "rb") as f:
         assert name == written and list(lines) == list(f) and len(list(f.seek(0) or f)) == 5
+
+
+def test_linuxcnc_original_is_planned_once_by_the_check_and_the_output_is_the_same(tmp_path, monkeypatch):
+    """LinuxCNC, in chunks of 300 lines: with the check, this process plans none of the original's
+    chunks on the model of LinuxCNC's planner (the check's plan gives the feeds, linuxcnc_time);
+    without it, it plans each one; the written output is the same byte for byte."""
+    monkeypatch.setattr(verify_module, "CHUNK_LINES", 300)
+    monkeypatch.setattr(verify_module, "OVERLAP_LINES", 100)
+    planned = []
+    monkeypatch.setattr(linuxcnc_time, "run_linuxcnc", lambda blocks, profile: planned.append(len(blocks))
+                        or run_linuxcnc(blocks, profile))
+    profile, source = load_profile("patent-xy-stage"), tmp_path / "butterfly.ngc"
+    source.write_bytes(b"".join((SAMPLES / "butterfly-polyline.gcode").read_bytes().splitlines(True)[:1000]))
+    unchecked, checked = tmp_path / "unchecked.ngc", tmp_path / "checked.ngc"
+    compensate_file(source, unchecked, profile, CompensateOptions(flavor="linuxcnc", verify=False))
+    assert len(planned) == 4  # lines 1-300, 301-600, 601-900, 901-1000 (each with its overlap)
+    report = compensate_file(source, checked, profile, CompensateOptions(flavor="linuxcnc", verify=True))
+    assert len(planned) == 4 and report.verified is not None and not report.original_kept
+    assert checked.read_bytes() == unchecked.read_bytes()
