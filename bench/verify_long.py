@@ -109,7 +109,7 @@ def main():
         on, off = results["on"], results["off"]
         print(f"time with the check: {100 * (on['wall_s'] / off['wall_s'] - 1):+.1f}% wall, "
               f"{100 * (on['cpu_s'] / off['cpu_s'] - 1):+.1f}% CPU; "
-              f"peak memory with it at most {on['vmhwm_mb'] + on['children_mb']:.0f} MB (writer and largest child)",
+              f"peak memory with it: the writer {on['vmhwm_mb']:.0f} MB, its largest child {on['children_mb']:.0f} MB",
               flush=True)
 
 
