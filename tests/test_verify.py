@@ -405,7 +405,7 @@ def test_the_check_beside_the_compensation_gives_the_verdict_of_the_written_file
     assert report.verified == truth and truth.original.rms_um > 0.1
     assert report.original_kept == (not truth.better) == (make == "coarse")
     assert checked.read_bytes() == (source if report.original_kept else unchecked).read_bytes()
-    assert sorted(p.name for p in tmp_path.iterdir())[-1] == "unchecked.gcode"  # (no temporary file left)
+    assert {p.name for p in tmp_path.iterdir()} == {source.name, checked.name, unchecked.name}  # (no temporary file)
 
 
 class _Told:
