@@ -1,7 +1,8 @@
 """Write a file so that readers see either the old file or the complete new one, never a part.
 
 Takes a destination path and a writer callback (and a check, given the temporary file's path
-once it is written, which may still change it); writes a temporary file beside the destination,
+once it is written, which may still change it; and ``opened``, given that path before the writer
+starts); writes a temporary file beside the destination,
 flushes it to disk, renames it over the destination (keeping an existing file's permissions and,
 where allowed, its owner; through a symbolic link, the file it points to is replaced) and
 flushes the directory, so the rename survives a power cut. On any error, or an interrupt, the
@@ -18,15 +19,16 @@ from typing import IO
 
 
 def atomic_write(path: str | Path, write: Callable[[IO[bytes]], None],
-                 check: Callable[[Path], None] | None = None) -> None:
+                 check: Callable[[Path], None] | None = None, opened: Callable[[Path], None] | None = None) -> None:
     path = Path(os.path.realpath(path))
     try:
-        _replace(path, write, check)
+        _replace(path, write, check, opened)
     except OSError as exc:
         raise OSError(exc.errno, f"cannot write: {exc.strerror or exc}", str(path)) from None
 
 
-def _replace(path: Path, write: Callable[[IO[bytes]], None], check: Callable[[Path], None] | None) -> None:
+def _replace(path: Path, write: Callable[[IO[bytes]], None], check: Callable[[Path], None] | None,
+             opened: Callable[[Path], None] | None) -> None:
     tmp = None
     try:
         # (named before it is made, so that an interrupt while it is made still finds it)
@@ -37,6 +39,8 @@ def _replace(path: Path, write: Callable[[IO[bytes]], None], check: Callable[[Pa
             except FileExistsError:  # (another writer's: not ours to remove)
                 tmp = None
         with os.fdopen(fd, "wb") as f:
+            if opened is not None:
+                opened(Path(tmp))
             write(f)
             f.flush()
         if check is not None:

@@ -70,11 +70,12 @@ the first 2000 and last 300 lines. How lines are read:
 """
 from __future__ import annotations
 
+import contextlib
 import enum
 import itertools
 import math
 import re
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -239,8 +240,11 @@ _TRAVEL_BATCH = 256  # blocks checked against the travel at once
 _PARAMETER = re.compile(r"#\s*(?:<[^>]*>?|\d+|\[)|\[[^\]]*\]?")
 
 
-def read_gcode(path: str | Path, flavor: str, home_mm=(0.0, 0.0, 0.0), travel_mm=None) -> Iterator[Block]:
+def read_gcode(path: str | Path, flavor: str, home_mm=(0.0, 0.0, 0.0), travel_mm=None,
+               lines: Iterable[bytes] | None = None) -> Iterator[Block]:
     """Blocks of the G-code file ``path`` read as ``flavor`` (one of FLAVORS), one per line, in order.
+    ``lines``: the file's lines (with their endings) as they come, read instead of the file (a
+    file still being written, ``verify.following``); ``path`` names them in errors.
     ``home_mm``: the X Y Z machine position a G28 leaves the axes it homes at (printers).
     ``travel_mm``: the lowest and the highest machine position of each axis of AXES
     (``MachineProfile.travel_mm``): a line that moves an axis beyond them is refused, as the
@@ -252,7 +256,7 @@ def read_gcode(path: str | Path, flavor: str, home_mm=(0.0, 0.0, 0.0), travel_mm
     """
     if flavor not in FLAVORS:
         raise ValueError(f"unknown G-code flavor {flavor!r}: expected one of {', '.join(FLAVORS)}")
-    blocks = _blocks(path, flavor, home_mm)
+    blocks = _blocks(path, flavor, home_mm, lines)
     if travel_mm is None or not np.isfinite(travel_mm).any():
         return blocks
     return _within_travel(blocks, path, *np.asarray(travel_mm, dtype=float))
@@ -275,15 +279,15 @@ def _within_travel(blocks: Iterator[Block], path, lowest_mm: np.ndarray, highest
         yield from batch
 
 
-def _blocks(path: str | Path, flavor: str, home_mm) -> Iterator[Block]:
+def _blocks(path: str | Path, flavor: str, home_mm, lines: Iterable[bytes] | None = None) -> Iterator[Block]:
     try:
-        handle = open(path, "rb")
+        handle = open(path, "rb") if lines is None else contextlib.nullcontext(lines)
     except OSError as exc:
         raise InputError(path, 0, f"cannot read: {exc}") from None
     reader = _Reader(path, flavor, home_mm)
     line = reader.line
-    with handle:
-        for line_no, raw in enumerate(handle, 1):
+    with handle as source:
+        for line_no, raw in enumerate(source, 1):
             block = line(line_no, raw)
             if block.__class__ is Block:
                 yield block

@@ -43,22 +43,29 @@ from .profile import MachineProfile
 WINDOW_S = 0.01  # the progress is averaged over the line's time and half this either side
 
 
-def retimed(blocks: Iterator[Block], program: Path, profile: MachineProfile) -> Iterator[Block]:
+def retimed(blocks: Iterator[Block], program: Path, profile: MachineProfile,
+            line_times: Iterator[np.ndarray] | None = None) -> Iterator[Block]:
     """``blocks`` (the program at ``program``, read in the same order) with the feeds of
     ``linuxcnc_feeds``."""
-    feeds = linuxcnc_feeds(program, profile)
+    feeds = linuxcnc_feeds(program, profile, line_times)
     for block in blocks:
         feed = next(feeds)
         yield block if feed is None else replace(block, feed_mm_s=feed)
 
 
-def linuxcnc_feeds(program: Path, profile: MachineProfile) -> Iterator[float | None]:
+def linuxcnc_feeds(program: Path, profile: MachineProfile,
+                   line_times: Iterator[np.ndarray] | None = None) -> Iterator[float | None]:
     """Line by line, the feed (mm/s) at which fbspost's planner runs the original as the model of
-    LinuxCNC's planner runs it (see the module docstring); None for a line that is not a motion line."""
+    LinuxCNC's planner runs it (see the module docstring); None for a line that is not a motion line.
+    ``line_times``: that model's times of each chunk's lines (``verify.measure``'s items, where the
+    check plans the original: planned once), in order; the chunks past its end are planned here."""
     shortest_s = MIN_SEGMENT_CYCLES * profile.firmware.linuxcnc.servo_period_s
+    planned = iter(()) if line_times is None else line_times
     for blocks, before, last in verify.program_chunks(program, profile, "linuxcnc", verify.CHUNK_LINES,
                                                       verify.OVERLAP_LINES):
-        line_time_s = run_linuxcnc(blocks, profile).line_time_s
+        line_time_s = next(planned, None)
+        if line_time_s is None:
+            line_time_s = run_linuxcnc(blocks, profile).line_time_s
         lengths_mm, runs = _motion(blocks)
         capped = [block if length_mm <= 0 else replace(block, feed_mm_s=min(block.feed_mm_s, length_mm / shortest_s))
                   for block, length_mm in zip(blocks, lengths_mm, strict=True)]

@@ -130,7 +130,10 @@ class Offloaded:
         self._process.wait()
         self._process.stdout.close()
         if not self._process.stdin.closed:
-            self._process.stdin.close()
+            try:
+                self._process.stdin.close()
+            except BrokenPipeError:  # (what was sent after the child ended, unread: send's to drop)
+                pass
 
     def __enter__(self) -> Offloaded:
         return self

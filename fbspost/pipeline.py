@@ -144,6 +144,10 @@ STEP_TOLERANCE_SHARE = 0.64
 _CHUNK = 1 << 14  # samples planned, compensated and written at once
 _SECOND_PROCESS_BYTES = 256_000  # (a second process starts in about 0.5 s: a program this long takes 5 s)
 _EXECUTED_BATCH = 1 << 14  # samples (ExecutedError)
+_ANNOUNCE_BYTES = 1 << 20  # of the output written, told the check's process at once (a few hundred ms of writing)
+# Chunks of the original the check (LinuxCNC: their line times) may be ahead of the feeds that
+# need them: 64 chunks of 50,000 lines, at most about 26 MB held here
+_CHECK_AHEAD = 64
 _POLL_S = 0.002  # how often the writer, waiting for an axis' process, answers the others' requests
 
 
@@ -219,11 +223,12 @@ def _compensate_expanded(input_path, output_path, profile, options, reason, prog
 def _compensate(read_path, input_path, output_path, profile, options, flavor, progress, started) -> Report:
     """Compensates the program at ``read_path`` (``input_path`` itself or its expansion)."""
     stages = dict.fromkeys(("read", "plan", "optimize", "fallback", "write"), 0.0)
+    verification = _Verification(read_path, input_path, profile, flavor, options.verify, stages)
     blocks = _read(read_path, flavor, profile, stages, progress)
     if flavor == "linuxcnc":  # the original's time as LinuxCNC runs it
         from .linuxcnc_time import retimed  # (it reads the program as verify does, which imports this module)
-        blocks = retimed(blocks, read_path, profile)
-    plan = _plan_stream(blocks, profile, options, flavor)
+        blocks = retimed(blocks, read_path, profile, verification.line_times())
+    plan = verification.plan = _plan_stream(blocks, profile, options, flavor)
     compensators = _compensators(profile, options)
     follows_plan = np.array([c not in compensators for c in range(len(AXES))])
     elsewhere = bool(compensators) and _in_second_process(read_path, options)
@@ -238,6 +243,7 @@ def _compensate(read_path, input_path, output_path, profile, options, flavor, pr
     else:
         outcome = _Outcome.of(compensators)
         chunks = _compensation_chunks(plan, compensators, options, outcome)
+    verification.start()
 
     def shared_s() -> float:
         """The plan's evaluation and sending to the axes' processes: part of its stage."""
@@ -248,16 +254,16 @@ def _compensate(read_path, input_path, output_path, profile, options, flavor, pr
     stats = []
     executed = ExecutedError(compensators, plan.runs)
     clock = time.perf_counter()
-    verification = _Verification(read_path, input_path, profile, flavor, options.verify, plan, stages)
     try:
         atomic_write(output_path, lambda f: stats.append(write_program(
-            plan, SampleWindow(chunks, plan, follows_plan), write_options, f, executed)),
-            verification if verification.wanted else None)
+            plan, SampleWindow(chunks, plan, follows_plan), write_options, verification.announced(f), executed)),
+            verification if verification.wanted else None, verification.opened)
         # The writer stops once it has every sample; the compensation's end (its time, the
         # axes' processes' outcomes) comes after its last chunk.
         for _ in chunks:
             raise RuntimeError("compensated samples after the plan's end")
     finally:
+        verification.close()
         if elsewhere:
             for worker in workers.values():
                 worker.close()
@@ -438,37 +444,99 @@ def _received(workers: dict[int, Offloaded], feed: PlanFeed,
 
 class _Verification:
     """``atomic_write``'s check for ``CompensateOptions.verify`` (verify.py): the written file and
-    the program read (``read_path``) re-planned on the firmware's planner; where the output is no
-    better there, the input (``input_path``) copied over the written file. Its time goes to
-    ``stages["verify"]``."""
+    the program read (``read_path``) re-planned on the firmware's planner, in a process of its own
+    beside the compensation (``verify.measured_beside``: the original measured at once, the output
+    as it is written); where the output is no better there, the input (``input_path``) copied over
+    the written file. The wait for its verdict goes to ``stages["verify"]``."""
 
     def __init__(self, read_path, input_path, profile: MachineProfile, flavor: str, option: bool | None,
-                 plan: PlanStream, stages: dict[str, float]):
+                 stages: dict[str, float]):
         self.read_path, self.input_path, self.profile, self.flavor = read_path, input_path, profile, flavor
-        self.plan, self.stages = plan, stages
+        self.stages = stages
+        self.plan: PlanStream | None = None  # (its margins: the time fbspost added)
+        self.failed: Exception | None = None
         self.auto = option is None and flavor != "klipper"
         self.wanted = bool(option) or self.auto
         self.verdict: Verdict | None = None
         self.warnings: list[str] = []
+        self.worker: Offloaded | None = None
+        self.written: _Announced | None = None
+        if self.wanted:  # (forked here, before the axes' processes and any thread: see Offloaded.start)
+            from .verify import measured_beside  # (simulate, which it measures with, compensates through this module)
+            self.worker = Offloaded(measured_beside, read_path, profile, flavor, requests=queue.Queue(), start=False,
+                                    ahead=_CHECK_AHEAD)
 
     @property
     def original_kept(self) -> bool:
         return self.verdict is not None and not self.verdict.better
 
+    def start(self) -> None:
+        if self.worker is not None:
+            self.worker.start()
+
+    def line_times(self) -> Iterator[np.ndarray]:
+        """For LinuxCNC, the check's plan of the original (``verify.measure``'s items) as it comes;
+        none once the check failed (it says so in its verdict's place)."""
+        while self.worker is not None and self.failed is None:
+            try:
+                yield self.worker.get()
+            except StopIteration:
+                return
+            except Exception as exc:  # noqa: BLE001 (as in __call__)
+                self.failed = exc
+
+    def opened(self, written: Path) -> None:
+        """The output's temporary file, made: its name to the check's process."""
+        self.written = _Announced(written, None if self.worker is None else self.worker.send)
+
+    def announced(self, f):
+        """``f``, the output's temporary file, telling the check's process how much of it is written."""
+        self.written.file = f
+        return self.written if self.worker is not None else f
+
     def __call__(self, written: Path) -> None:
-        from .verify import verify  # (simulate, which it measures with, compensates through this module)
+        from .verify import Verdict
 
         started_s = time.perf_counter()
+        self.worker.send((str(written), self.written.size, True))  # (written and closed)
         try:
-            self.verdict = verify(self.read_path, written, self.profile, self.flavor, self.plan.added_s)
+            for _ in self.worker:  # (LinuxCNC: the plan of the original's chunks past what the feeds needed)
+                pass
         except Exception as exc:  # noqa: BLE001 (a model's gap must not cost the user the output)
+            self.failed = exc
+        measured = self.worker.value
+        if self.failed is not None:
             self.warnings.append(f"not verified on the firmware's planner: its model failed "
-                                 f"({type(exc).__name__}: {' '.join(str(exc).split())})")
+                                 f"({type(self.failed).__name__}: {' '.join(str(self.failed).split())})")
+        elif measured is not None:
+            self.verdict = Verdict(self.flavor, *measured, self.plan.added_s)
         if self.original_kept:
             shutil.copyfile(self.input_path, written)
             self.warnings.append("the original was written unchanged: the output is no better on the firmware "
                                  "(the verified line)")
         self.stages["verify"] = time.perf_counter() - started_s
+
+    def close(self) -> None:
+        if self.worker is not None:
+            self.worker.close()
+
+
+class _Announced:
+    """The output's binary file, whose length written (flushed) is sent to the check's process
+    (``send((path, bytes, False))``) every ``_ANNOUNCE_BYTES`` (its end: ``_Verification``)."""
+
+    def __init__(self, path: Path, send: Callable | None):
+        self.path, self.send, self.file = str(path), send, None
+        self.size = self._told = 0
+
+    def write(self, data: bytes) -> int:
+        n = self.file.write(data)
+        self.size += n
+        if self.size - self._told >= _ANNOUNCE_BYTES:
+            self.file.flush()
+            self.send((self.path, self.size, False))
+            self._told = self.size
+        return n
 
 
 def compensated_samples(plan: Plan, profile: MachineProfile, options: CompensateOptions = CompensateOptions(),

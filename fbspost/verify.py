@@ -18,6 +18,10 @@ of its own lines is the plan of the whole program; it is placed on the whole pro
 program's grid, a slice of ``SLICE_SAMPLES`` at a time. The modes' state goes on from slice to
 slice. The verdict equals the whole program's planned at once (tests/test_verify.py).
 
+``compensate`` runs the check in a process of its own beside the compensation
+(``measured_beside``): the original is measured while the output is made, and the output is read
+as it is written (``following``), so that the verdict comes soon after the last line.
+
 The output is kept only if it is more accurate there (a lower RMS error, a largest error at
 most ``MAX_PEAK_RATIO`` of the original's) and lasts at most the margins fbspost added (its lead
 and settle time), ``MAX_TIME_INCREASE`` of the original's time and ``TIME_SLACK_S`` longer; else
@@ -29,6 +33,7 @@ import math
 import re
 import tempfile
 from collections import OrderedDict
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -56,6 +61,7 @@ MAX_PEAK_RATIO = 1.1
 # a planner looks ahead (Marlin's 16 blocks, RRF's ring, LinuxCNC's optimization depth).
 CHUNK_LINES = 50_000
 OVERLAP_LINES = 2000
+FOLLOW_BYTES = 1 << 20  # read at once of an output being written (its writer announces its length as often)
 SLICE_SAMPLES = 1 << 17  # samples modelled and measured at once (a few MB each array)
 GROUP_PIECES = 4096  # the original's pieces searched together, within their box
 # A sample prints where E rises on both sides by more than this share of the other side's rise:
@@ -114,6 +120,24 @@ def verify(original: Path, output: Path, profile: MachineProfile, flavor: str, m
     path (None: the original has no motion to measure); ``margins_s``: the time fbspost added;
     ``chunk_lines``, ``overlap_lines``: see the module docstring (None: ``CHUNK_LINES`` and
     ``OVERLAP_LINES`` as they are at the call)."""
+    measuring = measure(original, profile, flavor, lambda: (output, None), chunk_lines, overlap_lines)
+    while True:
+        try:
+            next(measuring)
+        except StopIteration as done:
+            measured = done.value
+            break
+    return None if measured is None else Verdict(flavor, *measured, margins_s)
+
+
+def measure(original: Path, profile: MachineProfile, flavor: str, output, chunk_lines: float | None = None,
+            overlap_lines: int | None = None):
+    """A generator: ``verify``'s measures of the original and of the output (its value; None: the
+    original has no motion to measure), the original's first; ``output()`` gives the output's path
+    and its lines (None: the file itself), asked once the original is measured. Its items: for
+    LinuxCNC, when each chunk of the original (``program_chunks`` with ``CHUNK_LINES`` and
+    ``OVERLAP_LINES``) has been planned, the time each of its lines ends there
+    (``linuxcnc_time.linuxcnc_feeds``' plan of the original, made once)."""
     chunk_lines = CHUNK_LINES if chunk_lines is None else chunk_lines
     overlap_lines = OVERLAP_LINES if overlap_lines is None else overlap_lines
     if flavor == "klipper":  # (its look-ahead has no bound: the program whole)
@@ -122,8 +146,44 @@ def verify(original: Path, output: Path, profile: MachineProfile, flavor: str, m
         path = _PathFile.of(original, profile, flavor, store)
         if path is None:
             return None
-        return Verdict(flavor, *(_measure(program, profile, flavor, path, chunk_lines, overlap_lines)
-                                 for program in (original, output)), margins_s)
+        before = yield from _measure(original, None, profile, flavor, path, chunk_lines, overlap_lines,
+                                     share=flavor == "linuxcnc")
+        after = yield from _measure(*output(), profile, flavor, path, chunk_lines, overlap_lines)
+        return before, after
+
+
+def measured_beside(channel, original: Path, profile: MachineProfile, flavor: str):
+    """``measure`` in a process of its own (``offload.Offloaded``: its items and value): the
+    original measured while the output is made; the output read as it is written, up to the
+    length the writer last announced through ``channel`` (``following``)."""
+    return (yield from measure(original, profile, flavor, lambda: following(channel)))
+
+
+def following(channel) -> tuple[Path, Iterator[bytes]]:
+    """(the path of a file being written, its lines as they are written): ``channel.get()``
+    gives (its path, its length so far (bytes, flushed), whether that is all), again whenever
+    the lines read reach that length."""
+    name, size, done = channel.get()
+
+    def lines() -> Iterator[bytes]:
+        nonlocal size, done
+        rest, read = b"", 0
+        with open(name, "rb") as f:
+            while True:
+                while read < size:
+                    data = f.read(min(size - read, FOLLOW_BYTES))
+                    if not data:
+                        raise OSError(f"{name}: shorter than the {size} bytes written")
+                    read += len(data)
+                    *complete, rest = (rest + data).split(b"\n")
+                    yield from (line + b"\n" for line in complete)  # (as a file's lines: at b"\n" only)
+                if done:
+                    if rest:
+                        yield rest
+                    return
+                _, size, done = channel.get()
+
+    return Path(name), lines()
 
 
 def printed_path(start_mm: np.ndarray, end_mm: np.ndarray) -> tuple[PathDistance, bool]:
@@ -264,13 +324,15 @@ def _setting(block: Block) -> bytes | None:
     return re.sub(rb"[^A-Za-z]", b"", code).upper()
 
 
-def program_chunks(program: Path, profile: MachineProfile, flavor: str, chunk_lines: float, overlap_lines: int):
+def program_chunks(program: Path, profile: MachineProfile, flavor: str, chunk_lines: float, overlap_lines: int,
+                   lines: Iterable[bytes] | None = None):
     """The chunks of ``program`` (see the module docstring): (its blocks, the index among them of
     the line before its first measured one (None: the program's start), that of its last measured
-    one (None: the program's end)). A chunk's last measured line is a MOVE: both chunks plan its end."""
+    one (None: the program's end)). A chunk's last measured line is a MOVE: both chunks plan its end.
+    ``lines``: the program's lines, read instead of its file (``read_gcode``)."""
     held, held_from, settings = [], 0, {}  # held[i] is line held_from + i
     first = 0  # the chunk's first measured line
-    for block in read_gcode(program, flavor, profile.home_mm):
+    for block in read_gcode(program, flavor, profile.home_mm, lines=lines):
         held.append(block)
         if held_from + len(held) < first + chunk_lines + overlap_lines:
             continue
@@ -306,16 +368,19 @@ def _with_start(held: list[Block], held_from: int, settings: dict[bytes, Block])
     return [*settings.values(), replace(held[0], kind=Kind.STOP, points_mm=None, dwell_s=0.0), *held[1:]]
 
 
-def _measure(program: Path, profile: MachineProfile, flavor: str, path: _PathFile, chunk_lines: float,
-             overlap_lines: int) -> FirmwareResult:
-    """``program`` as the firmware runs it, chunk by chunk, measured on ``path``."""
+def _measure(program: Path, lines: Iterable[bytes] | None, profile: MachineProfile, flavor: str, path: _PathFile,
+             chunk_lines: float, overlap_lines: int, share: bool = False):
+    """A generator: ``program`` (its ``lines``, None: its file) as the firmware runs it, chunk by
+    chunk, measured on ``path`` (its value); with ``share``, each chunk's ``line_time_s`` (its items)."""
     rate_hz = profile.sample_rate_hz
     modes, contour = _Modes(profile), _Contour(path.printer)
     offset_s = cut_s = 0.0  # the chunk's time 0 on the program's; the end of its line before its first
     n_from = 0  # the first sample the chunk measures
-    for blocks, before, last in program_chunks(program, profile, flavor, chunk_lines, overlap_lines):
+    for blocks, before, last in program_chunks(program, profile, flavor, chunk_lines, overlap_lines, lines):
         run = _Run(blocks, profile, flavor)
         del blocks
+        if share:
+            yield run.line_time_s
         if before is not None:
             offset_s = cut_s - float(run.line_time_s[before])
         if last is None:

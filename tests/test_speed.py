@@ -152,6 +152,24 @@ def test_a_talking_child_ends_quietly(monkeypatch, capfd):
     assert capfd.readouterr().err == ""
 
 
+def _at_once(channel):
+    return "done"
+    yield
+
+
+def test_messages_to_a_child_that_ended_are_dropped_quietly(monkeypatch):
+    """A child that ends without reading what it is sent (the check of a program without motion,
+    which ends at once): sending to it, and then closing it, raises nothing here (the bytes left
+    unsent in the pipe's buffer once broke the empty program's compensation: Broken pipe)."""
+    monkeypatch.setenv("PYTHONPATH", str(Path(__file__).parent))  # (a started child imports _at_once from here)
+    child = Offloaded(_at_once, requests=queue.Queue())
+    assert list(child) == [] and child.value == "done"
+    child._process.wait(timeout=30)
+    child.send(("out.gcode", 1 << 20, False))  # (more than a pipe holds: some stay in the buffer)
+    child.send(b"x" * (1 << 21))
+    child.close()
+
+
 def _until_the_end(channel):
     try:
         while True:

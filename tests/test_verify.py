@@ -15,10 +15,12 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
+from fbspost import linuxcnc_time, pipeline
 from fbspost import verify as verify_module
 from fbspost.cli import main
 from fbspost.firmware import replan
 from fbspost.gcode import read_gcode
+from fbspost.linuxcnc_tp import run_linuxcnc
 from fbspost.pipeline import CompensateOptions, compensate_file
 from fbspost.profile import load_profile
 from fbspost.reprap import commanded_pieces
@@ -400,3 +402,70 @@ def test_contour_error_is_the_brute_force_distance_of_the_modelled_motion(tmp_pa
     assert max_um == pytest.approx(truth.max() * 1e3, rel=0, abs=1e-8)
     assert rms_um == pytest.approx(np.sqrt(np.mean(truth**2)) * 1e3, rel=0, abs=1e-8)
     assert 1.0 < rms_um < max_um  # (um: the modes' error is there to measure)
+
+
+@pytest.mark.parametrize("flavor, make", [("marlin", "gear"), ("marlin", "coarse"), ("reprap", "gear"),
+                                          ("klipper", "gear"), ("linuxcnc", "butterfly")])
+def test_the_check_beside_the_compensation_gives_the_verdict_of_the_written_file(tmp_path, monkeypatch, flavor, make):
+    """The check in its own process, reading the output as it is written (announced every 4 kB,
+    read 997 bytes at a time: lines split across reads), gives the verdict of ``verify`` on the
+    file once written, to the last bit, and keeps or replaces the output as that verdict says
+    (the coarse Marlin: the original kept)."""
+    monkeypatch.setattr(pipeline, "_ANNOUNCE_BYTES", 4096)
+    monkeypatch.setattr(verify_module, "FOLLOW_BYTES", 997)
+    if make == "butterfly":
+        profile, source = load_profile("patent-xy-stage"), tmp_path / "butterfly.ngc"
+        source.write_bytes(b"".join((SAMPLES / "butterfly-polyline.gcode").read_bytes().splitlines(True)[:800]))
+    else:
+        profile, source = coarse_marlin() if make == "coarse" else load_profile("printer-two-mode"), gear(tmp_path)
+    unchecked, checked = tmp_path / "unchecked.gcode", tmp_path / "checked.gcode"
+    compensate_file(source, unchecked, profile, CompensateOptions(flavor=flavor, verify=False))
+    report = compensate_file(source, checked, profile, CompensateOptions(flavor=flavor, verify=True))
+    truth = verify_module.verify(source, unchecked, profile, flavor, report.added_time_s)
+    assert report.verified == truth and truth.original.rms_um > 0.1
+    assert report.original_kept == (not truth.better) == (make == "coarse")
+    assert checked.read_bytes() == (source if report.original_kept else unchecked).read_bytes()
+    assert {p.name for p in tmp_path.iterdir()} == {source.name, checked.name, unchecked.name}  # (no temporary file)
+
+
+class _Told:
+    """A channel's messages, given in order (``verify.following``'s)."""
+
+    def __init__(self, messages):
+        self.messages = iter(messages)
+
+    def get(self):
+        return next(self.messages)
+
+
+def test_following_gives_the_lines_of_a_file_as_it_is_written(tmp_path, monkeypatch):
+    """A file told in three lengths (one within a line), read 7 bytes at a time: its lines as
+    iterating over the file gives them, a lone CR within a line and an unterminated last line
+    included."""
+    monkeypatch.setattr(verify_module, "FOLLOW_BYTES", 7)
+    text = b"G1 X1\r\n; a comment\rwith a CR\nG1 Y2 F600\n\nM84"
+    written = tmp_path / "out.gcode"
+    written.write_bytes(text)
+    name, lines = verify_module.following(_Told([(str(written), 10, False), (str(written), 30, False),
+                                                 (str(written), len(text), True)]))
+    with open(written, "rb") as f:
+        assert name == written and list(lines) == list(f) and len(list(f.seek(0) or f)) == 5
+
+
+def test_linuxcnc_original_is_planned_once_by_the_check_and_the_output_is_the_same(tmp_path, monkeypatch):
+    """LinuxCNC, in chunks of 300 lines: with the check, this process plans none of the original's
+    chunks on the model of LinuxCNC's planner (the check's plan gives the feeds, linuxcnc_time);
+    without it, it plans each one; the written output is the same byte for byte."""
+    monkeypatch.setattr(verify_module, "CHUNK_LINES", 300)
+    monkeypatch.setattr(verify_module, "OVERLAP_LINES", 100)
+    planned = []
+    monkeypatch.setattr(linuxcnc_time, "run_linuxcnc", lambda blocks, profile: planned.append(len(blocks))
+                        or run_linuxcnc(blocks, profile))
+    profile, source = load_profile("patent-xy-stage"), tmp_path / "butterfly.ngc"
+    source.write_bytes(b"".join((SAMPLES / "butterfly-polyline.gcode").read_bytes().splitlines(True)[:1000]))
+    unchecked, checked = tmp_path / "unchecked.ngc", tmp_path / "checked.ngc"
+    compensate_file(source, unchecked, profile, CompensateOptions(flavor="linuxcnc", verify=False))
+    assert len(planned) == 4  # lines 1-300, 301-600, 601-900, 901-1000 (each with its overlap)
+    report = compensate_file(source, checked, profile, CompensateOptions(flavor="linuxcnc", verify=True))
+    assert len(planned) == 4 and report.verified is not None and not report.original_kept
+    assert checked.read_bytes() == unchecked.read_bytes()
