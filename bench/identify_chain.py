@@ -1,6 +1,6 @@
 """Issue 30's proof, end to end: from an accelerometer recording to the machine, against the
 firmware's own input shaping as Klipper's own shaper_calibrate picks it from the same recordings
-(tests/identify_chain.py).
+(tests/recording_chain.py).
 
 Run from the repository root:  python bench/identify_chain.py [--flavor klipper|marlin|reprap|linuxcnc]
 [--as-written] [--drift-ppm PPM] [--lines N] [--duration S]
@@ -59,7 +59,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
 
 from accel_recording import Accelerometer  # noqa: E402
-from identify_chain import evaluate, excerpt, measure, modes_text, table  # noqa: E402
+from recording_chain import evaluate, excerpt, measure, modes_text, table  # noqa: E402
 
 TRUTHS = ("tests/data/truth-a.toml", "tests/data/truth-b.toml")
 PRINTS = ("tests/data/gear-marlin2.gcode", "tests/data/bracket-reprapfirmware-relative-e.gcode")

@@ -1,5 +1,5 @@
 """From recording to machine: the simulated accelerometer against closed forms, and issue 30's
-proof on a held-out truth (tests/identify_chain.py).
+proof on a held-out truth (tests/recording_chain.py).
 
 Truths used: the continuous modal model's steady-state response to a sine, written out here
 (|G| w^2 A and the phase of G, G(s) = sum (alpha + beta s) / (s^2 + 2 zeta w s + w^2)); the
@@ -102,8 +102,8 @@ def test_the_recordings_clock_and_the_belts_zeros_are_found(tmp_path):
     corrects it), and the zeros: the larger mode's within 5%, sign and all, and
     the low-frequency lead they give within 20 us of the belts' none (with the mark's clock alone,
     truth B's zeros came out -5 and -37 for +35 and +10: a lead of 0.8 ms)."""
-    from identify_chain import cli, recorded_sweep, user_profile
     from klippy_planner import klippy_or_skip
+    from recording_chain import cli, recorded_sweep, user_profile
 
     klippy_or_skip()
     printer = load_profile("printer-two-mode")
@@ -139,8 +139,8 @@ def test_measured_profile_beats_shaper_calibrate_on_klippy(tmp_path):
     from the same recordings, a largest error below the original's, and fbspost predicts its
     RMS error within 2x. Every figure: klippy's plan through the truth's modes. First, the
     identified responses within 10% of the truth's peak over the band (the truth's modal formula)."""
-    from identify_chain import evaluate, excerpt, measure, modes_text, table
     from klippy_planner import klippy_or_skip
+    from recording_chain import evaluate, excerpt, measure, modes_text, table
 
     klippy_or_skip()
     truth = DATA / "truth-a.toml"
@@ -154,7 +154,7 @@ def test_measured_profile_beats_shaper_calibrate_on_klippy(tmp_path):
 
 # Marlin's and RRF's chains (their planners' models, fbspost.firmware.PLANNER_MODELS): the sweep
 # written for the firmware and recorded from the model's run of it; the baseline the firmware's own
-# shaping through whole steps at what shaper_calibrate picks among its types (tests/identify_chain.py).
+# shaping through whole steps at what shaper_calibrate picks among its types (tests/recording_chain.py).
 # Sweeps: RRF 12 s; Marlin 30 s (truth A's 12 s Y recording on the Marlin model was refused by
 # identify: a second mode of damping 8.1e-5, uncertain by 393%; 30 s identifies it).
 FIRMWARE_CHAINS = [
@@ -180,7 +180,7 @@ def test_measured_profile_beats_the_firmwares_own_shaping(tmp_path, flavor, trut
     RRF: the better of its M593 shaper at X's and at Y's choice) from the same recordings, a
     largest error below the original's, and predicts its error within 2x. Every figure: the
     firmware model's plan on whole steps through the truth's modes. FT_MOTION is printed, not asserted."""
-    from identify_chain import evaluate, excerpt, measure, modes_text, table
+    from recording_chain import evaluate, excerpt, measure, modes_text, table
 
     truth = DATA / truth_name
     measured = measure(truth, tmp_path, ("--duration", sweep_s), flavor=flavor)
@@ -202,9 +202,9 @@ def test_measured_profile_beats_shaper_calibrate_on_linuxcnc_itself(tmp_path):
     error below the original's, and fbspost's prediction (the model of LinuxCNC's planner through
     the identified modes) within 2x. First, the identified responses within 10% of the truth's
     peak over the band."""
-    from identify_chain import evaluate, measure, modes_text, table
     from klippy_planner import klippy_or_skip
     from linuxcnc_itself import installed
+    from recording_chain import evaluate, measure, modes_text, table
 
     if not installed():
         pytest.skip("LinuxCNC is not installed (apt-get install linuxcnc-uspace)")
