@@ -36,7 +36,9 @@ command.mdi("G21 G90 G0 " + " ".join(f"{axis}{value}" for axis, value in zip("XY
 command.wait_complete()
 wait(idle)
 time.sleep(0.1)
-sampler = subprocess.Popen(["halsampler", "-c", "0"], stdout=open(os.environ["TP_OUT"], "w"))
+# (line-buffered: a block of stdio buffer still unwritten at the end was lost with it, and the
+# record ended short of the program)
+sampler = subprocess.Popen(["stdbuf", "-oL", "halsampler", "-c", "0"], stdout=open(os.environ["TP_OUT"], "w"))
 command.mode(linuxcnc.MODE_AUTO)
 command.wait_complete()
 command.program_open(os.environ["TP_PROGRAM"])
@@ -58,6 +60,24 @@ def settled(hold_s=0.3):
 
 
 finished = wait(settled)
+time.sleep(0.1)
+# halsampler reads the sampler's FIFO behind the motion (more so under load): stop it once the
+# record has reached where the machine rests
+
+
+def recorded_at_rest():
+    with open(os.environ["TP_OUT"], "rb") as f:
+        f.seek(max(0, os.path.getsize(os.environ["TP_OUT"]) - 200))
+        lines = f.read().splitlines()
+    stat.poll()
+    try:
+        last = [float(v) for v in lines[-2].split()]  # (the last whole line)
+    except (IndexError, ValueError):
+        return False
+    return all(abs(a - b) < 2e-6 for a, b in zip(last, stat.position[:3], strict=False))
+
+
+wait(recorded_at_rest, 30.0)
 time.sleep(0.1)
 sampler.terminate()
 print("LinuxCNC run " + ("done" if finished else "timed out"), file=sys.stderr)
