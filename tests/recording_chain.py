@@ -199,9 +199,10 @@ def run_by_linuxcnc(program: Path, profile, truth) -> tuple[float, Callable]:
     """(its duration s, X Y at times s) of ``program`` run by LinuxCNC itself from the middle of
     the travel (the harness moves there first; the record starts at the first motion), the joint
     commands linear between servo periods; RuntimeError where LinuxCNC is not installed."""
+    start_xy_mm = (centre_mm(truth, "X"), centre_mm(truth, "Y"))
     run = program.with_name(f"{program.stem}-run.ngc")
-    run.write_text(f"G0 X{centre_mm(truth, 'X')!r} Y{centre_mm(truth, 'Y')!r}\n" + program.read_text())
-    planned = sweep_as_planned(run, profile, (centre_mm(truth, 'X'), centre_mm(truth, 'Y')))
+    run.write_text(f"G0 X{start_xy_mm[0]!r} Y{start_xy_mm[1]!r}\n" + program.read_text())
+    planned = sweep_as_planned(run, profile, start_xy_mm)
     for _ in range(3):
         joints = joint_commands(run, profile)
         if joints is None:

@@ -61,17 +61,17 @@ def settled(hold_s=0.3):
 
 finished = wait(settled)
 time.sleep(0.1)
-# halsampler reads the sampler's FIFO behind the motion (more so under load): stop it once the
-# record has reached where the machine rests
 
 
 def recorded_at_rest():
+    """The record has reached where the machine rests: halsampler reads the sampler's FIFO
+    behind the motion (more so under load), so it is stopped only then."""
     with open(os.environ["TP_OUT"], "rb") as f:
         f.seek(max(0, os.path.getsize(os.environ["TP_OUT"]) - 200))
         lines = f.read().splitlines()
     stat.poll()
     try:
-        last = [float(v) for v in lines[-2].split()]  # (the last whole line)
+        last = [float(v) for v in lines[-2].split()]  # (a whole line: the last may be half written)
     except (IndexError, ValueError):
         return False
     return all(abs(a - b) < 2e-6 for a, b in zip(last, stat.position[:3], strict=False))
