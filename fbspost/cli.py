@@ -17,9 +17,8 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor, as_completed
-from concurrent.futures.process import BrokenProcessPool
 from dataclasses import replace
+from multiprocessing.connection import Connection, wait
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -245,7 +244,7 @@ _Finish = Callable[[Path, Path, "Report | str"], None]  # reports one file's out
 
 def _compensate_many(pairs: list[tuple[Path, Path]], profile: MachineProfile, options: CompensateOptions,
                      jobs: int, quiet: bool) -> list[Path]:
-    """Compensates every (input, output) pair, in a process pool when jobs > 1, printing each
+    """Compensates every (input, output) pair, each in a process of its own when jobs > 1, printing each
     file's summary or error as it finishes; gives the failed inputs in input order."""
     outcomes = {}
 
@@ -263,7 +262,7 @@ def _compensate_many(pairs: list[tuple[Path, Path]], profile: MachineProfile, op
                 finish(source, target, _compensate_one(source, target, profile, options))
         else:
             # (every core busy with a file: no second processes for the axes)
-            _compensate_in_pool(pairs, profile, replace(options, second_process=False), workers, finish)
+            _compensate_in_processes(pairs, profile, replace(options, second_process=False), workers, finish)
     except KeyboardInterrupt as exc:
         done = sum(not isinstance(o, str) for o in outcomes.values())
         click.echo(f"error: interrupted; {done} of {len(pairs)} files compensated, the others unchanged", err=True)
@@ -271,60 +270,58 @@ def _compensate_many(pairs: list[tuple[Path, Path]], profile: MachineProfile, op
     return [source for source, _ in pairs if isinstance(outcomes[source], str)]
 
 
-def _compensate_in_pool(pairs: list[tuple[Path, Path]], profile: MachineProfile, options: CompensateOptions,
-                        workers: int, finish: _Finish) -> None:
-    """A worker process that dies (killed, out of memory) breaks the whole pool: the files it took
-    with it are retried one at a time, each in its own process, so only the culprit fails."""
-    for source, target in _run_pool(pairs, profile, options, workers, finish):
-        if _run_pool([(source, target)], profile, options, 1, finish):
-            finish(source, target, f"{source}: its worker process died (killed, or out of memory?)")
-
-
-def _run_pool(pairs: list[tuple[Path, Path]], profile: MachineProfile, options: CompensateOptions,
-              workers: int, finish: _Finish) -> list[tuple[Path, Path]]:
-    """Calls ``finish(input, output, outcome)`` as each file's worker finishes; gives the pairs lost
-    to a broken pool. On an interrupt no other file is started, the workers are ended (without
-    temporary files) and the files finished meanwhile are still reported before it propagates."""
-    lost = []
-    with ProcessPoolExecutor(workers, initializer=_start_worker) as pool:
-        futures = {pool.submit(_compensate_in_worker, source, target, profile, options): (source, target)
-                   for source, target in pairs}
-        unreported = set(futures)
-        try:
-            for future in as_completed(futures):
-                unreported.discard(future)
-                try:
-                    outcome = future.result()
-                except BrokenProcessPool:
-                    lost.append(futures[future])
-                else:
-                    finish(*futures[future], outcome)
-        except KeyboardInterrupt:
-            pool.shutdown(wait=False, cancel_futures=True)
-            for worker in multiprocessing.active_children():
-                worker.terminate()
-            pool.shutdown(wait=True)
-            for future in unreported:
-                if not future.cancelled() and future.exception() is None:
-                    finish(*futures[future], future.result())
-            raise
-    return lost
-
-
-def _start_worker() -> None:
-    """Pool initializer. Ctrl-C is the parent's to handle: it ends the workers with SIGTERM, which
-    here unwinds the running file (atomic_write removes its temporary file) and exits."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(128 + signum))
-
-
-def _compensate_in_worker(source: Path, target: Path, profile: MachineProfile,
-                          options: CompensateOptions) -> Report | str:
-    """``_compensate_one`` in a worker, which ends when told to rather than take the next file."""
+def _compensate_in_processes(pairs: list[tuple[Path, Path]], profile: MachineProfile,
+                             options: CompensateOptions, workers: int, finish: _Finish) -> None:
+    """Each file in a process of its own, at most ``workers`` at once, calling ``finish(input,
+    output, outcome)`` as each ends. A process that dies (killed, out of memory) fails only its own
+    file; a pool's would take the results of the files its other workers had just finished with
+    it. On an interrupt no other file is started, the files finished meanwhile are still
+    reported, and the running ones are ended (without temporary files) before it propagates."""
+    waiting = list(reversed(pairs))
+    running: dict[Connection, tuple[multiprocessing.Process, Path, Path]] = {}
     try:
-        return _compensate_one(source, target, profile, options)
-    except SystemExit as exc:
-        os._exit(exc.code)
+        while waiting or running:
+            while waiting and len(running) < workers:
+                source, target = waiting.pop()
+                receiver, sender = multiprocessing.Pipe(duplex=False)
+                process = multiprocessing.Process(target=_compensate_in_child,
+                                                  args=(sender, source, target, profile, options))
+                process.start()
+                sender.close()  # the child's end closes with the child: a death reads as end of file
+                running[receiver] = (process, source, target)
+            for receiver in wait(list(running)):
+                finish(*_outcome(receiver, *running.pop(receiver)))
+    except KeyboardInterrupt:
+        for receiver in wait(list(running), timeout=0):
+            finish(*_outcome(receiver, *running.pop(receiver)))
+        for process, _, _ in running.values():
+            process.terminate()
+        for process, _, _ in running.values():
+            process.join()
+        raise
+
+
+def _outcome(receiver: Connection, process: multiprocessing.Process, source: Path,
+             target: Path) -> tuple[Path, Path, Report | str]:
+    """A finished child's (input, output, outcome)."""
+    try:
+        outcome = receiver.recv()
+    except EOFError:
+        outcome = f"{source}: its worker process died (killed, or out of memory?)"
+    receiver.close()
+    process.join()
+    return source, target, outcome
+
+
+def _compensate_in_child(sender: Connection, source: Path, target: Path, profile: MachineProfile,
+                         options: CompensateOptions) -> None:
+    """A file's own process: sends its outcome. Ending is the parent's to decide: it ignores
+    Ctrl-C and hangups, and SIGTERM (the parent's) unwinds the running file, so that
+    atomic_write removes its temporary file."""
+    for signum in _ENDING_SIGNALS:
+        signal.signal(signum, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(128 + signum))
+    sender.send(_compensate_one(source, target, profile, options))
 
 
 def _compensate_one(source: Path, target: Path, profile: MachineProfile, options: CompensateOptions) -> Report | str:

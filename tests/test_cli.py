@@ -4,6 +4,7 @@ import multiprocessing
 import os
 import subprocess
 import sys
+import time
 from importlib.metadata import version
 from pathlib import Path
 
@@ -227,6 +228,10 @@ def test_a_worker_that_dies_fails_only_its_file(tmp_path, programs, monkeypatch)
 
     def killed(source, *args, **kwargs):
         if source == paths[1]:
+            # Dies the moment the other worker has written its file in place, before the pool
+            # can deliver that result: the pool then counts it lost with the dead worker's.
+            while paths[0].read_bytes() == programs[paths[0].name][0]:
+                time.sleep(0.001)
             os._exit(9)  # as the kernel's out-of-memory killer would end it
         return compensate_file(source, *args, **kwargs)
 
