@@ -11,7 +11,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from fbspost.pipeline import compensate_file
+from fbspost.job.pipeline import compensate_file
 from fbspost.profile import load_profile
 
 DEFAULT = [

@@ -11,10 +11,10 @@ import time
 
 import numpy as np
 
-from fbspost.dynamics import AxisDynamics
-from fbspost.examples import butterfly
-from fbspost.optimizer import AxisCompensator, AxisLimits, compensate_axis
+from fbspost.fbs.dynamics import AxisDynamics
+from fbspost.fbs.optimizer import AxisCompensator, AxisLimits, compensate_axis
 from fbspost.profile import load_profile
+from fbspost.tools.examples import butterfly
 
 
 def rms(x):

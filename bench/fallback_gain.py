@@ -20,10 +20,10 @@ from pathlib import Path
 
 import numpy as np
 
-from fbspost.examples import butterfly_dense_program, butterfly_polyline_program
-from fbspost.pipeline import CompensateOptions, compensate_file
+from fbspost.job.pipeline import CompensateOptions, compensate_file
 from fbspost.profile import load_profile
-from fbspost.simulate import simulate_program
+from fbspost.tools.examples import butterfly_dense_program, butterfly_polyline_program
+from fbspost.tools.simulate import simulate_program
 
 ROOT = Path(__file__).resolve().parent.parent
 PRINTS = sorted((ROOT / "tests" / "data").glob("*.gcode"))

@@ -4,18 +4,18 @@ Run from the repository root:  python bench/firmware.py PROGRAM.gcode PROFILE [L
 Without arguments: the first 8000 lines of tests/data/gear-marlin2.gcode on printer-two-mode,
 then samples/butterfly-polyline.gcode on patent-xy-stage.
 FLAVOR marlin or reprap: the program compensated as a Marlin (RepRapFirmware) program and both
-run through the model of Marlin's planner (fbspost/marlin.py; RepRapFirmware's: fbspost/reprap.py),
+run through the model of Marlin's planner (fbspost/firmware/marlin.py; RepRapFirmware's: fbspost/firmware/reprap.py),
 once at the profile's max_line_rate, else at a serial host's 300 lines/s (the host sending line
 by line) and once without a line budget (an SD-card print; the output written from a copy of
 the profile with that max_line_rate, or without one); also where the buffer (ring) ran dry.
 The original's path is its commanded one (not the firmware's whole steps); on RepRapFirmware
 the output is also run with motors that take no whole steps (the cost of the steps), and every
 run is put on its whole steps, the shapers too: RRF's own M593 types (ZVD, ZVDD, ZVDDD, MZV,
-EI2, EI3, fbspost/firmware_shapers.py: its impulses on the whole plan, not its per-move segments),
+EI2, EI3, fbspost/firmware/shaping.py: its impulses on the whole plan, not its per-move segments),
 one for X and Y together at each of the profile's dominant modes, as M593 has one. Marlin's own
 shaping through its steps: bench/marlin_baseline.py.
 FLAVOR linuxcnc: the program compensated as a LinuxCNC program (its G64 P<tolerance> Q0) and both
-run through the model of LinuxCNC 2.9's trajectory planner (fbspost/linuxcnc_tp.py); also how far
+run through the model of LinuxCNC 2.9's trajectory planner (fbspost/firmware/linuxcnc_tp.py); also how far
 the model's motion of the output departs from its blocks run exactly as written (each at its F).
 Where LinuxCNC is installed (Debian's linuxcnc-uspace), both are also run by LinuxCNC itself:
 headless, its own task, interpreter and TP on a sim config with the profile's limits
@@ -25,7 +25,7 @@ For the program's first LINES lines (all by default) it runs (a) the original an
 output (``python -m fbspost.cli compensate``) through Klipper's own planner (klippy's
 toolhead.py, tests/klippy_planner.py; the program compensated as a Klipper program, or as
 FLAVOR), samples the motion klippy plans on the profile's grid,
-runs it through the profile's modelled dynamics (fbspost/dynamics.py) and measures the contour
+runs it through the profile's modelled dynamics (fbspost/fbs/dynamics.py) and measures the contour
 error as ``--verify`` does (verify.contour_um: the distance from the modelled position to the
 original's path, its extruding moves for a printer, at the samples where the executed E rises on
 both sides, neither rise under verify.END_SLIVER of the other; every move for a machine without
@@ -49,14 +49,14 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
 
-from fbspost.firmware_shapers import REPRAP_SHAPERS, reprap_shaper, shaped_steps, stepper_positions  # noqa: E402
-from fbspost.gcode import AXES, detect_flavor, read_gcode  # noqa: E402
-from fbspost.linuxcnc_tp import INTERPOLATOR_DELAY_PERIODS, run_linuxcnc  # noqa: E402
-from fbspost.marlin import MarlinConfig, run_marlin  # noqa: E402
+from fbspost.firmware.linuxcnc_tp import INTERPOLATOR_DELAY_PERIODS, run_linuxcnc  # noqa: E402
+from fbspost.firmware.marlin import MarlinConfig, run_marlin  # noqa: E402
+from fbspost.firmware.reprap import ReprapConfig, commanded_pieces, run_reprap  # noqa: E402
+from fbspost.firmware.shaping import REPRAP_SHAPERS, reprap_shaper, shaped_steps, stepper_positions  # noqa: E402
+from fbspost.firmware.verify import contour_um, modelled, printed_path  # noqa: E402
 from fbspost.profile import load_profile  # noqa: E402
-from fbspost.reprap import ReprapConfig, commanded_pieces, run_reprap  # noqa: E402
-from fbspost.simulate import PathDistance, shaper_settings  # noqa: E402
-from fbspost.verify import contour_um, modelled, printed_path  # noqa: E402
+from fbspost.read.gcode import AXES, detect_flavor, read_gcode  # noqa: E402
+from fbspost.tools.simulate import PathDistance, shaper_settings  # noqa: E402
 from firmware_results import klippy_run, move_ends, shaped_plans  # noqa: E402
 from linuxcnc_itself import as_written, joint_commands, on_grid  # noqa: E402
 

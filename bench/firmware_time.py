@@ -6,7 +6,7 @@ Default: Marlin, printer-two-mode and bedslinger-example, the first 8000 lines o
 print in tests/data, at a serial host's 300 lines/s and without a budget (0: an SD card).
 
 Each row: the original and fbspost's default output (``compensate --flavor``), each run through
-*the model of the firmware's planner* (fbspost/marlin.py or fbspost/reprap.py, as
+*the model of the firmware's planner* (fbspost/firmware/marlin.py or fbspost/firmware/reprap.py, as
 bench/marlin_baseline.py runs them, without its shapers and floor), the output's time against
 the original's, and its RMS (max) contour error through whole steps and the profile's modes (um,
 over the extruding samples, to the original's commanded path).
@@ -24,9 +24,9 @@ sys.path[:0] = [str(ROOT), str(ROOT / "bench"), str(ROOT / "tests")]
 from firmware import compensated, excerpt, model_run  # noqa: E402
 from marlin_baseline import PRINTS  # noqa: E402
 
-from fbspost.firmware_shapers import stepper_positions  # noqa: E402
+from fbspost.firmware.shaping import stepper_positions  # noqa: E402
+from fbspost.firmware.verify import contour_um, modelled  # noqa: E402
 from fbspost.profile import load_profile  # noqa: E402
-from fbspost.verify import contour_um, modelled  # noqa: E402
 
 
 def main() -> None:

@@ -32,7 +32,7 @@ its row is NaN. Several minutes per truth.
 ``--flavor marlin`` / ``reprap``: EVERY FIGURE COMES FROM FBSPOST'S MODEL OF MARLIN'S (RRF'S)
 PLANNER THROUGH THE TRUTH MODEL, on whole steps: the sweeps written for that firmware and recorded
 from the model's motion; the baseline that firmware's own input shaping through its whole steps
-(fbspost/firmware_shapers.py), shaper_calibrate picking among the types it has, damping 0.1 (Marlin:
+(fbspost/firmware/shaping.py), shaper_calibrate picking among the types it has, damping 0.1 (Marlin:
 INPUT_SHAPING's ZV per axis, also at the identified dominant modes, and FT_MOTION's types; RRF: its
 M593 types, one shaper for X and Y, each axis' choice on both); fbspost's output written for that
 flavor and run by the same model; no --klipper-cfg or TEST_RESONANCES rows.

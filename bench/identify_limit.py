@@ -18,10 +18,10 @@ import argparse
 
 import numpy as np
 
-from fbspost.dynamics import AxisDynamics, modal_response
-from fbspost.examples import butterfly
-from fbspost.optimizer import AxisLimits, compensate_axis
+from fbspost.fbs.dynamics import AxisDynamics, modal_response
+from fbspost.fbs.optimizer import AxisLimits, compensate_axis
 from fbspost.profile import Mode, load_profile
+from fbspost.tools.examples import butterfly
 
 
 def log_response_derivatives(modes, frequency_hz):

@@ -30,11 +30,11 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
 
 from canon_check import command_problems, path_problems  # noqa: E402
-from fbspost.expand import MOTION_CALLS, canonical_calls, expand  # noqa: E402
-from fbspost.gcode import NeedsInterpreter, read_gcode  # noqa: E402
-from fbspost.pipeline import CompensateOptions, compensate_file  # noqa: E402
+from fbspost.errors import InputError  # noqa: E402
+from fbspost.job.pipeline import CompensateOptions, compensate_file  # noqa: E402
 from fbspost.profile import load_profile  # noqa: E402
-from fbspost.trajectory import InputError  # noqa: E402
+from fbspost.read.expand import MOTION_CALLS, canonical_calls, expand  # noqa: E402
+from fbspost.read.gcode import NeedsInterpreter, read_gcode  # noqa: E402
 
 TOOL_TABLE = Path("/usr/share/doc/linuxcnc/examples/sample-configs/sim/axis/sim.tbl")
 SAMPLE_CONFIGS = TOOL_TABLE.parent.parent

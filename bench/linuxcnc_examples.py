@@ -37,10 +37,10 @@ sys.path[:0] = [str(ROOT), str(ROOT / "tests"), str(ROOT / "bench")]
 from firmware import compensated, linuxcnc_own_run, linuxcnc_run, table  # noqa: E402
 from linuxcnc import example_programs, runnable  # noqa: E402
 
-from fbspost.expand import canonical_calls, expand  # noqa: E402
-from fbspost.gcode import read_gcode  # noqa: E402
-from fbspost.linuxcnc_tp import run_linuxcnc  # noqa: E402
+from fbspost.firmware.linuxcnc_tp import run_linuxcnc  # noqa: E402
 from fbspost.profile import load_profile  # noqa: E402
+from fbspost.read.expand import canonical_calls, expand  # noqa: E402
+from fbspost.read.gcode import read_gcode  # noqa: E402
 
 MIN_FEEDS, MIN_XY_SHARE, MIN_CONTOUR_SHARE, MIN_FEEDS_PER_RAPID, DENSE_MM = 50, 0.8, 0.5, 10.0, 1.0
 EXCERPT_S = 12.0

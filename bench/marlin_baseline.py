@@ -5,9 +5,9 @@ Default: printer-two-mode and bedslinger-example, the first 8000 lines of every 
 tests/data, once at a serial host's 300 lines/s and once without a line budget (an SD card).
 A print named with a path is read from there (a print sliced anew: bench/sliced_anew.py).
 
-Every run is *the model of Marlin's planner* (fbspost/marlin.py: whole-step block ends, the
+Every run is *the model of Marlin's planner* (fbspost/firmware/marlin.py: whole-step block ends, the
 6-step merge, its buffer and look-ahead), then *the model of its stepper* (each axis on the whole
-step its Bresenham gives, fbspost/firmware_shapers.py), then the profile's modes:
+step its Bresenham gives, fbspost/firmware/shaping.py), then the profile's modes:
 - original: the program as Marlin runs it, unshaped;
 - Marlin ZV: INPUT_SHAPING_X/Y at the profile's dominant modes (``M593 X F.. D..``, ``M593 Y
   F.. D..``) on the original's plan, as its stepper shapes steps (each axis late by its own
@@ -18,7 +18,7 @@ step its Bresenham gives, fbspost/firmware_shapers.py), then the profile's modes
 - the floor: fbspost's output for the same machine with 100 times the steps per mm (motors with
   no whole steps to speak of: 0.125 um), written and run so; fbspost over it is the steps' cost.
 RMS and max contour error over the extruding samples to the original's commanded path
-(fbspost.verify), print time as the model runs it (a shaper adds its lead and lag).
+(fbspost.firmware.verify), print time as the model runs it (a shaper adds its lead and lag).
 """
 from __future__ import annotations
 
@@ -35,7 +35,7 @@ sys.path[:0] = [str(ROOT), str(ROOT / "bench"), str(ROOT / "tests")]
 
 from firmware import compensated, excerpt, model_run  # noqa: E402
 
-from fbspost.firmware_shapers import (  # noqa: E402
+from fbspost.firmware.shaping import (  # noqa: E402
     FT_MOTION_SHAPERS,
     ft_motion_shaper,
     marlin_zv,
@@ -43,9 +43,9 @@ from fbspost.firmware_shapers import (  # noqa: E402
     shaped_steps,
     stepper_positions,
 )
+from fbspost.firmware.verify import contour_um, modelled  # noqa: E402
 from fbspost.profile import load_profile  # noqa: E402
-from fbspost.simulate import shaper_settings  # noqa: E402
-from fbspost.verify import contour_um, modelled  # noqa: E402
+from fbspost.tools.simulate import shaper_settings  # noqa: E402
 from firmware_results import shaped_plans  # noqa: E402
 
 PRINTS = ("gear-marlin2.gcode", "tube-marlin2.gcode", "pocket-klipper.gcode",
@@ -122,7 +122,7 @@ def main() -> None:
             for budget in BUDGETS:
                 with tempfile.TemporaryDirectory() as tmp:
                     original = excerpt(program if "/" in program else f"tests/data/{program}", args.lines, Path(tmp))
-                    output = compensated(original, machine, "marlin", budget).rename(Path(tmp) / "fbspost.gcode")
+                    output = compensated(original, machine, "marlin", budget).rename(Path(tmp) / "fbspost.read.gcode")
                     fine = fine_steps(machine, Path(tmp))
                     floor = (compensated(original, str(fine), "marlin", budget), load_profile(fine))
                     result = rows(original, output, profile, budget, floor)

@@ -9,7 +9,7 @@ setting goes into a copy of the profile's ``[firmware]`` table (classic jerk has
 is a ``MarlinConfig`` field of the model, given to every run), the program is compensated for
 that copy (``compensate --flavor marlin``) and ``marlin_baseline.rows`` runs the original,
 Marlin's ZV, FT_MOTION's best shaper and fbspost's output through *the model of Marlin's planner
-and its whole steps* (fbspost/marlin.py), then the profile's modes. One markdown row per
+and its whole steps* (fbspost/firmware/marlin.py), then the profile's modes. One markdown row per
 setting: RMS (max) contour error in um, fbspost's time against the original's as the model runs
 it.
 """
@@ -75,7 +75,7 @@ def main() -> None:
         with tempfile.TemporaryDirectory() as tmp:
             machine = with_firmware(args.machine, lines, Path(tmp))
             original = excerpt(args.program, args.lines, Path(tmp))
-            output = compensated(original, str(machine), "marlin", args.budget).rename(Path(tmp) / "fbspost.gcode")
+            output = compensated(original, str(machine), "marlin", args.budget).rename(Path(tmp) / "fbspost.read.gcode")
             result = rows(original, output, load_profile(machine), args.budget, **changes)
         cells = [f"{rms:.2f} ({peak:.0f})" for _, _, (rms, peak) in result[:4]]
         cells[2] = f"{result[2][0].split()[-1]} {cells[2]}"

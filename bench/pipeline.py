@@ -39,7 +39,7 @@ import make_sliced  # noqa: E402  (the corpus' models and slicer settings)
 import numpy as np  # noqa: E402
 from engine import butterfly_table  # noqa: E402
 
-from fbspost.pipeline import compensate_file  # noqa: E402
+from fbspost.job.pipeline import compensate_file  # noqa: E402
 from fbspost.profile import load_profile  # noqa: E402
 
 # Size -> (model, scale of the 20 x 4 mm model, profile); scales chosen so that PrusaSlicer's

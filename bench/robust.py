@@ -30,7 +30,7 @@ tests/data/printer-two-mode-robust.toml; 3000 lines with --tradeoff or --minmax)
    three prints. The set is the 11 machines themselves; their weights are found by multiplicative
    weights (each multiplied by its FBS over best shaper ratio cubed, then divided by the best
    shaper's squared error), which converges to the weighting whose FBS is least above the best
-   shaper at its worst machine; the trajectory is smoothed as for any set (fbspost/smoothing.py).
+   shaper at its worst machine; the trajectory is smoothed as for any set (fbspost/fbs/smoothing.py).
    If that worst ratio stays above 1, no weighting of a set of these models meets "at or below
    the best shaper everywhere" on that print. Two processes; about 10 minutes at 3000 lines.
 """
@@ -51,12 +51,13 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "tests"), str(ROOT / "bench")]
 
-from fbspost.dynamics import AxisDynamics, ModelSet, scaled_mode  # noqa: E402
-from fbspost.gcode import AXES  # noqa: E402
+from fbspost.contour import PathDistance  # noqa: E402
+from fbspost.fbs.dynamics import AxisDynamics, ModelSet, scaled_mode  # noqa: E402
+from fbspost.firmware.shapers import SHAPERS  # noqa: E402
+from fbspost.firmware.verify import contour_um, modelled, printed_path  # noqa: E402
 from fbspost.profile import format_profile, load_profile  # noqa: E402
-from fbspost.shapers import SHAPERS  # noqa: E402
-from fbspost.simulate import MODEL_ERRORS, PathDistance, model_error, simulate_program  # noqa: E402
-from fbspost.verify import contour_um, modelled, printed_path  # noqa: E402
+from fbspost.read.gcode import AXES  # noqa: E402
+from fbspost.tools.simulate import MODEL_ERRORS, model_error, simulate_program  # noqa: E402
 from firmware_results import LoadedBed, klippy_run, move_ends, shaped_plans  # noqa: E402
 
 sys.path.insert(0, str(ROOT / "tests" / "data"))

@@ -25,8 +25,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
-from fbspost import verify  # noqa: E402
-from fbspost.pipeline import compensate_file  # noqa: E402
+from fbspost.firmware import verify  # noqa: E402
+from fbspost.job.pipeline import compensate_file  # noqa: E402
 from fbspost.profile import load_profile  # noqa: E402
 from test_streaming import raster  # noqa: E402
 

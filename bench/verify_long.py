@@ -34,9 +34,9 @@ PROFILE = "printer-two-mode"
 _RUN = """
 import json, resource, sys, time
 from pathlib import Path
-from fbspost.pipeline import CompensateOptions, compensate_file
+from fbspost.job.pipeline import CompensateOptions, compensate_file
 from fbspost.profile import load_profile
-from fbspost.verify import verify
+from fbspost.firmware.verify import verify
 mode, source, output = sys.argv[1], Path(sys.argv[2]), Path(sys.argv[3])
 profile = load_profile(sys.argv[4])
 started = time.perf_counter()

@@ -26,17 +26,18 @@ import click
 import numpy as np
 
 from . import __version__
-from .atomicfile import atomic_write
-from .gcode import FLAVORS, detect_flavor
-from .planner import RunMargins
+from .errors import InputError
+from .firmware.shapers import MAX_DAMPING, SHAPERS
+from .plan.planner import RunMargins
 from .profile import AXIS_NAMES, MachineProfile, ProfileError, bundled_profiles, load_profile
-from .shapers import MAX_DAMPING, SHAPERS
-from .trajectory import InputError, read_trajectory_csv, write_trajectory_csv
+from .read.gcode import FLAVORS, detect_flavor
+from .tools.trajectory import read_trajectory_csv, write_trajectory_csv
+from .write.atomicfile import atomic_write
 
 # Each command imports the stages it runs (scipy's signal, ndimage and optimize take seconds to
 # load), so that --help, `machines` and a failing argument answer at once.
 if TYPE_CHECKING:
-    from .pipeline import CompensateOptions, Report
+    from .job.pipeline import CompensateOptions, Report
 
 
 class _FriendlyGroup(click.Group):
@@ -181,7 +182,7 @@ def compensate(inputs, machine, output, output_dir, jobs, output_format, toleran
     is left unchanged; the others are still compensated. Exit status 0 if every file
     succeeded, otherwise 1 with a last line naming the failed files.
     """
-    from .pipeline import CompensateOptions
+    from .job.pipeline import CompensateOptions
 
     targets = _targets(inputs, output, output_dir, report_path)
     profile = load_profile(machine)
@@ -226,7 +227,7 @@ def _targets(inputs: tuple[Path, ...], output: Path | None, output_dir: Path | N
 def _compensate_single(source: Path, target: Path, profile: MachineProfile, options: CompensateOptions,
                        report_path: Path | None, quiet: bool) -> None:
     """One file: errors propagate to the group's one-line handler; a progress bar on a terminal."""
-    from .pipeline import compensate_file
+    from .job.pipeline import compensate_file
 
     show_progress = not quiet and sys.stderr.isatty()
     with click.progressbar(length=1000, label="compensating", file=sys.stderr, hidden=not show_progress) as bar:
@@ -327,7 +328,7 @@ def _compensate_in_child(sender: Connection, source: Path, target: Path, profile
 def _compensate_one(source: Path, target: Path, profile: MachineProfile, options: CompensateOptions) -> Report | str:
     """One file of several, here or in a worker: its report, or its one-line error. Never raises
     but on an interrupt, so one bad file cannot stop the others."""
-    from .pipeline import compensate_file
+    from .job.pipeline import compensate_file
 
     try:
         return compensate_file(source, target, profile, options)
@@ -410,9 +411,9 @@ def trajectory(input_csv, machine, output, lookahead, knot_spacing, commit_spans
     Every axis with modes in the profile gets the command whose modelled motion tracks the input
     within the axis' limits; other columns are copied. The output has the same samples.
     """
-    from .dynamics import AxisDynamics
-    from .optimizer import AxisLimits, FBSSettings, compensate_axis
-    from .pipeline import AxisReport
+    from .fbs.dynamics import AxisDynamics
+    from .fbs.optimizer import AxisLimits, FBSSettings, compensate_axis
+    from .job.pipeline import AxisReport
 
     started = time.perf_counter()
     profile = load_profile(machine)
@@ -499,7 +500,7 @@ def identify(frf_csv, axis, n_modes, max_modes, output, merge, plot, klipper_csv
     defaults) or merges the axis into --merge (comments there are not kept). A fit too far from
     the measurement, or too uncertain, is refused (exit status 1) unless --force.
     """
-    from . import identify as ident
+    from .tools import identify as ident
 
     sources = [s for s in (frf_csv, klipper_csv, klipper_cfg, accel_log) if s]
     if len(sources) != 1:
@@ -545,7 +546,7 @@ def identify(frf_csv, axis, n_modes, max_modes, output, merge, plot, klipper_csv
 def _klipper_estimate(klipper_csv, klipper_cfg, axis, form, lines: list[str]) -> tuple[dict, str]:
     """identify's coarse estimate from Klipper's files: the modes (of ``form``, with the tolerances
     of a machine not measured) per axis and the profile's note."""
-    from . import identify as ident
+    from .tools import identify as ident
 
     if klipper_csv:
         mode, f1, f2 = ident.klipper_psd_mode(klipper_csv, axis, form)
@@ -578,8 +579,8 @@ def _fitted(frf_csv, accel_log, program, accel_column, axis, n_modes, max_modes,
     (with the fit's tolerances), the profile's note and the plot (PNG bytes, or None). A fit
     that fails ``identify.assess_fit``'s checks raises ``InputError`` unless ``force`` (then it
     is a warning)."""
-    from . import excite as excite_module
-    from . import identify as ident
+    from .tools import excite as excite_module
+    from .tools import identify as ident
 
     if accel_log:
         sweep = excite_module.commanded_sweep(program, axis, machine, lines)
@@ -660,8 +661,8 @@ def excite(machine, axis, output, centre_mm, start_hz, end_hz, duration_s, ampli
     per half period from rest to rest at the INI's acceleration, in whole servo periods). Record the whole
     run, then `fbspost identify --accel-log LOG.csv --program PROGRAM --axis AXIS --machine PROFILE`.
     """
-    from . import excite as excite_module
-    from .writer import shortest_block_s
+    from .tools import excite as excite_module
+    from .write.writer import shortest_block_s
 
     profile = load_profile(machine)
     axis = axis.upper()
@@ -761,10 +762,10 @@ def simulate(input_path, machine, compensated, shapers, shaper_freq, shaper_damp
     motion starts/ends than the plan, largest command velocity and acceleration. Units: um, s,
     mm/s, mm/s^2.
     """
-    from .plots import FORMATS as PLOT_FORMATS  # matplotlib is imported when plotting
-    from .plots import write_plot
-    from .simulate import model_error as run_on_perturbed
-    from .simulate import shaper_settings, simulate_program
+    from .tools.plots import FORMATS as PLOT_FORMATS  # matplotlib is imported when plotting
+    from .tools.plots import write_plot
+    from .tools.simulate import model_error as run_on_perturbed
+    from .tools.simulate import shaper_settings, simulate_program
 
     if plot_path and plot_path.suffix.lower() not in PLOT_FORMATS:
         raise click.BadParameter(f"{plot_path}: expected a .png or .pdf file", param_hint="--plot")

@@ -10,7 +10,7 @@ among the reader's points, in order.
 (spindle, coolant, tools, dwells, I/O, messages, stops, program end, probe on/off, spindle
 synchronization with its pitch), in order, as on the original, besides the dwells fbspost adds
 (the unused end of a run's settle margin), and the same probes' targets.
-The canonical geometry here is evaluated on its own (not with fbspost.expand's code).
+The canonical geometry here is evaluated on its own (not with fbspost.read.expand's code).
 """
 from __future__ import annotations
 
@@ -19,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from fbspost.expand import MOTION_CALLS, STATE_CALLS, canonical_calls
-from fbspost.gcode import AXES, Kind, read_gcode
+from fbspost.read.expand import MOTION_CALLS, STATE_CALLS, canonical_calls
+from fbspost.read.gcode import AXES, Kind, read_gcode
 
 _PLANE_AXES = {"CANON_PLANE_XY": (0, 1, 2), "CANON_PLANE_YZ": (1, 2, 0), "CANON_PLANE_XZ": (2, 0, 1)}
 

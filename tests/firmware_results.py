@@ -2,9 +2,9 @@
 machine's modes, its contour error, and the input shapers on the same plan.
 
 Takes program files and a profile; gives klippy's plan sampled on the profile's grid
-(``klippy_run``), the path of its moves (``move_ends``, for ``fbspost.verify.printed_path``)
+(``klippy_run``), the path of its moves (``move_ends``, for ``fbspost.firmware.verify.printed_path``)
 and every shaper of ``fbspost simulate``, tuned to the profile's dominant modes, applied to a
-plan (``shaped_plans``). The modelled motion and the contour error are ``fbspost.verify``'s;
+plan (``shaped_plans``). The modelled motion and the contour error are ``fbspost.firmware.verify``'s;
 ``LoadedBed`` models a bed whose Y frequency falls as the print's mass grows on it.
 """
 from __future__ import annotations
@@ -15,10 +15,10 @@ from pathlib import Path
 
 import numpy as np
 
-from fbspost.gcode import AXES, read_gcode
-from fbspost.shapers import SHAPERS, klipper_shaper, shape
-from fbspost.simulate import shaper_settings
-from fbspost.verify import modelled
+from fbspost.firmware.shapers import SHAPERS, klipper_shaper, shape
+from fbspost.firmware.verify import modelled
+from fbspost.read.gcode import AXES, read_gcode
+from fbspost.tools.simulate import shaper_settings
 from klippy_planner import KlippyPlanner, sample_moves
 from reference import simulate_varying
 
@@ -38,10 +38,10 @@ def move_ends(moves) -> tuple[np.ndarray, np.ndarray]:
 def shaped_plans(plan: np.ndarray, profile, shapers: dict[str, dict] | None = None, shape_axis=None
                  ) -> dict[str, tuple[np.ndarray, np.ndarray, float]]:
     """Every shaper on ``plan`` (samples of klippy's plan of the original), tuned to the profile's
-    dominant modes, or the ``shapers`` given (by name, a ``fbspost.shapers.Shaper`` per axis): by
+    dominant modes, or the ``shapers`` given (by name, a ``fbspost.firmware.shapers.Shaper`` per axis): by
     name, (the shaped command, the plan padded to its length, the shaper's lag s: the time it adds).
     ``shape_axis(samples, period_s, shaper, axis)`` shapes a column (default ``shapers.shape``; a
-    firmware's own, through whole steps: ``fbspost.firmware_shapers``). A jump (a move from an
+    firmware's own, through whole steps: ``fbspost.firmware.shaping``). A jump (a move from an
     unknown place, which a firmware model puts in no time: see ``verify.modelled``) is carried
     through unshaped: shaped, it would be split into jumps to points off every path."""
     period = 1.0 / profile.sample_rate_hz

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fbspost.gcode import read_gcode
+from fbspost.read.gcode import read_gcode
 from klippy_planner import KlippyPlanner
 
 

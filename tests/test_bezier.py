@@ -1,4 +1,4 @@
-"""Tests of fbspost.bezier against independent truths.
+"""Tests of fbspost.write.bezier against independent truths.
 
 Truths used: curves evaluated here by de Casteljau's construction, their arc length by
 scipy.integrate.quad and its inversion by scipy.optimize.brentq (nothing of the module's own
@@ -13,7 +13,7 @@ import pytest
 from scipy.integrate import quad
 from scipy.optimize import brentq
 
-from fbspost.bezier import fit_g5
+from fbspost.write.bezier import fit_g5
 
 TOL_MM = 1e-3
 

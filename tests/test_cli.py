@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from fbspost import pipeline
 from fbspost.cli import main
+from fbspost.job import pipeline
 from fbspost.profile import bundled_profiles, load_profile
 from reference import rms, simulate_lsim
 

@@ -10,11 +10,11 @@ import pytest
 from click.testing import CliRunner
 
 from fbspost.cli import main
-from fbspost.gcode import read_gcode
-from fbspost.linuxcnc_tp import run_linuxcnc
-from fbspost.pipeline import CompensateOptions, compensate_file
-from fbspost.planner import RunMargins, plan_blocks
+from fbspost.firmware.linuxcnc_tp import run_linuxcnc
+from fbspost.job.pipeline import CompensateOptions, compensate_file
+from fbspost.plan.planner import RunMargins, plan_blocks
 from fbspost.profile import load_profile
+from fbspost.read.gcode import read_gcode
 from reference import (
     contour_error,
     execute,

@@ -1,4 +1,4 @@
-"""Tests of fbspost.dynamics.AxisDynamics against independent truths.
+"""Tests of fbspost.fbs.dynamics.AxisDynamics against independent truths.
 
 Truths used: the closed-form step response of one second-order mode, scipy.signal.lsim of the
 continuous modal state space built here, scipy.signal.freqs / freqresp, closed-form poles,
@@ -16,7 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import linalg, optimize, signal
 
-from fbspost.dynamics import AxisDynamics
+from fbspost.fbs.dynamics import AxisDynamics
 from fbspost.profile import Mode, load_profile
 
 PATENT = load_profile("patent-xy-stage")

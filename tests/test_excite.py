@@ -19,11 +19,11 @@ from click.testing import CliRunner
 from scipy import signal
 
 from fbspost.cli import main
-from fbspost.gcode import read_gcode
-from fbspost.linuxcnc_tp import run_linuxcnc
-from fbspost.marlin import run_marlin
+from fbspost.firmware.linuxcnc_tp import run_linuxcnc
+from fbspost.firmware.marlin import run_marlin
+from fbspost.firmware.reprap import run_reprap
 from fbspost.profile import load_profile
-from fbspost.reprap import run_reprap
+from fbspost.read.gcode import read_gcode
 from linuxcnc_itself import rest_to_rest_ends
 from reference import execute, sample_blocks, simulate_lsim
 
@@ -209,7 +209,7 @@ def test_identify_plans_the_sweep_on_the_profile_it_names_or_a_default(tmp_path)
     """Without --machine: the bundled profile the header names (the same plan as with it), else
     printer-two-mode, said in one line; the sweep as planned starts at rest at the centre and
     takes its written time (Klipper's rules at the program's settings)."""
-    from fbspost import excite
+    from fbspost.tools import excite
 
     path = tmp_path / "s.gcode"
     text = write_sweep(path, "klipper", PRINTER, 1.0)
@@ -317,7 +317,7 @@ def test_the_plans_clock_mark_is_where_the_models_motion_repeats_the_sweep(tmp_p
     which it repeats the sweep's first 1.3 s most closely (searched 0.1 ms apart over +-0.5 s).
     Before, the mark was scaled by the program's own block times, which Marlin's whole steps make
     3% short: 0.4 s late on a 12 s sweep, 0.93 s on a 30 s one (the Marlin model, truth A's limits)."""
-    from fbspost.excite import firmware_sweep
+    from fbspost.tools.excite import firmware_sweep
 
     path = tmp_path / "sweep.gcode"
     write_sweep(path, flavor, PRINTER, 5.0)
@@ -390,7 +390,7 @@ def test_identify_with_the_firmware_plan_of_a_retimed_sweep(tmp_path):
     printer-two-mode's X (52 Hz, zeta 0.07; 96 Hz, 0.03) and recorded: identify with --machine
     plans the program as Klipper does and finds the first mode within 2% (frequency) and its
     damping within 20%; correlated with the sweep as written it does not."""
-    from fbspost import excite, identify
+    from fbspost.tools import excite, identify
 
     path, log = tmp_path / "sweep.gcode", tmp_path / "log.csv"
     text = write_sweep(path, "klipper", PRINTER, 8.0)

@@ -1,17 +1,17 @@
-"""The fallback to the planned original (fbspost.fallback), judged by scipy's simulation of the
+"""The fallback to the planned original (fbspost.fbs.fallback), judged by scipy's simulation of the
 profile (reference.simulate_lsim), the profile's limits and the plan's own times."""
 import re
 
 import numpy as np
 import pytest
 
-from fbspost.dynamics import AxisDynamics
-from fbspost.fallback import FALLBACK, LARGEST, LIMITS, WORSE, AxisGuard
-from fbspost.gcode import read_gcode
-from fbspost.optimizer import AxisCompensator, AxisLimits
-from fbspost.pipeline import CompensateOptions, compensate_file
-from fbspost.planner import plan_blocks
+from fbspost.fbs.dynamics import AxisDynamics
+from fbspost.fbs.fallback import FALLBACK, LARGEST, LIMITS, WORSE, AxisGuard
+from fbspost.fbs.optimizer import AxisCompensator, AxisLimits
+from fbspost.job.pipeline import CompensateOptions, compensate_file
+from fbspost.plan.planner import plan_blocks
 from fbspost.profile import load_profile
+from fbspost.read.gcode import read_gcode
 from reference import execute, rms, sample_blocks, simulate_lsim, unbudgeted
 
 PRINTER = unbudgeted(load_profile("bedslinger-example"))

@@ -14,8 +14,8 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
-from fbspost import atomicfile
 from fbspost.cli import main
+from fbspost.write import atomicfile
 
 ROOT = Path(__file__).resolve().parent.parent
 TUBE = ROOT / "tests" / "data" / "tube-marlin2.gcode"  # 8400 lines: about 3 s at 1 kHz

@@ -1,4 +1,4 @@
-"""fbspost.firmware: a written program re-planned as each flavor's firmware plans it.
+"""fbspost.firmware.planners: a written program re-planned as each flavor's firmware plans it.
 
 Truths: closed forms. A move from rest to rest takes d / v + v / a when it reaches v; a
 retraction on Klipper is a triangle at its max_extrude_only_accel (798.24 mm/s^2 on the printer
@@ -12,10 +12,10 @@ import math
 
 import pytest
 
-from fbspost.firmware import replan
-from fbspost.gcode import read_gcode
-from fbspost.marlin import merge_short_segments
+from fbspost.firmware.marlin import merge_short_segments
+from fbspost.firmware.planners import replan
 from fbspost.profile import load_profile
+from fbspost.read.gcode import read_gcode
 from reference import serial
 
 PRINTER = serial(load_profile("printer-two-mode"))  # a host sending 300 lines/s

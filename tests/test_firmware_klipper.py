@@ -20,11 +20,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fbspost.gcode import Kind, detect_flavor, read_gcode
-from fbspost.pipeline import CompensateOptions, compensate_file
-from fbspost.planner import PlanStream, plan_blocks
+from fbspost.firmware.transparency import transparent_limits
+from fbspost.job.pipeline import CompensateOptions, compensate_file
+from fbspost.plan.planner import PlanStream, plan_blocks
 from fbspost.profile import load_profile
-from fbspost.transparency import transparent_limits
+from fbspost.read.gcode import Kind, detect_flavor, read_gcode
 from klippy_planner import KlippyPlanner, klippy_or_skip
 from reference import unbudgeted
 

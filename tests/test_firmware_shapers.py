@@ -7,7 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from fbspost.firmware_shapers import (
+from fbspost.firmware.shapers import shape
+from fbspost.firmware.shaping import (
     REPRAP_SHAPERS,
     ft_motion_shaper,
     marlin_zv,
@@ -17,7 +18,6 @@ from fbspost.firmware_shapers import (
     shaped_steps,
     whole_steps,
 )
-from fbspost.shapers import shape
 
 SPM = 80.0
 

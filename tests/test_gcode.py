@@ -1,4 +1,4 @@
-"""Tests of fbspost.gcode (the G-code reader) against truths written here.
+"""Tests of fbspost.read.gcode (the G-code reader) against truths written here.
 
 Truths used: positions, feeds and dwell times computed by hand from each small program; circle
 centres and sweeps from the geometry of G2/G3 (right-hand rule in the plane's axis order);
@@ -21,8 +21,8 @@ from hypothesis import strategies as st
 from scipy.integrate import cumulative_trapezoid
 from scipy.spatial import cKDTree
 
-from fbspost.gcode import Kind, PlannerLimits, detect_flavor, read_gcode
-from fbspost.trajectory import InputError
+from fbspost.errors import InputError
+from fbspost.read.gcode import Kind, PlannerLimits, detect_flavor, read_gcode
 
 DATA = Path(__file__).resolve().parent / "data"
 GEAR = DATA / "gear-marlin2.gcode"  # PrusaSlicer 2.5, marlin2, absolute E with G92 E0 resets

@@ -152,7 +152,7 @@ def test_measured_profile_beats_shaper_calibrate_on_klippy(tmp_path):
     assert_the_bar(rows, ("shaper_calibrate",))
 
 
-# Marlin's and RRF's chains (their planners' models, fbspost.firmware.PLANNER_MODELS): the sweep
+# Marlin's and RRF's chains (their planners' models, fbspost.firmware.planners.PLANNER_MODELS): the sweep
 # written for the firmware and recorded from the model's run of it; the baseline the firmware's own
 # shaping through whole steps at what shaper_calibrate picks among its types (tests/recording_chain.py).
 # Sweeps: RRF 12 s; Marlin 30 s (truth A's 12 s Y recording on the Marlin model was refused by

@@ -14,12 +14,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fbspost.examples import butterfly_dense_program, butterfly_polyline_program
-from fbspost.gcode import Kind, read_gcode
-from fbspost.pipeline import CompensateOptions, compensate_file
-from fbspost.planner import RunMargins
+from fbspost.job.pipeline import CompensateOptions, compensate_file
+from fbspost.plan.planner import RunMargins
 from fbspost.profile import load_profile
-from fbspost.simulate import simulate_program
+from fbspost.read.gcode import Kind, read_gcode
+from fbspost.tools.examples import butterfly_dense_program, butterfly_polyline_program
+from fbspost.tools.simulate import simulate_program
 from reference import unbudgeted
 
 DATA = Path(__file__).parent / "data"

@@ -12,8 +12,8 @@ import math
 import numpy as np
 import pytest
 
-from fbspost.gcode import read_gcode
 from fbspost.profile import load_profile
+from fbspost.read.gcode import read_gcode
 from klippy_planner import KlippyPlanner, klippy_or_skip
 
 

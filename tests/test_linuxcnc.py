@@ -16,13 +16,13 @@ from scipy.spatial import cKDTree
 
 from canon_check import command_problems, path_problems
 from fbspost.cli import main
-from fbspost.expand import canonical_calls, expand
-from fbspost.gcode import AXES, CHORD_TOLERANCE_MM, Kind, nurbs_points, read_gcode
-from fbspost.linuxcnc_time import linuxcnc_feeds
-from fbspost.planner import RunMargins, plan_blocks
+from fbspost.errors import InputError
+from fbspost.firmware.linuxcnc_time import linuxcnc_feeds
+from fbspost.plan.planner import RunMargins, plan_blocks
 from fbspost.profile import load_profile
-from fbspost.rs274_probes import check_static
-from fbspost.trajectory import InputError
+from fbspost.read.expand import canonical_calls, expand
+from fbspost.read.gcode import AXES, CHORD_TOLERANCE_MM, Kind, nurbs_points, read_gcode
+from fbspost.read.rs274_probes import check_static
 
 needs_rs274 = pytest.mark.skipif(shutil.which("rs274") is None,
                                  reason="LinuxCNC's rs274 is not installed (apt-get install linuxcnc-uspace)")
@@ -352,7 +352,7 @@ def test_helix_narrower_than_rs274s_digits_is_its_axis_line():
     """rs274 prints a helix of radius below its 4 decimals (cutter compensation on a hole of the
     tool's size, useful-subroutines.ngc) with its centre on its start and end: LinuxCNC runs a
     circle within 0.5e-4 of an inch of the axis, written as the plunge along it."""
-    from fbspost.expand import _Expander
+    from fbspost.read.expand import _Expander
     calls = [("USE_LENGTH_UNITS", ["CANON_UNITS_INCHES"]), ("SET_FEED_RATE", ["60.0000"]),
              ("STRAIGHT_TRAVERSE", ["1.0000", "2.0000", "0.1000", "0", "0", "0"]),
              ("ARC_FEED", ["1.0000", "2.0000", "1.0000", "2.0000", "1", "-0.0212", "0", "0", "0"])]

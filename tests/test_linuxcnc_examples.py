@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from fbspost.expand import canonical_calls
+from fbspost.read.expand import canonical_calls
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 from linuxcnc_examples import chosen, contouring  # noqa: E402

@@ -10,11 +10,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fbspost.gcode import read_gcode
-from fbspost.linuxcnc_tp import run_linuxcnc
-from fbspost.pipeline import CompensateOptions, compensate_file
+from fbspost.firmware.linuxcnc_tp import run_linuxcnc
+from fbspost.firmware.verify import printed_path
+from fbspost.job.pipeline import CompensateOptions, compensate_file
 from fbspost.profile import load_profile
-from fbspost.verify import printed_path
+from fbspost.read.gcode import read_gcode
 from linuxcnc_itself import as_written, follows, from_first_motion, installed, joint_commands, on_grid
 
 STAGE = load_profile("patent-xy-stage")

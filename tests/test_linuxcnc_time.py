@@ -1,4 +1,4 @@
-"""fbspost.linuxcnc_time: the feeds at which LinuxCNC runs the original, and fbspost's plan of them.
+"""fbspost.firmware.linuxcnc_time: the feeds at which LinuxCNC runs the original, and fbspost's plan of them.
 
 Truths: LinuxCNC's TP caps a segment's speed at its length / (1.02 servo periods)
 (tcClampVelocityByLength, TP_MIN_SEGMENT_CYCLES); a move from rest to rest at speed v over d in
@@ -11,10 +11,10 @@ import math
 
 import pytest
 
-from fbspost.gcode import read_gcode
-from fbspost.linuxcnc_time import linuxcnc_feeds, retimed
-from fbspost.planner import plan_blocks
+from fbspost.firmware.linuxcnc_time import linuxcnc_feeds, retimed
+from fbspost.plan.planner import plan_blocks
 from fbspost.profile import load_profile
+from fbspost.read.gcode import read_gcode
 
 STAGE = load_profile("patent-xy-stage")
 T = STAGE.firmware.linuxcnc.servo_period_s

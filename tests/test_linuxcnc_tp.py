@@ -1,4 +1,4 @@
-"""fbspost.linuxcnc_tp: the model of LinuxCNC 2.9's trajectory planner, against its rules worked by hand.
+"""fbspost.firmware.linuxcnc_tp: the model of LinuxCNC 2.9's trajectory planner, against its rules worked by hand.
 
 Truths (tp.c, tc.c, blendmath.c; the patent stage's INI limits: X and Y 100 mm/s, 8000 mm/s^2;
 servo period T = 1 ms): a segment's speed is at most its length / (1.02 T); a move from rest to
@@ -16,10 +16,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fbspost.firmware import replan
-from fbspost.gcode import read_gcode
-from fbspost.linuxcnc_tp import LinuxCNCConfig, _Queue, _segment, interpolated, run_linuxcnc
+from fbspost.firmware.linuxcnc_tp import LinuxCNCConfig, _Queue, _segment, interpolated, run_linuxcnc
+from fbspost.firmware.planners import replan
 from fbspost.profile import load_profile
+from fbspost.read.gcode import read_gcode
 
 STAGE = load_profile("patent-xy-stage")
 A, T = 8000.0, 0.001

@@ -1,4 +1,4 @@
-"""fbspost.marlin: the model of Marlin 2.1's planner, against Marlin's formulas worked by hand.
+"""fbspost.firmware.marlin: the model of Marlin 2.1's planner, against Marlin's formulas worked by hand.
 
 Truths (planner.cpp, commit 000420e3; the printer profile: 80 steps/mm on X Y, 3000 mm/s^2, X
 10000 and Y 8000 mm/s^2 at most): the minimum planner speed v_m^2 = 0.5 a / (steps per mm) =
@@ -17,9 +17,9 @@ import math
 import numpy as np
 import pytest
 
-from fbspost.gcode import read_gcode
-from fbspost.marlin import MarlinConfig, run_marlin
+from fbspost.firmware.marlin import MarlinConfig, run_marlin
 from fbspost.profile import load_profile
+from fbspost.read.gcode import read_gcode
 
 PRINTER = load_profile("printer-two-mode")
 A = 3000.0

@@ -8,10 +8,10 @@ import pytest
 from scipy import linalg, optimize, sparse
 from scipy.interpolate import BSpline
 
-from fbspost.dynamics import AxisDynamics
-from fbspost.examples import butterfly
-from fbspost.optimizer import AxisCompensator, AxisLimits, FBSSettings, _Stretch, compensate_axis
+from fbspost.fbs.dynamics import AxisDynamics
+from fbspost.fbs.optimizer import AxisCompensator, AxisLimits, FBSSettings, _Stretch, compensate_axis
 from fbspost.profile import load_profile
+from fbspost.tools.examples import butterfly
 from reference import finite_derivative_max, rms, simulate_lsim
 
 PATENT = load_profile("patent-xy-stage")

@@ -13,12 +13,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from fbspost.firmware import replan
-from fbspost.gcode import read_gcode
-from fbspost.pipeline import CompensateOptions, compensate_file, compensated_samples
-from fbspost.planner import RunMargins, plan_blocks
+from fbspost.firmware.planners import replan
+from fbspost.firmware.verify import contour_um, modelled, printed_path
+from fbspost.job.pipeline import CompensateOptions, compensate_file, compensated_samples
+from fbspost.plan.planner import RunMargins, plan_blocks
 from fbspost.profile import load_profile, with_travel
-from fbspost.verify import contour_um, modelled, printed_path
+from fbspost.read.gcode import read_gcode
 from firmware_results import klippy_run, move_ends, shaped_plans
 from klippy_motion import executed
 from klippy_planner import KlippyPlanner, klippy_or_skip
@@ -64,7 +64,7 @@ def beats_the_shapers(source, profile, written):
 @pytest.mark.parametrize("name, tolerance_mm", [("butterfly-polyline", TOLERANCE_MM), ("butterfly-dense", 0.5e-3)])
 def test_butterfly_runs_as_written(tmp_path, klippy, name, tolerance_mm):
     """The CAM butterflies (0.05 mm chords, and 1 ms blocks, at F6000) on the patent's stage at
-    10 kHz; the same through fbspost's own model of Klipper (fbspost.firmware, Klipper's rules).
+    10 kHz; the same through fbspost's own model of Klipper (fbspost.firmware.planners, Klipper's rules).
     The dense one's command tracks to 0.8 um RMS: at 1 um the chords would add more than 10%."""
     profile = load_profile("patent-xy-stage")
     source = f"samples/{name}.gcode"

@@ -14,12 +14,12 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from fbspost.gcode import AXES, Kind, read_gcode
-from fbspost.marlin import run_marlin
-from fbspost.pipeline import CompensateOptions, compensate_file, compensated_samples
-from fbspost.planner import RunMargins, plan_blocks
+from fbspost.firmware.marlin import run_marlin
+from fbspost.job.pipeline import CompensateOptions, compensate_file, compensated_samples
+from fbspost.plan.planner import RunMargins, plan_blocks
 from fbspost.profile import load_profile, with_travel
-from fbspost.writer import _Emitter
+from fbspost.read.gcode import AXES, Kind, read_gcode
+from fbspost.write.writer import _Emitter
 from reference import continuous_model, serial
 
 PROFILE = serial(load_profile("printer-two-mode"), 300.0)  # 80 steps/mm on X Y, 400 Z, 415 E; 300 lines/s
@@ -170,7 +170,7 @@ def test_block_ends_on_step_crossings_leave_the_modes_less_error():
 @pytest.mark.slow
 def test_contour_error_through_whole_steps_beats_marlins_zv(marlin_output):
     """The gear's first 700 lines at 300 lines/s, each program through the model of Marlin's
-    planner (fbspost/marlin.py) and its whole steps, then printer-two-mode's modes
+    planner (fbspost/firmware/marlin.py) and its whole steps, then printer-two-mode's modes
     (bench/marlin_baseline.py's runs): fbspost's output at most half the RMS contour error of
     Marlin's own ZV shaper (firmware_shapers.marlin_zv at the profile's modes, through its
     steps), and its largest error below the original's. Measured (the Marlin model): fbspost 8.53
@@ -197,9 +197,9 @@ def test_blocks_within_a_share_of_a_step_beat_denser_ones(tmp_path, monkeypatch)
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
     from firmware import model_run
 
-    from fbspost import pipeline
-    from fbspost.firmware_shapers import stepper_positions
-    from fbspost.verify import contour_um, modelled
+    from fbspost.firmware.shaping import stepper_positions
+    from fbspost.firmware.verify import contour_um, modelled
+    from fbspost.job import pipeline
 
     profile = load_profile("printer-two-mode")  # no max_line_rate: an SD card
     source = tmp_path / "gear.gcode"
@@ -260,7 +260,7 @@ def test_accuracy_cost_reported(marlin_output):
 
 
 def test_marlin_runs_the_output_as_written(marlin_output):
-    """Through the model of Marlin's planner (fbspost/marlin.py, its own tests against Marlin's
+    """Through the model of Marlin's planner (fbspost/firmware/marlin.py, its own tests against Marlin's
     formulas) at the profile's 300 lines/s: the buffer never runs dry, and between any two rests
     the machine's motion, a constant delay aside, is the command's within the report's tolerance,
     the rounding to whole steps (half a step on X and Y: 8.8 um) and 2 um."""

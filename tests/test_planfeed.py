@@ -5,10 +5,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fbspost import planfeed
-from fbspost.gcode import read_gcode
-from fbspost.pipeline import CompensateOptions, _plan_stream
+from fbspost.job import planfeed
+from fbspost.job.pipeline import CompensateOptions, _plan_stream
 from fbspost.profile import load_profile
+from fbspost.read.gcode import read_gcode
 
 DATA = Path(__file__).parent / "data"
 

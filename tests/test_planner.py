@@ -13,10 +13,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fbspost import planner
-from fbspost.gcode import AXES, Block, Kind, Modal, PlannerLimits
-from fbspost.planner import backward_pass, forward_pass, plan_blocks
+from fbspost.plan import planner
+from fbspost.plan.planner import backward_pass, forward_pass, plan_blocks
 from fbspost.profile import load_profile
+from fbspost.read.gcode import AXES, Block, Kind, Modal, PlannerLimits
 
 BED = load_profile("bedslinger-example")  # X 300/10000, Y 300/8000, Z 12/500, E 120/5000; 3000, scv 5; 1 kHz
 PATENT = load_profile("patent-xy-stage")  # X, Y 100/8000; 5000, scv 5; 10 kHz
@@ -774,7 +774,7 @@ def test_real_print_samples_stay_within_axis_velocity():
     """A whole sliced print (PrusaSlicer, 37k lines): inside every run, no sample steps faster than
     the axes allow. Phase start times that round an ulp past the next piece's start once made
     the sampler jump back along the previous piece."""
-    from fbspost.gcode import read_gcode
+    from fbspost.read.gcode import read_gcode
 
     profile = load_profile("bedslinger-example")
     path = Path(__file__).resolve().parent / "data" / "gear-marlin2.gcode"

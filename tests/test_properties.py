@@ -28,14 +28,14 @@ import pytest
 from hypothesis import HealthCheck, Phase, example, given, seed, settings
 from hypothesis import strategies as st
 
-from fbspost import fallback
-from fbspost.dynamics import AxisDynamics
-from fbspost.fallback import FALLBACK, AxisGuard
-from fbspost.gcode import read_gcode
-from fbspost.optimizer import AxisCompensator, AxisLimits
-from fbspost.pipeline import SHAPING_LEFT_OFF, CompensateOptions, compensate_file, compensated_samples
-from fbspost.planner import CLAMPED, RunMargins, plan_blocks
+from fbspost.fbs import fallback
+from fbspost.fbs.dynamics import AxisDynamics
+from fbspost.fbs.fallback import FALLBACK, AxisGuard
+from fbspost.fbs.optimizer import AxisCompensator, AxisLimits
+from fbspost.job.pipeline import SHAPING_LEFT_OFF, CompensateOptions, compensate_file, compensated_samples
+from fbspost.plan.planner import CLAMPED, RunMargins, plan_blocks
 from fbspost.profile import load_profile
+from fbspost.read.gcode import read_gcode
 from reference import execute, kept_lines, rest_limits, rms, sample_blocks, simulate_lsim, unbudgeted
 
 # The programs here move around X0 Y0 (arcs, G92 X Y below it): a travel that holds them, not

@@ -1,4 +1,4 @@
-"""fbspost.reprap: the model of RepRapFirmware 3.5's planner, against RRF's rules worked by hand.
+"""fbspost.firmware.reprap: the model of RepRapFirmware 3.5's planner, against RRF's rules worked by hand.
 
 Truths (DDA.cpp, DDARing.cpp, Move.h, Configuration.h of RRF 3.5; the printer profile: 3000
 mm/s^2 (M204 P and T), M566 X Y 5 mm/s (its square corner velocity), E 5 mm/s, 80 steps/mm on
@@ -17,9 +17,9 @@ import math
 import numpy as np
 import pytest
 
-from fbspost.gcode import read_gcode
+from fbspost.firmware.reprap import ReprapConfig, run_reprap
 from fbspost.profile import load_profile
-from fbspost.reprap import ReprapConfig, run_reprap
+from fbspost.read.gcode import read_gcode
 
 PRINTER = load_profile("printer-two-mode")
 A = 3000.0

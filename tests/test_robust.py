@@ -13,14 +13,15 @@ import pytest
 from click.testing import CliRunner
 
 from fbspost.cli import main
-from fbspost.dynamics import AxisDynamics, ModelSet, modal_response, scaled_mode
-from fbspost.gcode import AXES
-from fbspost.optimizer import AxisCompensator, AxisLimits, FBSSettings
-from fbspost.pipeline import CompensateOptions, compensate_file, varying_modes
+from fbspost.contour import PathDistance
+from fbspost.fbs.dynamics import AxisDynamics, ModelSet, modal_response, scaled_mode
+from fbspost.fbs.optimizer import AxisCompensator, AxisLimits, FBSSettings
+from fbspost.fbs.varying import LoadModes, PositionModes
+from fbspost.firmware.verify import contour_um, modelled, printed_path
+from fbspost.job.pipeline import CompensateOptions, compensate_file, varying_modes
 from fbspost.profile import Mode, PositionTable, ProfileError, format_profile, load_profile, parse_profile
-from fbspost.simulate import MODEL_ERRORS, PathDistance, model_error, simulate_program
-from fbspost.varying import LoadModes, PositionModes
-from fbspost.verify import contour_um, modelled, printed_path
+from fbspost.read.gcode import AXES
+from fbspost.tools.simulate import MODEL_ERRORS, model_error, simulate_program
 from firmware_results import LoadedBed, klippy_run, move_ends, shaped_plans
 from klippy_planner import klippy_or_skip
 from reference import simulate_lsim, simulate_varying, unbudgeted

@@ -6,8 +6,8 @@ import math
 import numpy as np
 import pytest
 
+from fbspost.firmware.shapers import SHAPERS, klipper_shaper, shape
 from fbspost.profile import Mode
-from fbspost.shapers import SHAPERS, klipper_shaper, shape
 from reference import simulate_lsim
 
 FINE_S = 1e-5  # the step simulations' sample period

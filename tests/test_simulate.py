@@ -14,12 +14,12 @@ import pytest
 from click.testing import CliRunner
 
 from fbspost.cli import main
-from fbspost.dynamics import AxisDynamics
-from fbspost.gcode import detect_flavor, read_gcode
-from fbspost.optimizer import AxisCompensator, AxisLimits
-from fbspost.pipeline import CompensateOptions
-from fbspost.planner import RunMargins, plan_blocks
+from fbspost.fbs.dynamics import AxisDynamics
+from fbspost.fbs.optimizer import AxisCompensator, AxisLimits
+from fbspost.job.pipeline import CompensateOptions
+from fbspost.plan.planner import RunMargins, plan_blocks
 from fbspost.profile import format_profile, load_profile
+from fbspost.read.gcode import detect_flavor, read_gcode
 from reference import execute, rest_limits, rms, sample_blocks, segments_distance, simulate_lsim, unbudgeted
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -6,11 +6,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fbspost.fallback import FALLBACK
-from fbspost.gcode import read_gcode
-from fbspost.pipeline import SHAPING_LEFT_OFF, compensate_file
-from fbspost.planner import CLAMPED, plan_blocks
+from fbspost.fbs.fallback import FALLBACK
+from fbspost.job.pipeline import SHAPING_LEFT_OFF, compensate_file
+from fbspost.plan.planner import CLAMPED, plan_blocks
 from fbspost.profile import load_profile
+from fbspost.read.gcode import read_gcode
 from reference import INSERTED, contour_error, execute, modelled_xy, rms, sample_blocks, unbudgeted
 
 DATA = Path(__file__).resolve().parent / "data"

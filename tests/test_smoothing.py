@@ -1,12 +1,12 @@
-"""The trajectory robust compensation tracks (fbspost.smoothing): against numpy's convolution with
+"""The trajectory robust compensation tracks (fbspost.fbs.smoothing): against numpy's convolution with
 the Hann window written out from its formula, a straight line and a rest (kept exactly), any cut of
 the run into pieces, and the compensator run on the independently smoothed trajectory."""
 import numpy as np
 
-from fbspost.dynamics import AxisDynamics, ModelSet
-from fbspost.optimizer import AxisCompensator, AxisLimits, FBSSettings
-from fbspost.pipeline import CompensateOptions, _compensators
-from fbspost.smoothing import RunSmoother, half_width_samples
+from fbspost.fbs.dynamics import AxisDynamics, ModelSet
+from fbspost.fbs.optimizer import AxisCompensator, AxisLimits, FBSSettings
+from fbspost.fbs.smoothing import RunSmoother, half_width_samples
+from fbspost.job.pipeline import CompensateOptions, _compensators
 from test_optimizer import smooth_move
 from test_robust import NOMINAL, ROBUST, T, with_tolerances
 

@@ -12,15 +12,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fbspost import offload, optimizer, pipeline, planfeed
-from fbspost.dynamics import AxisDynamics
-from fbspost.fallback import FALLBACK
-from fbspost.offload import NICENESS, Offloaded, _portable
-from fbspost.optimizer import AxisCompensator, AxisLimits, FBSSettings
-from fbspost.pipeline import CompensateOptions, compensate_file
+from fbspost.errors import InputError
+from fbspost.fbs import optimizer
+from fbspost.fbs.dynamics import AxisDynamics
+from fbspost.fbs.fallback import FALLBACK
+from fbspost.fbs.optimizer import AxisCompensator, AxisLimits, FBSSettings
+from fbspost.job import offload, pipeline, planfeed
+from fbspost.job.offload import NICENESS, Offloaded, _portable
+from fbspost.job.pipeline import CompensateOptions, compensate_file
 from fbspost.profile import load_profile
-from fbspost.trajectory import InputError
-from fbspost.writer import _merged
+from fbspost.write.writer import _merged
 from test_streaming import raster
 
 DATA = Path(__file__).parent / "data"

@@ -1,4 +1,4 @@
-"""Tests of fbspost.splines against independent truths.
+"""Tests of fbspost.fbs.splines against independent truths.
 
 Truths used: patent Eq. 4 (knots) and Eq. 10 (initial derivative) written out here,
 scipy.interpolate.BSpline(...).derivative(r) evaluated on random coefficients, partition of
@@ -12,7 +12,7 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from scipy.interpolate import BSpline
 
-from fbspost.splines import basis_matrix, clamped_uniform_knots, uniform_knots
+from fbspost.fbs.splines import basis_matrix, clamped_uniform_knots, uniform_knots
 
 
 def eq4_knots(n: int, m: int) -> list[float]:

@@ -1,4 +1,4 @@
-"""Block ends in whole steps (fbspost/steps.py). Truths: the modes' differential equation
+"""Block ends in whole steps (fbspost/firmware/steps.py). Truths: the modes' differential equation
 integrated numerically (scipy's solve_ivp, with the squared position error as a state), the
 axis' exact discrete model (dynamics.AxisDynamics) on a fine grid, and the closed forms of
 rounding (floor and ceil; first-order feedback keeps the error sum within half a step)."""
@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from fbspost.dynamics import AxisDynamics
+from fbspost.fbs.dynamics import AxisDynamics
+from fbspost.firmware.steps import FedBackRounding, ModalRounding, crossing_ends
 from fbspost.profile import load_profile
-from fbspost.steps import FedBackRounding, ModalRounding, crossing_ends
 
 TWO_MODES = load_profile("printer-two-mode").axes["X"].modes  # 52 Hz + 96 Hz
 RHP_ZERO = load_profile("patent-xy-stage").axes["X"].modes  # beta != 0: a right-half-plane zero
@@ -126,7 +126,7 @@ def test_lattice_solves_the_chords_least_squares():
     every block moving the minimum (6 steps)."""
     from scipy import signal
 
-    from fbspost import steps
+    from fbspost.firmware import steps
     from reference import continuous_model
 
     rng = np.random.default_rng(5)

@@ -5,9 +5,11 @@ from pathlib import Path
 
 import pytest
 
-from fbspost import pipeline, planner, writer
-from fbspost.pipeline import CompensateOptions, compensate_file
+from fbspost.job import pipeline
+from fbspost.job.pipeline import CompensateOptions, compensate_file
+from fbspost.plan import planner
 from fbspost.profile import load_profile
+from fbspost.write import writer
 
 pytestmark = pytest.mark.slow  # whole programs, streamed and whole (memory: bench/streaming_memory.py)
 

@@ -1,7 +1,7 @@
 """The job takes no longer (issue 33 item 1): a sliced print's output, run by Klipper's own planner
 (klippy's toolhead.py, tests/klippy_planner.py) with its defaults, lasts within 0.5% of klippy's
 run of the original, and its RMS contour error (klippy's motion through the profile's modes, on
-the original's printed path, ``fbspost.verify``) is at most 1/0.9 of what the old default margins
+the original's printed path, ``fbspost.firmware.verify``) is at most 1/0.9 of what the old default margins
 gave (half the lowest mode's damped period before and after every run: 14.7 ms each on
 printer-two-mode; the output then ran 0.67% to 2.24% long on these prints).
 
@@ -20,9 +20,9 @@ import itertools
 
 import pytest
 
-from fbspost.pipeline import CompensateOptions, compensate_file
+from fbspost.firmware.verify import contour_um, modelled, printed_path
+from fbspost.job.pipeline import CompensateOptions, compensate_file
 from fbspost.profile import load_profile
-from fbspost.verify import contour_um, modelled, printed_path
 from firmware_results import klippy_run, move_ends
 from klippy_planner import klippy_or_skip
 

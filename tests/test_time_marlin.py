@@ -1,5 +1,5 @@
 """The job takes no longer on Marlin (issue 32's time): a sliced print's output, run through the
-model of Marlin's planner (``fbspost/marlin.py``: whole-step block ends, the 6-step merge, its
+model of Marlin's planner (``fbspost/firmware/marlin.py``: whole-step block ends, the 6-step merge, its
 buffer and BLOCK_DELAY_FOR_1ST_MOVE, its own tests against Marlin's formulas), lasts within 0.5%
 of the model's run of the original, from an SD card and at a serial host's 300 lines/s. The
 tube's first 8000 lines: the print with the most runs per second (one every 1.4 s), not used to
@@ -15,10 +15,10 @@ import itertools
 import numpy as np
 import pytest
 
-from fbspost.gcode import read_gcode
-from fbspost.marlin import MarlinConfig, run_marlin
-from fbspost.pipeline import CompensateOptions, compensate_file
+from fbspost.firmware.marlin import MarlinConfig, run_marlin
+from fbspost.job.pipeline import CompensateOptions, compensate_file
 from fbspost.profile import load_profile
+from fbspost.read.gcode import read_gcode
 from reference import serial
 
 PROFILE = load_profile("printer-two-mode")  # 80 steps/mm on X Y; MIN_STEPS_PER_SEGMENT 6, 16 blocks

@@ -8,11 +8,11 @@ from fractions import Fraction
 import numpy as np
 import pytest
 
-from fbspost.gcode import AXES, Block, Kind, Modal, PlannerLimits
-from fbspost.pipeline import SHAPING_LEFT_OFF, CompensateOptions, compensate_file
+from fbspost.firmware.transparency import FirmwareSettings, Transparency
+from fbspost.job.pipeline import SHAPING_LEFT_OFF, CompensateOptions, compensate_file
 from fbspost.profile import ProfileError, format_profile, load_profile, parse_profile, tomllib
-from fbspost.transparency import FirmwareSettings, Transparency
-from fbspost.writer import _Emitter
+from fbspost.read.gcode import AXES, Block, Kind, Modal, PlannerLimits
+from fbspost.write.writer import _Emitter
 
 PRINTER = load_profile("printer-two-mode")
 

@@ -15,17 +15,18 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from fbspost import linuxcnc_time, pipeline
-from fbspost import verify as verify_module
 from fbspost.cli import main
-from fbspost.firmware import replan
-from fbspost.gcode import read_gcode
-from fbspost.linuxcnc_tp import run_linuxcnc
-from fbspost.pipeline import CompensateOptions, compensate_file
+from fbspost.contour import PathDistance
+from fbspost.firmware import linuxcnc_time
+from fbspost.firmware import verify as verify_module
+from fbspost.firmware.linuxcnc_tp import run_linuxcnc
+from fbspost.firmware.planners import replan
+from fbspost.firmware.reprap import commanded_pieces
+from fbspost.firmware.verify import MAX_TIME_INCREASE, FirmwareResult, contour_um, modelled, printed_path
+from fbspost.job import pipeline
+from fbspost.job.pipeline import CompensateOptions, compensate_file
 from fbspost.profile import load_profile
-from fbspost.reprap import commanded_pieces
-from fbspost.simulate import PathDistance
-from fbspost.verify import MAX_TIME_INCREASE, FirmwareResult, contour_um, modelled, printed_path
+from fbspost.read.gcode import read_gcode
 from reference import execute, serial, simulate_lsim
 
 DATA = Path(__file__).resolve().parent / "data"
@@ -240,7 +241,7 @@ def test_a_jump_of_the_command_starts_the_modes_anew_at_rest():
 _BOUNDED_DISTANCE = """
 import sys
 import numpy as np
-from fbspost.simulate import PathDistance
+from fbspost.contour import PathDistance
 rng = np.random.default_rng(5)
 # a scribble of 1000 pieces in a 20 um box and one piece of 0.24 mm: every point's nearest middles
 # stay within half a piece of each other, so the search takes every piece (systems.ngc's case)

@@ -17,7 +17,7 @@ BENCH = Path(__file__).resolve().parents[1] / "bench" / "verify_long.py"
 _VERIFY = """
 import sys
 from pathlib import Path
-from fbspost import verify
+from fbspost.firmware import verify
 from fbspost.profile import load_profile
 program = Path(sys.argv[1])
 verdict = verify.verify(program, program, load_profile("printer-two-mode"), "marlin", chunk_lines=5000)

@@ -9,11 +9,11 @@ from decimal import Decimal
 import numpy as np
 import pytest
 
-from fbspost.gcode import AXES
-from fbspost.pipeline import CompensateOptions, compensate_file
-from fbspost.planner import RunMargins
+from fbspost.job.pipeline import CompensateOptions, compensate_file
+from fbspost.plan.planner import RunMargins
 from fbspost.profile import load_profile
-from fbspost.writer import _Emitter, _lines, breakpoints
+from fbspost.read.gcode import AXES
+from fbspost.write.writer import _Emitter, _lines, breakpoints
 from reference import execute, fine_servo, positions_at, rest_limits, unbudgeted
 
 PRINTER = unbudgeted(load_profile("bedslinger-example"))

@@ -13,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomicfile import atomic_write
-from .gcode import AXES
-from .shapers import SHAPERS
+from ..firmware.shapers import SHAPERS
+from ..read.gcode import AXES
+from ..write.atomicfile import atomic_write
 from .simulate import Method, Simulation, dominant_mode
 
 FORMATS = (".png", ".pdf")
@@ -162,7 +162,7 @@ def _spectrum(ax, sim: Simulation, shown) -> None:
 
 
 def _response(ax, sim: Simulation) -> None:
-    from .dynamics import AxisDynamics
+    from ..fbs.dynamics import AxisDynamics
 
     top_hz = 3 * max(m.frequency_hz for a in sim.modelled for m in sim.profile.axes[a].modes)
     frequency = np.linspace(0.1, top_hz, 3000)

@@ -53,9 +53,9 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from .gcode import AXES, Block, Kind
-from .planner import _LimitState
-from .profile import MachineProfile
+from ..plan.planner import _LimitState
+from ..profile import MachineProfile
+from ..read.gcode import AXES, Block, Kind
 from .transparency import _first
 
 _NA = len(AXES)

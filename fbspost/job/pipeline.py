@@ -21,29 +21,27 @@ from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-from . import __version__
-from .atomicfile import atomic_write
-from .dynamics import AxisDynamics, ModelSet
-from .expand import check_remaps, expand
-from .fallback import FALLBACK, AxisGuard
-from .gcode import AXES, Block, NeedsInterpreter, compensated_by, detect_flavor, read_gcode
+from .. import __version__
+from ..errors import InputError
+from ..fbs.dynamics import AxisDynamics, ModelSet
+from ..fbs.fallback import FALLBACK, AxisGuard
+from ..fbs.optimizer import AxisCompensator, AxisLimits, FBSSettings
+from ..fbs.smoothing import half_width_samples
+from ..fbs.varying import LoadModes, PositionModes
+from ..firmware.linuxcnc_time import retimed
+from ..firmware.transparency import FirmwareSettings
+from ..firmware.verify import Verdict, measured_beside
+from ..plan.planner import BATCH_BLOCKS, Plan, PlanStream, RunMargins
+from ..profile import AxisProfile, MachineProfile, with_travel
+from ..read.expand import check_remaps, expand
+from ..read.gcode import AXES, Block, NeedsInterpreter, compensated_by, detect_flavor, read_gcode
+from ..write.atomicfile import atomic_write
+from ..write.writer import SampleWindow, WriteOptions, format_refusal, shortest_block_s, write_program
 from .offload import Offloaded
-from .optimizer import AxisCompensator, AxisLimits, FBSSettings
 from .planfeed import PlanFeed, PlanProxy
-from .planner import BATCH_BLOCKS, Plan, PlanStream, RunMargins
-from .profile import AxisProfile, MachineProfile, with_travel
-from .smoothing import half_width_samples
-from .trajectory import InputError
-from .transparency import FirmwareSettings
-from .varying import LoadModes, PositionModes
-from .writer import SampleWindow, WriteOptions, format_refusal, shortest_block_s, write_program
-
-if TYPE_CHECKING:
-    from .verify import Verdict
 
 
 @dataclass(frozen=True)
@@ -226,7 +224,6 @@ def _compensate(read_path, input_path, output_path, profile, options, flavor, pr
     verification = _Verification(read_path, input_path, profile, flavor, options.verify, stages)
     blocks = _read(read_path, flavor, profile, stages, progress)
     if flavor == "linuxcnc":  # the original's time as LinuxCNC runs it
-        from .linuxcnc_time import retimed  # (it reads the program as verify does, which imports this module)
         blocks = retimed(blocks, read_path, profile, verification.line_times())
     plan = verification.plan = _plan_stream(blocks, profile, options, flavor)
     compensators = _compensators(profile, options)
@@ -462,7 +459,6 @@ class _Verification:
         self.worker: Offloaded | None = None
         self.written: _Announced | None = None
         if self.wanted:  # (forked here, before the axes' processes and any thread: see Offloaded.start)
-            from .verify import measured_beside  # (simulate, which it measures with, compensates through this module)
             self.worker = Offloaded(measured_beside, read_path, profile, flavor, requests=queue.Queue(), start=False,
                                     ahead=_CHECK_AHEAD)
 
@@ -495,8 +491,6 @@ class _Verification:
         return self.written if self.worker is not None else f
 
     def __call__(self, written: Path) -> None:
-        from .verify import Verdict
-
         started_s = time.perf_counter()
         self.worker.send((str(written), self.written.size, True))  # (written and closed)
         try:

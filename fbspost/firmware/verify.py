@@ -39,15 +39,15 @@ from pathlib import Path
 
 import numpy as np
 
-from .dynamics import AxisDynamics
-from .firmware import PLANNER_MODELS
-from .gcode import AXES, Block, Kind, read_gcode
+from ..contour import PathDistance
+from ..fbs.dynamics import AxisDynamics
+from ..plan.planner import plan_blocks
+from ..profile import MachineProfile
+from ..read.gcode import AXES, Block, Kind, read_gcode
 from .linuxcnc_tp import BLEND_MODE
 from .marlin import M205_B
-from .planner import plan_blocks
-from .profile import MachineProfile
+from .planners import PLANNER_MODELS
 from .reprap import M566, commanded_pieces
-from .simulate import PathDistance
 
 # Beyond the margins fbspost adds on purpose, more than this is the firmware falling behind the
 # written timing (a starved buffer, Marlin's merges, LinuxCNC's short-block cap). Marlin runs a

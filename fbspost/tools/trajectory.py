@@ -15,19 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomicfile import atomic_write
-from .profile import AXIS_NAMES
-
-
-class InputError(ValueError):
-    """Bad input: ``str()`` is ``FILE:LINE: message`` (``FILE: message`` for the whole file)."""
-
-    def __init__(self, path: str | Path, line: int | None, message: str):
-        super().__init__(f"{path}:{line}: {message}" if line is not None else f"{path}: {message}")
-        self._parts = (path, line, message)
-
-    def __reduce__(self):  # (pickled from the compensation's process: offload.py)
-        return type(self), self._parts
+from ..errors import InputError
+from ..profile import AXIS_NAMES
+from ..write.atomicfile import atomic_write
 
 
 @dataclass

@@ -34,7 +34,7 @@ import math
 import numpy as np
 from scipy import linalg
 
-from .profile import Mode
+from ..profile import Mode
 
 # The chords' own error from the wanted motion, weighed beside its modal response: its
 # energy and its slope's (s^2). Without them the solve swings the ends by tens of steps to cancel

@@ -41,9 +41,9 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
+from ..errors import InputError
 from .rs274_probes import DELTA, check_probes, check_static, probe_calls, probe_lines
 from .rs274_splines import instrumented, spline_calls
-from .trajectory import InputError
 
 INSTALL_HINT = "LinuxCNC's interpreter rs274 is not installed: apt-get install linuxcnc-uspace"
 _CALL = re.compile(r"\s*\d+\s+N\S*\s+([A-Z0-9_]+)\((.*)\)\s*$")

@@ -61,8 +61,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .gcode import AXES, Block, Kind
-from .profile import MachineProfile
+from ..profile import MachineProfile
+from ..read.gcode import AXES, Block, Kind
 
 _NA = len(AXES)
 _XYZ = slice(0, 3)

@@ -24,8 +24,8 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+from ..errors import InputError
 from .rs274_splines import _code, _value
-from .trajectory import InputError
 
 MARK = "fbspost-probe"
 DELTA = 0.0123  # program units: more than rs274's printed 0.0001, small enough to stay on the machine

@@ -16,7 +16,7 @@ from dataclasses import replace
 import numpy as np
 from scipy import linalg, signal
 
-from .profile import Mode
+from ..profile import Mode
 
 
 class AxisDynamics:

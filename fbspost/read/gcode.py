@@ -81,8 +81,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .profile import FLAVORS
-from .trajectory import InputError
+from ..errors import InputError
+from ..profile import FLAVORS
 
 AXES = ("X", "Y", "Z", "E", "A", "B", "C", "U", "V", "W")  # column order of every position array
 _E = 3

@@ -22,9 +22,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import linalg, signal
 
+from ..profile import Mode
+from ..read.gcode import AXES
 from .dynamics import AxisDynamics, ModelSet, scaled_mode
-from .gcode import AXES
-from .profile import Mode
 
 STEP = 0.01  # relative frequency step between levels: within a level the model is off by 0.5% at most
 

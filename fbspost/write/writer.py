@@ -25,12 +25,12 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import maximum_filter1d
 
+from ..firmware.steps import ModalRounding, crossing_ends, lattice_counts, rounding_for, settled_before
+from ..firmware.transparency import FirmwareSettings, Transparency
+from ..plan.planner import PlanStream
+from ..profile import MachineProfile
+from ..read.gcode import AXES, Block, Kind, Modal, feed_lengths
 from .bezier import curve_lengths, fit_g5
-from .gcode import AXES, Block, Kind, Modal, feed_lengths
-from .planner import PlanStream
-from .profile import MachineProfile
-from .steps import ModalRounding, crossing_ends, lattice_counts, rounding_for, settled_before
-from .transparency import FirmwareSettings, Transparency
 
 _DECIMALS = {**dict.fromkeys(AXES, 4), "E": 5}  # mm: 0.1 um (A B C: 1e-4 degree), E: 10 nm of filament
 _FEED_DECIMALS = 3  # mm/min (in/min in G20)

@@ -79,9 +79,9 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from ..profile import MachineProfile
+from ..read.gcode import AXES, Block, Kind, feed_lengths
 from . import klipper_rules
-from .gcode import AXES, Block, Kind, feed_lengths
-from .profile import MachineProfile
 
 EXTRUDE_ONLY_MM = 1e-9  # Klipper: an XYZ length below this makes an extrude-only move
 SCAN_CHUNK = 4096  # pieces per chunk of the min-plus scans (bounds the cumulative-sum magnitude), from piece 0 on

@@ -33,8 +33,8 @@ import math
 import re
 from dataclasses import dataclass, field, replace
 
-from .gcode import Block, Modal, PlannerLimits
-from .profile import MachineProfile
+from ..profile import MachineProfile
+from ..read.gcode import Block, Modal, PlannerLimits
 
 KLIPPER_ACCEL_MM_S2 = 1e8
 KLIPPER_SCV_MM_S = 1e4

@@ -34,11 +34,11 @@ from pathlib import Path
 
 import numpy as np
 
+from ..plan.planner import Plan, plan_blocks
+from ..profile import MachineProfile
+from ..read.gcode import Block, Kind
 from . import verify
-from .gcode import Block, Kind
 from .linuxcnc_tp import MIN_SEGMENT_CYCLES, run_linuxcnc
-from .planner import Plan, plan_blocks
-from .profile import MachineProfile
 
 WINDOW_S = 0.01  # the progress is averaged over the line's time and half this either side
 

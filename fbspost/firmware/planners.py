@@ -27,11 +27,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .gcode import Block
+from ..plan.planner import plan_blocks
+from ..profile import MachineProfile
+from ..read.gcode import Block
 from .linuxcnc_tp import run_linuxcnc
 from .marlin import run_marlin
-from .planner import plan_blocks
-from .profile import MachineProfile
 from .reprap import run_reprap
 
 # The models of the firmwares' planners, by flavor: each takes (blocks, profile) and gives a run

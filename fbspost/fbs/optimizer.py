@@ -32,8 +32,8 @@ import daqp
 import numpy as np
 from scipy import linalg, sparse
 
+from ..profile import AxisProfile
 from .dynamics import AxisDynamics, ModelSet
-from .profile import AxisProfile
 from .smoothing import RunSmoother
 from .splines import basis_matrix, uniform_knots
 from .varying import LoadModes, PositionModes

@@ -22,13 +22,13 @@ from pathlib import Path
 
 import numpy as np
 
-from .firmware import replan
-from .gcode import AXES, FLAVORS, Kind, Modal, read_gcode
-from .pipeline import marlin_steps
-from .profile import AxisProfile, MachineProfile, bundled_profiles, load_profile
-from .trajectory import InputError
-from .transparency import FirmwareSettings, Transparency
-from .writer import WriteOptions, dwell_line, timed_blocks
+from ..errors import InputError
+from ..firmware.planners import replan
+from ..firmware.transparency import FirmwareSettings, Transparency
+from ..job.pipeline import marlin_steps
+from ..profile import AxisProfile, MachineProfile, bundled_profiles, load_profile
+from ..read.gcode import AXES, FLAVORS, Kind, Modal, read_gcode
+from ..write.writer import WriteOptions, dwell_line, timed_blocks
 
 SWEEP_BEGINS = "; fbspost excite: sweep begins"
 SWEEP_ENDS = "; fbspost excite: sweep ends"

@@ -38,9 +38,9 @@ import numpy as np
 from scipy import fft as sp_fft
 from scipy import ndimage, optimize, signal
 
-from .dynamics import modal_response
-from .profile import AxisProfile, FirmwareProfile, MachineProfile, Mode, format_profile, parse_profile
-from .trajectory import InputError
+from ..errors import InputError
+from ..fbs.dynamics import modal_response
+from ..profile import AxisProfile, FirmwareProfile, MachineProfile, Mode, format_profile, parse_profile
 
 try:
     import tomllib

@@ -52,10 +52,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .gcode import AXES, Block, Kind
+from ..plan.planner import _LimitState
+from ..profile import MachineProfile
+from ..read.gcode import AXES, Block, Kind
 from .marlin import MarlinRun, _axis_limited, _trapezoid_s, send_lines
-from .planner import _LimitState
-from .profile import MachineProfile
 
 _NA = len(AXES)
 _X, _Y, _E = AXES.index("X"), AXES.index("Y"), AXES.index("E")

@@ -17,7 +17,7 @@ import re
 from collections.abc import Callable
 from pathlib import Path
 
-from .trajectory import InputError
+from ..errors import InputError
 
 _SPLINE_LINE = re.compile(r"(?<![A-Za-z#<_\d.])G\s*0*5(?:\s*\.\s*0*1)?(?![\d.])", re.IGNORECASE)
 _MARK = "fbspost-spline"

@@ -14,7 +14,7 @@ Python threads share one interpreter lock, so the axes' threads of one process o
 
 On Linux the child is forked, so it starts with this process' imports done (about 1 s of CPU
 each otherwise, while the writer waits for its first samples: gear 1 h, 9.8-10.3 -> 8.6-9.6 s);
-it keeps only its own pipes. Elsewhere it is started as ``python -m fbspost.offload``.
+it keeps only its own pipes. Elsewhere it is started as ``python -m fbspost.job.offload``.
 """
 from __future__ import annotations
 
@@ -40,7 +40,7 @@ NICENESS = 10
 _PIPE_BYTES = 1 << 20
 # (A child started as ``python -m``, not by multiprocessing: its spawn re-runs the parent's main
 # script, which fails for a script read from stdin and re-runs the work of one without a main guard.)
-_PACKAGE_ROOT = str(Path(__file__).resolve().parent.parent)  # this fbspost, not another installed one
+_PACKAGE_ROOT = str(Path(__file__).resolve().parents[2])  # this fbspost, not another installed one
 # (Not on macOS, where a forked child may not use the system's frameworks, Accelerate's BLAS among them.)
 FORK = sys.platform.startswith("linux")
 _SINK_FD = 3  # the forked child's pipe to the parent
@@ -57,7 +57,7 @@ class Offloaded:
         else:
             path = os.pathsep.join(filter(None, [_PACKAGE_ROOT, os.environ.get("PYTHONPATH")]))
             env = {**os.environ, "PYTHONPATH": path}
-            self._process = subprocess.Popen([sys.executable, "-m", "fbspost.offload"], stdin=subprocess.PIPE,
+            self._process = subprocess.Popen([sys.executable, "-m", "fbspost.job.offload"], stdin=subprocess.PIPE,
                                              stdout=subprocess.PIPE, env=env)
         for pipe in (self._process.stdin, self._process.stdout):
             _widen(pipe)
