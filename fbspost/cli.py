@@ -662,7 +662,7 @@ def excite(machine, axis, output, centre_mm, start_hz, end_hz, duration_s, ampli
     run, then `fbspost identify --accel-log LOG.csv --program PROGRAM --axis AXIS --machine PROFILE`.
     """
     from .tools import excite as excite_module
-    from .write.writer import shortest_block_s
+    from .write.options import shortest_block_s
 
     profile = load_profile(machine)
     axis = axis.upper()

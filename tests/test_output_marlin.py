@@ -19,7 +19,7 @@ from fbspost.job.pipeline import CompensateOptions, compensate_file, compensated
 from fbspost.plan.planner import RunMargins, plan_blocks
 from fbspost.profile import load_profile, with_travel
 from fbspost.read.gcode import AXES, Kind, read_gcode
-from fbspost.write.writer import _Emitter
+from fbspost.write.emitter import _Emitter
 from reference import continuous_model, serial
 
 PROFILE = serial(load_profile("printer-two-mode"), 300.0)  # 80 steps/mm on X Y, 400 Z, 415 E; 300 lines/s

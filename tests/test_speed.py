@@ -21,7 +21,7 @@ from fbspost.job import offload, pipeline, planfeed
 from fbspost.job.offload import NICENESS, Offloaded, _portable
 from fbspost.job.pipeline import CompensateOptions, compensate_file
 from fbspost.profile import load_profile
-from fbspost.write.writer import _merged
+from fbspost.write.marlinmerge import _merged
 from test_streaming import raster
 
 DATA = Path(__file__).parent / "data"

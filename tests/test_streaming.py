@@ -9,7 +9,7 @@ from fbspost.job import pipeline
 from fbspost.job.pipeline import CompensateOptions, compensate_file
 from fbspost.plan import planner
 from fbspost.profile import load_profile
-from fbspost.write import writer
+from fbspost.write import runs, samples
 
 pytestmark = pytest.mark.slow  # whole programs, streamed and whole (memory: bench/streaming_memory.py)
 
@@ -29,13 +29,13 @@ def test_streamed_output_is_the_whole_programs(tmp_path, monkeypatch, name, prof
     source, profile = ROOT / name, load_profile(profile)
     options = CompensateOptions(output_format=output_format)
     held = []
-    ensure = writer.SampleWindow.ensure
+    ensure = samples.SampleWindow.ensure
 
     def ensure_and_count(window, stop):
         ensure(window, stop)
         held.append(len(window.command))
 
-    monkeypatch.setattr(writer.SampleWindow, "ensure", ensure_and_count)
+    monkeypatch.setattr(samples.SampleWindow, "ensure", ensure_and_count)
     outputs, reports = [], []
     # Whole: every block planned at once, one chunk of samples, the block ends searched over each
     # run at once. Streamed: odd sizes, so that batches of blocks and chunks of samples cut runs,
@@ -44,9 +44,9 @@ def test_streamed_output_is_the_whole_programs(tmp_path, monkeypatch, name, prof
     monkeypatch.setattr(planner, "SCAN_CHUNK", 257)
     for batch, chunk, feed, flush in ((WHOLE, WHOLE, WHOLE, math.inf), (13, 997, 331, 0.5)):
         monkeypatch.setattr(planner, "BATCH_BLOCKS", batch)
-        monkeypatch.setattr(writer, "_FLUSH_S", flush)
+        monkeypatch.setattr(runs, "_FLUSH_S", flush)
         monkeypatch.setattr(pipeline, "_CHUNK", chunk)
-        monkeypatch.setattr(writer, "_FEED", feed)
+        monkeypatch.setattr(runs, "_FEED", feed)
         held.clear()
         target = tmp_path / f"{chunk}.gcode"
         reports.append(compensate_file(source, target, profile, options))

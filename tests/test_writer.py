@@ -13,7 +13,9 @@ from fbspost.job.pipeline import CompensateOptions, compensate_file
 from fbspost.plan.planner import RunMargins
 from fbspost.profile import load_profile
 from fbspost.read.gcode import AXES
-from fbspost.write.writer import _Emitter, _lines, breakpoints
+from fbspost.write.blockends import breakpoints
+from fbspost.write.emitter import _Emitter
+from fbspost.write.linetext import _lines
 from reference import execute, fine_servo, positions_at, rest_limits, unbudgeted
 
 PRINTER = unbudgeted(load_profile("bedslinger-example"))

@@ -39,7 +39,9 @@ from ..profile import AxisProfile, MachineProfile, with_travel
 from ..read.expand import check_remaps, expand
 from ..read.gcode import AXES, Block, NeedsInterpreter, compensated_by, detect_flavor, read_gcode
 from ..write.atomicfile import atomic_write
-from ..write.writer import SampleWindow, WriteOptions, format_refusal, shortest_block_s, write_program
+from ..write.options import WriteOptions, format_refusal, shortest_block_s
+from ..write.samples import SampleWindow
+from ..write.writer import write_program
 from .offload import Offloaded
 from .planfeed import PlanFeed, PlanProxy
 

@@ -28,7 +28,9 @@ from ..firmware.transparency import FirmwareSettings, Transparency
 from ..job.pipeline import marlin_steps
 from ..profile import AxisProfile, MachineProfile, bundled_profiles, load_profile
 from ..read.gcode import AXES, FLAVORS, Kind, Modal, read_gcode
-from ..write.writer import WriteOptions, dwell_line, timed_blocks
+from ..write.options import WriteOptions
+from ..write.output import dwell_line
+from ..write.writer import timed_blocks
 
 SWEEP_BEGINS = "; fbspost excite: sweep begins"
 SWEEP_ENDS = "; fbspost excite: sweep ends"
