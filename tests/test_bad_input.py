@@ -14,7 +14,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from fbspost.cli import main
-from fbspost.plan.planner import RunMargins
+from fbspost.plan.margins import RunMargins
 from fbspost.profile import load_profile
 from fbspost.read.gcode import read_gcode
 from reference import execute, is_motion_line, kept_lines

@@ -12,7 +12,8 @@ from click.testing import CliRunner
 from fbspost.cli import main
 from fbspost.firmware.linuxcnc_tp import run_linuxcnc
 from fbspost.job.pipeline import CompensateOptions, compensate_file
-from fbspost.plan.planner import RunMargins, plan_blocks
+from fbspost.plan.margins import RunMargins
+from fbspost.plan.planner import plan_blocks
 from fbspost.profile import load_profile
 from fbspost.read.gcode import read_gcode
 from reference import (

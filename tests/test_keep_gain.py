@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from fbspost.job.pipeline import CompensateOptions, compensate_file
-from fbspost.plan.planner import RunMargins
+from fbspost.plan.margins import RunMargins
 from fbspost.profile import load_profile
 from fbspost.read.gcode import Kind, read_gcode
 from fbspost.tools.examples import butterfly_dense_program, butterfly_polyline_program

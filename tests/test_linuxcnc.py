@@ -18,7 +18,8 @@ from canon_check import command_problems, path_problems
 from fbspost.cli import main
 from fbspost.errors import InputError
 from fbspost.firmware.linuxcnc_time import linuxcnc_feeds
-from fbspost.plan.planner import RunMargins, plan_blocks
+from fbspost.plan.margins import RunMargins
+from fbspost.plan.planner import plan_blocks
 from fbspost.profile import load_profile
 from fbspost.read.expand import canonical_calls, expand
 from fbspost.read.gcode import AXES, CHORD_TOLERANCE_MM, Kind, nurbs_points, read_gcode

@@ -16,7 +16,8 @@ import pytest
 from fbspost.firmware.planners import replan
 from fbspost.firmware.verify import contour_um, modelled, printed_path
 from fbspost.job.pipeline import CompensateOptions, compensate_file, compensated_samples
-from fbspost.plan.planner import RunMargins, plan_blocks
+from fbspost.plan.margins import RunMargins
+from fbspost.plan.planner import plan_blocks
 from fbspost.profile import load_profile, with_travel
 from fbspost.read.gcode import read_gcode
 from firmware_results import klippy_run, move_ends, shaped_plans

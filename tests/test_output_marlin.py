@@ -16,7 +16,8 @@ from scipy import signal
 
 from fbspost.firmware.marlin import run_marlin
 from fbspost.job.pipeline import CompensateOptions, compensate_file, compensated_samples
-from fbspost.plan.planner import RunMargins, plan_blocks
+from fbspost.plan.margins import RunMargins
+from fbspost.plan.planner import plan_blocks
 from fbspost.profile import load_profile, with_travel
 from fbspost.read.gcode import AXES, Kind, read_gcode
 from fbspost.write.emitter import _Emitter

@@ -13,8 +13,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fbspost.plan import planner
-from fbspost.plan.planner import backward_pass, forward_pass, plan_blocks
+from fbspost.plan import lookahead, pieces, planner
+from fbspost.plan.lookahead import backward_pass, forward_pass
+from fbspost.plan.margins import TRAVEL_SHARE, RunMargins
+from fbspost.plan.planner import plan_blocks
 from fbspost.profile import load_profile
 from fbspost.read.gcode import AXES, Block, Kind, Modal, PlannerLimits
 
@@ -379,7 +381,7 @@ def test_travels_at_a_share_of_the_hard_accelerations(firmware):
     diagonal = prog.move((0, 0, 0, 3.0), feed=100.0)  # |u| 1/sqrt2: Y's 4000 sqrt2 rules (X 5000 sqrt2)
     retract = prog.move((0, 0, 0, 1.0), feed=40.0)
     lift = prog.move((0, 0, 1, 1.0), feed=10.0)
-    margins = planner.RunMargins(travel_share=0.5)
+    margins = RunMargins(travel_share=0.5)
     plan = plan_blocks(prog.blocks, BED, margins=margins, firmware=firmware)
     assert plan.line_time_s[first_travel] == pytest.approx(rest_to_rest(100, 100, 3000), rel=1e-12)
     t1 = trapezoid_time(100, 0, 100, 5.0, 3000)
@@ -392,7 +394,7 @@ def test_travels_at_a_share_of_the_hard_accelerations(firmware):
     assert plan.line_time_s[diagonal] - plan.move_start_s[diagonal] == pytest.approx(diagonal_s, rel=1e-12)
     assert plan.line_time_s[lift] - plan.line_time_s[retract] == pytest.approx(retract_s, rel=1e-12)
     assert plan.duration_s - plan.line_time_s[lift] == pytest.approx(rest_to_rest(1, 10, 500), rel=1e-12)
-    slow = plan_blocks(prog.blocks, BED, margins=planner.RunMargins(travel_share=0.2), firmware=firmware)
+    slow = plan_blocks(prog.blocks, BED, margins=RunMargins(travel_share=0.2), firmware=firmware)
     plain = plan_blocks(prog.blocks, BED, firmware=firmware)
     assert slow.duration_s == plain.duration_s
     assert plain.line_time_s[travel] - plain.move_start_s[printing] == pytest.approx(
@@ -473,7 +475,7 @@ def test_margins_lead_and_settle_every_run():
     pause = prog.stop(dwell=0.5)
     second = prog.move((0, 0, 0, 0), feed=50.0)
     fs, lead, settle = BED.sample_rate_hz, 7, 12
-    plan = plan_blocks(prog.blocks, BED, margins=planner.RunMargins(lead / fs, settle / fs))
+    plan = plan_blocks(prog.blocks, BED, margins=RunMargins(lead / fs, settle / fs))
     t1 = rest_to_rest(10, 50, 3000)
     assert plan.move_start_s[first] == pytest.approx(lead / fs, rel=1e-12)
     end1 = lead / fs + t1
@@ -487,7 +489,7 @@ def test_margins_lead_and_settle_every_run():
     positions = plan.positions_mm
     assert np.all(positions[:lead + 1] == 0.0) and positions[lead + 2, 0] > 0.0  # at rest through the lead
     assert np.all(positions[math.ceil(end1 * fs):last + 500] == xyze([10, 0, 0, 0]))  # the settle margin and the dwell
-    stream = planner.PlanStream(prog.blocks, BED, margins=planner.RunMargins(lead / fs, settle / fs))
+    stream = planner.PlanStream(prog.blocks, BED, margins=RunMargins(lead / fs, settle / fs))
     while stream.advance():
         pass
     assert stream.added_s == pytest.approx(2 * (lead + settle) / fs, rel=1e-12)
@@ -505,7 +507,7 @@ def test_margins_by_what_the_runs_end_does():
     prog.stop(dwell=0.5)
     printing = prog.move((10, 0, 0, 2), feed=50.0)
     fs, t1 = BED.sample_rate_hz, rest_to_rest(10, 50, 3000)
-    margins = planner.RunMargins(7 / fs, 12 / fs, printing=(5 / fs, 9 / fs), travel=(3 / fs, 0.0))
+    margins = RunMargins(7 / fs, 12 / fs, printing=(5 / fs, 9 / fs), travel=(3 / fs, 0.0))
     plan = plan_blocks(prog.blocks, BED, margins=margins)
     first, last = 0, math.ceil((7 / fs + t1) * fs) + 12
     for (lead, settle), block, run in zip([(3, 0), (5, 9)], [travel, printing], plan.runs[1:], strict=True):
@@ -525,17 +527,17 @@ def test_klippers_margins_by_end():
     """For Klipper, once the program prints: at a run's end that prints half the other flavors'
     lead and a third of their settle margin; a quarter of the lead before a travel and a fifth of
     the settle margin after it (BY_END). Either time given: that everywhere."""
-    half_s = planner.RunMargins.for_profile(BED).lead_s
-    assert planner.RunMargins.for_profile(BED, flavor="klipper") == planner.RunMargins(
-        half_s, half_s, (half_s / 2, half_s / 3), (half_s / 4, half_s / 5), planner.TRAVEL_SHARE)
-    assert planner.RunMargins.for_profile(BED, 0.0, None, "klipper") == planner.RunMargins(0.0, half_s)
+    half_s = RunMargins.for_profile(BED).lead_s
+    assert RunMargins.for_profile(BED, flavor="klipper") == RunMargins(
+        half_s, half_s, (half_s / 2, half_s / 3), (half_s / 4, half_s / 5), TRAVEL_SHARE)
+    assert RunMargins.for_profile(BED, 0.0, None, "klipper") == RunMargins(0.0, half_s)
 
 
 def test_default_margins_are_half_the_lowest_damped_period():
     lowest = BED.axes["Y"].modes[0]  # 36 Hz: the lowest
-    margins = planner.RunMargins.for_profile(BED)
+    margins = RunMargins.for_profile(BED)
     assert margins.lead_s == margins.settle_s == 0.5 / (36.0 * math.sqrt(1 - lowest.damping**2))
-    assert planner.RunMargins.for_profile(BED, 0.0, 0.02) == planner.RunMargins(0.0, 0.02)
+    assert RunMargins.for_profile(BED, 0.0, 0.02) == RunMargins(0.0, 0.02)
 
 
 def test_stop_without_dwell_still_separates_runs():
@@ -611,7 +613,7 @@ def test_unknown_axes_are_never_nan():
 def test_unknown_axis_found_after_the_prologue_is_planned_at_0_until_then(monkeypatch):
     """Streaming cannot wait for ever for an axis' first position: past PROLOGUE_ROWS waypoints
     an unknown axis is at 0 until known, and moves from there."""
-    monkeypatch.setattr(planner, "PROLOGUE_ROWS", 3)
+    monkeypatch.setattr(pieces, "PROLOGUE_ROWS", 3)
     prog = Program((0.0, 0.0, np.nan, 0.0))
     for x in (10, 20, 30):
         prog.move((x, 0, np.nan, 0), feed=50.0)
@@ -620,7 +622,7 @@ def test_unknown_axis_found_after_the_prologue_is_planned_at_0_until_then(monkey
     assert np.all(plan.positions_mm[:, 2][sample_times(plan) <= plan.move_start_s[known]] == 0.0)
     assert plan.positions_mm[-1, 2] == 0.4
     assert plan.line_time_s[known] - plan.move_start_s[known] > 0.4 / 5.0  # a real Z move, at most 5 mm/s
-    monkeypatch.setattr(planner, "PROLOGUE_ROWS", 5)  # known within (the start is a waypoint): there from the start
+    monkeypatch.setattr(pieces, "PROLOGUE_ROWS", 5)  # known within (the start is a waypoint): there from the start
     assert np.all(plan_blocks(prog.blocks, BED, batch_blocks=2).positions_mm[:, 2] == 0.4)
     assert any(
         note.startswith(f"Z: position not known in the first 3 waypoints, planned at 0 mm until line {known + 1}")
@@ -655,7 +657,7 @@ def mixed_program(rng, n_blocks):
 def test_the_plan_is_the_same_however_the_blocks_are_batched(monkeypatch, seed):
     """Streamed a few blocks at a time (scans in chunks of 16 pieces, so that they carry over
     chunks and batches both), the plan is bit for bit the plan of every block at once."""
-    monkeypatch.setattr(planner, "SCAN_CHUNK", 16)
+    monkeypatch.setattr(lookahead, "SCAN_CHUNK", 16)
     prog = mixed_program(np.random.default_rng(seed), 400)
     whole = plan_blocks(prog.blocks, BED, batch_blocks=10**9)
     assert len(whole.runs) > 5 and whole.pieces.length_mm.size > 300

@@ -33,7 +33,9 @@ from fbspost.fbs.dynamics import AxisDynamics
 from fbspost.fbs.fallback import FALLBACK, AxisGuard
 from fbspost.fbs.optimizer import AxisCompensator, AxisLimits
 from fbspost.job.pipeline import SHAPING_LEFT_OFF, CompensateOptions, compensate_file, compensated_samples
-from fbspost.plan.planner import CLAMPED, RunMargins, plan_blocks
+from fbspost.plan.margins import RunMargins
+from fbspost.plan.pieces import CLAMPED
+from fbspost.plan.planner import plan_blocks
 from fbspost.profile import load_profile
 from fbspost.read.gcode import read_gcode
 from reference import execute, kept_lines, rest_limits, rms, sample_blocks, simulate_lsim, unbudgeted

@@ -17,7 +17,8 @@ from fbspost.cli import main
 from fbspost.fbs.dynamics import AxisDynamics
 from fbspost.fbs.optimizer import AxisCompensator, AxisLimits
 from fbspost.job.pipeline import CompensateOptions
-from fbspost.plan.planner import RunMargins, plan_blocks
+from fbspost.plan.margins import RunMargins
+from fbspost.plan.planner import plan_blocks
 from fbspost.profile import format_profile, load_profile
 from fbspost.read.gcode import detect_flavor, read_gcode
 from reference import execute, rest_limits, rms, sample_blocks, segments_distance, simulate_lsim, unbudgeted

@@ -8,7 +8,8 @@ import pytest
 
 from fbspost.fbs.fallback import FALLBACK
 from fbspost.job.pipeline import SHAPING_LEFT_OFF, compensate_file
-from fbspost.plan.planner import CLAMPED, plan_blocks
+from fbspost.plan.pieces import CLAMPED
+from fbspost.plan.planner import plan_blocks
 from fbspost.profile import load_profile
 from fbspost.read.gcode import read_gcode
 from reference import INSERTED, contour_error, execute, modelled_xy, rms, sample_blocks, unbudgeted

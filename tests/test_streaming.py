@@ -7,7 +7,7 @@ import pytest
 
 from fbspost.job import pipeline
 from fbspost.job.pipeline import CompensateOptions, compensate_file
-from fbspost.plan import planner
+from fbspost.plan import lookahead, planner
 from fbspost.profile import load_profile
 from fbspost.write import runs, samples
 
@@ -41,7 +41,7 @@ def test_streamed_output_is_the_whole_programs(tmp_path, monkeypatch, name, prof
     # run at once. Streamed: odd sizes, so that batches of blocks and chunks of samples cut runs,
     # scans, optimizer windows and blocks anywhere. (Scans in chunks of 257 pieces, both ways: to
     # carry them over chunks too.)
-    monkeypatch.setattr(planner, "SCAN_CHUNK", 257)
+    monkeypatch.setattr(lookahead, "SCAN_CHUNK", 257)
     for batch, chunk, feed, flush in ((WHOLE, WHOLE, WHOLE, math.inf), (13, 997, 331, 0.5)):
         monkeypatch.setattr(planner, "BATCH_BLOCKS", batch)
         monkeypatch.setattr(runs, "_FLUSH_S", flush)

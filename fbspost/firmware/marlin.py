@@ -53,7 +53,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from ..plan.planner import _LimitState
+from ..plan.limits import _LimitState
 from ..profile import MachineProfile
 from ..read.gcode import AXES, Block, Kind
 from .transparency import _first

@@ -52,7 +52,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..plan.planner import _LimitState
+from ..plan.limits import _LimitState
 from ..profile import MachineProfile
 from ..read.gcode import AXES, Block, Kind
 from .marlin import MarlinRun, _axis_limited, _trapezoid_s, send_lines

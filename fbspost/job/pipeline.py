@@ -34,7 +34,8 @@ from ..fbs.varying import LoadModes, PositionModes
 from ..firmware.linuxcnc_time import retimed
 from ..firmware.transparency import FirmwareSettings
 from ..firmware.verify import Verdict, measured_beside
-from ..plan.planner import BATCH_BLOCKS, Plan, PlanStream, RunMargins
+from ..plan.margins import RunMargins
+from ..plan.planner import BATCH_BLOCKS, Plan, PlanStream
 from ..profile import AxisProfile, MachineProfile, with_travel
 from ..read.expand import check_remaps, expand
 from ..read.gcode import AXES, Block, NeedsInterpreter, compensated_by, detect_flavor, read_gcode

@@ -38,7 +38,9 @@ from ..errors import InputError
 from ..fbs.dynamics import AxisDynamics, scaled_mode
 from ..firmware.shapers import SHAPERS, Shaper, klipper_shaper, shape
 from ..job.pipeline import compensated_samples, varying_modes
-from ..plan.planner import EXTRUDE_ONLY_MM, Plan, PlanStream, RunMargins, fill_unknown, plan_blocks
+from ..plan.margins import RunMargins
+from ..plan.pieces import EXTRUDE_ONLY_MM, fill_unknown
+from ..plan.planner import Plan, PlanStream, plan_blocks
 from ..profile import AxisProfile, MachineProfile, ProfileError, with_travel
 from ..read.gcode import AXES, Block, Kind, detect_flavor, feed_lengths, read_gcode
 
