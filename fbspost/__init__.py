@@ -1,11 +1,11 @@
 """fbspost: compensate servo- and vibration-induced motion errors with filtered B-splines.
 
-Stages, one module each: ``gcode`` (reading programs), ``planner`` (the controller's plan),
-``profile`` (machine profiles), ``dynamics`` (exact discrete axis models), ``splines``
-(B-spline bases), ``optimizer`` (the FBS solve), ``writer`` (the output program), ``pipeline``
-(the whole job on one file), ``offload`` (its axes in processes of their own), ``trajectory``
-(sampled trajectories as CSV), ``shapers`` (Klipper's input shapers), ``simulate`` (methods
-compared through the model), ``plots`` (their plots), ``cli`` (the ``fbspost`` command).
+A package per stage, lowest first (a package imports only from those below it):
+``profile`` (machine profiles), ``errors`` (bad input), ``contour`` (the contour error's
+measure); ``read`` (programs to blocks), ``plan`` (the controller's plan), ``fbs`` (the method),
+``firmware`` (what each firmware does with the output), ``write`` (the output program), ``job``
+(the whole job on one file), ``tools`` (simulate, identify, excite), ``cli`` (the ``fbspost``
+command). docs/architecture.md is the map.
 """
 import os
 from importlib.metadata import PackageNotFoundError, version

@@ -16,7 +16,7 @@ from fbspost.cli import main
 from fbspost.contour import PathDistance
 from fbspost.fbs.dynamics import AxisDynamics, ModelSet, modal_response, scaled_mode
 from fbspost.fbs.optimizer import AxisCompensator, AxisLimits, FBSSettings
-from fbspost.fbs.varying import LoadModes, PositionModes
+from fbspost.fbs.varying import load_modes, position_modes
 from fbspost.firmware.verify import contour_um, modelled, printed_path
 from fbspost.job.pipeline import CompensateOptions, compensate_file, varying_modes
 from fbspost.profile import Mode, PositionTable, ProfileError, format_profile, load_profile, parse_profile
@@ -106,9 +106,9 @@ def test_the_varying_machine_simulated_as_the_exact_stepped_machine(kind):
     there_and_back = np.concatenate([smooth_move(20.0, 0.15, 0.1, T), 20.0 - smooth_move(20.0, 0.15, 0.1, T)[1:]])
     command = 5.0 + np.tile(there_and_back, 4)
     if kind == "load":
-        varying, state = LoadModes(modes, T, 0.1, 0.25), np.linspace(3.0, 123.0, command.size)
+        varying, state = load_modes(modes, T, 0.1, 0.25), np.linspace(3.0, 123.0, command.size)
     else:
-        varying = PositionModes(modes, T, AXES.index("Y"), (0.0, 50.0, 200.0), (1.1, 1.0, 0.8))
+        varying = position_modes(modes, T, AXES.index("Y"), (0.0, 50.0, 200.0), (1.1, 1.0, 0.8))
         state = 100.0 + 90.0 * np.sin(np.linspace(0.0, 3.0 * np.pi, command.size))
     levels = varying.levels(state)
     assert levels.tolist() == [varying.level(s - (3.0 if kind == "load" else 0.0)) for s in state.tolist()]
@@ -180,8 +180,8 @@ def test_limited_lookahead_carries_every_models_state(varying):
     desired = np.tile(there_and_back, 3)
     state = {None: np.zeros(desired.size), "load": np.linspace(0.0, 120.0, desired.size),
              "position": 100.0 + 90.0 * np.sin(np.linspace(0.0, 3.0 * np.pi, desired.size))}[varying]
-    load = {None: None, "load": LoadModes(modes, T, 0.1, 0.25),  # 30 g onto 100 g: 12% lower at the end
-            "position": PositionModes(modes, T, AXES.index("X"), (0.0, 50.0, 200.0), (1.1, 1.0, 0.8))}[varying]
+    load = {None: None, "load": load_modes(modes, T, 0.1, 0.25),  # 30 g onto 100 g: 12% lower at the end
+            "position": position_modes(modes, T, AXES.index("X"), (0.0, 50.0, 200.0), (1.1, 1.0, 0.8))}[varying]
     compensator = AxisCompensator(AxisDynamics(modes, T), AxisLimits.from_profile(NOMINAL.axes["Y"]),
                                   models=ModelSet.spread(modes, T), varying=load)
     rows = compensator.settings.commit_spans * compensator.settings.knot_spacing_samples
@@ -208,7 +208,7 @@ def test_limited_lookahead_carries_every_models_state(varying):
 def test_remap_keeps_every_modes_output_and_rate():
     """Closed form: y = alpha q + beta q', y' = alpha q' + beta (u - w^2 q - 2 z w q') for each mode."""
     modes = with_tolerances(PATENT_X, 0.1, 0.2)
-    load = LoadModes(modes, T, 1.0, 1.0)
+    load = load_modes(modes, T, 1.0, 1.0)
     rng = np.random.default_rng(4)
     old, new = load.models(0), load.models(-7)
     x, u = rng.normal(size=old.n_states), 0.37

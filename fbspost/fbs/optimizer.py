@@ -36,7 +36,7 @@ from ..profile import AxisProfile
 from .dynamics import AxisDynamics, ModelSet
 from .smoothing import RunSmoother
 from .splines import basis_matrix, uniform_knots
-from .varying import LoadModes, PositionModes
+from .varying import VaryingModes
 
 
 @dataclass(frozen=True)
@@ -557,7 +557,7 @@ class AxisCompensator:
 
     def __init__(self, dynamics: AxisDynamics, limits: AxisLimits, settings: FBSSettings = FBSSettings(),
                  lookahead: str = "limited", models: ModelSet | None = None,
-                 varying: LoadModes | PositionModes | None = None):
+                 varying: VaryingModes | None = None):
         if lookahead not in ("limited", "complete"):
             raise ValueError(f"lookahead must be 'limited' or 'complete', not {lookahead!r}")
         self.dynamics, self.limits, self.lookahead = dynamics, limits, lookahead

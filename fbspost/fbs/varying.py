@@ -3,10 +3,10 @@ print, or whose modes change along another axis.
 
 Takes an axis' modes and what moves them; gives, for the state they follow (one column of the
 planned samples, ``column``), the level of the model in force: every mode's frequency scaled by
-one factor, rounded to steps of ``STEP`` (1%). ``LoadModes``: the moving mass the modes were
+one factor, rounded to steps of ``STEP`` (1%). ``load_modes``: the moving mass the modes were
 measured with (``moving_mass``, kg) and the filament (grams per mm of it); the factor
 sqrt(m0 / (m0 + printed mass)) (a spring's mode with a heavier load), for the filament extruded
-since the first known E position. ``PositionModes``: a table of factors against an axis'
+since the first known E position. ``position_modes``: a table of factors against an axis'
 position (mm), linear between its points and flat beyond them. Per level: the model set the
 optimizer uses (``dynamics.ModelSet.spread`` of the scaled modes, so a level keeps the profile's
 tolerances), and the map of the carried state from one level to another that keeps each mode's
@@ -29,11 +29,58 @@ from .dynamics import AxisDynamics, ModelSet, scaled_mode
 STEP = 0.01  # relative frequency step between levels: within a level the model is off by 0.5% at most
 
 
-class _Levels:
-    """The levels, model sets and remaps of modes whose frequencies all scale by one factor of a
-    state; a kind gives ``modes``, ``sample_period_s``, ``column`` and ``scale`` (state -> factor)."""
+@dataclass(frozen=True)
+class LoadLaw:
+    """The frequency factor of modes whose moving mass grows by the filament printed onto it:
+    sqrt(m0 / (m0 + printed mass)), the state the filament extruded since its first known value."""
 
-    since_first = False  # the state counts from its first known value (else: as it is)
+    moving_mass_kg: float
+    filament_g_per_mm: float
+    column = AXES.index("E")
+    since_first = True  # the state counts from its first known value
+
+    def scale(self, extruded_mm):
+        """Every frequency's factor after ``extruded_mm`` of filament (a negative amount: none; a
+        number or an array)."""
+        printed_kg = np.maximum(0.0, extruded_mm) * self.filament_g_per_mm * 1e-3
+        return np.sqrt(self.moving_mass_kg / (self.moving_mass_kg + printed_kg))
+
+
+@dataclass(frozen=True)
+class PositionLaw:
+    """The frequency factor of modes that change along an axis (``column`` of AXES): ``scales`` at
+    ``positions_mm`` (increasing), linear between them and flat beyond."""
+
+    column: int
+    positions_mm: tuple[float, ...]
+    scales: tuple[float, ...]
+    since_first = False  # the state is the position as it is
+
+    def scale(self, position_mm):
+        """Every frequency's factor at ``position_mm`` (a number or an array)."""
+        return np.interp(position_mm, self.positions_mm, self.scales)
+
+
+@dataclass(frozen=True)
+class VaryingModes:
+    """An axis' modes, every frequency scaled by one factor of a state (``law``): the levels, the
+    model sets and the remaps between them."""
+
+    modes: tuple[Mode, ...]
+    sample_period_s: float
+    law: LoadLaw | PositionLaw
+
+    @property
+    def column(self) -> int:
+        """The plan's column that holds the state."""
+        return self.law.column
+
+    @property
+    def since_first(self) -> bool:
+        return self.law.since_first
+
+    def scale(self, state):
+        return self.law.scale(state)
 
     def level(self, state: float) -> int:
         """The level in force: the frequency factor (1 + STEP)^level nearest to ``scale`` (0 where
@@ -115,38 +162,17 @@ def _mode_filters(modes: tuple[Mode, ...], sample_period_s: float) -> list[tuple
     return filters
 
 
-@dataclass(frozen=True)
-class LoadModes(_Levels):
+def load_modes(modes: tuple[Mode, ...], sample_period_s: float, moving_mass_kg: float,
+               filament_g_per_mm: float) -> VaryingModes:
     """The modes of an axis whose moving mass grows by the filament printed onto it."""
-
-    modes: tuple[Mode, ...]
-    sample_period_s: float
-    moving_mass_kg: float
-    filament_g_per_mm: float
-    column = AXES.index("E")  # the state: the filament extruded
-    since_first = True
-
-    def scale(self, extruded_mm):
-        """Every frequency's factor after ``extruded_mm`` of filament (a negative amount: none; a
-        number or an array)."""
-        printed_kg = np.maximum(0.0, extruded_mm) * self.filament_g_per_mm * 1e-3
-        return np.sqrt(self.moving_mass_kg / (self.moving_mass_kg + printed_kg))
+    return VaryingModes(modes, sample_period_s, LoadLaw(moving_mass_kg, filament_g_per_mm))
 
 
-@dataclass(frozen=True)
-class PositionModes(_Levels):
-    """The modes of an axis that change along an axis (``column`` of AXES): every frequency's
+def position_modes(modes: tuple[Mode, ...], sample_period_s: float, column: int, positions_mm: tuple[float, ...],
+                   scales: tuple[float, ...]) -> VaryingModes:
+    """The modes of an axis that change along the axis of ``column`` (AXES): every frequency's
     factor at ``positions_mm`` (increasing) is ``scales``."""
-
-    modes: tuple[Mode, ...]
-    sample_period_s: float
-    column: int
-    positions_mm: tuple[float, ...]
-    scales: tuple[float, ...]
-
-    def scale(self, position_mm):
-        """Every frequency's factor at ``position_mm`` (a number or an array)."""
-        return np.interp(position_mm, self.positions_mm, self.scales)
+    return VaryingModes(modes, sample_period_s, PositionLaw(column, positions_mm, scales))
 
 
 def _physical(mode: Mode) -> tuple[np.ndarray, np.ndarray]:

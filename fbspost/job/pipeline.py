@@ -30,7 +30,7 @@ from ..fbs.dynamics import AxisDynamics, ModelSet
 from ..fbs.fallback import FALLBACK, AxisGuard
 from ..fbs.optimizer import AxisCompensator, AxisLimits, FBSSettings
 from ..fbs.smoothing import half_width_samples
-from ..fbs.varying import LoadModes, PositionModes
+from ..fbs.varying import VaryingModes, load_modes, position_modes
 from ..firmware.linuxcnc_time import retimed
 from ..firmware.transparency import FirmwareSettings
 from ..firmware.verify import Verdict, measured_beside
@@ -585,18 +585,18 @@ def _compensators(profile: MachineProfile, options: CompensateOptions) -> dict[i
             for c, axis in axes.items()}
 
 
-def varying_modes(profile: MachineProfile, axis: AxisProfile) -> LoadModes | PositionModes | None:
+def varying_modes(profile: MachineProfile, axis: AxisProfile) -> VaryingModes | None:
     """The axis' modes against the filament printed, if it carries the print (``moving_mass``),
     or against an axis' position (``modes_by_position``); None if they are fixed."""
     table = axis.modes_by_position
     if table is not None:
-        return PositionModes(axis.modes, 1.0 / profile.sample_rate_hz, AXES.index(table.axis), table.positions_mm,
-                             table.frequency_scales)
+        return position_modes(axis.modes, 1.0 / profile.sample_rate_hz, AXES.index(table.axis), table.positions_mm,
+                              table.frequency_scales)
     if axis.moving_mass_kg is None:
         return None
     filament_mm2 = math.pi * (0.5 * profile.firmware.filament_diameter_mm) ** 2
-    return LoadModes(axis.modes, 1.0 / profile.sample_rate_hz, axis.moving_mass_kg,
-                     filament_mm2 * axis.filament_density_g_cm3 * 1e-3)
+    return load_modes(axis.modes, 1.0 / profile.sample_rate_hz, axis.moving_mass_kg,
+                      filament_mm2 * axis.filament_density_g_cm3 * 1e-3)
 
 
 def _compensated(plan: Plan | PlanStream, compensators: dict[int, AxisCompensator], errors: dict,

@@ -1,0 +1,4 @@
+"""``python -m fbspost.cli``."""
+from . import main
+
+main()
