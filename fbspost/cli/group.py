@@ -86,7 +86,7 @@ machine_option = click.option("--machine", "-m", required=True,
 
 
 def margin_options(command):
-    """--lead-time and --settle-time (planner.RunMargins; None: from the dynamics)."""
+    """--lead-time and --settle-time (margins.RunMargins; None: from the dynamics)."""
     command = click.option("--settle-time", "settle_time_s", type=click.FloatRange(min=0),
                            help="Seconds the command may go on after each run of motion ends, the machine "
                                 "otherwise at rest (default: half the lowest mode's damped period; for Klipper, "
