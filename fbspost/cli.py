@@ -29,8 +29,8 @@ from . import __version__
 from .errors import InputError
 from .firmware.shapers import MAX_DAMPING, SHAPERS
 from .plan.planner import RunMargins
-from .profile import AXIS_NAMES, MachineProfile, ProfileError, bundled_profiles, load_profile
-from .read.gcode import FLAVORS, detect_flavor
+from .profile import AXIS_NAMES, FLAVORS, MachineProfile, ProfileError, bundled_profiles, load_profile
+from .read.flavors import detect_flavor
 from .tools.trajectory import read_trajectory_csv, write_trajectory_csv
 from .write.atomicfile import atomic_write
 

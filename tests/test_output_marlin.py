@@ -18,7 +18,8 @@ from fbspost.firmware.marlin import run_marlin
 from fbspost.job.pipeline import CompensateOptions, compensate_file, compensated_samples
 from fbspost.plan.planner import RunMargins, plan_blocks
 from fbspost.profile import load_profile, with_travel
-from fbspost.read.gcode import AXES, Kind, read_gcode
+from fbspost.read.blocks import AXES, Kind
+from fbspost.read.gcode import read_gcode
 from fbspost.write.writer import _Emitter
 from reference import continuous_model, serial
 

@@ -12,7 +12,7 @@ import pytest
 from fbspost.job.pipeline import CompensateOptions, compensate_file
 from fbspost.plan.planner import RunMargins
 from fbspost.profile import load_profile
-from fbspost.read.gcode import AXES
+from fbspost.read.blocks import AXES
 from fbspost.write.writer import _Emitter, _lines, breakpoints
 from reference import execute, fine_servo, positions_at, rest_limits, unbudgeted
 

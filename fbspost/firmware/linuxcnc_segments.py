@@ -1,6 +1,6 @@
 """The segments of LinuxCNC 2.9's trajectory planner (``linuxcnc_tp``) and what they are made from.
 
-Takes a program's MOVE blocks (``gcode.Block``) and the INI's limits (``LinuxCNCConfig``); gives
+Takes a program's MOVE blocks (``blocks.Block``) and the INI's limits (``LinuxCNCConfig``); gives
 one ``Tc`` (a TC_STRUCT: a line, a G2/G3 as chords, or a blend arc) per block that moves, with its
 limits and terminal condition (``segment``, the mode a line sets: ``line_mode``), its position
 along its path (``Tc.at``) and its accelerations, and the velocities both the queue and the
@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..profile import MachineProfile
-from ..read.gcode import Block
+from ..read.blocks import Block
 
 _XYZ = slice(0, 3)
 STOP, EXACT, PARABOLIC, TANGENT = "stop", "exact", "parabolic", "tangent"

@@ -36,7 +36,7 @@ import numpy as np
 
 from ..plan.planner import Plan, plan_blocks
 from ..profile import MachineProfile
-from ..read.gcode import Block, Kind
+from ..read.blocks import Block, Kind
 from . import verify
 from .linuxcnc_queue import MIN_SEGMENT_CYCLES
 from .linuxcnc_tp import run_linuxcnc

@@ -64,7 +64,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..profile import MachineProfile
-from ..read.gcode import AXES, Block, Kind
+from ..read.blocks import AXES, Block, Kind
 from .linuxcnc_queue import Queue
 from .linuxcnc_segments import (
     PARABOLIC,

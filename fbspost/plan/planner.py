@@ -80,7 +80,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..profile import MachineProfile
-from ..read.gcode import AXES, Block, Kind, feed_lengths
+from ..read.blocks import AXES, Block, Kind, feed_lengths
 from . import klipper_rules
 
 EXTRUDE_ONLY_MM = 1e-9  # Klipper: an XYZ length below this makes an extrude-only move

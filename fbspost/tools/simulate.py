@@ -40,7 +40,13 @@ from ..firmware.shapers import SHAPERS, Shaper, klipper_shaper, shape
 from ..job.pipeline import compensated_samples, varying_modes
 from ..plan.planner import EXTRUDE_ONLY_MM, Plan, PlanStream, RunMargins, fill_unknown, plan_blocks
 from ..profile import AxisProfile, MachineProfile, ProfileError, with_travel
-from ..read.gcode import AXES, Block, Kind, detect_flavor, feed_lengths, read_gcode
+from ..read.blocks import AXES, Block, Kind, feed_lengths
+
+# --model-error: the machines the commands run on, (frequency scale, damping scale) of every mode
+from ..read.flavors import detect_flavor
+
+# --model-error: the machines the commands run on, (frequency scale, damping scale) of every mode
+from ..read.gcode import read_gcode
 
 # --model-error: the machines the commands run on, (frequency scale, damping scale) of every mode
 MODEL_ERRORS = (*((1.0 + 0.025 * i, 1.0) for i in range(-4, 5)), (1.0, 0.8), (1.0, 1.25))

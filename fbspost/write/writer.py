@@ -29,7 +29,7 @@ from ..firmware.steps import ModalRounding, crossing_ends, lattice_counts, round
 from ..firmware.transparency import FirmwareSettings, Transparency
 from ..plan.planner import PlanStream
 from ..profile import MachineProfile
-from ..read.gcode import AXES, Block, Kind, Modal, feed_lengths
+from ..read.blocks import AXES, Block, Kind, Modal, feed_lengths
 from .bezier import curve_lengths, fit_g5
 
 _DECIMALS = {**dict.fromkeys(AXES, 4), "E": 5}  # mm: 0.1 um (A B C: 1e-4 degree), E: 10 nm of filament
