@@ -41,11 +41,7 @@ from ..job.pipeline import compensated_samples, varying_modes
 from ..plan.planner import EXTRUDE_ONLY_MM, Plan, PlanStream, RunMargins, fill_unknown, plan_blocks
 from ..profile import AxisProfile, MachineProfile, ProfileError, with_travel
 from ..read.blocks import AXES, Block, Kind, feed_lengths
-
-# --model-error: the machines the commands run on, (frequency scale, damping scale) of every mode
 from ..read.flavors import detect_flavor
-
-# --model-error: the machines the commands run on, (frequency scale, damping scale) of every mode
 from ..read.gcode import read_gcode
 
 # --model-error: the machines the commands run on, (frequency scale, damping scale) of every mode
