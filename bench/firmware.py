@@ -55,7 +55,9 @@ from fbspost.firmware.reprap import ReprapConfig, commanded_pieces, run_reprap  
 from fbspost.firmware.shaping import REPRAP_SHAPERS, reprap_shaper, shaped_steps, stepper_positions  # noqa: E402
 from fbspost.firmware.verify import contour_um, modelled, printed_path  # noqa: E402
 from fbspost.profile import load_profile  # noqa: E402
-from fbspost.read.gcode import AXES, detect_flavor, read_gcode  # noqa: E402
+from fbspost.read.blocks import AXES  # noqa: E402
+from fbspost.read.flavors import detect_flavor  # noqa: E402
+from fbspost.read.gcode import read_gcode  # noqa: E402
 from fbspost.tools.simulate import PathDistance, shaper_settings  # noqa: E402
 from firmware_results import klippy_run, move_ends, shaped_plans  # noqa: E402
 from linuxcnc_itself import as_written, joint_commands, on_grid  # noqa: E402

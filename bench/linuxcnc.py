@@ -33,8 +33,9 @@ from canon_check import command_problems, path_problems  # noqa: E402
 from fbspost.errors import InputError  # noqa: E402
 from fbspost.job.pipeline import CompensateOptions, compensate_file  # noqa: E402
 from fbspost.profile import load_profile  # noqa: E402
+from fbspost.read.blocks import NeedsInterpreter  # noqa: E402
 from fbspost.read.expand import MOTION_CALLS, canonical_calls, expand  # noqa: E402
-from fbspost.read.gcode import NeedsInterpreter, read_gcode  # noqa: E402
+from fbspost.read.gcode import read_gcode  # noqa: E402
 
 TOOL_TABLE = Path("/usr/share/doc/linuxcnc/examples/sample-configs/sim/axis/sim.tbl")
 SAMPLE_CONFIGS = TOOL_TABLE.parent.parent

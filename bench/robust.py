@@ -56,7 +56,7 @@ from fbspost.fbs.dynamics import AxisDynamics, ModelSet, scaled_mode  # noqa: E4
 from fbspost.firmware.shapers import SHAPERS  # noqa: E402
 from fbspost.firmware.verify import contour_um, modelled, printed_path  # noqa: E402
 from fbspost.profile import format_profile, load_profile  # noqa: E402
-from fbspost.read.gcode import AXES  # noqa: E402
+from fbspost.read.blocks import AXES  # noqa: E402
 from fbspost.tools.simulate import MODEL_ERRORS, model_error, simulate_program  # noqa: E402
 from firmware_results import LoadedBed, klippy_run, move_ends, shaped_plans  # noqa: E402
 

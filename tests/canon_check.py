@@ -19,8 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
+from fbspost.read.blocks import AXES, Kind
 from fbspost.read.expand import MOTION_CALLS, STATE_CALLS, canonical_calls
-from fbspost.read.gcode import AXES, Kind, read_gcode
+from fbspost.read.gcode import read_gcode
 
 _PLANE_AXES = {"CANON_PLANE_XY": (0, 1, 2), "CANON_PLANE_YZ": (1, 2, 0), "CANON_PLANE_XZ": (2, 0, 1)}
 

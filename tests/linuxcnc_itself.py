@@ -19,7 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from fbspost.read.gcode import Kind, read_gcode
+from fbspost.read.blocks import Kind
+from fbspost.read.gcode import read_gcode
 
 SIM = Path(__file__).resolve().parents[1] / "bench" / "linuxcnc_sim"
 _LOCK = Path(tempfile.gettempdir()) / "fbspost-linuxcnc.lock"

@@ -24,7 +24,9 @@ from fbspost.firmware.transparency import transparent_limits
 from fbspost.job.pipeline import CompensateOptions, compensate_file
 from fbspost.plan.planner import PlanStream, plan_blocks
 from fbspost.profile import load_profile
-from fbspost.read.gcode import Kind, detect_flavor, read_gcode
+from fbspost.read.blocks import Kind
+from fbspost.read.flavors import detect_flavor
+from fbspost.read.gcode import read_gcode
 from klippy_planner import KlippyPlanner, klippy_or_skip
 from reference import unbudgeted
 

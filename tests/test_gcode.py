@@ -22,7 +22,9 @@ from scipy.integrate import cumulative_trapezoid
 from scipy.spatial import cKDTree
 
 from fbspost.errors import InputError
-from fbspost.read.gcode import Kind, PlannerLimits, detect_flavor, read_gcode
+from fbspost.read.blocks import Kind, PlannerLimits
+from fbspost.read.flavors import detect_flavor
+from fbspost.read.gcode import read_gcode
 
 DATA = Path(__file__).resolve().parent / "data"
 GEAR = DATA / "gear-marlin2.gcode"  # PrusaSlicer 2.5, marlin2, absolute E with G92 E0 resets

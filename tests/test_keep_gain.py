@@ -17,7 +17,8 @@ import pytest
 from fbspost.job.pipeline import CompensateOptions, compensate_file
 from fbspost.plan.margins import RunMargins
 from fbspost.profile import load_profile
-from fbspost.read.gcode import Kind, read_gcode
+from fbspost.read.blocks import Kind
+from fbspost.read.gcode import read_gcode
 from fbspost.tools.examples import butterfly_dense_program, butterfly_polyline_program
 from fbspost.tools.simulate import simulate_program
 from reference import unbudgeted

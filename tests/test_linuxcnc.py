@@ -21,9 +21,11 @@ from fbspost.firmware.linuxcnc_time import linuxcnc_feeds
 from fbspost.plan.margins import RunMargins
 from fbspost.plan.planner import plan_blocks
 from fbspost.profile import load_profile
+from fbspost.read.blocks import AXES, CHORD_TOLERANCE_MM, Kind
 from fbspost.read.expand import canonical_calls, expand
-from fbspost.read.gcode import AXES, CHORD_TOLERANCE_MM, Kind, nurbs_points, read_gcode
+from fbspost.read.gcode import read_gcode
 from fbspost.read.rs274_probes import check_static
+from fbspost.read.splines import nurbs_points
 
 needs_rs274 = pytest.mark.skipif(shutil.which("rs274") is None,
                                  reason="LinuxCNC's rs274 is not installed (apt-get install linuxcnc-uspace)")

@@ -16,7 +16,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fbspost.firmware.linuxcnc_tp import LinuxCNCConfig, _Queue, _segment, interpolated, run_linuxcnc
+from fbspost.firmware.linuxcnc_queue import Queue as _Queue
+from fbspost.firmware.linuxcnc_segments import LinuxCNCConfig
+from fbspost.firmware.linuxcnc_segments import segment as _segment
+from fbspost.firmware.linuxcnc_tp import interpolated, run_linuxcnc
 from fbspost.firmware.planners import replan
 from fbspost.profile import load_profile
 from fbspost.read.gcode import read_gcode

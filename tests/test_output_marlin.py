@@ -19,7 +19,8 @@ from fbspost.job.pipeline import CompensateOptions, compensate_file, compensated
 from fbspost.plan.margins import RunMargins
 from fbspost.plan.planner import plan_blocks
 from fbspost.profile import load_profile, with_travel
-from fbspost.read.gcode import AXES, Kind, read_gcode
+from fbspost.read.blocks import AXES, Kind
+from fbspost.read.gcode import read_gcode
 from fbspost.write.emitter import _Emitter
 from reference import continuous_model, serial
 

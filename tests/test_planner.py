@@ -18,7 +18,7 @@ from fbspost.plan.lookahead import backward_pass, forward_pass
 from fbspost.plan.margins import TRAVEL_SHARE, RunMargins
 from fbspost.plan.planner import plan_blocks
 from fbspost.profile import load_profile
-from fbspost.read.gcode import AXES, Block, Kind, Modal, PlannerLimits
+from fbspost.read.blocks import AXES, Block, Kind, Modal, PlannerLimits
 
 BED = load_profile("bedslinger-example")  # X 300/10000, Y 300/8000, Z 12/500, E 120/5000; 3000, scv 5; 1 kHz
 PATENT = load_profile("patent-xy-stage")  # X, Y 100/8000; 5000, scv 5; 10 kHz

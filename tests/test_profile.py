@@ -407,7 +407,7 @@ def test_linuxcnc_settings_default_to_linuxcnc_s_and_round_trip(tmp_path):
     1 ms as the sample configurations; G64 without P or Q); given ones are read as written,
     reach the model of its planner and the restored blending mode, and format_profile writes
     them back."""
-    from fbspost.firmware.linuxcnc_tp import LinuxCNCConfig
+    from fbspost.firmware.linuxcnc_segments import LinuxCNCConfig
     from fbspost.firmware.transparency import FirmwareSettings
     from fbspost.profile import format_profile
 

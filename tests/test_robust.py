@@ -20,7 +20,7 @@ from fbspost.fbs.varying import load_modes, position_modes
 from fbspost.firmware.verify import contour_um, modelled, printed_path
 from fbspost.job.pipeline import CompensateOptions, compensate_file, varying_modes
 from fbspost.profile import Mode, PositionTable, ProfileError, format_profile, load_profile, parse_profile
-from fbspost.read.gcode import AXES
+from fbspost.read.blocks import AXES
 from fbspost.tools.simulate import MODEL_ERRORS, model_error, simulate_program
 from firmware_results import LoadedBed, klippy_run, move_ends, shaped_plans
 from klippy_planner import klippy_or_skip

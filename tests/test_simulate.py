@@ -20,7 +20,8 @@ from fbspost.job.pipeline import CompensateOptions
 from fbspost.plan.margins import RunMargins
 from fbspost.plan.planner import plan_blocks
 from fbspost.profile import format_profile, load_profile
-from fbspost.read.gcode import detect_flavor, read_gcode
+from fbspost.read.flavors import detect_flavor
+from fbspost.read.gcode import read_gcode
 from reference import execute, rest_limits, rms, sample_blocks, segments_distance, simulate_lsim, unbudgeted
 
 ROOT = Path(__file__).resolve().parent.parent

@@ -11,7 +11,7 @@ import pytest
 from fbspost.firmware.transparency import FirmwareSettings, Transparency
 from fbspost.job.pipeline import SHAPING_LEFT_OFF, CompensateOptions, compensate_file
 from fbspost.profile import ProfileError, format_profile, load_profile, parse_profile, tomllib
-from fbspost.read.gcode import AXES, Block, Kind, Modal, PlannerLimits
+from fbspost.read.blocks import AXES, Block, Kind, Modal, PlannerLimits
 from fbspost.write.emitter import _Emitter
 
 PRINTER = load_profile("printer-two-mode")

@@ -12,7 +12,7 @@ import pytest
 from fbspost.job.pipeline import CompensateOptions, compensate_file
 from fbspost.plan.margins import RunMargins
 from fbspost.profile import load_profile
-from fbspost.read.gcode import AXES
+from fbspost.read.blocks import AXES
 from fbspost.write.blockends import breakpoints
 from fbspost.write.emitter import _Emitter
 from fbspost.write.linetext import _lines

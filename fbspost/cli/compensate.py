@@ -19,8 +19,7 @@ import click
 
 from .. import __version__
 from ..errors import InputError
-from ..profile import MachineProfile, ProfileError, load_profile
-from ..read.gcode import FLAVORS
+from ..profile import FLAVORS, MachineProfile, ProfileError, load_profile
 from ..write.atomicfile import atomic_write
 from .group import ENDING_SIGNALS, describe, interrupt_status, machine_option, main, margin_options, one_line
 

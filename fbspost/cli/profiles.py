@@ -11,8 +11,7 @@ import numpy as np
 
 from .. import __version__
 from ..errors import InputError
-from ..profile import AXIS_NAMES, ProfileError, bundled_profiles, load_profile
-from ..read.gcode import FLAVORS
+from ..profile import AXIS_NAMES, FLAVORS, ProfileError, bundled_profiles, load_profile
 from ..write.atomicfile import atomic_write
 from .group import machine_option, main, positive
 

@@ -14,8 +14,8 @@ import numpy as np
 from .. import __version__
 from ..firmware.shapers import MAX_DAMPING, SHAPERS
 from ..plan.margins import RunMargins
-from ..profile import load_profile
-from ..read.gcode import FLAVORS, detect_flavor
+from ..profile import FLAVORS, load_profile
+from ..read.flavors import detect_flavor
 from ..tools.trajectory import read_trajectory_csv, write_trajectory_csv
 from .group import machine_option, main, margin_options
 

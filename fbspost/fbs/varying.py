@@ -23,7 +23,7 @@ import numpy as np
 from scipy import linalg, signal
 
 from ..profile import Mode
-from ..read.gcode import AXES
+from ..read.blocks import AXES
 from .dynamics import AxisDynamics, ModelSet, scaled_mode
 
 STEP = 0.01  # relative frequency step between levels: within a level the model is off by 0.5% at most

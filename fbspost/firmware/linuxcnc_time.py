@@ -36,9 +36,10 @@ import numpy as np
 
 from ..plan.planner import Plan, plan_blocks
 from ..profile import MachineProfile
-from ..read.gcode import Block, Kind
+from ..read.blocks import Block, Kind
 from . import verify
-from .linuxcnc_tp import MIN_SEGMENT_CYCLES, run_linuxcnc
+from .linuxcnc_queue import MIN_SEGMENT_CYCLES
+from .linuxcnc_tp import run_linuxcnc
 
 WINDOW_S = 0.01  # the progress is averaged over the line's time and half this either side
 

@@ -55,7 +55,7 @@ import numpy as np
 
 from ..plan.limits import _LimitState
 from ..profile import MachineProfile
-from ..read.gcode import AXES, Block, Kind
+from ..read.blocks import AXES, Block, Kind
 from .transparency import _first
 
 _NA = len(AXES)

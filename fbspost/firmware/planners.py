@@ -29,7 +29,7 @@ import numpy as np
 
 from ..plan.planner import plan_blocks
 from ..profile import MachineProfile
-from ..read.gcode import Block
+from ..read.blocks import Block
 from .linuxcnc_tp import run_linuxcnc
 from .marlin import run_marlin
 from .reprap import run_reprap

@@ -54,7 +54,7 @@ import numpy as np
 
 from ..plan.limits import _LimitState
 from ..profile import MachineProfile
-from ..read.gcode import AXES, Block, Kind
+from ..read.blocks import AXES, Block, Kind
 from .marlin import MarlinRun, _axis_limited, _trapezoid_s, send_lines
 
 _NA = len(AXES)

@@ -39,7 +39,7 @@ import math
 
 import numpy as np
 
-from ..read.gcode import AXES
+from ..read.blocks import AXES
 from .marlin import lround
 from .shapers import _HUMP_AMPLITUDES, _HUMP_TIMES, Shaper, shape
 

@@ -34,7 +34,7 @@ import re
 from dataclasses import dataclass, field, replace
 
 from ..profile import MachineProfile
-from ..read.gcode import Block, Modal, PlannerLimits
+from ..read.blocks import Block, Modal, PlannerLimits
 
 KLIPPER_ACCEL_MM_S2 = 1e8
 KLIPPER_SCV_MM_S = 1e4

@@ -43,8 +43,9 @@ from ..contour import PathDistance
 from ..fbs.dynamics import AxisDynamics
 from ..plan.planner import plan_blocks
 from ..profile import MachineProfile
-from ..read.gcode import AXES, Block, Kind, read_gcode
-from .linuxcnc_tp import BLEND_MODE
+from ..read.blocks import AXES, Block, Kind
+from ..read.gcode import read_gcode
+from .linuxcnc_segments import BLEND_MODE
 from .marlin import M205_B
 from .planners import PLANNER_MODELS
 from .reprap import M566, commanded_pieces

@@ -37,8 +37,10 @@ from ..firmware.verify import Verdict, measured_beside
 from ..plan.margins import RunMargins
 from ..plan.planner import BATCH_BLOCKS, Plan, PlanStream
 from ..profile import AxisProfile, MachineProfile, with_travel
+from ..read.blocks import AXES, Block, NeedsInterpreter
 from ..read.expand import check_remaps, expand
-from ..read.gcode import AXES, Block, NeedsInterpreter, compensated_by, detect_flavor, read_gcode
+from ..read.flavors import compensated_by, detect_flavor
+from ..read.gcode import read_gcode
 from ..write.atomicfile import atomic_write
 from ..write.options import WriteOptions, format_refusal, shortest_block_s
 from ..write.samples import SampleWindow

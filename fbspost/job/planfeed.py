@@ -18,7 +18,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ..read.gcode import AXES
+from ..read.blocks import AXES
 
 BATCH_SAMPLES = 1 << 14  # samples a request is answered with at least (fewer at the end)
 # Samples planned ahead of the writer at most, unless it waits for the process asking: the writer's process

@@ -12,7 +12,7 @@ import math
 import numpy as np
 
 from ..profile import MachineProfile
-from ..read.gcode import AXES
+from ..read.blocks import AXES
 
 _NA = len(AXES)
 _E = AXES.index("E")

@@ -18,7 +18,7 @@ from dataclasses import replace
 import numpy as np
 
 from ..profile import MachineProfile
-from ..read.gcode import AXES, Block, Kind, feed_lengths
+from ..read.blocks import AXES, Block, Kind, feed_lengths
 from . import klipper_rules
 from .limits import _LimitState, axis_piece_limits, junction_limits
 

@@ -79,7 +79,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..profile import MachineProfile
-from ..read.gcode import AXES, Block
+from ..read.blocks import AXES, Block
 from .clock import _BlockClock
 from .lookahead import _LookAhead
 from .margins import RunMargins

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..read.gcode import AXES
+from ..read.blocks import AXES
 
 _NA = len(AXES)
 

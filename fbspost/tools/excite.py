@@ -26,8 +26,9 @@ from ..errors import InputError
 from ..firmware.planners import replan
 from ..firmware.transparency import FirmwareSettings, Transparency
 from ..job.pipeline import marlin_steps
-from ..profile import AxisProfile, MachineProfile, bundled_profiles, load_profile
-from ..read.gcode import AXES, FLAVORS, Kind, Modal, read_gcode
+from ..profile import FLAVORS, AxisProfile, MachineProfile, bundled_profiles, load_profile
+from ..read.blocks import AXES, Kind, Modal
+from ..read.gcode import read_gcode
 from ..write.options import WriteOptions
 from ..write.output import dwell_line
 from ..write.writer import timed_blocks

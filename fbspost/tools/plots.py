@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ..firmware.shapers import SHAPERS
-from ..read.gcode import AXES
+from ..read.blocks import AXES
 from ..write.atomicfile import atomic_write
 from .simulate import Method, Simulation, dominant_mode
 

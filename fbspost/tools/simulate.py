@@ -42,7 +42,9 @@ from ..plan.margins import RunMargins
 from ..plan.pieces import EXTRUDE_ONLY_MM, fill_unknown
 from ..plan.planner import Plan, PlanStream, plan_blocks
 from ..profile import AxisProfile, MachineProfile, ProfileError, with_travel
-from ..read.gcode import AXES, Block, Kind, detect_flavor, feed_lengths, read_gcode
+from ..read.blocks import AXES, Block, Kind, feed_lengths
+from ..read.flavors import detect_flavor
+from ..read.gcode import read_gcode
 
 # --model-error: the machines the commands run on, (frequency scale, damping scale) of every mode
 MODEL_ERRORS = (*((1.0 + 0.025 * i, 1.0) for i in range(-4, 5)), (1.0, 0.8), (1.0, 1.25))

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import maximum_filter1d
 
-from ..read.gcode import AXES
+from ..read.blocks import AXES
 from .bezier import fit_g5
 
 _MAX_SAMPLES = 2000  # longest block, samples

@@ -13,7 +13,7 @@ import math
 import numpy as np
 
 from ..firmware.steps import crossing_ends, rounding_for
-from ..read.gcode import AXES, Block, Kind, Modal, feed_lengths
+from ..read.blocks import AXES, Block, Kind, Modal, feed_lengths
 from .bezier import curve_lengths
 from .blockends import Curves
 from .linetext import _DECIMALS, _FEED_DECIMALS, _lines

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..read.gcode import AXES
+from ..read.blocks import AXES
 
 _DECIMALS = {**dict.fromkeys(AXES, 4), "E": 5}  # mm: 0.1 um (A B C: 1e-4 degree), E: 10 nm of filament
 _FEED_DECIMALS = 3  # mm/min (in/min in G20)

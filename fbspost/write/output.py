@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..read.gcode import Modal
+from ..read.blocks import Modal
 from .options import WriteStats
 
 

@@ -14,7 +14,7 @@ import numpy as np
 
 from ..firmware.transparency import Transparency
 from ..plan.planner import PlanStream
-from ..read.gcode import Kind
+from ..read.blocks import Kind
 from .blockends import _Breaks, g5_blocks
 from .deviation import _Deviation
 from .emitter import _Emitter

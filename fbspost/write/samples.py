@@ -10,7 +10,7 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from ..read.gcode import AXES
+from ..read.blocks import AXES
 
 
 class SampleWindow:

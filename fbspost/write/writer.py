@@ -23,7 +23,7 @@ import numpy as np
 
 from ..firmware.transparency import Transparency
 from ..plan.planner import PlanStream
-from ..read.gcode import AXES, Block, Kind, Modal
+from ..read.blocks import AXES, Block, Kind, Modal
 from .emitter import _Emitter
 from .options import WriteOptions, WriteStats, format_refusal
 from .output import _Output, dwell_line, mode_lines
