@@ -1,6 +1,6 @@
 """Issue 30's proof, end to end: from an accelerometer recording to the machine, as a user with an
 accelerometer would go, through Klipper's own planner (``flavor`` "klipper") or fbspost's models of
-Marlin's and RepRapFirmware's planners ("marlin", "reprap": ``firmware.PLANNER_MODELS``), against
+Marlin's and RepRapFirmware's planners ("marlin", "reprap": ``planners.PLANNER_MODELS``), against
 the input shaping that firmware has, chosen by Klipper's own ``shaper_calibrate`` from the same
 recordings. For tests and benches.
 
@@ -27,7 +27,7 @@ identified dominant modes; FT_MOTION's types; RRF's M593 types, one shaper for X
 axis' choice on both), damping 0.1 (its default), shaped as the firmware shapes, through whole
 steps (``fbspost.firmware.shaping``, bench/marlin_baseline.py ``shaped``); the prints compensated
 ``--flavor`` FLAVOR and run by the same model; every run on its whole steps
-(``firmware_shapers.stepper_positions``) through the truth, the contour to the original's
+(``shaping.stepper_positions``) through the truth, the contour to the original's
 commanded path; no ``--klipper-cfg`` row.
 
 LinuxCNC (``flavor`` "linuxcnc"): the sweep written ``--flavor linuxcnc`` at the middle of the

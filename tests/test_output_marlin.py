@@ -174,7 +174,7 @@ def test_contour_error_through_whole_steps_beats_marlins_zv(marlin_output):
     """The gear's first 700 lines at 300 lines/s, each program through the model of Marlin's
     planner (fbspost/firmware/marlin.py) and its whole steps, then printer-two-mode's modes
     (bench/marlin_baseline.py's runs): fbspost's output at most half the RMS contour error of
-    Marlin's own ZV shaper (firmware_shapers.marlin_zv at the profile's modes, through its
+    Marlin's own ZV shaper (shaping.marlin_zv at the profile's modes, through its
     steps), and its largest error below the original's. Measured (the Marlin model): fbspost 8.53
     um RMS (64 max), Marlin ZV 28.4 (96), the original 26.7 (231); FT_MOTION's best, MZV, 6.76
     (39): fbspost does not beat it here."""
@@ -347,7 +347,7 @@ def test_contour_error_through_whole_steps_beats_ft_motion(tmp_path):
     8000 lines from an SD card (no line budget), each program through the model of Marlin's
     planner and its whole steps, then printer-two-mode's modes (bench/marlin_baseline.py's runs):
     fbspost's output, its block ends on the lattice (steps.Lattice), has less RMS contour error
-    than the best of FT_MOTION's shapers at the profile's modes (firmware_shapers.ft_motion_shaper,
+    than the best of FT_MOTION's shapers at the profile's modes (shaping.ft_motion_shaper,
     through its steps), and its largest error is below the original's. Measured (the Marlin
     model, 29 November 2026): fbspost 5.55 um (58 max), FT_MOTION MZV 7.02 (86), the original
     30.5 (204); 6.35 um (93) with the blocks at a 1 um tolerance (before STEP_TOLERANCE_SHARE);

@@ -298,7 +298,7 @@ def _merged_row_by_row(start, ints, steps_per_unit, min_steps, exact_last):
 @pytest.mark.parametrize("exact_last", [True, False])
 @pytest.mark.parametrize("largest_step", [12, 2])
 def test_marlin_merge_as_done_row_by_row(exact_last, largest_step):
-    """writer._merged (which looks a few rows ahead of every row at once, and further only from
+    """marlinmerge._merged (which looks a few rows ahead of every row at once, and further only from
     the rows kept, over the stepped columns) against the rule done naively, on blocks of 0 to 5
     steps (about half of them merged) and on slow ones that take tens of rows to be far."""
     rng = np.random.default_rng(7)

@@ -134,7 +134,7 @@ def test_outputs_longer_than_a_chunk_are_verified_by_default(tmp_path, monkeypat
 
 
 def whole_program(source: Path, program: Path, profile, flavor: str) -> FirmwareResult:
-    """``program`` as the firmware's model plans it at once (firmware.replan: no chunks), modelled
+    """``program`` as the firmware's model plans it at once (planners.replan: no chunks), modelled
     at once, measured on the path of ``source`` searched at once: the verdict's independent reference."""
     pieces = [piece for _, _, p in commanded_pieces(read_gcode(source, flavor, profile.home_mm)) for piece in p]
     path, printer = printed_path(*(np.array(column)[:, :4] for column in zip(*pieces, strict=True)))

@@ -139,7 +139,7 @@ def assert_g5_where_dense_is(dense, g5, period_s, tolerance_mm=1e-3, rounding_mm
 
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason=(
-    "since Marlin got the margins by each run's end (planner.BY_END_FLAVORS, 29 November 2026) the G5 "
+    "since Marlin got the margins by each run's end (margins.BY_END_FLAVORS, 29 November 2026) the G5 "
     "output is 1.370 um from the dense output at one of its block ends, 11 nm past the tolerance and both "
     "roundings (1.359 um); every other check here passes: the G5 fit's bound at a run's shorter settle "
     "margin, not traced yet"))

@@ -4,7 +4,7 @@ Takes the blocks of a program (``gcode.read_gcode``), a machine profile and a ``
 (the INI's limits, LinuxCNC's defaults); gives ``LinuxCNCRun``: the TP's position and the
 joints' commands every servo period, when each line's motion ends, and the joints' positions on
 the profile's sample grid
-(``firmware.replan(..., "linuxcnc")`` wraps it as ``FirmwareMotion``).
+(``planners.replan(..., "linuxcnc")`` wraps it as ``FirmwareMotion``).
 
 Modelled from LinuxCNC/linuxcnc src/emc/tp (tp.c, tc.c, blendmath.c of the 2.8/2.9 line as the
 code index stores them, read November 2026: trapezoidal planner only; the S-curve PLANNER_TYPE

@@ -4,7 +4,7 @@ Takes the blocks of a program (``gcode.read_gcode``), a machine profile and a ``
 (from the profile's ``[firmware]`` table: steps_per_mm, block_buffer, max_line_rate,
 min_segment_time, min_steps_per_segment); gives ``MarlinRun``: every block Marlin makes (its
 line, speeds, start and end), the rests where its buffer ran dry, when every line is taken, and
-the positions on the profile's sample grid (``MarlinRun.positions_mm``; ``firmware.replan(...,
+the positions on the profile's sample grid (``MarlinRun.positions_mm``; ``planners.replan(...,
 "marlin")`` wraps it as ``FirmwareMotion``).
 
 Modelled from MarlinFirmware/Marlin bugfix-2.1.x, Marlin/src/module/planner.cpp (commit
@@ -12,7 +12,7 @@ Modelled from MarlinFirmware/Marlin bugfix-2.1.x, Marlin/src/module/planner.cpp 
 - ``buffer_segment``: targets in whole steps, ``lround(mm * steps_per_mm)``; ``_populate_block``:
   a segment whose step_event_count (most steps of any axis, E included) is under
   MIN_STEPS_PER_SEGMENT is no block and the planner keeps its position
-  (``firmware.merge_short_segments``); millimeters is the XYZ length of the whole steps, or |E| when
+  (``merge_short_segments``); millimeters is the XYZ length of the whole steps, or |E| when
   no XYZ axis has MIN_STEPS_PER_SEGMENT steps; nominal speed F, times speed_factor for M203.
 - SLOWDOWN: with ``moves_queued`` (blocks queued and not started) in [2, BLOCK_BUFFER_SIZE/2 - 1]
   and a segment time under M205 B, the segment takes ``seg + 2 (B - seg) / moves_queued`` us.

@@ -4,7 +4,7 @@ Takes the blocks of a program (``gcode.read_gcode(..., "reprap")``), a machine p
 ``ReprapConfig`` (from the profile's ``[firmware]`` table: steps_per_mm, dda_ring_length,
 max_line_rate; the profile's square_corner_velocity as M566 X Y); gives a ``ReprapRun``: every
 move RRF makes (its line, speeds, start and end), the rests where its ring ran dry, when every
-line is taken, and the positions on the profile's sample grid (``firmware.replan(..., "reprap")``
+line is taken, and the positions on the profile's sample grid (``planners.replan(..., "reprap")``
 wraps it as ``FirmwareMotion``).
 
 Modelled from Duet3D/RepRapFirmware 3.5 (src/Movement/DDA.cpp InitStandardMove, DoLookahead,
@@ -40,7 +40,7 @@ Not modelled: CanAddMove's limit on unprepared time (2 s, or 0.5 s but the first
 holding back a deceleration-only move until 50 ms are left (IsGoodToPrepare), RRF's own
 arc segmentation, pressure advance, step timing within a move, M593 input shaping (applied by
 RRF to each move's acceleration and deceleration: bench/firmware.py compares RRF's own impulses
-on the whole plan, through whole steps, ``firmware_shapers.reprap_shaper``). Units: mm, s, mm/s,
+on the whole plan, through whole steps, ``shaping.reprap_shaper``). Units: mm, s, mm/s,
 mm/s^2 (M566 and M203 are in mm/min on the line).
 """
 from __future__ import annotations

@@ -57,7 +57,7 @@ def whole_steps(positions_mm: np.ndarray, steps_per_mm: float) -> np.ndarray:
 
 
 def stepper_positions(samples_mm: np.ndarray, steps_per_mm: dict[str, float]) -> np.ndarray:
-    """Rows of X Y Z E ... (``gcode.AXES``) with X Y Z on their whole steps (``whole_steps``) where
+    """Rows of X Y Z E ... (``blocks.AXES``) with X Y Z on their whole steps (``whole_steps``) where
     ``steps_per_mm`` has them; E as given (it only says which samples print)."""
     out = np.array(samples_mm, dtype=float)
     for axis in ("X", "Y", "Z"):

@@ -91,7 +91,7 @@ class Verdict:
     flavor: str
     original: FirmwareResult
     output: FirmwareResult
-    margins_s: float = 0.0  # the lead and settle time fbspost added (planner.RunMargins)
+    margins_s: float = 0.0  # the lead and settle time fbspost added (margins.RunMargins)
 
     @property
     def time_increase(self) -> float:
@@ -386,7 +386,7 @@ def _measure(program: Path, lines: Iterable[bytes] | None, profile: MachineProfi
             offset_s = cut_s - float(run.line_time_s[before])
         if last is None:
             duration_s = offset_s + run.duration_s
-            n_to = math.floor(duration_s * rate_hz) + 2  # (as firmware.replan samples it)
+            n_to = math.floor(duration_s * rate_hz) + 2  # (as planners.replan samples it)
         else:
             cut_s = offset_s + float(run.line_time_s[last])
             n_to = math.ceil(cut_s * rate_hz)

@@ -1,6 +1,6 @@
 """The planner's limits: those in force block by block, and those of pieces and junctions.
 
-Takes the profile and the limit changes of the blocks (``gcode.PlannerLimits``); gives a row of
+Takes the profile and the limit changes of the blocks (``blocks.PlannerLimits``); gives a row of
 the limits in force per block (``_LimitState.row``), the cruise limits and accelerations of
 pieces by the per-axis rules (``axis_piece_limits``) and the largest speeds at the junctions
 between them (``junction_limits``, Klipper's Move.calc_junction).

@@ -1,6 +1,6 @@
 """The program's blocks read a batch at a time and made into pieces.
 
-Takes the blocks (``gcode.Block``) and the profile; gives, per block with waypoints, a row
+Takes the blocks (``blocks.Block``) and the profile; gives, per block with waypoints, a row
 (``_BlockReader``: its index, line, whether it is motion, feed, row of the limits table,
 points; a MOVE that moves no compensated axis read as a STOP) and per block its dwells until it
 is timed; then the pieces of those rows (``_PieceMaker``: the columns ``_PIECE_FIELDS``, with

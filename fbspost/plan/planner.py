@@ -1,6 +1,6 @@
 """Motion planner: the motion the machine's own controller makes for a program.
 
-Takes the blocks of a program (``gcode.Block``) and a machine profile; gives the plan the
+Takes the blocks of a program (``blocks.Block``) and a machine profile; gives the plan the
 machine's own controller would execute, sampled on the profile's time grid: the X Y Z E machine
 positions at every sample, when each block happens, and the runs of motion between rests.
 
@@ -169,7 +169,7 @@ def plan_blocks(blocks: Iterable[Block], profile: MachineProfile, batch_blocks: 
                 margins: RunMargins | None = None, firmware: str | None = None, every_axis: bool = False) -> Plan:
     """The whole plan of ``blocks`` on ``profile`` (see the module docstring), held in memory;
     ``every_axis``: every axis counts as compensated (no move of an axis without modes becomes a
-    rest: the firmware's own motion of them, as ``firmware.replan`` of an excite sweep needs)."""
+    rest: the firmware's own motion of them, as ``planners.replan`` of an excite sweep needs)."""
     stream = PlanStream(blocks, profile, batch_blocks, keep=True, margins=margins, firmware=firmware,
                         every_axis=every_axis)
     while stream.advance():

@@ -6,7 +6,7 @@ order, one ``Block`` per input line: its number and exact bytes, whether it move
 passes through with the machine at rest (STOP), the linear pieces of a move in machine
 coordinates (mm, the columns of AXES: X Y Z E, then LinuxCNC's A B C U V W; arcs and Beziers
 subdivided), planner-limit changes, and the
-modal state after the line. Bad input raises ``trajectory.InputError`` naming the file and line.
+modal state after the line. Bad input raises ``errors.InputError`` naming the file and line.
 
 ``read_gcode(path, flavor)`` streams the blocks; ``flavors.detect_flavor(path)`` guesses the flavor
 from the first 2000 and last 300 lines. How lines are read:

@@ -10,7 +10,7 @@ carries the time residues and ramps (``writer.timed_blocks``), within the line b
 whose planner ramps at the INI's acceleration: one block per half period from rest to rest in
 whole servo periods (``linuxcnc_sweep``), each taking L / F + F / a.
 ``read_sweep`` gives back a sweep program's motion as written, ``firmware_sweep`` as its
-firmware runs it (``firmware.replan``): what ``identify --accel-log`` relates to an
+firmware runs it (``planners.replan``): what ``identify --accel-log`` relates to an
 accelerometer recording of it.
 """
 from __future__ import annotations
@@ -310,7 +310,7 @@ def _rest_to_rest(times_s: np.ndarray, feeds_mm_s: np.ndarray, accel_mm_s2: floa
 
 def firmware_sweep(path: str | Path, axis: str, profile: MachineProfile) -> Sweep:
     """The sweep program at ``path`` (checked by ``read_sweep``) as its firmware runs it:
-    ``firmware.replan`` of the whole program with ``profile`` for the flavor its header names,
+    ``planners.replan`` of the whole program with ``profile`` for the flavor its header names,
     ``axis``' position every 0.1 ms from the begin marker's time to the end of the sweep's last
     block or dwell (times from the begin marker)."""
     written = read_sweep(path, axis)
@@ -338,7 +338,7 @@ def firmware_sweep(path: str | Path, axis: str, profile: MachineProfile) -> Swee
 
 def _done_s(line_time_s: np.ndarray, dwells_s: list[float], first: int, stop: int) -> float:
     """When the firmware is done with the lines ``first`` to ``stop`` - 1 (``line_time_s`` as
-    ``firmware.replan`` gives it, ``dwells_s`` what each line dwells after it): the end of their
+    ``planners.replan`` gives it, ``dwells_s`` what each line dwells after it): the end of their
     last motion or dwell (Marlin, RRF: a line without motion is timed when the host sends it,
     ahead of the motion, and a comment, not sent, not at all)."""
     return float(np.nanmax([line_time_s[k] + dwells_s[k] for k in range(first, stop)]))
