@@ -122,7 +122,7 @@ def main() -> None:
             for budget in BUDGETS:
                 with tempfile.TemporaryDirectory() as tmp:
                     original = excerpt(program if "/" in program else f"tests/data/{program}", args.lines, Path(tmp))
-                    output = compensated(original, machine, "marlin", budget).rename(Path(tmp) / "fbspost.read.gcode")
+                    output = compensated(original, machine, "marlin", budget).rename(Path(tmp) / "fbspost.gcode")
                     fine = fine_steps(machine, Path(tmp))
                     floor = (compensated(original, str(fine), "marlin", budget), load_profile(fine))
                     result = rows(original, output, profile, budget, floor)

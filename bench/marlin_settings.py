@@ -75,7 +75,7 @@ def main() -> None:
         with tempfile.TemporaryDirectory() as tmp:
             machine = with_firmware(args.machine, lines, Path(tmp))
             original = excerpt(args.program, args.lines, Path(tmp))
-            output = compensated(original, str(machine), "marlin", args.budget).rename(Path(tmp) / "fbspost.read.gcode")
+            output = compensated(original, str(machine), "marlin", args.budget).rename(Path(tmp) / "fbspost.gcode")
             result = rows(original, output, load_profile(machine), args.budget, **changes)
         cells = [f"{rms:.2f} ({peak:.0f})" for _, _, (rms, peak) in result[:4]]
         cells[2] = f"{result[2][0].split()[-1]} {cells[2]}"
