@@ -22,7 +22,8 @@ from scipy import signal
 
 from fbspost.cli import main
 from fbspost.fbs.dynamics import AxisDynamics, modal_response
-from fbspost.fbs.optimizer import AxisLimits, compensate_axis
+from fbspost.fbs.optimizer import compensate_axis
+from fbspost.fbs.settings import AxisLimits
 from fbspost.plan.planner import plan_blocks
 from fbspost.profile import Mode, load_profile
 from fbspost.read.gcode import read_gcode

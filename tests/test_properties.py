@@ -31,7 +31,8 @@ from hypothesis import strategies as st
 from fbspost.fbs import fallback
 from fbspost.fbs.dynamics import AxisDynamics
 from fbspost.fbs.fallback import FALLBACK, AxisGuard
-from fbspost.fbs.optimizer import AxisCompensator, AxisLimits
+from fbspost.fbs.optimizer import AxisCompensator
+from fbspost.fbs.settings import AxisLimits
 from fbspost.job.pipeline import SHAPING_LEFT_OFF, CompensateOptions, compensate_file, compensated_samples
 from fbspost.plan.planner import CLAMPED, RunMargins, plan_blocks
 from fbspost.profile import load_profile

@@ -15,7 +15,8 @@ from click.testing import CliRunner
 from fbspost.cli import main
 from fbspost.contour import PathDistance
 from fbspost.fbs.dynamics import AxisDynamics, ModelSet, modal_response, scaled_mode
-from fbspost.fbs.optimizer import AxisCompensator, AxisLimits, FBSSettings
+from fbspost.fbs.optimizer import AxisCompensator
+from fbspost.fbs.settings import AxisLimits, FBSSettings
 from fbspost.fbs.varying import LoadModes, PositionModes
 from fbspost.firmware.verify import contour_um, modelled, printed_path
 from fbspost.job.pipeline import CompensateOptions, compensate_file, varying_modes

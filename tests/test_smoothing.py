@@ -4,7 +4,8 @@ the run into pieces, and the compensator run on the independently smoothed traje
 import numpy as np
 
 from fbspost.fbs.dynamics import AxisDynamics, ModelSet
-from fbspost.fbs.optimizer import AxisCompensator, AxisLimits, FBSSettings
+from fbspost.fbs.optimizer import AxisCompensator
+from fbspost.fbs.settings import AxisLimits, FBSSettings
 from fbspost.fbs.smoothing import RunSmoother, half_width_samples
 from fbspost.job.pipeline import CompensateOptions, _compensators
 from test_optimizer import smooth_move

@@ -16,7 +16,8 @@ from fbspost.errors import InputError
 from fbspost.fbs import optimizer
 from fbspost.fbs.dynamics import AxisDynamics
 from fbspost.fbs.fallback import FALLBACK
-from fbspost.fbs.optimizer import AxisCompensator, AxisLimits, FBSSettings
+from fbspost.fbs.optimizer import AxisCompensator
+from fbspost.fbs.settings import AxisLimits, FBSSettings
 from fbspost.job import offload, pipeline, planfeed
 from fbspost.job.offload import NICENESS, Offloaded, _portable
 from fbspost.job.pipeline import CompensateOptions, compensate_file

@@ -28,7 +28,8 @@ from .. import __version__
 from ..errors import InputError
 from ..fbs.dynamics import AxisDynamics, ModelSet
 from ..fbs.fallback import FALLBACK, AxisGuard
-from ..fbs.optimizer import AxisCompensator, AxisLimits, FBSSettings
+from ..fbs.optimizer import AxisCompensator
+from ..fbs.settings import AxisLimits, FBSSettings
 from ..fbs.smoothing import half_width_samples
 from ..fbs.varying import LoadModes, PositionModes
 from ..firmware.linuxcnc_time import retimed
