@@ -37,7 +37,7 @@ from .write.atomicfile import atomic_write
 # Each command imports the stages it runs (scipy's signal, ndimage and optimize take seconds to
 # load), so that --help, `machines` and a failing argument answer at once.
 if TYPE_CHECKING:
-    from .job.pipeline import CompensateOptions, Report
+    from .job.report import CompensateOptions, Report
 
 
 class _FriendlyGroup(click.Group):
@@ -182,7 +182,7 @@ def compensate(inputs, machine, output, output_dir, jobs, output_format, toleran
     is left unchanged; the others are still compensated. Exit status 0 if every file
     succeeded, otherwise 1 with a last line naming the failed files.
     """
-    from .job.pipeline import CompensateOptions
+    from .job.report import CompensateOptions
 
     targets = _targets(inputs, output, output_dir, report_path)
     profile = load_profile(machine)
@@ -414,7 +414,7 @@ def trajectory(input_csv, machine, output, lookahead, knot_spacing, commit_spans
     from .fbs.dynamics import AxisDynamics
     from .fbs.optimizer import compensate_axis
     from .fbs.settings import AxisLimits, FBSSettings
-    from .job.pipeline import AxisReport
+    from .job.report import AxisReport
 
     started = time.perf_counter()
     profile = load_profile(machine)

@@ -33,7 +33,8 @@ from fbspost.fbs.dynamics import AxisDynamics
 from fbspost.fbs.fallback import FALLBACK, AxisGuard
 from fbspost.fbs.optimizer import AxisCompensator
 from fbspost.fbs.settings import AxisLimits
-from fbspost.job.pipeline import SHAPING_LEFT_OFF, CompensateOptions, compensate_file, compensated_samples
+from fbspost.job.pipeline import SHAPING_LEFT_OFF, compensate_file, compensated_samples
+from fbspost.job.report import CompensateOptions
 from fbspost.plan.planner import CLAMPED, RunMargins, plan_blocks
 from fbspost.profile import load_profile
 from fbspost.read.gcode import read_gcode

@@ -19,7 +19,9 @@ from fbspost.fbs.optimizer import AxisCompensator
 from fbspost.fbs.settings import AxisLimits, FBSSettings
 from fbspost.fbs.varying import LoadModes, PositionModes
 from fbspost.firmware.verify import contour_um, modelled, printed_path
-from fbspost.job.pipeline import CompensateOptions, compensate_file, varying_modes
+from fbspost.job.axes import varying_modes
+from fbspost.job.pipeline import compensate_file
+from fbspost.job.report import CompensateOptions
 from fbspost.profile import Mode, PositionTable, ProfileError, format_profile, load_profile, parse_profile
 from fbspost.read.gcode import AXES
 from fbspost.tools.simulate import MODEL_ERRORS, model_error, simulate_program

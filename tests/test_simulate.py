@@ -17,7 +17,7 @@ from fbspost.cli import main
 from fbspost.fbs.dynamics import AxisDynamics
 from fbspost.fbs.optimizer import AxisCompensator
 from fbspost.fbs.settings import AxisLimits
-from fbspost.job.pipeline import CompensateOptions
+from fbspost.job.report import CompensateOptions
 from fbspost.plan.planner import RunMargins, plan_blocks
 from fbspost.profile import format_profile, load_profile
 from fbspost.read.gcode import detect_flavor, read_gcode

@@ -37,7 +37,8 @@ from ..contour import PathDistance
 from ..errors import InputError
 from ..fbs.dynamics import AxisDynamics, scaled_mode
 from ..firmware.shapers import SHAPERS, Shaper, klipper_shaper, shape
-from ..job.pipeline import compensated_samples, varying_modes
+from ..job.axes import varying_modes
+from ..job.pipeline import compensated_samples
 from ..plan.planner import EXTRUDE_ONLY_MM, Plan, PlanStream, RunMargins, fill_unknown, plan_blocks
 from ..profile import AxisProfile, MachineProfile, ProfileError, with_travel
 from ..read.gcode import AXES, Block, Kind, detect_flavor, feed_lengths, read_gcode
