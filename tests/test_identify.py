@@ -29,7 +29,7 @@ from fbspost.profile import Mode, load_profile
 from fbspost.read.gcode import read_gcode
 from fbspost.tools import excite as excite_module
 from fbspost.tools.examples import butterfly
-from fbspost.tools.identify import fit_frf
+from fbspost.tools.modal_fit import fit_frf
 from reference import execute, rms, sample_blocks, simulate_lsim
 
 MACHINES = Path(__file__).resolve().parents[1] / "machines"
