@@ -12,7 +12,8 @@ import time
 import numpy as np
 
 from fbspost.fbs.dynamics import AxisDynamics
-from fbspost.fbs.optimizer import AxisCompensator, AxisLimits, compensate_axis
+from fbspost.fbs.optimizer import AxisCompensator, compensate_axis
+from fbspost.fbs.settings import AxisLimits
 from fbspost.profile import load_profile
 from fbspost.tools.examples import butterfly
 

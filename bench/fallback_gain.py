@@ -20,7 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from fbspost.job.pipeline import CompensateOptions, compensate_file
+from fbspost.job.pipeline import compensate_file
+from fbspost.job.report import CompensateOptions
 from fbspost.profile import load_profile
 from fbspost.tools.examples import butterfly_dense_program, butterfly_polyline_program
 from fbspost.tools.simulate import simulate_program

@@ -19,7 +19,8 @@ import argparse
 import numpy as np
 
 from fbspost.fbs.dynamics import AxisDynamics, modal_response
-from fbspost.fbs.optimizer import AxisLimits, compensate_axis
+from fbspost.fbs.optimizer import compensate_axis
+from fbspost.fbs.settings import AxisLimits
 from fbspost.profile import Mode, load_profile
 from fbspost.tools.examples import butterfly
 

@@ -31,7 +31,8 @@ sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
 
 from canon_check import command_problems, path_problems  # noqa: E402
 from fbspost.errors import InputError  # noqa: E402
-from fbspost.job.pipeline import CompensateOptions, compensate_file  # noqa: E402
+from fbspost.job.pipeline import compensate_file  # noqa: E402
+from fbspost.job.report import CompensateOptions  # noqa: E402
 from fbspost.profile import load_profile  # noqa: E402
 from fbspost.read.blocks import NeedsInterpreter  # noqa: E402
 from fbspost.read.expand import MOTION_CALLS, canonical_calls, expand  # noqa: E402

@@ -34,7 +34,8 @@ PROFILE = "printer-two-mode"
 _RUN = """
 import json, resource, sys, time
 from pathlib import Path
-from fbspost.job.pipeline import CompensateOptions, compensate_file
+from fbspost.job.pipeline import compensate_file
+from fbspost.job.report import CompensateOptions
 from fbspost.profile import load_profile
 from fbspost.firmware.verify import verify
 mode, source, output = sys.argv[1], Path(sys.argv[2]), Path(sys.argv[3])

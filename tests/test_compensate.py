@@ -11,7 +11,8 @@ from click.testing import CliRunner
 
 from fbspost.cli import main
 from fbspost.firmware.linuxcnc_tp import run_linuxcnc
-from fbspost.job.pipeline import CompensateOptions, compensate_file
+from fbspost.job.pipeline import compensate_file
+from fbspost.job.report import CompensateOptions
 from fbspost.plan.margins import RunMargins
 from fbspost.plan.planner import plan_blocks
 from fbspost.profile import load_profile

@@ -390,7 +390,7 @@ def test_identify_with_the_firmware_plan_of_a_retimed_sweep(tmp_path):
     printer-two-mode's X (52 Hz, zeta 0.07; 96 Hz, 0.03) and recorded: identify with --machine
     plans the program as Klipper does and finds the first mode within 2% (frequency) and its
     damping within 20%; correlated with the sweep as written it does not."""
-    from fbspost.tools import excite, identify
+    from fbspost.tools import excite, measurements, modal_fit, sweep_response
 
     path, log = tmp_path / "sweep.gcode", tmp_path / "log.csv"
     text = write_sweep(path, "klipper", PRINTER, 8.0)
@@ -410,9 +410,9 @@ def test_identify_with_the_firmware_plan_of_a_retimed_sweep(tmp_path):
     assert found.frequency_hz == pytest.approx(truth[0].frequency_hz, rel=0.02)
     assert found.damping == pytest.approx(truth[0].damping, rel=0.2)
 
-    times_s, accel = identify.read_accel_log(log, "accel_x")
-    rec = identify.frf_from_recording(times_s, accel, excite.read_sweep(path, "X"))
-    fit = identify.fit_frf(rec.frequency_hz, rec.response, None, 8, weights=rec.coherence, fit_delay=True)
+    times_s, accel = measurements.read_accel_log(log, "accel_x")
+    rec = sweep_response.frf_from_recording(times_s, accel, excite.read_sweep(path, "X"))
+    fit = modal_fit.fit_frf(rec.frequency_hz, rec.response, None, 8, weights=rec.coherence, fit_delay=True)
     written = min(fit.modes, key=lambda m: abs(m.frequency_hz - 52.0))
     print(f"as written: {written.frequency_hz:.3f} Hz, damping {written.damping:.4f}")
     assert abs(written.frequency_hz / 52.0 - 1.0) > 0.02 or abs(written.damping / 0.07 - 1.0) > 0.2

@@ -7,8 +7,10 @@ import pytest
 
 from fbspost.fbs.dynamics import AxisDynamics
 from fbspost.fbs.fallback import FALLBACK, LARGEST, LIMITS, WORSE, AxisGuard
-from fbspost.fbs.optimizer import AxisCompensator, AxisLimits
-from fbspost.job.pipeline import CompensateOptions, compensate_file
+from fbspost.fbs.optimizer import AxisCompensator
+from fbspost.fbs.settings import AxisLimits
+from fbspost.job.pipeline import compensate_file
+from fbspost.job.report import CompensateOptions
 from fbspost.plan.planner import plan_blocks
 from fbspost.profile import load_profile
 from fbspost.read.gcode import read_gcode

@@ -21,7 +21,8 @@ import numpy as np
 import pytest
 
 from fbspost.firmware.transparency import transparent_limits
-from fbspost.job.pipeline import CompensateOptions, compensate_file
+from fbspost.job.pipeline import compensate_file
+from fbspost.job.report import CompensateOptions
 from fbspost.plan.planner import PlanStream, plan_blocks
 from fbspost.profile import load_profile
 from fbspost.read.blocks import Kind

@@ -22,13 +22,14 @@ from scipy import signal
 
 from fbspost.cli import main
 from fbspost.fbs.dynamics import AxisDynamics, modal_response
-from fbspost.fbs.optimizer import AxisLimits, compensate_axis
+from fbspost.fbs.optimizer import compensate_axis
+from fbspost.fbs.settings import AxisLimits
 from fbspost.plan.planner import plan_blocks
 from fbspost.profile import Mode, load_profile
 from fbspost.read.gcode import read_gcode
 from fbspost.tools import excite as excite_module
 from fbspost.tools.examples import butterfly
-from fbspost.tools.identify import fit_frf
+from fbspost.tools.modal_fit import fit_frf
 from reference import execute, rms, sample_blocks, simulate_lsim
 
 MACHINES = Path(__file__).resolve().parents[1] / "machines"

@@ -12,7 +12,8 @@ import pytest
 
 from fbspost.firmware.linuxcnc_tp import run_linuxcnc
 from fbspost.firmware.verify import printed_path
-from fbspost.job.pipeline import CompensateOptions, compensate_file
+from fbspost.job.pipeline import compensate_file
+from fbspost.job.report import CompensateOptions
 from fbspost.profile import load_profile
 from fbspost.read.gcode import read_gcode
 from linuxcnc_itself import as_written, follows, from_first_motion, installed, joint_commands, on_grid

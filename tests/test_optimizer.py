@@ -9,7 +9,10 @@ from scipy import linalg, optimize, sparse
 from scipy.interpolate import BSpline
 
 from fbspost.fbs.dynamics import AxisDynamics
-from fbspost.fbs.optimizer import AxisCompensator, AxisLimits, FBSSettings, _Stretch, compensate_axis
+from fbspost.fbs.limited_qp import LimitedQP
+from fbspost.fbs.optimizer import AxisCompensator, compensate_axis
+from fbspost.fbs.settings import AxisLimits, FBSSettings
+from fbspost.fbs.windows import Window
 from fbspost.profile import load_profile
 from fbspost.tools.examples import butterfly
 from reference import finite_derivative_max, rms, simulate_lsim
@@ -406,24 +409,23 @@ def random_window(seed, equalities):
     g = rng.standard_normal(n) * 5
     E, e = rng.standard_normal((equalities, n)), rng.uniform(-0.2, 0.2, equalities)
     kkt = np.block([[H, E.T], [E, np.zeros((equalities, equalities))]])
-    window = SimpleNamespace(_hinv_at=None, _ldp=None, A_free=sparse.csc_matrix(A), n_free=n, H=H,
-                             E=E if equalities else None,
-                             _factor=linalg.lu_factor(kkt) if equalities else linalg.cho_factor(H))
-    for name in ("_gram_columns", "_active_set", "violation"):
-        setattr(window, name, getattr(_Stretch, name).__get__(window))
+    window = SimpleNamespace(A_free=sparse.csc_matrix(A), n_free=n, H=H, E=E if equalities else None,
+                             factor=linalg.lu_factor(kkt) if equalities else linalg.cho_factor(H))
+    window.violation = Window.violation.__get__(window)
+    window.qp = LimitedQP(window)
     p_free = np.linalg.solve(kkt, np.concatenate([g, e]))[:n]
     assert np.abs(A @ p_free + offset).max() > 1  # the limits bind
     return window, H, g, A, offset, E, e, p_free
 
 
 @pytest.mark.parametrize("seed", range(20))
-@pytest.mark.parametrize("solver, equalities", [("_active_set", 0), ("_active_set", 2), ("_least_distance", 0)])
+@pytest.mark.parametrize("solver, equalities", [("active_set", 0), ("active_set", 2), ("least_distance", 0)])
 def test_dual_active_set_step_is_the_qp_optimum(seed, solver, equalities):
     """The QP step on random problems, by either solver (Goldfarb-Idnani on the factored window,
     DAQP on its least-distance form): its point is KKT-certified (so the optimum), and no
     feasible point SLSQP finds is better."""
     window, H, g, A, offset, E, e, p_free = random_window(seed, equalities)
-    ours = getattr(_Stretch, solver)(window, p_free, offset)
+    ours = getattr(window.qp, solver)(p_free, offset)
     assert kkt_certified(H, g, A, offset, ours, E, e)
 
     def objective(p):
@@ -459,8 +461,8 @@ def test_daqp_is_the_optimum_of_the_hard_cases_corner_windows(monkeypatch):
     axis = load_profile("printer-two-mode").axes["X"]
     dynamics = AxisDynamics(axis.modes, 1e-3)
     windows = []
-    constrained = _Stretch.constrained
-    monkeypatch.setattr(_Stretch, "constrained", lambda self, target, p_fixed, offset, end_values, warm: windows.append(
+    constrained = Window.constrained
+    monkeypatch.setattr(Window, "constrained", lambda self, target, p_fixed, offset, end_values, warm: windows.append(
         (self, target, offset, warm)) or constrained(self, target, p_fixed, offset, end_values, warm))
     result = AxisCompensator(dynamics, AxisLimits.from_profile(axis), FBSSettings(knot_spacing_samples=1))(
         corner_moves(1e-3)
@@ -469,7 +471,7 @@ def test_daqp_is_the_optimum_of_the_hard_cases_corner_windows(monkeypatch):
     assert len(regular) >= 8 and not result.warnings
     for window, target, offset, warm in regular[:8]:
         A, g = window.A_free.toarray(), window.gradient(target)
-        daqp_p, exact_p = window._least_distance(warm, offset), window._active_set(warm, offset)
+        daqp_p, exact_p = window.qp.least_distance(warm, offset), window.qp.active_set(warm, offset)
         assert kkt_certified(window.H, g, A, offset, daqp_p, residual_tol=1e-6)
 
         def objective(p, window=window, g=g):

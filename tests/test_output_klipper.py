@@ -15,7 +15,8 @@ import pytest
 
 from fbspost.firmware.planners import replan
 from fbspost.firmware.verify import contour_um, modelled, printed_path
-from fbspost.job.pipeline import CompensateOptions, compensate_file, compensated_samples
+from fbspost.job.pipeline import compensate_file, compensated_samples
+from fbspost.job.report import CompensateOptions
 from fbspost.plan.margins import RunMargins
 from fbspost.plan.planner import plan_blocks
 from fbspost.profile import load_profile, with_travel

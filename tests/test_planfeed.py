@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from fbspost.job import planfeed
-from fbspost.job.pipeline import CompensateOptions, _plan_stream
+from fbspost.job.reading import plan_stream
+from fbspost.job.report import CompensateOptions
 from fbspost.profile import load_profile
 from fbspost.read.gcode import read_gcode
 
@@ -27,7 +28,7 @@ class _Wire:
 
 
 def _plan(source: Path, profile):
-    return _plan_stream(read_gcode(source, "marlin", profile.home_mm), profile, CompensateOptions(), "marlin")
+    return plan_stream(read_gcode(source, "marlin", profile.home_mm), profile, CompensateOptions(), "marlin")
 
 
 @pytest.mark.parametrize("batch_samples", [700, planfeed.BATCH_SAMPLES])

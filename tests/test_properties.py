@@ -31,8 +31,10 @@ from hypothesis import strategies as st
 from fbspost.fbs import fallback
 from fbspost.fbs.dynamics import AxisDynamics
 from fbspost.fbs.fallback import FALLBACK, AxisGuard
-from fbspost.fbs.optimizer import AxisCompensator, AxisLimits
-from fbspost.job.pipeline import SHAPING_LEFT_OFF, CompensateOptions, compensate_file, compensated_samples
+from fbspost.fbs.optimizer import AxisCompensator
+from fbspost.fbs.settings import AxisLimits
+from fbspost.job.pipeline import SHAPING_LEFT_OFF, compensate_file, compensated_samples
+from fbspost.job.report import CompensateOptions
 from fbspost.plan.margins import RunMargins
 from fbspost.plan.pieces import CLAMPED
 from fbspost.plan.planner import plan_blocks

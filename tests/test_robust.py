@@ -15,10 +15,13 @@ from click.testing import CliRunner
 from fbspost.cli import main
 from fbspost.contour import PathDistance
 from fbspost.fbs.dynamics import AxisDynamics, ModelSet, modal_response, scaled_mode
-from fbspost.fbs.optimizer import AxisCompensator, AxisLimits, FBSSettings
+from fbspost.fbs.optimizer import AxisCompensator
+from fbspost.fbs.settings import AxisLimits, FBSSettings
 from fbspost.fbs.varying import load_modes, position_modes
 from fbspost.firmware.verify import contour_um, modelled, printed_path
-from fbspost.job.pipeline import CompensateOptions, compensate_file, varying_modes
+from fbspost.job.axes import varying_modes
+from fbspost.job.pipeline import compensate_file
+from fbspost.job.report import CompensateOptions
 from fbspost.profile import Mode, PositionTable, ProfileError, format_profile, load_profile, parse_profile
 from fbspost.read.blocks import AXES
 from fbspost.tools.simulate import MODEL_ERRORS, model_error, simulate_program

@@ -15,8 +15,9 @@ from click.testing import CliRunner
 
 from fbspost.cli import main
 from fbspost.fbs.dynamics import AxisDynamics
-from fbspost.fbs.optimizer import AxisCompensator, AxisLimits
-from fbspost.job.pipeline import CompensateOptions
+from fbspost.fbs.optimizer import AxisCompensator
+from fbspost.fbs.settings import AxisLimits
+from fbspost.job.report import CompensateOptions
 from fbspost.plan.margins import RunMargins
 from fbspost.plan.planner import plan_blocks
 from fbspost.profile import format_profile, load_profile

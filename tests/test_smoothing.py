@@ -4,9 +4,11 @@ the run into pieces, and the compensator run on the independently smoothed traje
 import numpy as np
 
 from fbspost.fbs.dynamics import AxisDynamics, ModelSet
-from fbspost.fbs.optimizer import AxisCompensator, AxisLimits, FBSSettings
+from fbspost.fbs.optimizer import AxisCompensator
+from fbspost.fbs.settings import AxisLimits, FBSSettings
 from fbspost.fbs.smoothing import RunSmoother, half_width_samples
-from fbspost.job.pipeline import CompensateOptions, _compensators
+from fbspost.job.axes import axis_compensators
+from fbspost.job.report import CompensateOptions
 from test_optimizer import smooth_move
 from test_robust import NOMINAL, ROBUST, T, with_tolerances
 
@@ -100,7 +102,7 @@ def test_the_compensator_tracks_the_smoothed_trajectory():
 
 
 def test_only_robust_compensation_smooths_and_every_axis_alike():
-    robust = _compensators(ROBUST, CompensateOptions())
+    robust = axis_compensators(ROBUST, CompensateOptions())
     assert {c.settings.smoothing_half_width for c in robust.values()} == {4}  # 96 Hz, on X and on Y
-    nominal = _compensators(NOMINAL, CompensateOptions())
+    nominal = axis_compensators(NOMINAL, CompensateOptions())
     assert {c.settings.smoothing_half_width for c in nominal.values()} == {0}

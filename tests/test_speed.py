@@ -16,10 +16,12 @@ from fbspost.errors import InputError
 from fbspost.fbs import optimizer
 from fbspost.fbs.dynamics import AxisDynamics
 from fbspost.fbs.fallback import FALLBACK
-from fbspost.fbs.optimizer import AxisCompensator, AxisLimits, FBSSettings
-from fbspost.job import offload, pipeline, planfeed
+from fbspost.fbs.optimizer import AxisCompensator
+from fbspost.fbs.settings import AxisLimits, FBSSettings
+from fbspost.job import offload, planfeed, processes
 from fbspost.job.offload import NICENESS, Offloaded, _portable
-from fbspost.job.pipeline import CompensateOptions, compensate_file
+from fbspost.job.pipeline import compensate_file
+from fbspost.job.report import CompensateOptions
 from fbspost.profile import load_profile
 from fbspost.write.marlinmerge import _merged
 from test_streaming import raster
@@ -125,13 +127,13 @@ def test_axes_go_to_processes_of_their_own_for_long_programs(tmp_path, segment_m
     A short program stays here (a process takes about 0.5 s to start)."""
     source = tmp_path / "long.gcode"
     source.write_text("G1 F3000\n" + "".join(f"G1 X{i * segment_mm:.2f} Y{i % 2 * 1e-3:.3f}\n" for i in range(16_000)))
-    assert source.stat().st_size > pipeline._SECOND_PROCESS_BYTES
+    assert source.stat().st_size > processes._SECOND_PROCESS_BYTES
     options = CompensateOptions(flavor="marlin")
-    assert pipeline._in_second_process(source, options)
-    assert not pipeline._in_second_process(source, replace(options, parallel_axes=False))
+    assert processes.in_second_process(source, options)
+    assert not processes.in_second_process(source, replace(options, parallel_axes=False))
     short = tmp_path / "short.gcode"
-    short.write_bytes(source.read_bytes()[:pipeline._SECOND_PROCESS_BYTES - 1])
-    assert not pipeline._in_second_process(short, options)
+    short.write_bytes(source.read_bytes()[:processes._SECOND_PROCESS_BYTES - 1])
+    assert not processes.in_second_process(short, options)
 
 
 def _talk(channel):

@@ -5,8 +5,9 @@ from pathlib import Path
 
 import pytest
 
-from fbspost.job import pipeline
-from fbspost.job.pipeline import CompensateOptions, compensate_file
+from fbspost.job import axes
+from fbspost.job.pipeline import compensate_file
+from fbspost.job.report import CompensateOptions
 from fbspost.plan import lookahead, planner
 from fbspost.profile import load_profile
 from fbspost.write import runs, samples
@@ -45,7 +46,7 @@ def test_streamed_output_is_the_whole_programs(tmp_path, monkeypatch, name, prof
     for batch, chunk, feed, flush in ((WHOLE, WHOLE, WHOLE, math.inf), (13, 997, 331, 0.5)):
         monkeypatch.setattr(planner, "BATCH_BLOCKS", batch)
         monkeypatch.setattr(runs, "_FLUSH_S", flush)
-        monkeypatch.setattr(pipeline, "_CHUNK", chunk)
+        monkeypatch.setattr(axes, "_CHUNK", chunk)
         monkeypatch.setattr(runs, "_FEED", feed)
         held.clear()
         target = tmp_path / f"{chunk}.gcode"

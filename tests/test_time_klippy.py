@@ -21,7 +21,8 @@ import itertools
 import pytest
 
 from fbspost.firmware.verify import contour_um, modelled, printed_path
-from fbspost.job.pipeline import CompensateOptions, compensate_file
+from fbspost.job.pipeline import compensate_file
+from fbspost.job.report import CompensateOptions
 from fbspost.profile import load_profile
 from firmware_results import klippy_run, move_ends
 from klippy_planner import klippy_or_skip

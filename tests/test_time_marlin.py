@@ -16,7 +16,8 @@ import numpy as np
 import pytest
 
 from fbspost.firmware.marlin import MarlinConfig, run_marlin
-from fbspost.job.pipeline import CompensateOptions, compensate_file
+from fbspost.job.pipeline import compensate_file
+from fbspost.job.report import CompensateOptions
 from fbspost.profile import load_profile
 from fbspost.read.gcode import read_gcode
 from reference import serial

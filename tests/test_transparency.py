@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from fbspost.firmware.transparency import FirmwareSettings, Transparency
-from fbspost.job.pipeline import SHAPING_LEFT_OFF, CompensateOptions, compensate_file
+from fbspost.job.pipeline import SHAPING_LEFT_OFF, compensate_file
+from fbspost.job.report import CompensateOptions
 from fbspost.profile import ProfileError, format_profile, load_profile, parse_profile, tomllib
 from fbspost.read.blocks import AXES, Block, Kind, Modal, PlannerLimits
 from fbspost.write.emitter import _Emitter

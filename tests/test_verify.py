@@ -23,8 +23,9 @@ from fbspost.firmware.linuxcnc_tp import run_linuxcnc
 from fbspost.firmware.planners import replan
 from fbspost.firmware.reprap import commanded_pieces
 from fbspost.firmware.verify import MAX_TIME_INCREASE, FirmwareResult, contour_um, modelled, printed_path
-from fbspost.job import pipeline
-from fbspost.job.pipeline import CompensateOptions, compensate_file
+from fbspost.job import verification
+from fbspost.job.pipeline import compensate_file
+from fbspost.job.report import CompensateOptions
 from fbspost.profile import load_profile
 from fbspost.read.gcode import read_gcode
 from reference import execute, serial, simulate_lsim
@@ -412,7 +413,7 @@ def test_the_check_beside_the_compensation_gives_the_verdict_of_the_written_file
     read 997 bytes at a time: lines split across reads), gives the verdict of ``verify`` on the
     file once written, to the last bit, and keeps or replaces the output as that verdict says
     (the coarse Marlin: the original kept)."""
-    monkeypatch.setattr(pipeline, "_ANNOUNCE_BYTES", 4096)
+    monkeypatch.setattr(verification, "_ANNOUNCE_BYTES", 4096)
     monkeypatch.setattr(verify_module, "FOLLOW_BYTES", 997)
     if make == "butterfly":
         profile, source = load_profile("patent-xy-stage"), tmp_path / "butterfly.ngc"

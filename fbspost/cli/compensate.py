@@ -26,7 +26,7 @@ from .group import ENDING_SIGNALS, describe, interrupt_status, machine_option, m
 # The command imports the stages it runs (scipy's signal, ndimage and optimize take seconds to
 # load), so that --help and a failing argument answer at once.
 if TYPE_CHECKING:
-    from ..job.pipeline import CompensateOptions, Report
+    from ..job.report import CompensateOptions, Report
 
 
 @main.command()
@@ -82,7 +82,7 @@ def compensate(inputs, machine, output, output_dir, jobs, output_format, toleran
     is left unchanged; the others are still compensated. Exit status 0 if every file
     succeeded, otherwise 1 with a last line naming the failed files.
     """
-    from ..job.pipeline import CompensateOptions
+    from ..job.report import CompensateOptions
 
     targets = _targets(inputs, output, output_dir, report_path)
     profile = load_profile(machine)

@@ -77,6 +77,7 @@ def identify(frf_csv, axis, n_modes, max_modes, output, merge, plot, klipper_csv
     the measurement, or too uncertain, is refused (exit status 1) unless --force.
     """
     from ..tools import identify as ident
+    from ..tools import measurements
 
     sources = [s for s in (frf_csv, klipper_csv, klipper_cfg, accel_log) if s]
     if len(sources) != 1:
@@ -102,7 +103,7 @@ def identify(frf_csv, axis, n_modes, max_modes, output, merge, plot, klipper_csv
     start = base
     if klipper_cfg:  # the firmware's settings too: the output restores its shaping, plans with its limits
         new = ident.profile_with_axes(None, {}, "", {}, name or output.stem)
-        start = ident.klipper_cfg_machine(klipper_cfg, base or new)
+        start = measurements.klipper_cfg_machine(klipper_cfg, base or new)
         lines.append(f"[firmware] from {klipper_cfg.name}: flavor klipper, input shaping "
                      + (", ".join(f"{a} {f:g} Hz" for a, f in start.firmware.shaper_frequency_hz.items()) or "none")
                      + f" (restored after the compensated motion), planner acceleration "
@@ -122,22 +123,22 @@ def identify(frf_csv, axis, n_modes, max_modes, output, merge, plot, klipper_csv
 def _klipper_estimate(klipper_csv, klipper_cfg, axis, form, lines: list[str]) -> tuple[dict, str]:
     """identify's coarse estimate from Klipper's files: the modes (of ``form``, with the tolerances
     of a machine not measured) per axis and the profile's note."""
-    from ..tools import identify as ident
+    from ..tools import fit_trust, measurements
 
     if klipper_csv:
-        mode, f1, f2 = ident.klipper_psd_mode(klipper_csv, axis, form)
+        mode, f1, f2 = measurements.klipper_psd_mode(klipper_csv, axis, form)
         found = {axis: mode}
         lines.append(f"axis {axis}: PSD peak {mode.frequency_hz:.4g} Hz, half power {f1:.4g}..{f2:.4g} Hz")
         note = f"axis {axis}: COARSE ESTIMATE from Klipper calibrate_shaper data {klipper_csv.name}"
     else:
-        found = ident.klipper_cfg_modes(klipper_cfg, form)
+        found = measurements.klipper_cfg_modes(klipper_cfg, form)
         if axis:
             if axis not in found:
                 raise InputError(klipper_cfg, None, f"[input_shaper] has no shaper_freq_{axis.lower()}")
             found = {axis: found[axis]}
         note = f"axes {', '.join(found)}: COARSE ESTIMATE from Klipper [input_shaper] of {klipper_cfg.name}"
-    found = {k: replace(m, frequency_tolerance=ident.COARSE_FREQUENCY_TOLERANCE,
-                        damping_tolerance=ident.COARSE_DAMPING_TOLERANCE) for k, m in found.items()}
+    found = {k: replace(m, frequency_tolerance=fit_trust.COARSE_FREQUENCY_TOLERANCE,
+                        damping_tolerance=fit_trust.COARSE_DAMPING_TOLERANCE) for k, m in found.items()}
     for name_, mode in found.items():
         lines.append(f"axis {name_}: 1 mode ({form}-excited) {mode.frequency_hz:.4g} Hz, damping {mode.damping:.4g}, "
                      f"alpha {mode.alpha:.6g}, beta {mode.beta:.6g}; tolerances written: frequency "
@@ -153,15 +154,16 @@ def _fitted(frf_csv, accel_log, program, accel_column, axis, n_modes, max_modes,
     """identify's fit of a measured frequency response (a CSV, or an accelerometer recording of
     the sweep ``program``, run as its firmware runs it on the profile ``machine``): the modes
     (with the fit's tolerances), the profile's note and the plot (PNG bytes, or None). A fit
-    that fails ``identify.assess_fit``'s checks raises ``InputError`` unless ``force`` (then it
+    that fails ``fit_trust.assess_fit``'s checks raises ``InputError`` unless ``force`` (then it
     is a warning)."""
     from ..tools import excite as excite_module
+    from ..tools import fit_trust, measurements, modal_fit, sweep_response
     from ..tools import identify as ident
 
     if accel_log:
         sweep = excite_module.commanded_sweep(program, axis, machine, lines)
-        times_s, accel = ident.read_accel_log(accel_log, accel_column or f"accel_{axis.lower()}")
-        rec, fit, mark_rate = ident.fit_recording(times_s, accel, sweep, n_modes, max_modes)
+        times_s, accel = measurements.read_accel_log(accel_log, accel_column or f"accel_{axis.lower()}")
+        rec, fit, mark_rate = sweep_response.fit_recording(times_s, accel, sweep, n_modes, max_modes)
         frequency_hz, coherence = rec.frequency_hz, rec.coherence
         late_s = fit.delay_s + fit.clock_error * rec.excited_at_s
         measured = rec.response * np.exp(2j * np.pi * rec.frequency_hz * late_s)
@@ -175,8 +177,8 @@ def _fitted(frf_csv, accel_log, program, accel_column, axis, n_modes, max_modes,
         advice = ("check that the firmware ran the sweep as written (its acceleration limit at least the "
                   "program's, input shaping off) and the accelerometer is fixed to the moving part, and record again")
     else:
-        frequency_hz, measured = ident.read_frf_csv(frf_csv)
-        fit = ident.fit_frf(frequency_hz, measured, n_modes, max_modes)
+        frequency_hz, measured = measurements.read_frf_csv(frf_csv)
+        fit = modal_fit.fit_frf(frequency_hz, measured, n_modes, max_modes)
         coherence = None
         note = f"axis {axis}: identified from {frf_csv.name}"
         advice = "check the measurement and the fit (--plot, --modes)"
@@ -190,7 +192,7 @@ def _fitted(frf_csv, accel_log, program, accel_column, axis, n_modes, max_modes,
                  + ", ".join(f"{n}: {100 * e:.3g}%" for n, e in fit.errors_by_count.items()))
     dc_gain = sum(m.alpha / m.omega_rad_s**2 for m in fit.modes)
     lines.append(f"DC gain of the fit {dc_gain:.4f} (scaled to 1 in the profile)")
-    trust = ident.assess_fit(fit, frequency_hz, coherence)
+    trust = fit_trust.assess_fit(fit, frequency_hz, coherence)
     source = accel_log or frf_csv
     if trust.refusals and not force:
         raise InputError(source, None, f"the fit is not usable: {'; '.join(trust.refusals + trust.warnings)}: "
@@ -199,10 +201,10 @@ def _fitted(frf_csv, accel_log, program, accel_column, axis, n_modes, max_modes,
         what = "not usable, written as --force asks" if trust.refusals else "doubtful"
         lines.append(f"warning: {source}: the fit is {what}: {'; '.join(trust.refusals + trust.warnings)}: {advice}")
     lines.append(f"tolerances written: frequency {trust.frequency_tolerance:.3g}, damping "
-                 f"{trust.damping_tolerance:.3g} (the fit's {ident.COVERAGE:g} standard deviations "
+                 f"{trust.damping_tolerance:.3g} (the fit's {fit_trust.COVERAGE:g} standard deviations "
                  f"{trust.frequency_spread:.2g} and {trust.damping_spread:.2g}; at least "
-                 f"{ident.MIN_FREQUENCY_TOLERANCE:g} and {ident.MIN_DAMPING_TOLERANCE:g}, "
-                 f"at most {ident.MAX_TOLERANCE:g})")
+                 f"{fit_trust.MIN_FREQUENCY_TOLERANCE:g} and {fit_trust.MIN_DAMPING_TOLERANCE:g}, "
+                 f"at most {fit_trust.MAX_TOLERANCE:g})")
     modes = tuple(replace(m, frequency_tolerance=trust.frequency_tolerance, damping_tolerance=trust.damping_tolerance)
                   for m in fit.modes)
     picture = ident.plot_png(frequency_hz, measured, fit.response(frequency_hz), note) if plot else None

@@ -38,8 +38,9 @@ def trajectory(input_csv, machine, output, lookahead, knot_spacing, commit_spans
     within the axis' limits; other columns are copied. The output has the same samples.
     """
     from ..fbs.dynamics import AxisDynamics
-    from ..fbs.optimizer import AxisLimits, FBSSettings, compensate_axis
-    from ..job.pipeline import AxisReport
+    from ..fbs.optimizer import compensate_axis
+    from ..fbs.settings import AxisLimits, FBSSettings
+    from ..job.report import AxisReport
 
     started = time.perf_counter()
     profile = load_profile(machine)

@@ -46,7 +46,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .optimizer import _LIMIT_TOLERANCE, AxisCompensator
+from .optimizer import AxisCompensator
+from .settings import LIMIT_TOLERANCE
 
 _LONGEST = 16  # units of the longest candidate, at least (and four ramps)
 _RECENT_S = 2.0  # the original's largest error over this much before a decision bounds its errors (and all ahead)
@@ -158,7 +159,7 @@ class AxisGuard:
         self.history = max([*self.limits, 1])
         # the travel, and as judged: as far beyond it as the optimizer's rows accept (clipped when written)
         self.travel = compensator.limits.position_mm
-        slack = _LIMIT_TOLERANCE * (compensator.limits.position_half_mm or 0.0)
+        slack = LIMIT_TOLERANCE * (compensator.limits.position_half_mm or 0.0)
         self.judged_travel = (self.travel[0] - slack, self.travel[1] + slack)
         self.orders = [0] * (compensator.limits.position_half_mm is not None) + sorted(self.limits)
         # Blends last whole units, at least the decay time of the slowest mode: removed faster,
@@ -329,7 +330,7 @@ class AxisGuard:
         values = np.diff(command, order)[self.history - order:]
         if order == 0:
             return (values < self.judged_travel[0]) | (values > self.judged_travel[1])
-        return np.abs(values) > self.limits[order] * self.period_s**order * (1.0 + _LIMIT_TOLERANCE)
+        return np.abs(values) > self.limits[order] * self.period_s**order * (1.0 + LIMIT_TOLERANCE)
 
     def _commit(self, size: int) -> np.ndarray:
         """Write ``size`` samples from n as the safe plan has them."""

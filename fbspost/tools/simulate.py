@@ -37,7 +37,8 @@ from ..contour import PathDistance
 from ..errors import InputError
 from ..fbs.dynamics import AxisDynamics, scaled_mode
 from ..firmware.shapers import SHAPERS, Shaper, klipper_shaper, shape
-from ..job.pipeline import compensated_samples, varying_modes
+from ..job.axes import varying_modes
+from ..job.pipeline import compensated_samples
 from ..plan.margins import RunMargins
 from ..plan.pieces import EXTRUDE_ONLY_MM, fill_unknown
 from ..plan.planner import Plan, PlanStream, plan_blocks
