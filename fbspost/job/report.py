@@ -91,9 +91,9 @@ class Report:
     print_time_s: float
     compute_time_s: float
     added_time_s: float = 0.0  # the lead and settle margins given to the runs of motion (in print_time_s)
-    lead_time_s: float = 0.0  # per run, at most (planner.RunMargins: for Klipper, less by the run's end)
+    lead_time_s: float = 0.0  # per run, at most (margins.RunMargins: for Klipper, less by the run's end)
     settle_time_s: float = 0.0
-    travel_saved_s: float = 0.0  # less by the travels planned faster (planner.RunMargins.travel_share), about
+    travel_saved_s: float = 0.0  # less by the travels planned faster (margins.RunMargins.travel_share), about
     axes: dict[str, AxisReport] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     max_line_rate_hz: float = 0.0  # the most lines sent in any second (comments not counted)

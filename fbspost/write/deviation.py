@@ -2,7 +2,7 @@
 
 Takes the blocks as written (their ends and targets, and where the firmware puts them) and the
 command (``SampleWindow``); gives the largest deviation and where, its RMS, the time in blocks
-beyond the tolerance (``_Deviation``), and gives ``pipeline.ExecutedError`` the executed motion
+beyond the tolerance (``_Deviation``), and gives ``report.ExecutedError`` the executed motion
 sample by sample.
 """
 from __future__ import annotations

@@ -142,7 +142,7 @@ def write_program(plan: PlanStream, samples: SampleWindow, options: WriteOptions
     ``plan`` as it settles them. With ``options.firmware``, the firmware is made transparent
     before the written blocks and given back the program's settings (as its copied lines change
     them) before every copied line that may move the machine and after the last run
-    (``transparency``). ``executed`` (``pipeline.ExecutedError``) is given the written program's
+    (``transparency``). ``executed`` (``report.ExecutedError``) is given the written program's
     motion as the firmware runs it, sample by sample.
     """
     refusal = format_refusal(options.flavor, options.output_format)
