@@ -6,6 +6,7 @@ closed form of a circle (a rational quadratic with weights 1, sqrt(2)/2, 1); Lin
 for the expanded programs (its canonical path and its non-motion calls, see canon_check)."""
 import math
 import shutil
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -136,6 +137,20 @@ def test_g51_is_the_quadratic_spline(tmp_path):
     ctrl = np.array([[0.0, 0, 1], [2, 3, 1], [4, 0, 1]])
     curve = scipy_nurbs(ctrl, 3)(np.linspace(0, 1, 1_000_001))
     assert cKDTree(curve).query(polyline(blocks))[0].max() < 1e-4
+
+
+def test_a_g51_inside_an_open_nurbs_is_refused_as_rs274_refuses_it(tmp_path):
+    """Bad input, once a traceback: the G5.1 ended the open G5.2 NURBS and its next line had
+    none to join. LinuxCNC's own interpreter refuses the program too (where it is installed)."""
+    program = tmp_path / "p.ngc"
+    program.write_text("G21 G90 G17\nG1 X0 Y0 F600\nG5.2 X1 Y0 P1 L3\nX2 Y1 P1\nG5.1 X3 Y1 I1 J0\nX4 Y2 P1\nG5.3\nM2\n")
+    result = CliRunner().invoke(main, ["compensate", str(program), "-m", "patent-xy-stage", "--flavor", "linuxcnc",
+                                       "--no-expand", "-o", str(tmp_path / "out.ngc")])
+    assert result.exit_code == 1 and not (tmp_path / "out.ngc").exists()
+    assert result.stderr == f"error: {program}:5: G5.1 inside a G5.2 NURBS: end the NURBS with G5.3 first\n"
+    if shutil.which("rs274"):
+        canon = subprocess.run(["rs274", "-g", str(program)], capture_output=True, text=True, timeout=60)
+        assert canon.returncode == 1 and "PROGRAM_END" not in canon.stdout, canon.stdout + canon.stderr
 
 
 @pytest.mark.parametrize("line, words", [

@@ -50,6 +50,8 @@ class Splines:
                 raise words.error(n, f"G{motion:g} splines move X and Y only: {a} is not allowed")
         if self.spline is not None and (self.spline.knots is not None) != (motion == 6.2):
             raise words.error(n, f"G{motion:g} inside a {'G6.2' if self.spline.knots is not None else 'G5.2'} NURBS")
+        if motion == 5.1 and self.spline is not None:  # (LinuxCNC's rs274 refuses the program too)
+            raise words.error(n, "G5.1 inside a G5.2 NURBS: end the NURBS with G5.3 first")
         if motion == 6.2:
             return self.g62_line(n, raw, params, scale)
         if motion == 5.3:
