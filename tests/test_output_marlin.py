@@ -22,7 +22,7 @@ from fbspost.plan.planner import plan_blocks
 from fbspost.profile import load_profile, with_travel
 from fbspost.read.blocks import AXES, Kind
 from fbspost.read.gcode import read_gcode
-from fbspost.write.emitter import _Emitter
+from fbspost.write.emitter import Emitter
 from reference import continuous_model, serial
 
 PROFILE = serial(load_profile("printer-two-mode"), 300.0)  # 80 steps/mm on X Y, 400 Z, 415 E; 300 lines/s
@@ -96,7 +96,7 @@ def test_step_rounding_is_noise_shaped_across_calls():
     (first-order error feedback: error_k = e_k - e_(k-1), |e_k| <= 1/2), where plain rounding
     drifts by steps (4 here); the run's last end is the target rounded."""
     spm = np.array([80.0 if a in "XY" else 0.0 for a in AXES])
-    emitter = _Emitter(np.zeros(len(AXES)), b"\n", spm, 1)
+    emitter = Emitter(np.zeros(len(AXES)), b"\n", spm, 1)
     k = np.arange(1, 401)
     targets = np.zeros((400, len(AXES)))
     targets[:, 0], targets[:, 1] = 0.37 * k / 80.0, (0.81 * k + 0.02 * k**1.5) / 80.0
@@ -146,8 +146,8 @@ def test_block_ends_on_step_crossings_leave_the_modes_less_error():
     t_s = np.arange(1, 1001) * 1e-3
     targets = np.zeros((1000, len(AXES)))
     targets[:, :2] = wanted(t_s) - wanted(np.zeros(1))
-    emitter = _Emitter(np.zeros(len(AXES)), b"\n", spm, MIN_STEPS,
-                       axis_modes=(PROFILE.axes["X"].modes, PROFILE.axes["Y"].modes))
+    emitter = Emitter(np.zeros(len(AXES)), b"\n", spm, MIN_STEPS,
+                      axis_modes=(PROFILE.axes["X"].modes, PROFILE.axes["Y"].modes))
     text, _ = emitter.blocks(targets, np.full(1000, 1e-3), t_s)
     steps, feed_mm_s, knots_s, knots = np.zeros(2), math.nan, [0.0], [np.zeros(2)]
     for line in text.decode().splitlines():

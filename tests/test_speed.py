@@ -23,7 +23,7 @@ from fbspost.job.offload import NICENESS, Offloaded, _portable
 from fbspost.job.pipeline import compensate_file
 from fbspost.job.report import CompensateOptions
 from fbspost.profile import load_profile
-from fbspost.write.marlinmerge import _merged
+from fbspost.write.marlinmerge import marlin_merged
 from test_streaming import raster
 
 DATA = Path(__file__).parent / "data"
@@ -300,7 +300,7 @@ def _merged_row_by_row(start, ints, steps_per_unit, min_steps, exact_last):
 @pytest.mark.parametrize("exact_last", [True, False])
 @pytest.mark.parametrize("largest_step", [12, 2])
 def test_marlin_merge_as_done_row_by_row(exact_last, largest_step):
-    """marlinmerge._merged (which looks a few rows ahead of every row at once, and further only from
+    """marlinmerge.marlin_merged (which looks a few rows ahead of every row at once, and further only from
     the rows kept, over the stepped columns) against the rule done naively, on blocks of 0 to 5
     steps (about half of them merged) and on slow ones that take tens of rows to be far."""
     rng = np.random.default_rng(7)
@@ -308,7 +308,7 @@ def test_marlin_merge_as_done_row_by_row(exact_last, largest_step):
     steps_per_unit[:4] = [0.08, 0.08, 0.4, 0.093]  # X Y Z E stepped, per written unit
     ints = np.cumsum(rng.integers(-largest_step, largest_step + 1, size=(3000, 10)), axis=0)
     start = ints[0] - 5
-    merged = _merged(start, ints, steps_per_unit, 3, exact_last)
+    merged = marlin_merged(start, ints, steps_per_unit, 3, exact_last)
     assert np.array_equal(merged, _merged_row_by_row(start, ints, steps_per_unit, 3, exact_last))
     kept = (np.diff(np.vstack([start, merged]), axis=0) != 0).any(axis=1)
     assert (0.2 < kept.mean() < 0.9) if largest_step == 12 else (kept.mean() < 0.1)

@@ -13,7 +13,7 @@ from fbspost.job.pipeline import SHAPING_LEFT_OFF, compensate_file
 from fbspost.job.report import CompensateOptions
 from fbspost.profile import ProfileError, format_profile, load_profile, parse_profile, tomllib
 from fbspost.read.blocks import AXES, Block, Kind, Modal, PlannerLimits
-from fbspost.write.emitter import _Emitter
+from fbspost.write.emitter import Emitter
 
 PRINTER = load_profile("printer-two-mode")
 
@@ -199,7 +199,7 @@ def test_written_time_carries_the_feed_rounding():
     steps = rng.normal(size=(n, 4)) * (speeds * durations)[:, None] / 2
     steps[::97] = 0.0  # no motion
     targets = np.cumsum(steps, axis=0)
-    emitter = _Emitter(np.zeros(len(AXES)), b"\n")
+    emitter = Emitter(np.zeros(len(AXES)), b"\n")
     still = np.zeros((n, len(AXES) - 4))  # LinuxCNC's other axes
     text = b"".join(emitter.blocks(np.column_stack([targets, still])[a:a + 500], durations[a:a + 500])[0]
                     for a in range(0, n, 500))

@@ -15,8 +15,8 @@ from fbspost.plan.margins import RunMargins
 from fbspost.profile import load_profile
 from fbspost.read.blocks import AXES
 from fbspost.write.blockends import breakpoints
-from fbspost.write.emitter import _Emitter
-from fbspost.write.linetext import _lines
+from fbspost.write.emitter import Emitter
+from fbspost.write.linetext import line_text
 from reference import execute, fine_servo, positions_at, rest_limits, unbudgeted
 
 PRINTER = unbudgeted(load_profile("bedslinger-example"))
@@ -239,11 +239,11 @@ def test_bulk_formatting_matches_decimal_text(digits, newline, letters):
             f" {letter}{format(Decimal(int(v)).scaleb(-d).normalize(), 'f')}"
             for letter, v, d, s in zip(letters, row, digits, show, strict=True) if s)).encode() + newline
         for row, show, curve in zip(values, shown, g5, strict=True))
-    assert _lines(values, shown, np.array(digits), letters, newline, g5) == expected
+    assert line_text(values, shown, np.array(digits), letters, newline, g5) == expected
 
 
 def test_feed_is_written_only_when_it_changes_also_across_calls():
-    emitter = _Emitter(np.zeros(len(AXES)), b"\n")
+    emitter = Emitter(np.zeros(len(AXES)), b"\n")
     targets = np.zeros((5, len(AXES)))
     targets[:, 0] = np.arange(1, 6)  # 1 mm in 0.1 s: F600
     first, count = emitter.blocks(targets, np.full(5, 0.1))

@@ -53,10 +53,10 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from ..plan.limits import _LimitState
+from ..plan.limits import LimitState
 from ..profile import MachineProfile
 from ..read.blocks import AXES, Block, Kind
-from .transparency import _first
+from .transparency import first_given
 
 _NA = len(AXES)
 _E = AXES.index("E")
@@ -145,7 +145,7 @@ def _within(v0, v1, nominal):
     return np.minimum(v0, nominal), np.minimum(v1, nominal)
 
 
-def _trapezoid_s(v0, v1, nominal, accel, length):
+def trapezoid_time_s(v0, v1, nominal, accel, length):
     """Duration of a block: v0 -> peak at accel, cruise, peak -> v1 (calculate_trapezoid_for_block)."""
     v0, v1 = _within(v0, v1, nominal)
     peak = _peak(v0, v1, nominal, accel, length)
@@ -232,29 +232,29 @@ def lround(x: np.ndarray) -> np.ndarray:
 
 
 @dataclass
-class _Segments:
+class Segments:
     """The blocks Marlin makes, in order, with what does not depend on when they are queued."""
 
     line: list[int] = field(default_factory=list)
     start: list[np.ndarray] = field(default_factory=list)
     end: list[np.ndarray] = field(default_factory=list)
     feed: list[float] = field(default_factory=list)
-    settings: list[list[float]] = field(default_factory=list)  # _LimitState.row(), jerk, M205 B (us)
+    settings: list[list[float]] = field(default_factory=list)  # LimitState.row(), jerk, M205 B (us)
 
 
-def _read(blocks: list[Block], profile: MachineProfile) -> tuple[_Segments, list[tuple[Kind, bool, float]]]:
+def _read(blocks: list[Block], profile: MachineProfile) -> tuple[Segments, list[tuple[Kind, bool, float]]]:
     """The segments of ``blocks`` (after the merge) and per line (kind, sent to the machine, dwell s).
     An axis whose position is not known is where Marlin starts it: at 0, or where it was."""
-    state = _LimitState(profile)
+    state = LimitState(profile)
     min_segment_us = profile.firmware.min_segment_time_s * 1e6
     junction_mm = state.row()[3]  # M205 J alone sets it (M205 X Y are classic jerk's)
-    segments, lines = _Segments(), []
+    segments, lines = Segments(), []
     position = np.zeros(_NA)
     settings = None  # a segment's settings, until a line changes them
     for index, block in enumerate(blocks):
         if block.limits is not None:
             state.apply(block.limits, block.line_no)
-            junction_mm = _first(block.limits.junction_deviation_mm, junction_mm)
+            junction_mm = first_given(block.limits.junction_deviation_mm, junction_mm)
             settings = None
         b_word = M205_B.match(block.raw)
         if b_word:
@@ -299,7 +299,7 @@ class _Geometry:
     min_segment_us: np.ndarray  # (m,) M205 B in force
 
     @classmethod
-    def of(cls, segments: _Segments, config: MarlinConfig) -> _Geometry:
+    def of(cls, segments: Segments, config: MarlinConfig) -> _Geometry:
         start, end = np.array(segments.start).reshape(-1, _NA), np.array(segments.end).reshape(-1, _NA)
         rows = np.array(segments.settings, dtype=float).reshape(len(segments.line), 7 + 2 * _NA)
         spm = np.nan_to_num(np.array(config.steps_per_mm), nan=_NO_STEPS_PER_MM)
@@ -313,17 +313,17 @@ class _Geometry:
         has_xyz = steps[:, _XYZ].any(axis=1)
         travel = np.where(np.isnan(rows[:, 1]), rows[:, 0], rows[:, 1])
         accel = np.where(has_xyz & (steps[:, _E] == 0), travel, rows[:, 0])
-        accel = np.where(has_xyz, np.minimum(accel, _axis_limited(axis_a, per_mm)), accel)  # LIMIT_ACCEL_*
+        accel = np.where(has_xyz, np.minimum(accel, axis_limited(axis_a, per_mm)), accel)  # LIMIT_ACCEL_*
         unit = delta / np.linalg.norm(delta, axis=1)[:, None]  # normalize_junction_vector (XYZE)
         junction2, reversal = _junction_deviation(unit, accel, length, rows[:, 3], axis_a)
         jerk = np.column_stack([rows[:, 5 + 2 * _NA], rows[:, 5 + 2 * _NA],
                                 np.full(len(rows), config.z_jerk_mm_s), np.full(len(rows), config.e_jerk_mm_s)])
         return cls(start, end, np.array(segments.line, dtype=int), np.array(segments.feed, dtype=float), length,
-                   accel, _axis_limited(axis_v, per_mm), 0.5 * accel * length / event_count, per_mm[:, :_E + 1],
+                   accel, axis_limited(axis_v, per_mm), 0.5 * accel * length / event_count, per_mm[:, :_E + 1],
                    jerk, junction2, reversal, rows[:, 6 + 2 * _NA])
 
 
-def _axis_limited(limit: np.ndarray, unit: np.ndarray) -> np.ndarray:
+def axis_limited(limit: np.ndarray, unit: np.ndarray) -> np.ndarray:
     """min over the axes that move of limit_axis / |unit_axis| (limit_value_by_axis_maximum)."""
     with np.errstate(divide="ignore"):
         return np.where(unit != 0, limit / np.abs(unit), np.inf).min(axis=1, initial=np.inf)
@@ -338,7 +338,7 @@ def _junction_deviation(unit, accel, length, jd_mm, axis_a):
     turn = unit - prev
     with np.errstate(invalid="ignore", divide="ignore"):
         turn /= np.linalg.norm(turn, axis=1)[:, None]
-        junction_accel = np.minimum(accel, _axis_limited(axis_a, np.nan_to_num(turn)))
+        junction_accel = np.minimum(accel, axis_limited(axis_a, np.nan_to_num(turn)))
         sin_d2 = np.sqrt(0.5 * (1.0 - np.maximum(cos, -_REVERSAL_COS)))
         limit = junction_accel * jd_mm * sin_d2 / (1.0 - sin_d2)
         small = (length < 1.0) & (cos < _OCTAGON_COS)  # JD_HANDLE_SMALL_SEGMENTS
@@ -483,8 +483,8 @@ class _Buffer:
             exit2 = max(reach2, self.min_speed2[k + 1])
         self.exit2[k] = exit2
         self.start[k] = start_s
-        self.end[k] = start_s + float(_trapezoid_s(math.sqrt(self.entry2[k]), math.sqrt(exit2), self.nominal[k],
-                                                   geo.accel[k], geo.length[k]))
+        self.end[k] = start_s + float(trapezoid_time_s(math.sqrt(self.entry2[k]), math.sqrt(exit2), self.nominal[k],
+                                                       geo.accel[k], geo.length[k]))
         self.done = k + 1
 
 

@@ -52,10 +52,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..plan.limits import _LimitState
+from ..plan.limits import LimitState
 from ..profile import MachineProfile
 from ..read.blocks import AXES, Block, Kind
-from .marlin import MarlinRun, _axis_limited, _trapezoid_s, send_lines
+from .marlin import MarlinRun, axis_limited, send_lines, trapezoid_time_s
 
 _NA = len(AXES)
 _X, _Y, _E = AXES.index("X"), AXES.index("Y"), AXES.index("E")
@@ -119,11 +119,11 @@ class _Moves:
         xy = (delta[:, _X] != 0) | (delta[:, _Y] != 0)
         printing = xy & (delta[:, _E] > 0)
         e_alone = (delta[:, _E] != 0) & ~printing
-        accel = _axis_limited(np.array(rows["axis_a"]).reshape(-1, _NA), u)
+        accel = axis_limited(np.array(rows["axis_a"]).reshape(-1, _NA), u)
         m204 = np.where(printing, rows["print_a"], rows["travel_a"])
         accel = np.where(xy, np.minimum(accel, m204), accel)
         speed = np.minimum(np.maximum(rows["feed"], rows["min_feed"]),
-                           _axis_limited(np.array(rows["axis_v"]).reshape(-1, _NA), u))
+                           axis_limited(np.array(rows["axis_v"]).reshape(-1, _NA), u))
         jerk = np.array(rows["jerk"]).reshape(-1, _NA)
         step = np.abs(np.diff(u, axis=0, prepend=np.nan))
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -156,7 +156,7 @@ def commanded_pieces(blocks: list[Block]) -> Iterator[tuple[int, Block, list[tup
 
 def _read(blocks: list[Block], profile: MachineProfile, config: ReprapConfig):
     """The moves of ``blocks`` (rows of ``_Moves.of``) and per line (kind, sent, dwell s)."""
-    state = _LimitState(profile)
+    state = LimitState(profile)
     jerk, policy = np.array(config.jerk_mm_s), config.jerk_policy
     rows = {k: [] for k in ("start", "end", "line", "feed", "print_a", "travel_a", "axis_a", "axis_v", "jerk",
                             "policy", "min_feed")}
@@ -265,7 +265,7 @@ class _Ring:
         top = top_speed(v0, v1, moves.speed[k], moves.accel[k], moves.length[k], config.min_ramp_s)
         self.entry[k], self.exit[k], self.top[k] = v0, v1, top
         self.start[k] = max(before, prepare_s)
-        self.end[k] = self.start[k] + float(_trapezoid_s(v0, v1, top, moves.accel[k], moves.length[k]))
+        self.end[k] = self.start[k] + float(trapezoid_time_s(v0, v1, top, moves.accel[k], moves.length[k]))
         self.done = k + 1
 
 

@@ -20,14 +20,14 @@ MAX_DAMPING = {"zv": 0.99, "mzv": 0.99, "zvd": 0.99, "ei": 0.4, "2hump_ei": 0.3,
 
 # The hump EI shapers are fits in the damping ratio d: a row (c0, c1, c2, c3) is c0 + c1 d + c2
 # d^2 + c3 d^3; times in periods of the shaper frequency (undamped), amplitudes before normalizing.
-_HUMP_TIMES = {
+HUMP_TIMES = {
     "2hump_ei": ((0.0, 0.0, 0.0, 0.0), (0.49890, 0.16270, -0.54262, 6.16180),
                  (0.99748, 0.18382, -1.58270, 8.17120), (1.49920, -0.09297, -0.28338, 1.85710)),
     "3hump_ei": ((0.0, 0.0, 0.0, 0.0), (0.49974, 0.23834, 0.44559, 12.4720),
                  (0.99849, 0.29808, -2.36460, 23.3990), (1.49870, 0.10306, -2.01390, 17.0320),
                  (1.99960, -0.28231, 0.61536, 5.40450)),
 }
-_HUMP_AMPLITUDES = {
+HUMP_AMPLITUDES = {
     "2hump_ei": ((0.16054, 0.76699, 2.26560, -1.22750), (0.33911, 0.45081, -2.58080, 1.73650),
                  (0.34089, -0.61533, -0.68765, 0.42261), (0.15997, -0.60246, 1.00280, -0.93145)),
     "3hump_ei": ((0.11275, 0.76632, 3.29160, -1.44380), (0.23698, 0.61164, -2.57850, 4.85220),
@@ -83,8 +83,8 @@ def klipper_shaper(name: str, frequency_hz: float, damping: float) -> Shaper:
         a, t = [a1, 1.0 - a1 - a3, a3], [0.0, t2 * t_d, t_d]
     else:
         powers = damping ** np.arange(4)
-        a = np.asarray(_HUMP_AMPLITUDES[name]) @ powers
-        t = np.asarray(_HUMP_TIMES[name]) @ powers / frequency_hz
+        a = np.asarray(HUMP_AMPLITUDES[name]) @ powers
+        t = np.asarray(HUMP_TIMES[name]) @ powers / frequency_hz
     amplitudes = np.asarray(a, dtype=float) / np.sum(a)
     times = np.asarray(t, dtype=float)
     return Shaper(name, float(frequency_hz), float(damping), amplitudes, times - amplitudes @ times)

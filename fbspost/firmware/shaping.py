@@ -41,7 +41,7 @@ import numpy as np
 
 from ..read.blocks import AXES
 from .marlin import lround
-from .shapers import _HUMP_AMPLITUDES, _HUMP_TIMES, Shaper, shape
+from .shapers import HUMP_AMPLITUDES, HUMP_TIMES, Shaper, shape
 
 STEPPER_TIMER_RATE_HZ = 2_000_000  # Marlin's STEPPER_TIMER_RATE on AVR (F_CPU / 8) and most 32-bit HALs
 FTM_FS_HZ = 1000  # FT_MOTION's trajectory rate (FTM_FS)
@@ -171,9 +171,9 @@ def reprap_shaper(name: str, frequency_hz: float, zeta: float) -> Shaper:
         # Klipper's hump EI fits (the same papers' tables), but the last amplitude is 1 minus the
         # others (RRF's coefficients climb to 1) and the times are in damped periods.
         klipper = {"ei2": "2hump_ei", "ei3": "3hump_ei"}[name]
-        rise = np.asarray(_HUMP_AMPLITUDES[klipper])[:-1] @ z
+        rise = np.asarray(HUMP_AMPLITUDES[klipper])[:-1] @ z
         steps = np.append(rise, 1.0 - rise.sum())
-        durations = np.diff(np.asarray(_HUMP_TIMES[klipper]) @ z) * damped_period_s
+        durations = np.diff(np.asarray(HUMP_TIMES[klipper]) @ z) * damped_period_s
     else:
         raise ValueError(f"unknown RepRapFirmware shaper {name!r}: expected one of {', '.join(REPRAP_SHAPERS)}")
     return Shaper(f"rrf_{name}", frequency_hz, zeta, steps, np.concatenate([[0.0], np.cumsum(durations)]))

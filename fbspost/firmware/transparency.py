@@ -105,19 +105,20 @@ class FirmwareSettings:
             ratio = 1.0 - min(1.0, to_decel / accel)  # Klipper 2024 reads ACCEL_TO_DECEL so (as the planner)
         return replace(
             self, acceleration_mm_s2=accel,
-            minimum_cruise_ratio=_first(ratio, self.minimum_cruise_ratio),
+            minimum_cruise_ratio=first_given(ratio, self.minimum_cruise_ratio),
             max_accel_to_decel_mm_s2=self.max_accel_to_decel_mm_s2 if self.max_accel_to_decel_mm_s2 is None
-            else _first(to_decel, self.max_accel_to_decel_mm_s2),
-            travel_acceleration_mm_s2=_first(limits.travel_acceleration_mm_s2, self.travel_acceleration_mm_s2),
-            square_corner_velocity_mm_s=_first(limits.square_corner_velocity_mm_s, self.square_corner_velocity_mm_s),
-            junction_deviation_mm=_first(limits.junction_deviation_mm, self.junction_deviation_mm),
+            else first_given(to_decel, self.max_accel_to_decel_mm_s2),
+            travel_acceleration_mm_s2=first_given(limits.travel_acceleration_mm_s2, self.travel_acceleration_mm_s2),
+            square_corner_velocity_mm_s=first_given(limits.square_corner_velocity_mm_s,
+                                                    self.square_corner_velocity_mm_s),
+            junction_deviation_mm=first_given(limits.junction_deviation_mm, self.junction_deviation_mm),
             axis_max_acceleration_mm_s2={**self.axis_max_acceleration_mm_s2, **limits.axis_max_acceleration_mm_s2},
-            min_feed_mm_s=_first(limits.min_feed_mm_s, self.min_feed_mm_s),
-            max_velocity_mm_s=_first(limits.max_velocity_mm_s, self.max_velocity_mm_s),
+            min_feed_mm_s=first_given(limits.min_feed_mm_s, self.min_feed_mm_s),
+            max_velocity_mm_s=first_given(limits.max_velocity_mm_s, self.max_velocity_mm_s),
             axis_max_velocity_mm_s={**self.axis_max_velocity_mm_s, **limits.axis_max_velocity_mm_s})
 
 
-def _first(*values):
+def first_given(*values):
     return next((v for v in values if v is not None), None)
 
 
@@ -245,7 +246,7 @@ def _m203(flavor: str, axes_mm_s: dict[str, float], slowest_mm_s: float | None =
 
 def _program_limits(flavor: str, program: FirmwareSettings, inches: bool) -> list[str]:
     accel = _num(program.acceleration_mm_s2)
-    travel = _num(_first(program.travel_acceleration_mm_s2, program.acceleration_mm_s2))
+    travel = _num(first_given(program.travel_acceleration_mm_s2, program.acceleration_mm_s2))
     scv = program.square_corner_velocity_mm_s
     axes = program.axis_max_acceleration_mm_s2
     # Marlin and RRF: M201 for X, Y and E, as the program or the profile gave them (else they stay raised)
@@ -256,7 +257,7 @@ def _program_limits(flavor: str, program: FirmwareSettings, inches: bool) -> lis
         # ACCEL_TO_DECEL only: both, each as the profile's firmware has it
         to_decel = program.max_accel_to_decel_mm_s2
         if to_decel is None:
-            ratio = _first(program.minimum_cruise_ratio, 0.5)
+            ratio = first_given(program.minimum_cruise_ratio, 0.5)
             to_decel = program.acceleration_mm_s2 * (1.0 - ratio)
         else:
             ratio = 1.0 - min(1.0, to_decel / program.acceleration_mm_s2)
@@ -268,7 +269,7 @@ def _program_limits(flavor: str, program: FirmwareSettings, inches: bool) -> lis
         return [f"SET_VELOCITY_LIMIT {' '.join(words)}"]
     raised = {a: program.axis_max_velocity_mm_s[a] for a in program.raised_velocity()[1]}
     if flavor == "marlin":
-        words = [f"B{_num(_first(program.min_segment_time_us, 20000.0))}"]  # Marlin's default 20 ms
+        words = [f"B{_num(first_given(program.min_segment_time_us, 20000.0))}"]  # Marlin's default 20 ms
         if program.junction_deviation_mm is not None:
             words.append(f"J{_num(program.junction_deviation_mm, 4)}")
         if scv is not None:
@@ -277,7 +278,7 @@ def _program_limits(flavor: str, program: FirmwareSettings, inches: bool) -> lis
         return lines + ([_m203(flavor, raised)] if raised else [])
     if flavor == "reprap":
         jerk = [f"M566 X{_num(scv * 60, 3)} Y{_num(scv * 60, 3)}"] if scv is not None else []
-        slowest = _first(program.min_feed_mm_s, RRF_DEFAULT_MIN_FEED_MM_S)
+        slowest = first_given(program.min_feed_mm_s, RRF_DEFAULT_MIN_FEED_MM_S)
         return lines + [f"M204 P{accel} T{travel}"] + jerk + [_m203(flavor, raised, slowest)]
     if program.blend_words is not None:
         return [program.blend_words]

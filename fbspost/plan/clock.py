@@ -1,8 +1,8 @@
 """The blocks' times: each block timed as its pieces are settled.
 
-Takes the blocks read (``pieces._BlockReader.pending``) and the settled pieces' blocks and
+Takes the blocks read (``pieces.BlockReader.pending``) and the settled pieces' blocks and
 times; gives each block's line time and whether it is a STOP, and the MOVE blocks' (line,
-start s, end s) (``_BlockClock``).
+start s, end s) (``BlockClock``).
 """
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ from collections import deque
 import numpy as np
 
 
-class _BlockClock:
-    """The blocks' times. Takes the blocks read (``_BlockReader.pending``) and, as their pieces are
+class BlockClock:
+    """The blocks' times. Takes the blocks read (``BlockReader.pending``) and, as their pieces are
     settled, the pieces' blocks and times (``settle``); gives each block timed with its line time
     and whether it is a STOP (``lines``) and the MOVE blocks' (line, start s, end s) (``moves``),
     or with ``keep`` the columns of the whole plan (``kept``). A block without pieces happens when

@@ -1,7 +1,7 @@
 """The planner's limits: those in force block by block, and those of pieces and junctions.
 
 Takes the profile and the limit changes of the blocks (``blocks.PlannerLimits``); gives a row of
-the limits in force per block (``_LimitState.row``), the cruise limits and accelerations of
+the limits in force per block (``LimitState.row``), the cruise limits and accelerations of
 pieces by the per-axis rules (``axis_piece_limits``) and the largest speeds at the junctions
 between them (``junction_limits``, Klipper's Move.calc_junction).
 """
@@ -18,7 +18,7 @@ _NA = len(AXES)
 _E = AXES.index("E")
 
 
-class _LimitState:
+class LimitState:
     """The planner settings as the blocks change them; ``row()`` is one row of the state table:
     accel, travel accel (NaN: none), planner max velocity, junction deviation, axis max velocity
     (4), axis max acceleration (4), accel_to_decel (Klipper's smoothing; accel elsewhere).

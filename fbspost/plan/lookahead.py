@@ -2,7 +2,7 @@
 
 Takes each new piece's junction limit and 2 a d (and Klipper's smoothed 2 a d); gives the
 forward and backward passes (``forward_pass``, ``backward_pass``) and how many of the pieces
-not yet settled no later piece can change, with their speeds (``_LookAhead``). The scans run in
+not yet settled no later piece can change, with their speeds (``LookAhead``). The scans run in
 chunks of ``SCAN_CHUNK`` pieces from piece 0 on, so their bits are those of one scan however the
 program is batched.
 """
@@ -72,7 +72,7 @@ def backward_pass(limit_v2: np.ndarray, delta_v2: np.ndarray, chunk: int = SCAN_
 
 
 
-class _LookAhead:
+class LookAhead:
     """The look-ahead's min-plus scans over the pieces not yet settled (see the module docstring).
 
     Takes each new piece's junction limit and 2 a d, and Klipper's smoothed 2 a d (``extend``);

@@ -1,9 +1,9 @@
 """The program's blocks read a batch at a time and made into pieces.
 
 Takes the blocks (``blocks.Block``) and the profile; gives, per block with waypoints, a row
-(``_BlockReader``: its index, line, whether it is motion, feed, row of the limits table,
+(``BlockReader``: its index, line, whether it is motion, feed, row of the limits table,
 points; a MOVE that moves no compensated axis read as a STOP) and per block its dwells until it
-is timed; then the pieces of those rows (``_PieceMaker``: the columns ``_PIECE_FIELDS``, with
+is timed; then the pieces of those rows (``PieceMaker``: the columns ``PIECE_FIELDS``, with
 the junction limit before each), the unknown positions filled (``fill_unknown``; the notes say
 where) and the feeds clamped by the machine's limits counted (``CLAMPED``).
 """
@@ -20,7 +20,7 @@ import numpy as np
 from ..profile import MachineProfile
 from ..read.blocks import AXES, Block, Kind, feed_lengths
 from . import klipper_rules
-from .limits import _LimitState, axis_piece_limits, junction_limits
+from .limits import LimitState, axis_piece_limits, junction_limits
 
 EXTRUDE_ONLY_MM = 1e-9  # Klipper: an XYZ length below this makes an extrude-only move
 PROLOGUE_ROWS = 1 << 16  # waypoints searched for an unknown axis' first position (held until then)
@@ -31,8 +31,8 @@ _NA = len(AXES)
 _E = AXES.index("E")
 
 
-_PIECE_FIELDS = ("block", "run", "start", "end", "length", "extrude_only", "accel", "max_v", "delta_v2", "limit_v2",
-                 "smooth_delta_v2", "firmware_accel")
+PIECE_FIELDS = ("block", "run", "start", "end", "length", "extrude_only", "accel", "max_v", "delta_v2", "limit_v2",
+                "smooth_delta_v2", "firmware_accel")
 
 
 
@@ -52,10 +52,10 @@ def fill_unknown(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 
-class _PieceMaker:
+class PieceMaker:
     """Waypoints to pieces. Takes the rows of waypoints read (per block: its index, line, whether
     it is motion, feed, row of the limits table, points) and gives the new pieces' columns
-    (``_PIECE_FIELDS``) with the junction limit before each; fills the positions not known (the
+    (``PIECE_FIELDS``) with the junction limit before each; fills the positions not known (the
     notes say where) and counts the feeds clamped by the machine's limits."""
 
     def __init__(self, profile: MachineProfile, klipper: bool, notes: list[str], travel_share: float = 0.0):
@@ -77,7 +77,7 @@ class _PieceMaker:
 
     def make(self, rows: list, printing_from: float) -> dict | None:
         """The columns of the pieces of ``rows`` (None: they make none); ``printing_from``: the key of
-        the program's first run that prints, as far as known (``_BlockReader``)."""
+        the program's first run that prints, as far as known (``BlockReader``)."""
         counts = np.array([len(r[5]) for r in rows], dtype=np.int64)
         raw = np.concatenate([r[5] for r in rows]).astype(float, copy=False)
         seg_block = np.repeat(np.array([r[0] for r in rows], dtype=np.int64), counts)
@@ -168,7 +168,7 @@ class _PieceMaker:
                                f"until line {line}")
 
     def piece_limits(self, delta, length, extrude_only, feed, table, after_print=None):
-        """Per piece, from its row of the limits table (``_LimitState.row``): its direction per mm,
+        """Per piece, from its row of the limits table (``LimitState.row``): its direction per mm,
         cruise limit, accel, 2 a d, the same for Klipper's smoothing (2 a d where there is none),
         whether its feed is clamped by the machine's limits, and the accel its junctions are
         limited with (the firmware's: a travel planned faster keeps its corners). ``after_print``:
@@ -233,7 +233,7 @@ class _PieceMaker:
 
 
 
-class _BlockReader:
+class BlockReader:
     """The program's blocks, read a batch at a time (``read``). Gives, per block with waypoints,
     a row in ``rows`` (its index, line, whether it is motion, feed, row of the limits table,
     points), and per block (block, is MOVE, is STOP, the dwells before it) in ``pending`` until
@@ -252,7 +252,7 @@ class _BlockReader:
         # the axes a compensated command moves: a move of the others alone is a rest of these
         self._compensated = [c for c, name in enumerate(AXES)
                              if every_axis or name in profile.axes and profile.axes[name].modes]
-        self._limits = _LimitState(profile, klipper)
+        self._limits = LimitState(profile, klipper)
         self._state_row = self._limits.row()
         self.n_blocks = 0
         self.eof = False

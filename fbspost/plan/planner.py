@@ -80,11 +80,11 @@ import numpy as np
 
 from ..profile import MachineProfile
 from ..read.blocks import AXES, Block
-from .clock import _BlockClock
-from .lookahead import _LookAhead
+from .clock import BlockClock
+from .lookahead import LookAhead
 from .margins import RunMargins
-from .pieces import _PIECE_FIELDS, _BlockReader, _PieceMaker
-from .timeline import _Segments, _Timeline
+from .pieces import PIECE_FIELDS, BlockReader, PieceMaker
+from .timeline import Segments, Timeline
 
 BATCH_BLOCKS = 4096  # blocks read per step of the stream
 SAMPLE_CHUNK = 1 << 14  # samples evaluated at once (keeps the temporaries in cache)
@@ -127,7 +127,7 @@ class Plan:
     is_stop: np.ndarray  # (n_blocks,) bool: the block is a STOP (the machine at rest at it)
     runs: list[tuple[int, int]]  # [first, last] sample indices (inclusive) of each run of motion, at rest at both
     duration_s: float  # end of the last motion or dwell
-    segments: _Segments
+    segments: Segments
     pieces: Pieces | None = None  # the piece-level plan the samples come from
     notes: list[str] = field(default_factory=list)  # assumptions made (unknown positions)
     warnings: list[str] = field(default_factory=list)  # feeds beyond the machine's limits, clamped (CLAMPED...)
@@ -214,9 +214,9 @@ class PlanStream:
     ``warnings``. ``keep`` holds everything for ``whole`` (``plan_blocks``, as is ``every_axis``).
     ``firmware`` "klipper" plans with Klipper's rules (``klipper_rules``), anything else as above.
 
-    The stream reads blocks (``_BlockReader``), makes their pieces (``_PieceMaker``), decides
-    their speeds (``_LookAhead``) and settles them here: the pieces' times, the runs and the
-    blocks' times, whose motion goes to the samples (``_Timeline``)."""
+    The stream reads blocks (``BlockReader``), makes their pieces (``PieceMaker``), decides
+    their speeds (``LookAhead``) and settles them here: the pieces' times, the runs and the
+    blocks' times, whose motion goes to the samples (``Timeline``)."""
 
     def __init__(self, blocks: Iterable[Block], profile: MachineProfile, batch_blocks: int | None = None,
                  keep: bool = False, margins: RunMargins | None = None, firmware: str | None = None,
@@ -236,16 +236,16 @@ class PlanStream:
         self.notes: list[str] = []
         self.warnings: list[str] = []
         self.time_s = 0.0  # spent in advance(), reading included
-        self._pieces = _PieceMaker(profile, klipper, self.notes, margins.travel_share)
-        self._reader = _BlockReader(blocks, profile, klipper, batch_blocks or BATCH_BLOCKS,
-                                    functools.partial(margins.settle_at, fs=self._fs), self._pieces.piece_limits,
-                                    every_axis)
-        self._scans = _LookAhead(klipper)
-        self._timeline = _Timeline(self._fs, keep)
-        self._clock = _BlockClock(self._reader.pending, keep)
-        self.lines, self.moves = self._clock.lines, self._clock.moves  # (see _BlockClock)
+        self._pieces = PieceMaker(profile, klipper, self.notes, margins.travel_share)
+        self._reader = BlockReader(blocks, profile, klipper, batch_blocks or BATCH_BLOCKS,
+                                   functools.partial(margins.settle_at, fs=self._fs), self._pieces.piece_limits,
+                                   every_axis)
+        self._scans = LookAhead(klipper)
+        self._timeline = Timeline(self._fs, keep)
+        self._clock = BlockClock(self._reader.pending, keep)
+        self.lines, self.moves = self._clock.lines, self._clock.moves  # (see BlockClock)
         # made, not yet settled
-        self._pending = {name: None for name in _PIECE_FIELDS}  # pieces from _p0 on
+        self._pending = {name: None for name in PIECE_FIELDS}  # pieces from _p0 on
         self._m = self._p0 = 0  # pieces made; settled
         # carried over settled pieces and blocks
         self._cum_dur = 0.0
@@ -309,7 +309,7 @@ class PlanStream:
         pieces = Pieces(*(np.concatenate(column) for column in zip(*kept_pieces, strict=True))) if kept_pieces else \
             Pieces(*([np.zeros(0, dtype=np.int64)] * 2 + [np.zeros((0, _NA))] * 2 + [np.zeros(0)] * 9))
         return Plan(self._fs, self.n_samples, *blocks, [tuple(r) for r in self.runs], self.duration_s,
-                    _Segments.joined(self._timeline.kept), pieces, self.notes, self.warnings)
+                    Segments.joined(self._timeline.kept), pieces, self.notes, self.warnings)
 
     # ---- settling ----
 
@@ -360,7 +360,7 @@ class PlanStream:
 
         # runs: pieces between the same two STOP blocks, one after the other, separated by the
         # dwells of the STOPs between them
-        segments = []  # (order key, _Segments)
+        segments = []  # (order key, Segments)
         clock, base, run = np.empty(n), np.empty(n), np.empty(n, dtype=np.int64)
         i = 0
         while i < n:
@@ -390,8 +390,8 @@ class PlanStream:
         # every piece, the rest at the end of each run until its last sample, and, from the
         # sample after that, the start of the next run (a STOP's jump shows there) or, after the
         # last run, the final position
-        segments.append(_Timeline.phases(p0, piece_start, piece_end, t_accel, t_cruise, start, end, d_accel, length,
-                                         accel, (v0, vp, v1)))
+        segments.append(Timeline.phases(p0, piece_start, piece_end, t_accel, t_cruise, start, end, d_accel, length,
+                                        accel, (v0, vp, v1)))
         self._timeline.add(segments)
 
     def _settled_to(self, piece: int, cum: float, end: np.ndarray, block: int) -> None:
@@ -446,11 +446,11 @@ class PlanStream:
         self.runs[-1][1] = last
         self._last_sample, self._dwell_after_run = last, dwell_after
         self._open = False
-        segments.append(_Timeline.held(8 * self._last_piece + 3, end_s, end_s, self._last_end))
+        segments.append(Timeline.held(8 * self._last_piece + 3, end_s, end_s, self._last_end))
         if own:
             self._timeline.add(segments)
 
     def _next_segment(self, position: np.ndarray, key: int, segments: list) -> None:
         """The position from the sample after the last run's end (before the first run: always)."""
         t0 = (self._last_sample + 0.5) / self._fs if self.runs else -np.inf
-        segments.append(_Timeline.held(key, t0, 0.0, position))
+        segments.append(Timeline.held(key, t0, 0.0, position))

@@ -25,7 +25,7 @@ import re
 from pathlib import Path
 
 from ..errors import InputError
-from .rs274_splines import _code, _value
+from .rs274_splines import value_end, without_comments
 
 MARK = "fbspost-probe"
 DELTA = 0.0123  # program units: more than rs274's printed 0.0001, small enough to stay on the machine
@@ -38,7 +38,7 @@ _SUB = re.compile(r"^\s*o\s*(<[^>]*>|\d+)\s*sub\b", re.IGNORECASE | re.MULTILINE
 
 def probe_lines(text: str, delta: float = 0.0) -> list[str] | None:
     """The lines that replace the program's line ``text`` (None: it probes nothing)."""
-    code = _code(text)
+    code = without_comments(text)
     m = _PROBE_LINE.search(code)
     if m is None:
         return None
@@ -46,7 +46,7 @@ def probe_lines(text: str, delta: float = 0.0) -> list[str] | None:
     while i < len(code):  # the words, each axis word's value moved by delta
         c = code[i]
         if c.isalpha():
-            end = _value(code, i + 1)
+            end = value_end(code, i + 1)
             value = code[i + 1:end].strip()
             if c.upper() in _AXES:
                 axes += c.upper()

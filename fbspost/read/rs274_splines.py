@@ -23,12 +23,12 @@ _SPLINE_LINE = re.compile(r"(?<![A-Za-z#<_\d.])G\s*0*5(?:\s*\.\s*0*1)?(?![\d.])"
 _MARK = "fbspost-spline"
 
 
-def _code(text: str) -> str:
+def without_comments(text: str) -> str:
     """The line without its comments."""
     return re.sub(r"\([^)]*\)", " ", text.split(";", 1)[0])
 
 
-def _value(code: str, i: int) -> int:
+def value_end(code: str, i: int) -> int:
     """The end of the real value starting at ``code[i]``: a number, a parameter (#1, #<name>,
     #[...], ##1), an expression [...] or a unary function (sin[...], atan[...]/[...])."""
     n = len(code)
@@ -39,15 +39,15 @@ def _value(code: str, i: int) -> int:
         if i < n and code[i] == "<":
             return code.index(">", i) + 1
         if i < n and code[i] in "#[":
-            return _value(code, i)
+            return value_end(code, i)
         m = re.compile(r"\s*\d+").match(code, i)
         return m.end()
     if i < n and code[i].isalpha():
         while code[i].isalpha():
             i += 1
-        end = _value(code, i)
+        end = value_end(code, i)
         m = re.compile(r"\s*/\s*\[").match(code, end)  # atan[y]/[x]
-        return _value(code, m.end() - 1) if m else end
+        return value_end(code, m.end() - 1) if m else end
     if i < n and code[i] == "[":
         depth = 0
         for j in range(i, n):
@@ -66,7 +66,7 @@ def _words(code: str) -> dict[str, str]:
     words, i = {}, 0
     while i < len(code):
         if code[i].isalpha():
-            end = _value(code, i + 1)
+            end = value_end(code, i + 1)
             words[code[i].upper()] = code[i + 1:end].strip()
             i = end
         elif code[i] in " \t":
@@ -84,7 +84,7 @@ def instrumented(program: str | Path, folder: str | Path,
     lines = Path(program).read_text(encoding="latin-1").split("\n")  # latin-1: every byte kept as it is
     out, found = [], False
     for line_no, text in enumerate(lines, 1):
-        m = _SPLINE_LINE.search(_code(text))
+        m = _SPLINE_LINE.search(without_comments(text))
         if m is None:
             try:
                 replaced = other(text) if other else None
@@ -95,7 +95,7 @@ def instrumented(program: str | Path, folder: str | Path,
             continue
         found = True
         try:
-            words = _words(re.sub(r"^\s*[Nn]\d+", "", _code(text)))
+            words = _words(re.sub(r"^\s*[Nn]\d+", "", without_comments(text)))
         except (ValueError, IndexError) as exc:
             raise InputError(program, line_no, f"cannot read the words of this spline for rs274: {exc}") from None
         kind = "G5.1" if "." in m.group() else "G5"

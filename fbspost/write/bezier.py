@@ -17,7 +17,7 @@ Marlin cuts it into chords (at least 5, up to 0.1 mm off the curve), LinuxCNC in
 A block is a G5 block when the curve point at arc-length fraction tau_k is within the
 tolerance of the command's XY, and every further column within the tolerance of its linear
 interpolation in that point's u_k, at every sample k and at every midpoint between samples (so
-that a curve cannot slip away between them; see _Fitter), and the curve is at least
+that a curve cannot slip away between them; see Fitter), and the curve is at least
 ``min_length_mm`` long: a shorter one cannot carry the block's time (at zero XY length the
 controller would time the block by E). Otherwise it is a G1 block when every column is within
 the tolerance of its linear interpolation in time: XY at rest while Z or E move, or a dwell.
@@ -39,8 +39,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .bezier_fitter import _Fit, _Fitter
-from .bezier_lsq import _FIT_STEPS, _GL_W, _GL_X, _speeds
+from .bezier_fitter import CandidateFit, Fitter
+from .bezier_lsq import FIT_STEPS, GL_W, GL_X, curve_speeds
 
 # Search
 _CHUNKS = 4096  # lock-step lanes: enough to amortize numpy's per-call cost
@@ -80,7 +80,7 @@ def fit_g5(command_mm: np.ndarray, tolerance_mm: float, min_samples: int = 1, ma
     if n < 2:
         empty = np.zeros((0, 2))
         return G5Blocks(np.zeros(0, np.int64), empty, empty, np.zeros(0, bool), np.zeros(0), np.zeros(0))
-    fitter = _Fitter(command, tolerance_mm, min_length_mm, step_mm)
+    fitter = Fitter(command, tolerance_mm, min_length_mm, step_mm)
     chunk = max(-(-(n - 1) // _CHUNKS), min(max_samples, _MIN_CHUNK))
     edges = np.append(np.arange(0, n - 1, chunk), n - 1)
     limits = (tolerance_mm, min_samples, max_samples)
@@ -88,7 +88,7 @@ def fit_g5(command_mm: np.ndarray, tolerance_mm: float, min_samples: int = 1, ma
     for parity in (0, 1):  # neighbouring edges' windows may overlap: every other edge at a time
         starts, ends, fit = _search_across(fitter, starts, ends, fit, edges[1 + parity:-1:2], n, *limits)
     curve = (fit.curve_mm <= tolerance_mm) | (fit.curve_mm <= fit.line_mm)
-    polish = np.flatnonzero(curve & (2 * (ends - starts) > _FIT_STEPS) & (fit.line_mm > tolerance_mm))
+    polish = np.flatnonzero(curve & (2 * (ends - starts) > FIT_STEPS) & (fit.line_mm > tolerance_mm))
     if polish.size:  # long fitted curves
         fit.put(polish, fitter.polish(starts[polish], ends[polish], fit.take(polish)))
     line = fitter.line(starts, ends)
@@ -141,7 +141,7 @@ def _search(fitter, pos, stop, open_end, tolerance_mm, min_samples, max_samples)
     err_lo, err_hi = np.zeros(lanes), np.zeros(lanes)
     cand = np.full(lanes, 4 * min_samples, np.int64)
     best_steps = np.zeros(lanes, np.int64)  # length of the candidate in best (0: none)
-    best = _Fit(np.zeros((4, lanes)), np.zeros(lanes), np.zeros(lanes), np.zeros(lanes), np.zeros(lanes, bool))
+    best = CandidateFit(np.zeros((4, lanes)), np.zeros(lanes), np.zeros(lanes), np.zeros(lanes), np.zeros(lanes, bool))
     out_start, out_end, out_fit = [], [], []
 
     def allowed(lane, g):
@@ -192,8 +192,8 @@ def _search(fitter, pos, stop, open_end, tolerance_mm, min_samples, max_samples)
 
     starts = np.concatenate(out_start)
     order = np.argsort(starts, kind="stable")
-    fits = _Fit(np.concatenate([f.q for f in out_fit], axis=1),
-                *(np.concatenate([getattr(f, name) for f in out_fit]) for name in _Fit.ENTRIES))
+    fits = CandidateFit(np.concatenate([f.q for f in out_fit], axis=1),
+                        *(np.concatenate([getattr(f, name) for f in out_fit]) for name in CandidateFit.ENTRIES))
     return starts[order], np.concatenate(out_end)[order], fits.take(order)
 
 
@@ -218,8 +218,9 @@ def _search_across(fitter, starts, ends, fit, edges, n, tolerance_mm, min_sample
         old[a:b + 1] = False
     new = fewer[window]
     order = np.argsort(np.concatenate([starts[old], new_starts[new]]), kind="stable")
-    merged = _Fit(np.concatenate([fit.q[:, old], new_fit.q[:, new]], axis=1),
-                  *(np.concatenate([getattr(fit, name)[old], getattr(new_fit, name)[new]]) for name in _Fit.ENTRIES))
+    merged = CandidateFit(np.concatenate([fit.q[:, old], new_fit.q[:, new]], axis=1),
+                          *(np.concatenate([getattr(fit, name)[old], getattr(new_fit, name)[new]])
+                            for name in CandidateFit.ENTRIES))
     return (np.concatenate([starts[old], new_starts[new]])[order], np.concatenate([ends[old], new_ends[new]])[order],
             merged.take(order))
 
@@ -237,8 +238,8 @@ def curve_lengths(p0: np.ndarray, p1: np.ndarray, p2: np.ndarray, p3: np.ndarray
     a, b, c = 3.0 * d0, 6.0 * (d1 - d0), 3.0 * (d0 - 2.0 * d1 + d2)
 
     def lengths(rows, steps):
-        nodes = ((np.arange(steps)[:, None] + _GL_X) / steps).ravel()
-        return _speeds(a[:, rows], b[:, rows], c[:, rows], nodes) @ np.tile(_GL_W, steps) / steps
+        nodes = ((np.arange(steps)[:, None] + GL_X) / steps).ravel()
+        return curve_speeds(a[:, rows], b[:, rows], c[:, rows], nodes) @ np.tile(GL_W, steps) / steps
 
     everything = slice(None)
     length = lengths(everything, 32)

@@ -2,8 +2,8 @@
 
 Takes the command (rows of samples, X and Y first), the tolerance and the shortest curve; gives
 for batches of candidate blocks [start, end] their fits judged on a few of their points
-(``_Fitter.screen``), carried on to convergence (``polish``) and their errors at every sample
-and midpoint (``check``), as ``_Fit``: control points, lengths, errors of the curve and of the
+(``Fitter.screen``), carried on to convergence (``polish``) and their errors at every sample
+and midpoint (``check``), as ``CandidateFit``: control points, lengths, errors of the curve and of the
 straight line.
 """
 from __future__ import annotations
@@ -13,18 +13,18 @@ from dataclasses import dataclass
 import numpy as np
 
 from .bezier_lsq import (
-    _DAMPING,
-    _EXTRAS,
-    _FIT_STEPS,
-    _GL_W,
-    _GL_X,
-    _counts,
-    _fit_curves,
-    _line_error,
-    _ragged,
-    _speeds,
-    _stretch,
-    _xy_error,
+    DAMPING,
+    EXTRAS,
+    FIT_STEPS,
+    GL_W,
+    GL_X,
+    curve_speeds,
+    entries_per_block,
+    fit_curves,
+    line_error,
+    ragged,
+    stretch,
+    xy_error,
 )
 
 _ALONG = 2.0  # tolerances: candidates whose distance along the path is further from linear in time
@@ -41,7 +41,7 @@ _GRID = 32  # the arc length is inverted on this many equal parameter steps per 
 
 
 @dataclass
-class _Fit:
+class CandidateFit:
     """Fitted candidate blocks, one column or entry per block."""
 
     q: np.ndarray  # (4, b): p1x, p1y, p2x, p2y
@@ -56,17 +56,17 @@ class _Fit:
     def error_mm(self) -> np.ndarray:
         return np.minimum(self.curve_mm, self.line_mm)
 
-    def take(self, index) -> _Fit:
-        return _Fit(self.q[:, index], *(getattr(self, name)[index] for name in self.ENTRIES))
+    def take(self, index) -> CandidateFit:
+        return CandidateFit(self.q[:, index], *(getattr(self, name)[index] for name in self.ENTRIES))
 
-    def put(self, index, other: _Fit, other_index=slice(None)) -> None:
+    def put(self, index, other: CandidateFit, other_index=slice(None)) -> None:
         self.q[:, index] = other.q[:, other_index]
         for name in self.ENTRIES:
             getattr(self, name)[index] = getattr(other, name)[other_index]
 
 
 
-class _Fitter:
+class Fitter:
     """Fits and checks batches of candidate blocks [start, end] of one command."""
 
     def __init__(self, command: np.ndarray, tolerance_mm: float, min_length_mm: float, step_mm: float = 0.0):
@@ -101,7 +101,7 @@ class _Fitter:
         half index; and whether a block's points are all of its half-sample points."""
         half_steps = 2 * (ends - starts)
         counts = np.minimum(half_steps, most) + 1
-        first, block, i = _ragged(counts)
+        first, block, i = ragged(counts)
         j = i * half_steps[block] // (counts - 1)[block]
         return first, block, j / half_steps[block], 2 * starts[block] + j, half_steps <= most
 
@@ -121,9 +121,9 @@ class _Fitter:
                         *sum(extras, ())])
         return pts, first, block, idx, exact
 
-    def screen(self, starts: np.ndarray, ends: np.ndarray, prior: _Fit | None = None,
-               prior_steps: np.ndarray | None = None) -> _Fit:
-        """Fits judged on at most _FIT_STEPS + 1 of each block's points (samples and
+    def screen(self, starts: np.ndarray, ends: np.ndarray, prior: CandidateFit | None = None,
+               prior_steps: np.ndarray | None = None) -> CandidateFit:
+        """Fits judged on at most FIT_STEPS + 1 of each block's points (samples and
         midpoints), evenly spread.
 
         A block whose straight line, linear in time, is within the tolerance keeps it (the
@@ -132,26 +132,26 @@ class _Fitter:
         a curve at constant speed moves its own arc length linearly in time, and the path
         through the samples follows that to within about the sample errors (on a sliced print
         this skipped 1 % of the candidates a fit would have passed). The others are fitted
-        (see _fit_curves), from the linear least-squares fit or, where given, from the curve
+        (see fit_curves), from the linear least-squares fit or, where given, from the curve
         ``prior`` fitted to the first ``prior_steps`` steps of the same start, stretched along
         itself to the block's length (the search's candidates share their start: a sub-curve
         or extension of a curve is the same polynomial, so a constant-speed curve's fit carries
         over, where the linear fit can start far from it).
         """
-        pts, first, block, idx, exact = self.fit_points(starts, ends, _FIT_STEPS)
+        pts, first, block, idx, exact = self.fit_points(starts, ends, FIT_STEPS)
         line = self.line(starts, ends)
-        line_max = _line_error(pts, first)
+        line_max = line_error(pts, first)
         chord = np.hypot(*(self.xy[:, ends] - self.xy[:, starts]))
-        fit = _Fit(line, chord, np.where(line_max <= self.tolerance_mm, line_max, np.inf), line_max, exact)
+        fit = CandidateFit(line, chord, np.where(line_max <= self.tolerance_mm, line_max, np.inf), line_max, exact)
         path, path0, path3 = self.path[idx], self.path[2 * starts], self.path[2 * ends]
         along = np.maximum.reduceat(np.abs(path - path0[block] - pts[0] * (path3 - path0)[block]), first)
         fit_them = (line_max > self.tolerance_mm) & (along <= _ALONG * self.tolerance_mm)
-        counts = _counts(first, pts.shape[1])
+        counts = entries_per_block(first, pts.shape[1])
 
-        def refit(subset, start=None, damping=_DAMPING):
+        def refit(subset, start=None, damping=DAMPING):
             """Fit the blocks ``subset`` from ``start`` (None: the linear fit); keep what is better."""
-            q, length, err = _fit_curves(np.compress(subset[block], pts, axis=1), counts[subset],
-                                         line[:, subset], self.tolerance_mm, q=start, damping=damping)
+            q, length, err = fit_curves(np.compress(subset[block], pts, axis=1), counts[subset],
+                                        line[:, subset], self.tolerance_mm, q=start, damping=damping)
             better = err < fit.curve_mm[subset]
             where = np.flatnonzero(subset)[better]
             fit.q[:, where], fit.length_mm[where], fit.curve_mm[where] = q[:, better], length[better], err[better]
@@ -161,8 +161,8 @@ class _Fitter:
             refit(fit_them & ~warm)
         if warm.any():
             prior_end = self.xy[:, starts[warm] + prior_steps[warm]]
-            refit(warm, _stretch(self.xy[:, starts[warm]], prior.q[:, warm], prior_end,
-                                 prior.length_mm[warm] * (ends - starts)[warm] / prior_steps[warm]))
+            refit(warm, stretch(self.xy[:, starts[warm]], prior.q[:, warm], prior_end,
+                                prior.length_mm[warm] * (ends - starts)[warm] / prior_steps[warm]))
         # Long blocks that missed, once more: from the linear fit where the prior led astray, by
         # undamped steps from their best curve where they missed by at most _RETRY tolerances.
         missed = fit_them & ~exact & (fit.curve_mm > self.tolerance_mm)
@@ -174,19 +174,19 @@ class _Fitter:
         fit.curve_mm[~(fit.length_mm >= self.min_length_mm)] = np.inf  # too short to carry the block's time
         return fit
 
-    def polish(self, starts: np.ndarray, ends: np.ndarray, fit: _Fit) -> _Fit:
+    def polish(self, starts: np.ndarray, ends: np.ndarray, fit: CandidateFit) -> CandidateFit:
         """Fits carried on to convergence by undamped Gauss-Newton steps from ``fit`` (damping
         helps the search's many short, nearly straight candidates, but slows the last digits),
         kept where the check finds them better."""
-        pts, first, _, _, _ = self.fit_points(starts, ends, _FIT_STEPS)
-        q, _, _ = _fit_curves(pts, _counts(first, pts.shape[1]), self.line(starts, ends), self.tolerance_mm,
-                              q=fit.q, damping=0.0, good=0.0)
+        pts, first, _, _, _ = self.fit_points(starts, ends, FIT_STEPS)
+        q, _, _ = fit_curves(pts, entries_per_block(first, pts.shape[1]), self.line(starts, ends), self.tolerance_mm,
+                             q=fit.q, damping=0.0, good=0.0)
         better = self.check(starts, ends, q)
         keep = ~(better.curve_mm < fit.curve_mm)
         better.put(keep, fit, keep)
         return better
 
-    def check(self, starts: np.ndarray, ends: np.ndarray, q: np.ndarray) -> _Fit:
+    def check(self, starts: np.ndarray, ends: np.ndarray, q: np.ndarray) -> CandidateFit:
         """Errors of the curves ``q`` at every point (samples and midpoints) of their blocks.
 
         The arc length is tabulated on _GRID equal steps of u and inverted at each point's
@@ -203,10 +203,10 @@ class _Fitter:
         d0, d1, d2 = q[:2] - p0, q[2:] - q[:2], p3 - q[2:]
         a, b, c = 3.0 * d0, 6.0 * (d1 - d0), 3.0 * (d0 - 2.0 * d1 + d2)  # B'(u) = a + u (b + u c), (2, nb)
         grid = np.arange(_GRID + 1) / _GRID
-        nodes = (grid[:-1, None] + _GL_X / _GRID).ravel()
+        nodes = (grid[:-1, None] + GL_X / _GRID).ravel()
         s = np.zeros((nb, _GRID + 1))
-        np.cumsum(_speeds(a, b, c, nodes).reshape(nb, _GRID, len(_GL_X)) @ _GL_W / _GRID, axis=1, out=s[:, 1:])
-        sigma = _speeds(a, b, c, grid)
+        np.cumsum(curve_speeds(a, b, c, nodes).reshape(nb, _GRID, len(GL_X)) @ GL_W / _GRID, axis=1, out=s[:, 1:])
+        sigma = curve_speeds(a, b, c, grid)
         length = s[:, -1]
 
         pts, first, block, _, _ = self.fit_points(starts, ends, 2 * int((ends - starts).max()))
@@ -231,7 +231,7 @@ class _Fitter:
 
         def arc(u):  # s(u), from the table's node u0
             s_u = s0.copy()
-            for x, w in zip(_GL_X, _GL_W, strict=True):
+            for x, w in zip(GL_X, GL_W, strict=True):
                 v = u0 + x * (u - u0)
                 dx, dy = ax + v * (bx + v * c2x), ay + v * (by + v * c2y)
                 s_u += w * (u - u0) * np.sqrt(dx * dx + dy * dy)
@@ -243,9 +243,9 @@ class _Fitter:
         s_u = arc(u)
         bx_u = x0 + u * (ax + u * (0.5 * bx + u * c2x / 3.0))
         by_u = y0 + u * (ay + u * (0.5 * by + u * c2y / 3.0))
-        curve_max = np.maximum.reduceat(_xy_error(bx_u, by_u, pts) + np.abs(s_u - target), first)
-        for ce, e0, e3 in pts[_EXTRAS:].reshape(-1, 3, len(u)):
+        curve_max = np.maximum.reduceat(xy_error(bx_u, by_u, pts) + np.abs(s_u - target), first)
+        for ce, e0, e3 in pts[EXTRAS:].reshape(-1, 3, len(u)):
             curve_max = np.maximum(curve_max, np.maximum.reduceat(np.abs(e0 + (e3 - e0) * u - ce), first))
         curve_max[~(length >= self.min_length_mm)] = np.inf
-        return _Fit(q, length, curve_max, _line_error(pts, first), np.ones(nb, bool))
+        return CandidateFit(q, length, curve_max, line_error(pts, first), np.ones(nb, bool))
 

@@ -1,10 +1,10 @@
 """The least-squares cubic Bézier curves with fixed ends, in the arc-length parameterization.
 
-Takes blocks of points laid end to end (rows as in ``bezier_fitter._Fitter.fit_points``: time
+Takes blocks of points laid end to end (rows as in ``bezier_fitter.Fitter.fit_points``: time
 fractions, the command's XY, the ends, further columns); gives their curves' control points,
-lengths and error bounds (``_fit_curves``: damped Gauss-Newton from the linear fit or a given
-curve), the straight lines' errors (``_line_error``), curves continued along themselves
-(``_stretch``) and the arc-length integrals they rest on (``_speeds``, ``_arc_integrals``,
+lengths and error bounds (``fit_curves``: damped Gauss-Newton from the linear fit or a given
+curve), the straight lines' errors (``line_error``), curves continued along themselves
+(``stretch``) and the arc-length integrals they rest on (``curve_speeds``, ``_arc_integrals``,
 by Gauss-Legendre).
 """
 from __future__ import annotations
@@ -12,16 +12,16 @@ from __future__ import annotations
 import numpy as np
 
 # Fit
-_FIT_STEPS = 32  # a longer candidate is fitted on this many half-sample steps, evenly spread
+FIT_STEPS = 32  # a longer candidate is fitted on this many half-sample steps, evenly spread
 _MAX_STEPS = 4  # Gauss-Newton steps after the linear fit, at most (_MAX_STEPS_LONG: blocks
-_MAX_STEPS_LONG = 16  # fitted on _FIT_STEPS + 1 points, which are few and may need more)
-_DAMPING = 1e-2  # Levenberg-Marquardt damping of the first step, relative to the normal matrix's trace,
+_MAX_STEPS_LONG = 16  # fitted on FIT_STEPS + 1 points, which are few and may need more)
+DAMPING = 1e-2  # Levenberg-Marquardt damping of the first step, relative to the normal matrix's trace,
 _DECAY = 0.3  # and its factor from step to step
-_GOOD = 0.5  # tolerances: a fit stops at errors below this (_GOOD_LONG: blocks fitted on _FIT_STEPS + 1
+_GOOD = 0.5  # tolerances: a fit stops at errors below this (_GOOD_LONG: blocks fitted on FIT_STEPS + 1
 _GOOD_LONG = 0.01  # points, whose curve seeds the search's next candidate),
 _SETTLE = 1e-3  # at steps below this,
 _PROGRESS = 0.8  # or when its error shrank by less than this factor in _PATIENCE steps (twice that for
-_PATIENCE = 2  # blocks fitted on _FIT_STEPS + 1 points)
+_PATIENCE = 2  # blocks fitted on FIT_STEPS + 1 points)
 
 
 
@@ -31,12 +31,12 @@ _REGULARIZATION = 1e-9  # relative pull of p1, p2 towards the chord's thirds: de
 
 # Gauss-Legendre on [0, 1], 3 nodes: exact for speeds polynomial of degree 5 in u; on a step h of
 # u the error is below h^7 max|d^6 speed / du^6| / 2016000, and the speed of a passing curve is smooth.
-_GL_X, _GL_W = np.polynomial.legendre.leggauss(3)
-_GL_X, _GL_W = 0.5 * (_GL_X + 1.0), 0.5 * _GL_W
+GL_X, GL_W = np.polynomial.legendre.leggauss(3)
+GL_X, GL_W = 0.5 * (GL_X + 1.0), 0.5 * GL_W
 
 
 
-def _ragged(counts):
+def ragged(counts):
     """For blocks of ``counts`` entries laid end to end: each block's first entry, each entry's
     block and its index within the block."""
     first = np.zeros(len(counts), np.int64)
@@ -46,15 +46,15 @@ def _ragged(counts):
 
 
 
-def _counts(first, total):
+def entries_per_block(first, total):
     """Entries per block, from each block's first entry and the total."""
     return np.diff(np.append(first, total))
 
 
 
-def _fit_curves(pts, counts, line, tolerance_mm, q=None, damping=_DAMPING, good=None):
+def fit_curves(pts, counts, line, tolerance_mm, q=None, damping=DAMPING, good=None):
     """Least-squares curves with fixed end points, in the arc-length parameterization, through
-    blocks of ``counts`` points ``pts`` (rows as in _Fitter.fit_points); gives p1, p2 (rows p1x,
+    blocks of ``counts`` points ``pts`` (rows as in Fitter.fit_points); gives p1, p2 (rows p1x,
     p1y, p2x, p2y), the length and the error bound.
 
     Start from ``q`` or the linear least-squares fit at the time fractions tau_k, then take
@@ -68,11 +68,11 @@ def _fit_curves(pts, counts, line, tolerance_mm, q=None, damping=_DAMPING, good=
     there jump far. Each block keeps its best iterate and stops once that is within ``good``
     tolerances, once its steps fall below _SETTLE tolerances, once it makes too little
     progress (_PROGRESS), or after _MAX_STEPS (_MAX_STEPS_LONG for blocks
-    fitted on _FIT_STEPS + 1 points: they are few, and may need more steps).
+    fitted on FIT_STEPS + 1 points: they are few, and may need more steps).
     """
     nb = len(counts)
-    first, block, _ = _ragged(counts)
-    long = counts > _FIT_STEPS
+    first, block, _ = ragged(counts)
+    long = counts > FIT_STEPS
     max_steps = np.where(long, _MAX_STEPS_LONG, _MAX_STEPS)
     good = np.where(long, _GOOD_LONG, _GOOD) if good is None else np.full(nb, good)
     reparameterize = 0 if q is None else 2  # Newton steps on u alone
@@ -95,8 +95,8 @@ def _fit_curves(pts, counts, line, tolerance_mm, q=None, damping=_DAMPING, good=
             bx_u = X0 + u * (ax + u * (0.5 * bx + u * cx3 / 3.0))
             by_u = Y0 + u * (ay + u * (0.5 * by + u * cy3 / 3.0))
             rx, ry = bx_u - cx, by_u - cy
-            err = _xy_error(bx_u, by_u, pts) + np.abs(ds)
-            for ce, e0, e3 in pts[_EXTRAS:].reshape(-1, 3, len(u)):
+            err = xy_error(bx_u, by_u, pts) + np.abs(ds)
+            for ce, e0, e3 in pts[EXTRAS:].reshape(-1, 3, len(u)):
                 err = np.maximum(err, np.abs(e0 + (e3 - e0) * u - ce))  # Marlin: linear in u
             block_err = np.maximum.reduceat(err, first)
             better = block_err < best_err[ids]  # false for nan
@@ -129,13 +129,13 @@ def _fit_curves(pts, counts, line, tolerance_mm, q=None, damping=_DAMPING, good=
                 keep, keep_pts = ~stop, ~stop[block]
                 ids, q, settled, counts = ids[keep], q[:, keep], settled[keep], counts[keep]
                 pts, u = np.compress(keep_pts, pts, axis=1), u[keep_pts]
-                first, block, _ = _ragged(counts)
+                first, block, _ = ragged(counts)
     return best_q, best_len, best_err
 
 
 
 def _normal_equations(u, residual, tangent, ds, h, first) -> np.ndarray:
-    """_fit_curves' Gauss-Newton system per block (its unique entries, then the right-hand side)
+    """fit_curves' Gauss-Newton system per block (its unique entries, then the right-hand side)
     for the points' residuals at parameters ``u``, moved to their arc-length fractions to first
     order (``ds`` along the unit ``tangent``); ``h``: sigma * du_k / dq_j."""
     tx, ty = tangent
@@ -157,7 +157,7 @@ _I, _J = np.triu_indices(4)
 
 
 
-def _stretch(p0, q, p3, length_mm):
+def stretch(p0, q, p3, length_mm):
     """Control points (rows p1x, p1y, p2x, p2y) of the curve (p0, q, p3) continued along itself,
     or cut short, to the arc length ``length_mm``: the same cubic on [0, U], s(U) = length_mm
     (Newton steps, 8-node Gauss-Legendre on [0, U]), by blossoming."""
@@ -165,10 +165,10 @@ def _stretch(p0, q, p3, length_mm):
     a, b, c = 3.0 * d0, 6.0 * (d1 - d0), 3.0 * (d0 - 2.0 * d1 + d2)
     x, w = np.polynomial.legendre.leggauss(8)
     x, w = 0.5 * (x + 1.0), 0.5 * w
-    big_u = np.clip(length_mm / np.maximum(_speeds(a, b, c, x) @ w, 1e-300), 0.05, 4.0)
+    big_u = np.clip(length_mm / np.maximum(curve_speeds(a, b, c, x) @ w, 1e-300), 0.05, 4.0)
     for _ in range(3):
-        s = big_u * (_speeds(a, b, c, big_u[:, None] * x) @ w)
-        speed = np.maximum(_speeds(a, b, c, big_u[:, None])[:, 0], 1e-300)
+        s = big_u * (curve_speeds(a, b, c, big_u[:, None] * x) @ w)
+        speed = np.maximum(curve_speeds(a, b, c, big_u[:, None])[:, 0], 1e-300)
         big_u = np.clip(big_u - (s - length_mm) / speed, 0.05, 4.0)
     p1 = (1.0 - big_u) * p0 + big_u * q[:2]
     p2 = (1.0 - big_u) ** 2 * p0 + 2.0 * big_u * (1.0 - big_u) * q[:2] + big_u ** 2 * q[2:]
@@ -176,23 +176,23 @@ def _stretch(p0, q, p3, length_mm):
 
 
 
-_EXTRAS = 9  # first row of the further columns in the points' rows (see _Fitter.fit_points)
+EXTRAS = 9  # first row of the further columns in the points' rows (see Fitter.fit_points)
 
 
 
-def _xy_error(x, y, pts):
+def xy_error(x, y, pts):
     """Distance of (x, y) from each point's XY: the nearer of its cubic and its linear midpoint."""
     d1 = (x - pts[1]) ** 2 + (y - pts[2]) ** 2
     d2 = (x - pts[7]) ** 2 + (y - pts[8]) ** 2
     return np.sqrt(np.minimum(d1, d2))
 
 
-def _line_error(pts, first):
+def line_error(pts, first):
     """Largest error of each block's straight line, linear in time, over its points ``pts``
-    (rows as in _Fitter.fit_points)."""
+    (rows as in Fitter.fit_points)."""
     tau, cx, cy, X0, Y0, X3, Y3 = pts[:7]
-    err = _xy_error(X0 + (X3 - X0) * tau, Y0 + (Y3 - Y0) * tau, pts)
-    for ce, e0, e3 in pts[_EXTRAS:].reshape(-1, 3, len(tau)):
+    err = xy_error(X0 + (X3 - X0) * tau, Y0 + (Y3 - Y0) * tau, pts)
+    for ce, e0, e3 in pts[EXTRAS:].reshape(-1, 3, len(tau)):
         err = np.maximum(err, np.abs(e0 + (e3 - e0) * tau - ce))
     return np.maximum.reduceat(err, first)
 
@@ -230,7 +230,7 @@ def _solve(normal, q, line, damping=0.0):
 
 
 
-def _speeds(a, b, c, u):
+def curve_speeds(a, b, c, u):
     """|B'(u)| of every block (rows) at the parameters u (columns); B' = a + u (b + u c)."""
     dx = a[0][:, None] + u * (b[0][:, None] + u * c[0][:, None])
     dy = a[1][:, None] + u * (b[1][:, None] + u * c[1][:, None])
@@ -254,7 +254,7 @@ def _arc_integrals(u, coef, first, block):
     prev[first] = u[first]  # no step before a block's first sample
     step = u - prev
     acc = np.zeros((5, len(u)))
-    for x, w in zip(_GL_X, _GL_W, strict=True):
+    for x, w in zip(GL_X, GL_W, strict=True):
         v = prev + x * step
         dx, dy = ax + v * (bx + v * cx), ay + v * (by + v * cy)
         sigma = np.sqrt(dx * dx + dy * dy)

@@ -2,7 +2,7 @@
 
 Takes a run's commanded samples (rows X Y Z E, machine mm), the tolerance and the minimum block
 length in samples; gives the block ends as sample indices: dense G1 blocks by chords
-(``breakpoints``, ``_Breaks`` as the samples arrive), or G5 curves fitted by ``bezier.fit_g5``
+(``breakpoints``, ``Breaks`` as the samples arrive), or G5 curves fitted by ``bezier.fit_g5``
 with G1 blocks where no curve fits (``g5_blocks``, ``Curves``).
 """
 from __future__ import annotations
@@ -26,7 +26,7 @@ _PIECE = 1 << 16  # samples
 
 
 
-class _Breaks:
+class Breaks:
     """Where the blocks of one run end (see ``breakpoints``), found as its command arrives.
 
     A chord over n sample steps deviates from the samples it spans by at most n^2/8 times their
@@ -95,8 +95,8 @@ class _Breaks:
 def breakpoints(command: np.ndarray, tolerance_mm: float, min_samples: int,
                 max_samples: int = _MAX_SAMPLES) -> np.ndarray:
     """Sample indices where the blocks of a run end (``command``: its samples), first and last
-    sample included (see ``_Breaks``)."""
-    breaks = _Breaks(len(command), tolerance_mm, min_samples, max_samples)
+    sample included (see ``Breaks``)."""
+    breaks = Breaks(len(command), tolerance_mm, min_samples, max_samples)
     breaks.feed(np.asarray(command, dtype=float))
     return np.asarray(breaks.ends)
 

@@ -2,7 +2,7 @@
 
 Takes the blocks as written (their ends and targets, and where the firmware puts them) and the
 command (``SampleWindow``); gives the largest deviation and where, its RMS, the time in blocks
-beyond the tolerance (``_Deviation``), and gives ``report.ExecutedError`` the executed motion
+beyond the tolerance (``Deviation``), and gives ``report.ExecutedError`` the executed motion
 sample by sample.
 """
 from __future__ import annotations
@@ -14,7 +14,7 @@ import numpy as np
 from .samples import SampleWindow
 
 
-class _Deviation:
+class Deviation:
     """How far the written blocks, each run at constant speed, are from the command at the same
     time, over the samples inside them (XYZ): the largest, where, and the time in blocks beyond
     the tolerance (rounding aside)."""

@@ -4,7 +4,7 @@ Takes the blocks' targets (machine mm), durations and end times, the G5 curves w
 and what the controller does to its modes and frame (the copied lines: ``passthrough``); gives
 the G1 / G5 lines' text, F from each block's time with the time residues and the firmware's
 ramps carried, relative values carrying their rounding residues, Marlin's whole steps and merge
-(``marlinmerge``) where its steps are given (``_Emitter``, ``_feeds``).
+(``marlinmerge``) where its steps are given (``Emitter``, ``_feeds``).
 """
 from __future__ import annotations
 
@@ -16,14 +16,14 @@ from ..firmware.steps import crossing_ends, rounding_for
 from ..read.blocks import AXES, Block, Kind, Modal, feed_lengths
 from .bezier import curve_lengths
 from .blockends import Curves
-from .linetext import _DECIMALS, _FEED_DECIMALS, _lines
-from .marlinmerge import _last_in_both, _merged, _moved_in_time, _rounded_ends
+from .linetext import DECIMALS, FEED_DECIMALS, line_text
+from .marlinmerge import last_in_both, marlin_merged, moved_in_time, rounded_ends
 
 _LINES = 1024  # lines formatted at once
 
 
 
-class _Emitter:
+class Emitter:
     """Formats blocks in the controller's current modes and frame.
 
     ``written`` is where the controller believes it is, in its program coordinates: it changes
@@ -84,7 +84,7 @@ class _Emitter:
     @property
     def digits(self) -> np.ndarray:
         """Decimals written per axis (of AXES), in the controller's units."""
-        return np.array([_DECIMALS[a] for a in AXES]) + (1 if self.modal.inches else 0)
+        return np.array([DECIMALS[a] for a in AXES]) + (1 if self.modal.inches else 0)
 
     def still(self, targets_mm: np.ndarray) -> int:
         """How many of the first ``targets_mm`` (machine mm) round to where the controller is."""
@@ -127,15 +127,15 @@ class _Emitter:
 
     def _on_crossings(self, start: np.ndarray, ints: np.ndarray, scale: np.ndarray, durations_s: np.ndarray,
                       ends_s: np.ndarray, targets_mm: np.ndarray, exact_last: bool) -> tuple:
-        """MIN_STEPS_PER_SEGMENT above 1: the blocks Marlin keeps (``_merged``), each end moved to where
+        """MIN_STEPS_PER_SEGMENT above 1: the blocks Marlin keeps (``marlin_merged``), each end moved to where
         its dominant axis crosses a step (``steps.crossing_ends``), the ends then on whole steps
-        (``_rounded_ends``), merged rows onto the kept end before; merged again where that left a
+        (``rounded_ends``), merged rows onto the kept end before; merged again where that left a
         block short. Gives the ends, rows' durations and times, targets and rounding's states."""
         n, spu = len(ints), self.steps_per_mm * self.unit_mm / scale
         # row 0: the last kept end's time, wanted and rounded ends, its time and end moved (none: the start)
         t0_s = ends_s[0] - durations_s[0]
         from_s, from_units, from_ints, ended_s, ended_units = self.crossing_from or (t0_s, start, start, t0_s, start)
-        ints = _merged(from_ints, ints, spu, self.min_steps, exact_last)
+        ints = marlin_merged(from_ints, ints, spu, self.min_steps, exact_last)
         self.plain = np.vstack([from_ints, ints])
         kept = np.flatnonzero((np.diff(np.vstack([from_ints, ints]), axis=0) != 0).any(axis=1))
         if not len(kept):
@@ -143,24 +143,24 @@ class _Emitter:
         times_s, units = np.append(from_s, ends_s), np.vstack([from_units, self.to_program(targets_mm) * scale])
         xyz_spu = np.where(np.arange(len(spu)) < 3, spu, 0.0)
         t_s, ends = crossing_ends(times_s, units, xyz_spu, kept + 1)
-        rounded, states = _rounded_ends(self.rounding, self.rounding_state, ends, spu, np.append(ended_s, t_s),
-                                        kept, exact_last, times_s, units, ended_units, self.plain, self.min_steps)
+        rounded, states = rounded_ends(self.rounding, self.rounding_state, ends, spu, np.append(ended_s, t_s),
+                                       kept, exact_last, times_s, units, ended_units, self.plain, self.min_steps)
         if exact_last and kept[-1] == n - 1:
             rounded[-1] = ints[-1]
-        durations_s, ends_s = _moved_in_time(kept, t_s - times_s[kept + 1], durations_s, ends_s)
+        durations_s, ends_s = moved_in_time(kept, t_s - times_s[kept + 1], durations_s, ends_s)
         targets_mm = targets_mm.copy()
         targets_mm[kept] = self.to_machine(ends / scale)
         source = np.maximum.accumulate(np.where(np.isin(np.arange(n), kept), np.arange(n) + 1, 0))
         ints = np.vstack([start, np.zeros_like(ints)])
         ints[kept + 1] = rounded
-        return (_merged(start, ints[source], spu, self.min_steps, exact_last), durations_s, ends_s, targets_mm,
+        return (marlin_merged(start, ints[source], spu, self.min_steps, exact_last), durations_s, ends_s, targets_mm,
                 states)
 
     def _held_from(self, kept: np.ndarray, wanted_s: np.ndarray, ends_s: np.ndarray, wanted_mm: np.ndarray,
                    ends_mm: np.ndarray, scale: np.ndarray) -> int:
-        """The first row held for the next call (``_last_in_both``); ``crossing_from``: the row
+        """The first row held for the next call (``last_in_both``); ``crossing_from``: the row
         before's, for the next call to merge and move its rows as one call would."""
-        row = _last_in_both(self.plain, kept, ends_s)
+        row = last_in_both(self.plain, kept, ends_s)
         if row is not None:
             self.crossing_from = (wanted_s[row], self.to_program(wanted_mm[row]) * scale, self.plain[row + 1],
                                   ends_s[row], self.to_program(ends_mm[row]) * scale)
@@ -203,7 +203,7 @@ class _Emitter:
                     start, ints, scale, durations_s, ends_s, targets_mm, exact_last)
             else:
                 ints, states = self._shaped(self.to_program(targets_mm) * scale, ints, scale, durations_s, exact_last)
-                ints = _merged(start, ints, self.steps_per_mm * self.unit_mm / scale, self.min_steps, exact_last)
+                ints = marlin_merged(start, ints, self.steps_per_mm * self.unit_mm / scale, self.min_steps, exact_last)
             self._keep_rounding(states, len(ints))
             if exact_last:
                 self.crossing_from = None
@@ -231,7 +231,7 @@ class _Emitter:
         self.stepped_mm = self.to_machine(ints[moving] / scale) if marlin else self.written_mm
         rows = slice(None) if moving.all() else moving  # nearly always all of them: no copies
         feed, self.residue_s, self.speed_mm_s = _feeds(length, durations_s, moving, self.residue_s,
-                                                       60.0 * 10 ** _FEED_DECIMALS / self.unit_mm,
+                                                       60.0 * 10 ** FEED_DECIMALS / self.unit_mm,
                                                        self.speed_mm_s, self.ramp_mm_s2, jump)
         new_feed = feed != np.concatenate([[self.feed], feed[:-1]])  # F only where it changes
         if len(feed):
@@ -240,7 +240,7 @@ class _Emitter:
             self.written = np.where(relative, self.written + (ints[-1] - start) / scale, ints[-1] / scale)
         values = np.column_stack([np.where(relative, steps, ints)[rows], feed])
         shown = np.column_stack([moved[rows], new_feed])
-        digits = np.append(digits, _FEED_DECIMALS)
+        digits = np.append(digits, FEED_DECIMALS)
         letters, g5 = "".join(AXES) + "F", np.zeros(len(feed), bool)
         if curves is not None:
             g5 = curves.curve[rows]
@@ -250,8 +250,8 @@ class _Emitter:
             letters = "IJPQ" + letters
         # By _LINES: more lines at once format two to three times slower (measured: the
         # temporaries outgrow the CPU cache).
-        return b"".join(_lines(values[a:a + _LINES], shown[a:a + _LINES], digits, letters, self.newline,
-                               g5[a:a + _LINES]) for a in range(0, len(feed), _LINES)), len(feed)
+        return b"".join(line_text(values[a:a + _LINES], shown[a:a + _LINES], digits, letters, self.newline,
+                                  g5[a:a + _LINES]) for a in range(0, len(feed), _LINES)), len(feed)
 
     def _curve_offsets(self, curves: Curves, start: np.ndarray, ints: np.ndarray, scale: np.ndarray,
                        length: np.ndarray, moved: np.ndarray, moving: np.ndarray) -> np.ndarray:
@@ -305,7 +305,7 @@ def _feeds(length_mm: np.ndarray, durations_s: np.ndarray, moving: np.ndarray, r
     ramps from one block's speed to the next at ``ramp_mm_s2``, inside the faster one, and arrives
     (dv)^2 / (2 ramp max(v)) late: the next block makes that up too. (Where the residue is more
     negative than half a block's duration, the block keeps half its own and the rest goes on.)
-    Marlin enters a faster block at once up to its ``jump_mm_s`` (see ``_Emitter._marlin_lengths``).
+    Marlin enters a faster block at once up to its ``jump_mm_s`` (see ``Emitter._marlin_lengths``).
     """
     residue_s = float(residue_s)  # (a numpy scalar makes every step of the loop three times slower)
     feeds = []

@@ -1,8 +1,8 @@
 """The text of G1 and G5 lines, formatted many rows at once.
 
-Takes rows of words as integers in units of their last digit (``_DECIMALS``, ``_FEED_DECIMALS``)
+Takes rows of words as integers in units of their last digit (``DECIMALS``, ``FEED_DECIMALS``)
 and which words each line shows; gives the lines' bytes with every number the shortest decimal
-(``_lines``).
+(``line_text``).
 """
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import numpy as np
 
 from ..read.blocks import AXES
 
-_DECIMALS = {**dict.fromkeys(AXES, 4), "E": 5}  # mm: 0.1 um (A B C: 1e-4 degree), E: 10 nm of filament
-_FEED_DECIMALS = 3  # mm/min (in/min in G20)
+DECIMALS = {**dict.fromkeys(AXES, 4), "E": 5}  # mm: 0.1 um (A B C: 1e-4 degree), E: 10 nm of filament
+FEED_DECIMALS = 3  # mm/min (in/min in G20)
 
 
 
@@ -36,11 +36,11 @@ def _packed(*tables: np.ndarray) -> np.ndarray:
     return np.concatenate(tables).view(np.uint32).ravel()
 
 
-# _lines writes numbers from four-character pieces looked up by value (plus the offset of
+# line_text writes numbers from four-character pieces looked up by value (plus the offset of
 # their form), NUL where the shortest text has no character. The integer part, by four digits:
 _INT_PART = _packed(_digits(4, "lead"), _digits(4, "lead0"), _digits(4, "full"))
 _LEAD, _LEAD0, _FULL = 0, 10000, 20000
-# The fractional part, always at 7 decimals (every _DECIMALS and _FEED_DECIMALS fit): the point
+# The fractional part, always at 7 decimals (every DECIMALS and FEED_DECIMALS fit): the point
 # and three digits (+ 1000: digits follow), then four digits.
 _FRACTION_DECIMALS = 7
 _FRACTION_HIGH = _packed(_pointed(_digits(3, "trail")), _pointed(_digits(3, "full")))
@@ -50,8 +50,8 @@ _WORD_HEADS = _packed(np.array([[ord(" "), ord(letter), 0, 0] for letter in _LET
 _MINUS, _G1, _G5 = np.frombuffer(b"\0\0-\0G1\0\0G5\0\0", np.uint32)  # " X" + _MINUS is " X-"
 
 
-def _lines(values: np.ndarray, shown: np.ndarray, digits: np.ndarray, letters: str, newline: bytes,
-           g5: np.ndarray) -> bytes:
+def line_text(values: np.ndarray, shown: np.ndarray, digits: np.ndarray, letters: str, newline: bytes,
+              g5: np.ndarray) -> bytes:
     """The text of one line per row of ``values`` (n, k: the words ``letters`` as integers in
     units of 10**-``digits``, at most 7 digits), G5 where ``g5`` else G1, with the words that
     are ``shown``, each line ended by ``newline``. Numbers are the shortest decimal: "12.34",

@@ -2,9 +2,9 @@
 
 Takes block ends in written units (rows of integers, the controller's start before them), the
 steps per unit and Marlin's MIN_STEPS_PER_SEGMENT; gives the ends with every block Marlin would
-merge moved onto the end before it (``_merged``), and, for the ends moved onto the crossings of
-steps, their whole steps through each axis' rounding (``_rounded_ends``), their times
-(``_moved_in_time``) and the last end that later blocks cannot change (``_last_in_both``).
+merge moved onto the end before it (``marlin_merged``), and, for the ends moved onto the crossings of
+steps, their whole steps through each axis' rounding (``rounded_ends``), their times
+(``moved_in_time``) and the last end that later blocks cannot change (``last_in_both``).
 """
 from __future__ import annotations
 
@@ -13,8 +13,8 @@ import numpy as np
 from ..firmware.steps import ModalRounding, lattice_counts, settled_before
 
 
-def _moved_in_time(kept: np.ndarray, shift_s: np.ndarray, durations_s: np.ndarray,
-                   ends_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def moved_in_time(kept: np.ndarray, shift_s: np.ndarray, durations_s: np.ndarray,
+                  ends_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The rows' durations and end times with the ``kept`` rows' ends moved by ``shift_s``, the
     next row taking up the difference (the last kept row is not moved)."""
     durations_s, ends_s = durations_s.copy(), ends_s.copy()
@@ -24,7 +24,7 @@ def _moved_in_time(kept: np.ndarray, shift_s: np.ndarray, durations_s: np.ndarra
     return durations_s, ends_s
 
 
-def _last_in_both(plain: np.ndarray, kept: np.ndarray, ends_s: np.ndarray) -> int | None:
+def last_in_both(plain: np.ndarray, kept: np.ndarray, ends_s: np.ndarray) -> int | None:
     """The last row kept both by Marlin's merge of the rows rounded (``plain``: row 0 the start)
     and in the end (``kept``), but for the merge's last (a later row may merge it), that ends
     (``ends_s``) where the lattice has settled its end given the rows up to that one
@@ -35,9 +35,9 @@ def _last_in_both(plain: np.ndarray, kept: np.ndarray, ends_s: np.ndarray) -> in
     return int(both[-1]) if len(both) else None
 
 
-def _rounded_ends(rounding: list, rounding_state: list, ends: np.ndarray, spu: np.ndarray, knots_s: np.ndarray,
-                  kept: np.ndarray, exact_last: bool, times_s: np.ndarray, units: np.ndarray,
-                  knot_from: np.ndarray, plain: np.ndarray, min_steps: int) -> tuple:
+def rounded_ends(rounding: list, rounding_state: list, ends: np.ndarray, spu: np.ndarray, knots_s: np.ndarray,
+                 kept: np.ndarray, exact_last: bool, times_s: np.ndarray, units: np.ndarray,
+                 knot_from: np.ndarray, plain: np.ndarray, min_steps: int) -> tuple:
     """The kept blocks' ``ends`` (written units, at ``knots_s[1:]``; ``knots_s[0]`` the end
     before them, at ``knot_from``) with X Y Z on whole steps, each axis by its ``rounding``
     (``steps``) from its ``rounding_state``: the axes with modes together on the lattice
@@ -74,8 +74,8 @@ def _rounded_ends(rounding: list, rounding_state: list, ends: np.ndarray, spu: n
 
 
 
-def _merged(start: np.ndarray, ints: np.ndarray, steps_per_unit: np.ndarray, min_steps: int,
-            exact_last: bool) -> np.ndarray:
+def marlin_merged(start: np.ndarray, ints: np.ndarray, steps_per_unit: np.ndarray, min_steps: int,
+                  exact_last: bool) -> np.ndarray:
     """Block ends (rows of written units; ``start``: where the controller is) with every block
     that Marlin would merge (fewer than ``min_steps`` steps on every axis from the last block
     kept, steps as Marlin rounds the positions) moved back onto that block's end: a block of no

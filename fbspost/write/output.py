@@ -2,7 +2,7 @@
 
 Takes lines to write (the written blocks' text, the writer's own lines, dwells) and the
 program's lines to copy; gives them to the binary stream in order, counting them in
-``WriteStats`` and the most lines in any second (``_Output``, ``_LineRate``). Also the lines of
+``WriteStats`` and the most lines in any second (``Output``, ``_LineRate``). Also the lines of
 a flavor's dwell (``dwell_line``) and of a change of modes (``mode_lines``).
 """
 from __future__ import annotations
@@ -57,7 +57,7 @@ class _LineRate:
 
 
 
-class _Output:
+class Output:
     """The output program's text. Takes lines to write (each ended by the program's newline,
     counted in ``stats`` and in the line rate at ``written_until_s``) and the program's lines to
     copy as they are; a copied line without a line ending gets one when more follows it."""

@@ -1,7 +1,7 @@
 """The runs of motion as blocks: a run's block ends, dwells and end.
 
 Takes the plan's runs, the command (``SampleWindow``), the options and the output; writes the
-blocks from where the output is up to a time (``_RunWriter.until``): their ends
+blocks from where the output is up to a time (``RunWriter.until``): their ends
 (``blockends``), the firmware's settings before them, a dwell for the blocks at a run's start
 that round to no motion, and each run's end.
 """
@@ -15,11 +15,11 @@ import numpy as np
 from ..firmware.transparency import Transparency
 from ..plan.planner import PlanStream
 from ..read.blocks import Kind
-from .blockends import _Breaks, g5_blocks
-from .deviation import _Deviation
-from .emitter import _Emitter
+from .blockends import Breaks, g5_blocks
+from .deviation import Deviation
+from .emitter import Emitter
 from .options import WriteOptions, shortest_line_s
-from .output import _Output, dwell_line
+from .output import Output, dwell_line
 from .samples import SampleWindow
 
 _FEED = 1 << 14  # samples given to the block-end search at once
@@ -48,13 +48,13 @@ def _start_dwell(dwell, rest_s: float, latency_s: float | None) -> tuple[float, 
 
 
 
-def _still_as_dwell(emitter: _Emitter, dwell, from_s: float, ends_s: np.ndarray, targets_mm: np.ndarray,
-                    latency_s: float | None) -> int:
+def still_as_dwell(emitter: Emitter, dwell, from_s: float, ends_s: np.ndarray, targets_mm: np.ndarray,
+                   latency_s: float | None) -> int:
     """At a run's start (from ``from_s``), the first blocks (ends ``ends_s``, ``targets_mm``) that round
     to no motion as a dwell (``dwell``: writes one for about the seconds given, gives how long it
     dwells), not as a slow first block: how many it stands for (0: none, or the dwell rounds to none).
     On Marlin (``latency_s`` not None) the dwell also takes up what the last run's end left
-    (``_RunWriter._end_run``), with or without such blocks."""
+    (``RunWriter._end_run``), with or without such blocks."""
     still = emitter.still(targets_mm[:-1])
     if still or latency_s is not None:
         span_s = ends_s[still - 1] - from_s if still else 0.0
@@ -66,7 +66,7 @@ def _still_as_dwell(emitter: _Emitter, dwell, from_s: float, ends_s: np.ndarray,
 
 
 
-def _copied_sample(line_time_s: float, is_stop: bool, fs: float, previous: int) -> int:
+def copied_sample(line_time_s: float, is_stop: bool, fs: float, previous: int) -> int:
     """The sample a copied line runs at. The nearest to its planned time (at most half a sample
     off), so that blocks end on samples of the command: a block ending between two samples
     would bend the command there, and ask more acceleration of the controller than the command
@@ -77,21 +77,21 @@ def _copied_sample(line_time_s: float, is_stop: bool, fs: float, previous: int) 
 
 
 
-class _RunWriter:
+class RunWriter:
     """The runs of motion as blocks. Takes the plan's runs and the command (``SampleWindow``);
     writes the blocks from where the output is up to a time (``until``): their ends (dense:
-    ``_Breaks``, as the samples come; G5: ``g5_blocks``, each run fitted whole), the firmware's
+    ``Breaks``, as the samples come; G5: ``g5_blocks``, each run fitted whole), the firmware's
     settings before them, a dwell for the blocks at a run's start that round to no motion, and
     the end of each run. ``emitter`` formats them (set before the first call)."""
 
-    def __init__(self, plan: PlanStream, samples: SampleWindow, options: WriteOptions, output: _Output,
+    def __init__(self, plan: PlanStream, samples: SampleWindow, options: WriteOptions, output: Output,
                  settings: Transparency | None, executed=None):
         self._plan, self._samples, self._options, self._out, self._settings = plan, samples, options, output, settings
         self._fs = fs = plan.sample_rate_hz
         min_segment_s = max(options.min_segment_time_s, shortest_line_s(options.max_line_rate_hz))
         self._min_samples = max(1, int(np.ceil(min_segment_s * fs - 1e-9)))
-        self.deviation = _Deviation(samples, fs, options.tolerance_mm, executed)
-        self.emitter: _Emitter | None = None
+        self.deviation = Deviation(samples, fs, options.tolerance_mm, executed)
+        self.emitter: Emitter | None = None
         self.copied_sample = -1  # of the last copied line
         self.dwelt_s = 0.0  # the dwells of the lines at rest since the last block (the controller's time: +)
         self.run_index = 0  # the run being written
@@ -149,7 +149,7 @@ class _RunWriter:
             if ends[-1] == stop_s and end_exact_mm is not None and not soft:
                 exact = np.where(np.isnan(end_exact_mm), samples.at(ends[-1:], fs, planned=True)[0], end_exact_mm)
                 targets[-1, follows_plan] = exact[follows_plan]
-            still = _still_as_dwell(emitter, out.dwell, from_s, ends, targets, self.latency_s) if run_start else 0
+            still = still_as_dwell(emitter, out.dwell, from_s, ends, targets, self.latency_s) if run_start else 0
             if still:
                 from_s, ends, targets = ends[still - 1], ends[still:], targets[still:]
                 curves = None if curves is None else curves[still:]
@@ -173,7 +173,7 @@ class _RunWriter:
         # its time must not slow the next run's first block, nor be lost (the lines after it
         # run at the plan's times). Not on Marlin: its G4 empties the buffer, and a copied move
         # after it (a layer's Z move) would be alone there before the next run's G4, held 100 ms
-        # (_start_dwell); the next run's G4 takes the time up (_still_as_dwell), the copied lines
+        # (_start_dwell); the next run's G4 takes the time up (still_as_dwell), the copied lines
         # run that much earlier, X and Y at rest already.
         if self.latency_s is None:
             self.emitter.residue_s -= self._out.dwell(self.emitter.residue_s)
@@ -202,7 +202,7 @@ class _RunWriter:
         ahead = [self.copied_sample]  # this copied line and those settled after it: all of the run's
         for block, line_time_s, is_stop in plan.lines:
             if block.kind is not Kind.MOVE:
-                ahead.append(_copied_sample(line_time_s, is_stop, self._fs, ahead[-1]))
+                ahead.append(copied_sample(line_time_s, is_stop, self._fs, ahead[-1]))
         copied = np.unique(ahead)
         splits = copied[np.searchsorted(copied, first, "right"):np.searchsorted(copied, last, "left")] - first
         step_mm = 10.0 ** -self.emitter.digits[0] * self.emitter.unit_mm  # I J P Q as written
@@ -217,10 +217,10 @@ class _RunWriter:
         return last
 
     def _dense_ends(self, first: int, start_s: float, stop_s: float, soft: bool):
-        """``_block_ends`` of the dense format: ``_Breaks`` fed the run's samples as they settle."""
+        """``_block_ends`` of the dense format: ``Breaks`` fed the run's samples as they settle."""
         plan, fs = self._plan, self._fs
         if self._run_breaks is None:
-            self._run_breaks = _Breaks(None, self._options.tolerance_mm, self._min_samples)
+            self._run_breaks = Breaks(None, self._options.tolerance_mm, self._min_samples)
         breaks = self._run_breaks
         half = 0.5 * self._options.min_segment_time_s
         ends = breaks.ends

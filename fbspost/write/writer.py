@@ -24,16 +24,16 @@ import numpy as np
 from ..firmware.transparency import Transparency
 from ..plan.planner import PlanStream
 from ..read.blocks import AXES, Block, Kind, Modal
-from .emitter import _Emitter
+from .emitter import Emitter
 from .options import WriteOptions, WriteStats, format_refusal
-from .output import _Output, dwell_line, mode_lines
-from .runs import _copied_sample, _RunWriter, _still_as_dwell
+from .output import Output, dwell_line, mode_lines
+from .runs import RunWriter, copied_sample, still_as_dwell
 from .samples import SampleWindow
 
 
 class _ProgramWriter:
     """The output program (``write_program``): the program's lines in order, the copied ones at
-    their times with the blocks before them (``_RunWriter``), the header comments before the
+    their times with the blocks before them (``RunWriter``), the header comments before the
     first line of code, the modes and the firmware's settings where the copied lines need them."""
 
     def __init__(self, plan: PlanStream, samples: SampleWindow, options: WriteOptions, out, executed=None):
@@ -41,8 +41,8 @@ class _ProgramWriter:
         self._fs = plan.sample_rate_hz
         self._settings = None if options.firmware is None else \
             Transparency(options.flavor, options.firmware, options.tolerance_mm)
-        self._out = _Output(out, options.flavor)
-        self._motion = _RunWriter(plan, samples, options, self._out, self._settings, executed)
+        self._out = Output(out, options.flavor)
+        self._motion = RunWriter(plan, samples, options, self._out, self._settings, executed)
         self._previous_modal, self._previous_mm = Modal(), np.full(len(AXES), np.nan)
 
     def write(self) -> WriteStats:
@@ -53,10 +53,10 @@ class _ProgramWriter:
             if motion.emitter is None:
                 out.newline = b"\r\n" if block.raw.endswith(b"\r\n") else b"\n"  # (only the last line has no ending)
                 steps = None if self._options.steps_per_mm is None else np.asarray(self._options.steps_per_mm)
-                motion.emitter = _Emitter(self._samples.rows(0, 1)[0], out.newline, steps,
-                                          self._options.min_steps_per_segment,
-                                          math.inf if self._settings is None else self._settings.ramp_mm_s2,
-                                          self._options.axis_modes)
+                motion.emitter = Emitter(self._samples.rows(0, 1)[0], out.newline, steps,
+                                         self._options.min_steps_per_segment,
+                                         math.inf if self._settings is None else self._settings.ramp_mm_s2,
+                                         self._options.axis_modes)
             if not header_done and _is_code(block):
                 self._header()
                 header_done = True
@@ -83,7 +83,7 @@ class _ProgramWriter:
         """A line that does not move the machine, at its time, after the motion before it."""
         out, motion, settings, samples, fs = self._out, self._motion, self._settings, self._samples, self._fs
         previous_mm, follows_plan = self._previous_mm, samples.follows_plan
-        motion.copied_sample = _copied_sample(line_time_s, is_stop, fs, motion.copied_sample)
+        motion.copied_sample = copied_sample(line_time_s, is_stop, fs, motion.copied_sample)
         t = motion.copied_sample / fs
         motion.until(t, previous_mm)  # the motion before the line ends where the program was before it
         if settings is not None and is_stop and _may_move(previous_mm, block.position_mm, slice(None)):
@@ -120,7 +120,7 @@ class _ProgramWriter:
         """The motion after the last copied line, the modes restored, the last line if it has no ending."""
         out, motion, samples = self._out, self._motion, self._samples
         if motion.emitter is None:
-            motion.emitter = _Emitter(np.zeros(len(AXES)), out.newline)
+            motion.emitter = Emitter(np.zeros(len(AXES)), out.newline)
         samples.ensure(samples.n_samples)
         motion.until(np.inf, samples.planned[-1])
         motion.deviation.rest_until(samples.n_samples)
@@ -156,18 +156,18 @@ def timed_blocks(command_mm: np.ndarray, block_s: float, options: WriteOptions) 
     rest at the first row, where the firmware is) as blocks of ``block_s`` each on
     ``options.flavor``'s firmware, made transparent by ``options.firmware``'s ``Transparency``
     (whose lines the caller writes around them): F from each block's time with the residues and
-    ramps carried, Marlin's whole steps and merge with ``options``' steps (``_Emitter``), a dwell
+    ramps carried, Marlin's whole steps and merge with ``options``' steps (``Emitter``), a dwell
     for the first blocks that round to no motion and one for the time left at the end (the ramp
     down to rest)."""
     ramp_mm_s2 = math.inf if options.firmware is None else \
         Transparency(options.flavor, options.firmware, options.tolerance_mm).ramp_mm_s2
     steps = None if options.steps_per_mm is None else np.asarray(options.steps_per_mm)
-    emitter = _Emitter(command_mm[0], b"\n", steps, options.min_steps_per_segment, ramp_mm_s2, options.axis_modes,
-                       crossings=False)  # (blocks of equal time: identify's sweep)
+    emitter = Emitter(command_mm[0], b"\n", steps, options.min_steps_per_segment, ramp_mm_s2, options.axis_modes,
+                      crossings=False)  # (blocks of equal time: identify's sweep)
     text = io.BytesIO()
-    out = _Output(text, options.flavor)
+    out = Output(text, options.flavor)
     ends_s, targets_mm = np.arange(1, len(command_mm)) * block_s, command_mm[1:]
-    still = _still_as_dwell(emitter, out.dwell, 0.0, ends_s, targets_mm, None)
+    still = still_as_dwell(emitter, out.dwell, 0.0, ends_s, targets_mm, None)
     from_s = ends_s[still - 1] if still else 0.0
     out.text(*emitter.blocks(targets_mm[still:], np.diff(np.append(from_s, ends_s[still:])), ends_s[still:]))
     out.dwell(emitter.residue_s - emitter.speed_mm_s / (2.0 * emitter.ramp_mm_s2))  # (as a stop, then a run's end)
