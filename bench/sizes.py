@@ -8,7 +8,8 @@ Prints one line per offender; nothing when the layout is clean (exit status 0, e
 - a class with more than one parent class of the project, and a parent class of the project that
   reads ``self.X`` it never sets or defines (a mixin: its state is another class's);
 - an import cycle between modules (every import, those inside functions and under
-  TYPE_CHECKING too), and between packages.
+  TYPE_CHECKING too), and between packages;
+- a private name (``_name``) imported from another module: what a module gives is public.
 ``--graph`` also prints each package and the packages it imports, lowest first.
 """
 from __future__ import annotations
@@ -88,6 +89,16 @@ def mixins(trees: dict[str, ast.Module]) -> Iterator[str]:
         foreign = sorted(_read(cls) - owned(name))
         if foreign:
             yield f"class {module}.{name} is a parent that reads state it does not own: self.{', self.'.join(foreign)}"
+
+
+def private_imports(trees: dict[str, ast.Module]) -> Iterator[str]:
+    for name, tree in trees.items():
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and (node.level or (node.module or "").startswith("fbspost")):
+                for alias in node.names:
+                    if alias.name.startswith("_") and not alias.name.startswith("__"):
+                        source = "." * node.level + (node.module or "")
+                        yield f"private name imported: {name} imports {alias.name} from {source}"
 
 
 def imports(trees: dict[str, ast.Module]) -> dict[str, set[str]]:
@@ -173,7 +184,7 @@ def main() -> int:
     trees = modules(ROOT / "fbspost")
     graph = imports(trees)
     packages = package_graph(graph, "fbspost")
-    found = [*too_long(trees), *mixins(trees)]
+    found = [*too_long(trees), *mixins(trees), *private_imports(trees)]
     found += [f"import cycle: {' <-> '.join(component)}" for component in cycles(graph)]
     found += [f"package import cycle: {' <-> '.join(component)}" for component in cycles(packages)]
     for line in found:
