@@ -9,6 +9,8 @@ finishes.
 """
 from __future__ import annotations
 
+import weakref
+
 import daqp
 import numpy as np
 from scipy import linalg, sparse
@@ -26,7 +28,9 @@ class LimitedQP:
     the solvers' set-up, built on first use."""
 
     def __init__(self, window):
-        self.window = window
+        # A proxy: a reference would make a cycle with the window that holds this, which only the
+        # cyclic collector frees, so evicted windows' matrices would pile up (1.5 GB on systems.ngc).
+        self.window = weakref.proxy(window)
         self._qp = None  # OSQP's problem, with its matrix ``_A``
         self._ldp = self._hinv_at = None  # DAQP's least-distance problem; H^-1 A^T and the Gram matrix
 
