@@ -397,6 +397,10 @@ def kkt_certified(H, g, A, offset, p, E=None, e=None, residual_tol=1e-8):
             and residual <= residual_tol * max(1.0, np.linalg.norm(g)))
 
 
+class Problem(SimpleNamespace):
+    """A window as the solvers see it (a subclass, so that its QP can hold a weak proxy of it)."""
+
+
 def random_window(seed, equalities):
     """A random problem min 1/2 p'Hp - g'p s.t. |A p + offset| <= 1 (and E p = e, as in a final
     window) whose limits bind, as the solvers see it: a window with its factorization."""
@@ -409,8 +413,8 @@ def random_window(seed, equalities):
     g = rng.standard_normal(n) * 5
     E, e = rng.standard_normal((equalities, n)), rng.uniform(-0.2, 0.2, equalities)
     kkt = np.block([[H, E.T], [E, np.zeros((equalities, equalities))]])
-    window = SimpleNamespace(A_free=sparse.csc_matrix(A), n_free=n, H=H, E=E if equalities else None,
-                             factor=linalg.lu_factor(kkt) if equalities else linalg.cho_factor(H))
+    window = Problem(A_free=sparse.csc_matrix(A), n_free=n, H=H, E=E if equalities else None,
+                     factor=linalg.lu_factor(kkt) if equalities else linalg.cho_factor(H))
     window.violation = Window.violation.__get__(window)
     window.qp = LimitedQP(window)
     p_free = np.linalg.solve(kkt, np.concatenate([g, e]))[:n]
