@@ -18,6 +18,7 @@ from fbspost.fbs.dynamics import AxisDynamics
 from fbspost.fbs.fallback import FALLBACK
 from fbspost.fbs.optimizer import AxisCompensator
 from fbspost.fbs.settings import AxisLimits, FBSSettings
+from fbspost.fbs.windows import Window
 from fbspost.job import offload, planfeed, processes
 from fbspost.job.offload import NICENESS, Offloaded, _portable
 from fbspost.job.pipeline import compensate_file
@@ -280,6 +281,16 @@ def test_runs_of_equal_length_share_their_final_window_and_solve_alike():
     assert len(shared._finals) == 1 and again.qp_windows >= 1
     alone = compensator()(second)
     assert np.array_equal(again.command_mm, alone.command_mm)
+    # the cache's byte count is its windows' as last used: their solves add to what they hold
+    # (OSQP's matrix), which a count taken only when a window is built misses
+    ((level, n_rows),) = shared._finals
+    built = Window(shared.model_set(level), shared.settings, shared.limits, n_rows + shared.settings.settle_samples,
+                   -(-(n_rows - 1) // shared.settings.knot_spacing_samples), hold_from=n_rows,
+                   end_conditions=True).nbytes
+    shared.final(n_rows, level)
+    held = sum(window.nbytes for window, _ in shared._finals.values())
+    print(f"final window: {built} bytes built, {held} after its solves")
+    assert held > built and shared._finals_bytes == held
 
 
 def _merged_row_by_row(start, ints, steps_per_unit, min_steps, exact_last):

@@ -67,7 +67,9 @@ class AxisCompensator:
         self.state_from = None  # the first state pushed, for ``varying`` that counts from it (mm)
         self._sets = {0: self.models}
         self._rest_units, self._regulars, self._remaps = {}, {}, {}
-        self._finals: OrderedDict[tuple[int, int], Window] = OrderedDict()
+        # each with its bytes as last counted: a solve adds to them (OSQP keeps its matrix on the
+        # window), so a count taken once at build and again at eviction drifted low
+        self._finals: OrderedDict[tuple[int, int], tuple[Window, int]] = OrderedDict()
         self._finals_bytes = 0
 
     def __call__(self, desired_mm: np.ndarray) -> AxisResult:
@@ -119,18 +121,19 @@ class AxisCompensator:
         its length is at most the samples a regular window needs ahead, so runs share them: the
         most recently used are kept, up to ``_FINAL_CACHE_BYTES`` (a few hundred per axis)."""
         key = level, n_rows
-        final = self._finals.pop(key, None)
+        final, counted = self._finals.pop(key, (None, 0))
         if final is None:
             settings = self.settings
             # The spans up to the last sample; a point whose support starts at the last sample does nothing.
             final = Window(self.model_set(level), settings, self.limits, n_rows + settings.settle_samples,
                              max(1, -(-(n_rows - 1) // settings.knot_spacing_samples)), hold_from=n_rows,
                              end_conditions=True)
-            self._finals_bytes += final.nbytes
         final.reset()
-        self._finals[key] = final
+        size = final.nbytes
+        self._finals_bytes += size - counted
+        self._finals[key] = final, size
         while self._finals_bytes > _FINAL_CACHE_BYTES:
-            self._finals_bytes -= self._finals.popitem(last=False)[1].nbytes
+            self._finals_bytes -= self._finals.popitem(last=False)[1][1]
         return final
 
 

@@ -225,7 +225,7 @@ def _linuxcnc_header(positions_mm: np.ndarray, feeds_mm_s: np.ndarray, mark: int
     """The header's account of a ``linuxcnc_sweep`` (its band line's end first)."""
     a = axis.max_acceleration_mm_s2
     lengths = np.abs(np.diff(positions_mm))
-    times = np.concatenate([[0.0], np.cumsum(lengths / feeds_mm_s + feeds_mm_s / a)])
+    times = _rest_to_rest(np.concatenate([[0.0], np.cumsum(lengths / feeds_mm_s)]), feeds_mm_s, a)
     return [
         f"{times[-1]:.9g} s with the move back and the clock mark, one block per half period from rest to rest, "
         f"about {(positions_mm.min() + positions_mm.max()) / 2:.3f} mm",

@@ -20,7 +20,7 @@ from ..profile import Mode
 
 MODE_COUNT_GAIN = 1.25  # one more mode must divide the RMS error by more than this to be kept
 DAMPING_BOUNDS = (1e-5, 0.999)  # the fit's damping stays within these
-VALLEY_TIE = 0.1  # minima of the zeros' trade-off with the time offset this close in cost are a tie
+VALLEY_TIE = 0.005  # minima of the zeros' trade-off with the time offset this close in cost are a tie
 PLAUSIBLE_SHARE = 0.01
 PLAUSIBLE_DAMPING = 0.9  # the automatic count skips a fit with a mode damped more (the patent stage: 0.54 at most)
 _VF_ITERATIONS = 30
@@ -179,9 +179,13 @@ def _along_the_valley(x, s, hn, weights, n, delays):
     term. Of minima whose costs are within VALLEY_TIE of the lowest, the one with the smallest time
     offset: the recording is aligned on the sweep and its clock (``frf_from_recording``), so what
     is left of the offset is the machine's own delay, which a controller and an accelerometer keep
-    to a fraction of a millisecond, while a belt's zero traded for an offset moves it by 2 beta /
-    alpha, about 1 ms (seen on simulated recordings: the zeros' signs flipped within 0.2% of the
-    cost, and FBS with them was 6 times worse on the machine)."""
+    to a fraction of a millisecond, and the axis' net low-frequency lead, none for belts, while a
+    belt's zero traded for an offset moves it by 2 beta / alpha, about 1 ms (seen on simulated
+    recordings: the zeros' signs flipped within 0.2% of the cost, and FBS with them was 6 times
+    worse on the machine). Only a near tie: a stage whose zeros give it a net lead
+    (tests/data/truth-stage.toml's X, 0.91 ms) leaves that much offset, and with a tie of 10% its
+    minimum, 1.6% to 5.8% lower, lost to one at a third of the offset with the zeros rotated, 20%
+    off the truth's response."""
     wn, zeta, a, b = (x[i * n:(i + 1) * n] for i in range(4))
     if not abs(np.sum(a)) > 0:  # no DC gain: no term to keep
         return x

@@ -147,7 +147,7 @@ def _clock_rate(measured: np.ndarray, grid: np.ndarray, fs: float, sweep, offset
     # (cut from the whole command low-passed, as the recording is: not low-passed alone, whose
     # ends the filter would shape otherwise)
     machine_s = np.arange(-int(fs), int((duration_s + 1.0) * fs)) / fs  # (from the rest before it)
-    first = slice(int(fs), int(fs) + int(_MARK_TEMPLATE_S * fs))
+    first = slice(int(fs) + int(_MARK_SETTLED_S * fs), int(fs) + int(_MARK_TEMPLATE_S * fs))
     # where the mark is in the command itself (the header's time is the program's as written,
     # the firmware's plan may differ by milliseconds), from its positions, exact copies of the
     # first passage's (the accelerations' block corners match a block off as well); from that
@@ -155,18 +155,23 @@ def _clock_rate(measured: np.ndarray, grid: np.ndarray, fs: float, sweep, offset
     # its lag (here by 0.35 ms), the same for both passages
     position = sweep.position(machine_s) - sweep.positions_mm[0]
     passages = [_aligned(position, machine_s, position[first], (at_s - 0.05, at_s + 0.05))[0]
-                for at_s in (0.0, sweep.mark_s)]
+                for at_s in (_MARK_SETTLED_S, sweep.mark_s + _MARK_SETTLED_S)]
     mark_s = passages[1] - passages[0]
     template = signal.sosfiltfilt(low, _commanded_acceleration(sweep, machine_s, fs))[first]
     measured_low = signal.sosfiltfilt(low, measured)
-    start_at_s, _ = _aligned(measured_low, grid, template, (offset_s - 0.05, offset_s + 0.05))
+    start_at_s, _ = _aligned(measured_low, grid, template,
+                             (offset_s + _MARK_SETTLED_S - 0.05, offset_s + _MARK_SETTLED_S + 0.05))
     reach_s = 1e-3 * mark_s + 1.0 / fs
     window_s = (start_at_s + mark_s - reach_s, start_at_s + mark_s + reach_s)
     mark_at_s, _ = _aligned(measured_low, grid, template, window_s)
     return (mark_at_s - start_at_s) / mark_s
 
 
-_MARK_TEMPLATE_S = 1.3  # the mark's part well before its fade (at 1.5 s)
+_MARK_TEMPLATE_S = 1.3  # the mark's part well before its fade (at 1.5 s) ...
+# ... from here on: before it, the axis still rings from what precedes the mark (LinuxCNC's sweep
+# returns to its start in one block at the axis' acceleration right before it), which through the
+# low-pass took the mark 47 ppm off on a 10 s sweep of a 23 Hz mode of damping 0.07 (7 from here)
+_MARK_SETTLED_S = 0.3
 _MARK_LOW_PASS = 2.5  # times the band's start, Hz: the mark's passage, far below the modes
 # times the band's start, Hz: the sweep's first passage, for its start; below the third harmonic
 # of the band's start (a sweep of pulses has all odd harmonics as strong as its fundamental)
