@@ -80,6 +80,9 @@ class LinuxCNCSettings:
     arc_blend_gap_cycles: int = 4  # [TRAJ] ARC_BLEND_GAP_CYCLES
     arc_blend_ramp_freq_hz: float = 100.0  # [TRAJ] ARC_BLEND_RAMP_FREQ
     arc_blend_kink_ratio: float = 0.1  # [TRAJ] ARC_BLEND_KINK_RATIO
+    # [TRAJ] MAX_LINEAR_VELOCITY, the speed along the path, which no G-code raises (inf: none below
+    # the axes'; LinuxCNC's sample configurations set it)
+    max_linear_velocity_mm_s: float = math.inf
     # [RS274NGC] RS274NGC_STARTUP_CODE's G64 P and Q (mm): the blending the machine starts in
     # and the output restores (0: LinuxCNC's G64 without P or Q)
     g64_p_mm: float = 0.0
@@ -91,7 +94,8 @@ _LINUXCNC_KEYS = {"servo_period": "servo_period_s", "arc_blend_enable": "arc_ble
                   "arc_blend_fallback_enable": "arc_blend_fallback_enable",
                   "arc_blend_optimization_depth": "arc_blend_optimization_depth",
                   "arc_blend_gap_cycles": "arc_blend_gap_cycles", "arc_blend_ramp_freq": "arc_blend_ramp_freq_hz",
-                  "arc_blend_kink_ratio": "arc_blend_kink_ratio", "g64_p": "g64_p_mm", "g64_q": "g64_q_mm"}
+                  "arc_blend_kink_ratio": "arc_blend_kink_ratio", "g64_p": "g64_p_mm", "g64_q": "g64_q_mm",
+                  "max_linear_velocity": "max_linear_velocity_mm_s"}
 
 
 @dataclass(frozen=True)
@@ -458,7 +462,8 @@ def _parse_linuxcnc(raw: dict, fail, number) -> LinuxCNCSettings:
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:
                 raise fail(f"firmware.{key}", f"must be a whole number >= 0, got {value!r}")
         else:
-            value = number(raw, key, f"firmware.{key}", positive=key in ("servo_period", "arc_blend_ramp_freq"))
+            value = number(raw, key, f"firmware.{key}",
+                           positive=key in ("servo_period", "arc_blend_ramp_freq", "max_linear_velocity"))
             if value < 0 or (key == "arc_blend_kink_ratio" and not 0 < value <= 1):
                 raise fail(f"firmware.{key}", f"must be {'in (0, 1]' if 'kink' in key else '>= 0'}, got {value!r}")
         values[attr] = value

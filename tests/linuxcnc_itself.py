@@ -42,6 +42,8 @@ def ini_text(profile, tmp: str) -> str:
         here=SIM, tmp=tmp, servo_ns=round(lc.servo_period_s * 1e9), blend_enable=int(lc.arc_blend_enable),
         blend_fallback=int(lc.arc_blend_fallback_enable), blend_depth=lc.arc_blend_optimization_depth,
         blend_gap=lc.arc_blend_gap_cycles, blend_ramp=lc.arc_blend_ramp_freq_hz, blend_kink=lc.arc_blend_kink_ratio,
+        # (no limit along the path: one far above the axes')
+        max_linear=lc.max_linear_velocity_mm_s if math.isfinite(lc.max_linear_velocity_mm_s) else 1e9,
         startup=startup, **limits)
 
 

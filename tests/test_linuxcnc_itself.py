@@ -207,3 +207,36 @@ def test_linuxcnc_itself_is_recorded_from_where_the_program_s_path_starts(tmp_pa
     joints = joint_commands(program, STAGE)
     assert np.abs(joints[0] - [0.0, 0.0, 25.4]).max() < 1e-5
     assert printed_path(starts, ends)[0](joints)[0].max() < 0.001 + 0.002
+
+
+@pytest.mark.slow
+@needs_linuxcnc
+def test_max_linear_velocity_caps_the_path_speed_in_linuxcnc_and_in_fbspost_s_plan(tmp_path):
+    """[TRAJ] MAX_LINEAR_VELOCITY 60 mm/s (the profile's ``max_linear_velocity``) on the patent
+    stage, a diagonal at F6000 from rest to rest in G61.1: LinuxCNC itself cruises along the path
+    at 60 mm/s, not the 100 mm/s the feed and each axis allow, and so do the model of its planner
+    and fbspost's plan of the program for LinuxCNC (whose output would otherwise ask the machine
+    for speeds it clamps); the closed form d / v + v / a with v = 60 and a the INI's acceleration
+    along the diagonal for LinuxCNC."""
+    from dataclasses import replace
+
+    from fbspost.plan.planner import plan_blocks
+
+    capped = replace(STAGE, firmware=replace(STAGE.firmware, linuxcnc=replace(
+        STAGE.firmware.linuxcnc, max_linear_velocity_mm_s=60.0)))
+    program = tmp_path / "diagonal.ngc"
+    program.write_text("G21 G90 G61.1\nG0 X0 Y0\nG1 X30 Y30 F6000\nM2\n")
+    length_mm, period_s = 30.0 * np.sqrt(2.0), capped.firmware.linuxcnc.servo_period_s
+    accel = 8000.0 * np.sqrt(2.0)  # each axis at its 8000 mm/s^2 along the diagonal
+    joints = joint_commands(program, capped)
+    speed = np.linalg.norm(np.diff(joints[:, :2], axis=0), axis=1) / period_s
+    print(f"LinuxCNC itself: {speed.max():.4f} mm/s at most, {(len(joints) - 1) * period_s:.4f} s")
+    assert speed.max() == pytest.approx(60.0, rel=1e-4)
+    assert (len(joints) - 1) * period_s == pytest.approx(length_mm / 60.0 + 60.0 / accel, abs=4 * period_s)
+    blocks = list(read_gcode(program, "linuxcnc", capped.home_mm))
+    model = run_linuxcnc(blocks, capped)
+    assert np.linalg.norm(np.diff(model.cycle_positions_mm[:, :2], axis=0), axis=1).max() / period_s == \
+        pytest.approx(60.0, rel=1e-9)
+    plan = plan_blocks(blocks, capped, firmware="linuxcnc")
+    planned = np.linalg.norm(np.diff(plan.positions_mm[:, :2], axis=0), axis=1) * capped.sample_rate_hz
+    assert planned.max() == pytest.approx(60.0, rel=1e-6)

@@ -53,7 +53,8 @@ class LinuxCNCConfig:
                       "servo_period_s": ini.servo_period_s, "optimization_depth": ini.arc_blend_optimization_depth,
                       "gap_cycles": float(ini.arc_blend_gap_cycles), "ramp_frequency_hz": ini.arc_blend_ramp_freq_hz,
                       "kink_ratio": ini.arc_blend_kink_ratio, "arc_blends": ini.arc_blend_enable,
-                      "startup_tolerance_mm": ini.g64_p_mm, **changes})
+                      "startup_tolerance_mm": ini.g64_p_mm, "max_linear_velocity_mm_s": ini.max_linear_velocity_mm_s,
+                      **changes})
 
 
 @dataclass

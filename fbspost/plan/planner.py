@@ -81,6 +81,7 @@ import numpy as np
 from ..profile import MachineProfile
 from ..read.blocks import AXES, Block
 from .clock import BlockClock
+from .limits import linuxcnc_path_velocity_mm_s
 from .lookahead import LookAhead
 from .margins import RunMargins
 from .pieces import PIECE_FIELDS, BlockReader, PieceMaker
@@ -239,7 +240,7 @@ class PlanStream:
         self._pieces = PieceMaker(profile, klipper, self.notes, margins.travel_share)
         self._reader = BlockReader(blocks, profile, klipper, batch_blocks or BATCH_BLOCKS,
                                    functools.partial(margins.settle_at, fs=self._fs), self._pieces.piece_limits,
-                                   every_axis)
+                                   every_axis, linuxcnc_path_velocity_mm_s(profile, firmware))
         self._scans = LookAhead(klipper)
         self._timeline = Timeline(self._fs, keep)
         self._clock = BlockClock(self._reader.pending, keep)
