@@ -6,7 +6,6 @@ segment of the program as reference.execute reads it."""
 import dataclasses
 import os
 import resource
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -281,39 +280,6 @@ def test_path_distance_is_exact_and_bounded_on_a_path_smaller_than_its_pieces(tm
     brute = np.linalg.norm(p - (a + u[..., None] * d), axis=2).min(axis=1)
     np.testing.assert_allclose(result[check, 0], brute, rtol=0, atol=1e-15)
     np.testing.assert_allclose(np.linalg.norm(points[check] - result[check, 1:], axis=1), brute, rtol=0, atol=1e-15)
-
-
-SYSTEMS_NGC = Path("/usr/share/linuxcnc/ncfiles/systems.ngc")
-
-
-@pytest.mark.slow
-@pytest.mark.skipif(not SYSTEMS_NGC.exists() or not shutil.which("rs274"), reason="LinuxCNC's examples and rs274")
-def test_linuxcnc_systems_ngc_is_compensated_and_verified_under_1_gb(tmp_path):
-    """LinuxCNC's own example (parameters, G5.1 splines on a 1.2e-4 scale) grew past 14 GB in the
-    verification: now compensated and verified in under 1 GB of resident memory, under a cap of
-    2.5 GB of address space (where a MemoryError would only be a warning, so that is checked too)."""
-    def capped():
-        resource.setrlimit(resource.RLIMIT_AS, (5 << 29, 5 << 29))
-
-    done = subprocess.run([sys.executable, "-c", _PEAK_MEMORY, "compensate", str(SYSTEMS_NGC), "-m", "patent-xy-stage",
-                           "--flavor", "linuxcnc", "-o", str(tmp_path / "out.ngc")], capture_output=True, text=True,
-                          preexec_fn=capped, env={**os.environ, "OPENBLAS_NUM_THREADS": "1"}, timeout=1200)
-    assert done.returncode == 0, done.stderr[-2000:]
-    assert "verified on linuxcnc's planner" in done.stderr and "model failed" not in done.stderr, done.stderr
-    assert int(done.stderr.split()[-1]) < 1_000_000, "kB"
-
-
-# fbspost's command, then the peak resident memory of it and of the processes it started (kB):
-# its own VmHWM (its ru_maxrss would count the memory of the test's process that forked it)
-_PEAK_MEMORY = """
-import resource, sys
-from fbspost.cli import main
-try:
-    main(sys.argv[1:])
-finally:
-    own = int(next(line.split()[1] for line in open("/proc/self/status") if line.startswith("VmHWM:")))
-    print(max(own, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss), file=sys.stderr)
-"""
 
 
 def gear_motion(tmp_path, lines=300):
