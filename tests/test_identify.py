@@ -455,7 +455,7 @@ def test_coarse_mode_is_the_closed_form(tmp_path, form):
         (mode,) = profile.axes[axis].modes
         assert np.allclose(modal_response((mode,), f), expected, rtol=1e-12, atol=0)
         assert (mode.frequency_tolerance, mode.damping_tolerance) == (0.10, 0.16)
-    limit = "at best level with your own input shaper"
+    limit = "worse than your own input shaper"
     assert limit in profile.description
     assert re.search(f"^warning: a coarse estimate gives one mode per axis, {limit}.*fbspost excite", result.output,
                      re.M)

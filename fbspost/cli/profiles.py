@@ -143,8 +143,9 @@ def _klipper_estimate(klipper_csv, klipper_cfg, axis, form, lines: list[str]) ->
         lines.append(f"axis {name_}: 1 mode ({form}-excited) {mode.frequency_hz:.4g} Hz, damping {mode.damping:.4g}, "
                      f"alpha {mode.alpha:.6g}, beta {mode.beta:.6g}; tolerances written: frequency "
                      f"{mode.frequency_tolerance:g}, damping {mode.damping_tolerance:g} (a machine not measured)")
-    limit = ("one mode per axis, at best level with your own input shaper (measured on Klipper: 1.9x worse "
-             "than it, with the mass form); measure a response with fbspost excite to beat it")
+    limit = ("one mode per axis, worse than your own input shaper (measured through Klipper's planner: 1.07 to "
+             "1.5 times its error; where the shaper is poor, worse than no compensation); measure a response with "
+             "fbspost excite to beat it")
     lines.append(f"warning: a coarse estimate gives {limit}")
     return {k: (v,) for k, v in found.items()}, f"{note}: {limit}"
 
