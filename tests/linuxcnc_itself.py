@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fbspost.firmware.linuxcnc_segments import LinuxCNCConfig
 from fbspost.read.blocks import Kind
 from fbspost.read.gcode import read_gcode
 
@@ -33,8 +34,11 @@ def installed() -> bool:
 
 def ini_text(profile, tmp: str) -> str:
     """The sim configuration's INI for ``profile`` (its files in ``tmp``)."""
-    limits = {f"{kind}{a}": getattr(profile.axes[a], f"max_{name}") if a in profile.axes else 1000.0
-              for a in "XYZ" for kind, name in (("v", "velocity_mm_s"), ("a", "acceleration_mm_s2"))}
+    # the axes' limits the model of LinuxCNC's planner gives them (an axis the profile leaves out,
+    # Z on an XY stage, the slowest given axis'): its Z moves run in the same time as the model's
+    config = LinuxCNCConfig.from_profile(profile)
+    limits = {f"{kind}{a}": values[k] for k, a in enumerate("XYZ")
+              for kind, values in (("v", config.axis_velocity_mm_s), ("a", config.axis_acceleration_mm_s2))}
     lc = profile.firmware.linuxcnc
     # (RS274NGC_STARTUP_CODE = G64 alone left LinuxCNC 2.9 running no motion of the dense butterfly)
     startup = f"RS274NGC_STARTUP_CODE = G64 P{lc.g64_p_mm!r} Q{lc.g64_q_mm!r}" if lc.g64_p_mm or lc.g64_q_mm else ""

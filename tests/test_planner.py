@@ -540,6 +540,32 @@ def test_default_margins_are_half_the_lowest_damped_period():
     assert RunMargins.for_profile(BED, 0.0, 0.02) == RunMargins(0.0, 0.02)
 
 
+def test_linuxcnc_z_moves_are_in_the_run():
+    """On LinuxCNC (planner.RESTS_WITHIN_RUNS) a move of Z alone (no modes: a plunge, a
+    retraction) is a piece of its run, not a rest between runs: one run, one lead and one settle
+    margin; the compensated axes stop before it and start after it from rest, so it takes its
+    rest-to-rest time and the program the sum of the moves' (closed form). Elsewhere it is a rest
+    that splits the runs."""
+    def program():
+        prog = Program()
+        prog.move((10, 0, 0, 0), feed=50.0)
+        prog.move((10, 0, 2, 0), feed=20.0)
+        prog.move((20, 0, 2, 0), feed=50.0)
+        prog.move((20, 0, 0, 0), feed=20.0)
+        prog.move((30, 0, 0, 0), feed=50.0)
+        return prog.blocks
+
+    fs, a = PATENT.sample_rate_hz, PATENT.planner_acceleration_mm_s2
+    margins = RunMargins(7 / fs, 12 / fs)
+    plan = plan_blocks(program(), PATENT, margins=margins, firmware="linuxcnc")
+    assert len(plan.runs) == 1
+    moves = 3 * rest_to_rest(10, 50, a) + 2 * rest_to_rest(2, 20, a)
+    assert plan.duration_s == pytest.approx(7 / fs + moves + 12 / fs, rel=1e-9)
+    pieces = plan.pieces
+    assert np.all(pieces.start_v_mm_s == 0.0) and np.all(pieces.end_v_mm_s == 0.0)
+    assert len(plan_blocks(program(), PATENT, margins=margins).runs) == 3
+
+
 def test_stop_without_dwell_still_separates_runs():
     prog = Program()
     prog.move((10, 0, 0, 0), feed=50.0)

@@ -58,8 +58,10 @@ class PieceMaker:
     (``PIECE_FIELDS``) with the junction limit before each; fills the positions not known (the
     notes say where) and counts the feeds clamped by the machine's limits."""
 
-    def __init__(self, profile: MachineProfile, klipper: bool, notes: list[str], travel_share: float = 0.0):
+    def __init__(self, profile: MachineProfile, klipper: bool, notes: list[str], travel_share: float = 0.0,
+                 rests_apart: bool = False):
         self._klipper = klipper
+        self._rests_apart = rests_apart  # a piece that moves no compensated axis starts and ends at rest
         # a travel's acceleration along each axis (inf: none): a share of its hard limit, on the compensated axes
         hard = [profile.axes[a].max_acceleration_mm_s2 if a in profile.axes else math.inf for a in AXES]
         self._travel_a = np.array(hard) * travel_share if travel_share else None
@@ -105,12 +107,15 @@ class PieceMaker:
         self._count_clamped(clamped, feed, max_v, piece_block, piece_line)
 
         # junction limits: limit_v2[i] is the junction before piece i (the first after the last
-        # piece made before: _prev), 0 between runs and at extrude-only pieces
+        # piece made before: _prev), 0 between runs and at extrude-only pieces (and with
+        # ``rests_apart``, at pieces that move no compensated axis)
         prev = self._prev or (np.ones(1, bool), np.full(1, -1))
-        eo, key = (np.concatenate([p, q]) for p, q in zip(prev, (extrude_only, run_key), strict=True))
+        apart = extrude_only | ~(delta[:, self._moves_compensated] != 0).any(axis=1) if self._rests_apart \
+            else extrude_only
+        eo, key = (np.concatenate([p, q]) for p, q in zip(prev, (apart, run_key), strict=True))
         together = (key[1:] == key[:-1]) & ~eo[1:] & ~eo[:-1]
         limit_v2 = np.where(together, inner, 0.0)
-        self._prev = (extrude_only[-1:], run_key[-1:])
+        self._prev = (apart[-1:], run_key[-1:])
         return dict(block=piece_block, run=run_key, start=start, end=start + delta, length=length,
                     extrude_only=extrude_only, accel=accel, max_v=max_v, delta_v2=delta_v2, limit_v2=limit_v2,
                     smooth_delta_v2=smooth_delta_v2, firmware_accel=corner_a)
