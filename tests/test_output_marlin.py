@@ -189,29 +189,32 @@ def test_contour_error_through_whole_steps_beats_marlins_zv(marlin_output):
     assert rms <= 0.5 * zv and peak < original_peak
 
 
-def _excerpt(tmp_path, program: str, lines: int) -> Path:
-    """The first ``lines`` lines of ``program`` in ``tmp_path``."""
-    source = tmp_path / Path(program).name
-    with open(program, "rb") as f:
-        source.write_bytes(b"".join(f.readlines()[:lines]))
-    return source
-
-
-def _stepped_rms_um(source: Path, profile, target: Path) -> float:
-    """``source`` compensated for Marlin into ``target``, then both through the model of Marlin's
-    planner and its whole steps, then the profile's modes (bench/marlin_baseline.py's measure):
-    the output's RMS contour error (um) to the original's commanded path."""
+def _stepped_rms_um(tmp_path, monkeypatch, program: str, lines: int, module, name: str, values) -> list[float]:
+    """The first ``lines`` lines of ``program`` compensated for Marlin (printer-two-mode, an SD
+    card) with ``module``'s constant ``name`` at each of ``values``, then the original and each
+    output through the model of Marlin's planner and its whole steps, then the profile's modes
+    (bench/marlin_baseline.py's measure): each output's RMS contour error (um) to the
+    original's commanded path."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
     from firmware import model_run
 
     from fbspost.firmware.shaping import stepper_positions
     from fbspost.firmware.verify import contour_um, modelled
 
+    profile = load_profile("printer-two-mode")  # no max_line_rate: an SD card
+    source = tmp_path / Path(program).name
+    with open(program, "rb") as f:
+        source.write_bytes(b"".join(f.readlines()[:lines]))
     plain = model_run(source, profile, "marlin", None)
-    compensate_file(source, target, profile, CompensateOptions(flavor="marlin"))
-    run = model_run(target, profile, "marlin", None)
-    stepped = stepper_positions(run.samples, profile.firmware.steps_per_mm)
-    return contour_um(modelled(stepped, profile), run.samples, plain.path, plain.printer)[0]
+    out = []
+    for value in values:
+        monkeypatch.setattr(module, name, value)
+        target = tmp_path / f"out-{value}.gcode"
+        compensate_file(source, target, profile, CompensateOptions(flavor="marlin"))
+        run = model_run(target, profile, "marlin", None)
+        stepped = stepper_positions(run.samples, profile.firmware.steps_per_mm)
+        out.append(contour_um(modelled(stepped, profile), run.samples, plain.path, plain.printer)[0])
+    return out
 
 
 @pytest.mark.slow
@@ -224,15 +227,8 @@ def test_blocks_within_a_share_of_a_step_beat_denser_ones(tmp_path, monkeypatch)
     Measured (the Marlin model, 29 November 2026): 6.51 um at 1 um, 5.99 at 8 um (74 s at a load of 17)."""
     from fbspost.job import pipeline
 
-    profile = load_profile("printer-two-mode")  # no max_line_rate: an SD card
-    source = _excerpt(tmp_path, "tests/data/gear-marlin2.gcode", 700)
-
-    def rms_um(share: float) -> float:
-        monkeypatch.setattr(pipeline, "STEP_TOLERANCE_SHARE", share)
-        return _stepped_rms_um(source, profile, tmp_path / f"out-{share}.gcode")
-
-    share = pipeline.STEP_TOLERANCE_SHARE
-    dense_um, within_um = rms_um(0.0), rms_um(share)
+    dense_um, within_um = _stepped_rms_um(tmp_path, monkeypatch, "tests/data/gear-marlin2.gcode", 700, pipeline,
+                                          "STEP_TOLERANCE_SHARE", (0.0, pipeline.STEP_TOLERANCE_SHARE))
     print(f"RMS contour error: 1 um {dense_um:.2f} um, a share of a step {within_um:.2f} um")
     assert within_um < 0.95 * dense_um
 
@@ -246,15 +242,9 @@ def test_a_light_chord_slope_weight_beats_a_heavier_one(tmp_path, monkeypatch):
     Measured (the Marlin model, 29 November 2026): 5.51 um at 1e-5 s^2, 5.14 at 1e-6 (58 s at a load of 11)."""
     from fbspost.firmware import steps
 
-    profile = load_profile("printer-two-mode")  # no max_line_rate: an SD card
-    source = _excerpt(tmp_path, "tests/data/tube-marlin2.gcode", 1000)
-
-    def rms_um(weight_s2: float) -> float:
-        monkeypatch.setattr(steps, "SLOPE_WEIGHT_S2", weight_s2)
-        return _stepped_rms_um(source, profile, tmp_path / f"out-{weight_s2}.gcode")
-
     weight_s2 = steps.SLOPE_WEIGHT_S2
-    heavy_um, light_um = rms_um(1e-5), rms_um(weight_s2)
+    heavy_um, light_um = _stepped_rms_um(tmp_path, monkeypatch, "tests/data/tube-marlin2.gcode", 1000, steps,
+                                         "SLOPE_WEIGHT_S2", (1e-5, weight_s2))
     print(f"RMS contour error: slope weight 1e-5 s^2 {heavy_um:.2f} um, {weight_s2:g} s^2 {light_um:.2f} um")
     assert light_um < 0.97 * heavy_um
 
