@@ -224,7 +224,8 @@ def test_blocks_within_a_share_of_a_step_beat_denser_ones(tmp_path, monkeypatch)
     each through the model of Marlin's planner and its whole steps, then printer-two-mode's modes
     (bench/marlin_baseline.py's measure): the blocks within the step's share leave less RMS
     contour error, every end they do not split into costing up to half a step of rounding.
-    Measured (the Marlin model, 29 November 2026): 6.51 um at 1 um, 5.99 at 8 um (74 s at a load of 17)."""
+    Measured (the Marlin model, 29 November 2026): 6.51 um at 1 um, 5.99 at 8 um (74 s at a load of 17);
+    with ``steps.SLOPE_WEIGHT_S2`` 1e-6, 6.02 and 5.41 (50 s at a load of 10)."""
     from fbspost.job import pipeline
 
     dense_um, within_um = _stepped_rms_um(tmp_path, monkeypatch, "tests/data/gear-marlin2.gcode", 700, pipeline,
