@@ -178,7 +178,8 @@ def test_contour_error_through_whole_steps_beats_marlins_zv(marlin_output):
     Marlin's own ZV shaper (shaping.marlin_zv at the profile's modes, through its
     steps), and its largest error below the original's. Measured (the Marlin model): fbspost 8.53
     um RMS (64 max), Marlin ZV 28.4 (96), the original 26.7 (231); FT_MOTION's best, MZV, 6.76
-    (39): fbspost does not beat it here."""
+    (39): fbspost did not beat it here; 29 November 2026 (the lattice, the step's share,
+    ``steps.SLOPE_WEIGHT_S2`` 1e-6) 5.55 um (94)."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
     from marlin_baseline import rows
 
@@ -378,6 +379,7 @@ def test_contour_error_through_whole_steps_beats_ft_motion(tmp_path):
     through its steps), and its largest error is below the original's. Measured (the Marlin
     model, 29 November 2026): fbspost 5.55 um (58 max), FT_MOTION MZV 7.02 (86), the original
     30.5 (204); 6.35 um (93) with the blocks at a 1 um tolerance (before STEP_TOLERANCE_SHARE);
+    5.04 um (57) with ``steps.SLOPE_WEIGHT_S2`` 1e-6 (later that day);
     the greedy rounding before the lattice: 8.0 um on the gear's first 700 lines, 6.8 with it."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
     from marlin_baseline import rows
