@@ -178,7 +178,8 @@ def test_contour_error_through_whole_steps_beats_marlins_zv(marlin_output):
     Marlin's own ZV shaper (shaping.marlin_zv at the profile's modes, through its
     steps), and its largest error below the original's. Measured (the Marlin model): fbspost 8.53
     um RMS (64 max), Marlin ZV 28.4 (96), the original 26.7 (231); FT_MOTION's best, MZV, 6.76
-    (39): fbspost does not beat it here."""
+    (39): fbspost did not beat it here; 29 November 2026 (the lattice, the step's share,
+    ``steps.SLOPE_WEIGHT_S2`` 1e-6) 5.55 um (94)."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
     from marlin_baseline import rows
 
@@ -189,6 +190,34 @@ def test_contour_error_through_whole_steps_beats_marlins_zv(marlin_output):
     assert rms <= 0.5 * zv and peak < original_peak
 
 
+def _stepped_rms_um(tmp_path, monkeypatch, program: str, lines: int, module, name: str, values) -> list[float]:
+    """The first ``lines`` lines of ``program`` compensated for Marlin (printer-two-mode, an SD
+    card) with ``module``'s constant ``name`` at each of ``values``, then the original and each
+    output through the model of Marlin's planner and its whole steps, then the profile's modes
+    (bench/marlin_baseline.py's measure): each output's RMS contour error (um) to the
+    original's commanded path."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+    from firmware import model_run
+
+    from fbspost.firmware.shaping import stepper_positions
+    from fbspost.firmware.verify import contour_um, modelled
+
+    profile = load_profile("printer-two-mode")  # no max_line_rate: an SD card
+    source = tmp_path / Path(program).name
+    with open(program, "rb") as f:
+        source.write_bytes(b"".join(f.readlines()[:lines]))
+    plain = model_run(source, profile, "marlin", None)
+    out = []
+    for value in values:
+        monkeypatch.setattr(module, name, value)
+        target = tmp_path / f"out-{value}.gcode"
+        compensate_file(source, target, profile, CompensateOptions(flavor="marlin"))
+        run = model_run(target, profile, "marlin", None)
+        stepped = stepper_positions(run.samples, profile.firmware.steps_per_mm)
+        out.append(contour_um(modelled(stepped, profile), run.samples, plain.path, plain.printer)[0])
+    return out
+
+
 @pytest.mark.slow
 def test_blocks_within_a_share_of_a_step_beat_denser_ones(tmp_path, monkeypatch):
     """The gear's first 700 lines from an SD card, written at 1 um (``STEP_TOLERANCE_SHARE`` 0)
@@ -196,32 +225,30 @@ def test_blocks_within_a_share_of_a_step_beat_denser_ones(tmp_path, monkeypatch)
     each through the model of Marlin's planner and its whole steps, then printer-two-mode's modes
     (bench/marlin_baseline.py's measure): the blocks within the step's share leave less RMS
     contour error, every end they do not split into costing up to half a step of rounding.
-    Measured (the Marlin model, 29 November 2026): 6.51 um at 1 um, 5.99 at 8 um (74 s at a load of 17)."""
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-    from firmware import model_run
-
-    from fbspost.firmware.shaping import stepper_positions
-    from fbspost.firmware.verify import contour_um, modelled
+    Measured (the Marlin model, 29 November 2026): 6.51 um at 1 um, 5.99 at 8 um (74 s at a load of 17);
+    with ``steps.SLOPE_WEIGHT_S2`` 1e-6, 6.02 and 5.41 (50 s at a load of 10)."""
     from fbspost.job import pipeline
 
-    profile = load_profile("printer-two-mode")  # no max_line_rate: an SD card
-    source = tmp_path / "gear.gcode"
-    with open("tests/data/gear-marlin2.gcode", "rb") as f:
-        source.write_bytes(b"".join(f.readlines()[:700]))
-    plain = model_run(source, profile, "marlin", None)
-
-    def rms_um(share: float) -> float:
-        monkeypatch.setattr(pipeline, "STEP_TOLERANCE_SHARE", share)
-        target = tmp_path / f"out-{share}.gcode"
-        compensate_file(source, target, profile, CompensateOptions(flavor="marlin"))
-        run = model_run(target, profile, "marlin", None)
-        stepped = stepper_positions(run.samples, profile.firmware.steps_per_mm)
-        return contour_um(modelled(stepped, profile), run.samples, plain.path, plain.printer)[0]
-
-    share = pipeline.STEP_TOLERANCE_SHARE
-    dense_um, within_um = rms_um(0.0), rms_um(share)
+    dense_um, within_um = _stepped_rms_um(tmp_path, monkeypatch, "tests/data/gear-marlin2.gcode", 700, pipeline,
+                                          "STEP_TOLERANCE_SHARE", (0.0, pipeline.STEP_TOLERANCE_SHARE))
     print(f"RMS contour error: 1 um {dense_um:.2f} um, a share of a step {within_um:.2f} um")
     assert within_um < 0.95 * dense_um
+
+
+@pytest.mark.slow
+def test_a_light_chord_slope_weight_beats_a_heavier_one(tmp_path, monkeypatch):
+    """The tube's first 1000 lines from an SD card, its block ends on the lattice with the chords'
+    slope weighed at 1e-5 s^2 (before 29 November 2026) and at ``steps.SLOPE_WEIGHT_S2``, each
+    through the model of Marlin's planner and its whole steps, then printer-two-mode's modes
+    (bench/marlin_baseline.py's measure): the lighter weight leaves less RMS contour error.
+    Measured (the Marlin model, 29 November 2026): 5.51 um at 1e-5 s^2, 5.14 at 1e-6 (58 s at a load of 11)."""
+    from fbspost.firmware import steps
+
+    weight_s2 = steps.SLOPE_WEIGHT_S2
+    heavy_um, light_um = _stepped_rms_um(tmp_path, monkeypatch, "tests/data/tube-marlin2.gcode", 1000, steps,
+                                         "SLOPE_WEIGHT_S2", (1e-5, weight_s2))
+    print(f"RMS contour error: slope weight 1e-5 s^2 {heavy_um:.2f} um, {weight_s2:g} s^2 {light_um:.2f} um")
+    assert light_um < 0.97 * heavy_um
 
 
 def test_no_block_marlin_would_merge(marlin_output):
@@ -352,6 +379,7 @@ def test_contour_error_through_whole_steps_beats_ft_motion(tmp_path):
     through its steps), and its largest error is below the original's. Measured (the Marlin
     model, 29 November 2026): fbspost 5.55 um (58 max), FT_MOTION MZV 7.02 (86), the original
     30.5 (204); 6.35 um (93) with the blocks at a 1 um tolerance (before STEP_TOLERANCE_SHARE);
+    5.04 um (57) with ``steps.SLOPE_WEIGHT_S2`` 1e-6 (later that day);
     the greedy rounding before the lattice: 8.0 um on the gear's first 700 lines, 6.8 with it."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
     from marlin_baseline import rows
