@@ -210,12 +210,7 @@ FIRMWARE_CHAINS = [
     ("reprap", "truth-a.toml", 12.0),
     ("reprap", "truth-b.toml", 12.0),
     ("marlin", "truth-a.toml", 30.0),
-    pytest.param("marlin", "truth-b.toml", 30.0, marks=pytest.mark.xfail(strict=False, reason=(
-        "at the bar, either side of it: measured on the Marlin model through truth B, the gear's first 1500 lines "
-        "(30 s sweeps), FBS from the recordings 4.62 to 4.64 um RMS (predicted alike; max 57 against the "
-        "original's 139.5), Marlin's ZV at the identified modes 9.27: 0.499 to 0.501 of it, for the bar's 0.5 "
-        "(2026-11-29: 0.501 before the identification's tie fix, 0.499 after; 1.05x before the block tolerance "
-        "of a share of a step). Not the identification: the modes within 0.1% of the truth's"))),
+    ("marlin", "truth-b.toml", 30.0),
 ]
 
 
