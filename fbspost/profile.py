@@ -147,6 +147,14 @@ class MachineProfile:
             return self.firmware.max_velocity_mm_s
         return min((self.axes[a].max_velocity_mm_s for a in "XY" if a in self.axes), default=math.inf)
 
+    def path_velocity_mm_s(self, firmware: str | None) -> float:
+        """The speed along the path ``firmware`` caps a program at: Klipper's max_velocity,
+        LinuxCNC's [TRAJ] MAX_LINEAR_VELOCITY (which no G-code raises); inf for the others (Marlin's
+        and RepRapFirmware's M203 cap each axis)."""
+        if firmware == "klipper":
+            return self.toolhead_max_velocity_mm_s
+        return self.firmware.linuxcnc.max_linear_velocity_mm_s if firmware == "linuxcnc" else math.inf
+
     @property
     def extrude_only_velocity_mm_s(self) -> float:
         """max_extrude_only_velocity: the table's, else Klipper's default max_velocity * ratio."""

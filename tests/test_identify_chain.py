@@ -141,10 +141,7 @@ def test_a_stage_with_a_net_lead_is_identified_wherever_its_sweep_starts(tmp_pat
     identify's clock within 5 ppm, and the response within 2% of the truth's peak over the band,
     both times (one of them came out 20% off, the zeros traded for a time offset: in CI and here,
     on LinuxCNC itself)."""
-    from fbspost.firmware.linuxcnc_tp import run_linuxcnc
-    from fbspost.read.gcode import read_gcode
-    from linuxcnc_itself import from_first_motion
-    from recording_chain import REST_S, centre_mm, cli, user_profile
+    from recording_chain import REST_S, centre_mm, cli, sweep_as_planned, user_profile
 
     truth_path = DATA / "truth-stage.toml"
     truth = load_profile(truth_path)
@@ -153,10 +150,7 @@ def test_a_stage_with_a_net_lead_is_identified_wherever_its_sweep_starts(tmp_pat
     cli("excite", "-m", user, "--axis", "X", "--center", centre_mm(truth, "X"), "--flavor", "linuxcnc",
         "--duration", 10, "--end-hz", 100, "-o", program)
     profile = load_profile(user)
-    home_mm = np.array(profile.home_mm, dtype=float)
-    home_mm[:2] = centre_mm(truth, "X"), centre_mm(truth, "Y")
-    joints = from_first_motion(run_linuxcnc(list(read_gcode(program, "linuxcnc", home_mm)), profile)
-                               .joint_positions_mm[:, :2])
+    joints = sweep_as_planned(program, profile, (centre_mm(truth, "X"), centre_mm(truth, "Y")))
     f_hz = np.linspace(5.0, 100.0, 2000)
     true_g = g_of(truth.axes["X"].modes, f_hz)
     for late in (0, 1):

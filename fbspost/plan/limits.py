@@ -18,28 +18,22 @@ _NA = len(AXES)
 _E = AXES.index("E")
 
 
-def linuxcnc_path_velocity_mm_s(profile: MachineProfile, firmware: str | None) -> float:
-    """LinuxCNC's cap on the speed along the path ([TRAJ] MAX_LINEAR_VELOCITY, which no G-code
-    raises: the profile's) where the plan is ``firmware``'s; inf elsewhere."""
-    return profile.firmware.linuxcnc.max_linear_velocity_mm_s if firmware == "linuxcnc" else math.inf
-
-
 class LimitState:
     """The planner settings as the blocks change them; ``row()`` is one row of the state table:
     accel, travel accel (NaN: none), planner max velocity, junction deviation, axis max velocity
     (4), axis max acceleration (4), accel_to_decel (Klipper's smoothing; accel elsewhere).
 
-    Klipper: max_velocity starts at the profile's toolhead max_velocity; accel_to_decel is
+    max_velocity starts at the speed along the path the firmware caps (``profile.path_velocity_mm_s``:
+    Klipper's max_velocity, LinuxCNC's MAX_LINEAR_VELOCITY). Klipper: accel_to_decel is
     accel * (1 - minimum_cruise_ratio), or, with the profile's max_accel_to_decel (klippy before
     2024), min(that, accel), SET_VELOCITY_LIMIT ACCEL_TO_DECEL changing it (MINIMUM_CRUISE_RATIO
     unknown there); in the newer Klipper, ACCEL_TO_DECEL sets the ratio 1 - min(1, it / accel)."""
 
-    def __init__(self, profile: MachineProfile, klipper: bool = False, path_velocity_mm_s: float = math.inf):
+    def __init__(self, profile: MachineProfile, firmware: str | None = None):
         self.accel = float(profile.planner_acceleration_mm_s2)
         self.travel_accel = math.nan
-        # the speed along the path (Klipper's max_velocity; LinuxCNC's MAX_LINEAR_VELOCITY: ``path_velocity_mm_s``)
-        self.max_velocity = profile.toolhead_max_velocity_mm_s if klipper else path_velocity_mm_s
-        self.klipper = klipper
+        self.max_velocity = profile.path_velocity_mm_s(firmware)
+        self.klipper = firmware == "klipper"
         self.cruise_ratio = profile.firmware.minimum_cruise_ratio
         self.accel_to_decel = profile.firmware.max_accel_to_decel_mm_s2  # None: the ratio rules
         self.scv = float(profile.planner_square_corner_velocity_mm_s)

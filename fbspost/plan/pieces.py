@@ -244,9 +244,8 @@ class BlockReader:
     points), and per block (block, is MOVE, is STOP, the dwells before it) in ``pending`` until
     it is timed. A MOVE that moves no compensated axis is read as a STOP (``_uncompensated_s``)."""
 
-    def __init__(self, blocks: Iterable[Block], profile: MachineProfile, klipper: bool, batch: int,
-                 settle_s: Callable[[bool], float], piece_limits: Callable, every_axis: bool = False,
-                 path_velocity_mm_s: float = math.inf):
+    def __init__(self, blocks: Iterable[Block], profile: MachineProfile, firmware: str | None, batch: int,
+                 settle_s: Callable[[bool], float], piece_limits: Callable, every_axis: bool = False):
         self._blocks_in = iter(blocks)
         self._batch = batch
         self._settle_s = settle_s
@@ -258,7 +257,7 @@ class BlockReader:
         # the axes a compensated command moves: a move of the others alone is a rest of these
         self._compensated = [c for c, name in enumerate(AXES)
                              if every_axis or name in profile.axes and profile.axes[name].modes]
-        self._limits = LimitState(profile, klipper, path_velocity_mm_s)
+        self._limits = LimitState(profile, firmware)
         self._state_row = self._limits.row()
         self.n_blocks = 0
         self.eof = False

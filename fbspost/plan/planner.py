@@ -83,7 +83,6 @@ import numpy as np
 from ..profile import MachineProfile
 from ..read.blocks import AXES, Block
 from .clock import BlockClock
-from .limits import linuxcnc_path_velocity_mm_s
 from .lookahead import LookAhead
 from .margins import RunMargins
 from .pieces import PIECE_FIELDS, BlockReader, PieceMaker
@@ -246,10 +245,9 @@ class PlanStream:
         self.warnings: list[str] = []
         self.time_s = 0.0  # spent in advance(), reading included
         self._pieces = PieceMaker(profile, klipper, self.notes, margins.travel_share, firmware in RESTS_WITHIN_RUNS)
-        self._reader = BlockReader(blocks, profile, klipper, batch_blocks or BATCH_BLOCKS,
+        self._reader = BlockReader(blocks, profile, firmware, batch_blocks or BATCH_BLOCKS,
                                    functools.partial(margins.settle_at, fs=self._fs), self._pieces.piece_limits,
-                                   every_axis or firmware in RESTS_WITHIN_RUNS,
-                                   linuxcnc_path_velocity_mm_s(profile, firmware))
+                                   every_axis or firmware in RESTS_WITHIN_RUNS)
         self._scans = LookAhead(klipper)
         self._timeline = Timeline(self._fs, keep)
         self._clock = BlockClock(self._reader.pending, keep)
