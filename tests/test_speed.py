@@ -23,6 +23,7 @@ from fbspost.job import offload, planfeed, processes
 from fbspost.job.offload import NICENESS, Offloaded, _portable
 from fbspost.job.pipeline import compensate_file
 from fbspost.job.report import CompensateOptions
+from fbspost.job.verification import CHECK_NICENESS
 from fbspost.profile import load_profile
 from fbspost.write.marlinmerge import marlin_merged
 from test_streaming import raster
@@ -244,6 +245,9 @@ def test_the_offloaded_work_yields_the_cores_to_its_reader(monkeypatch, forked):
     with Offloaded(_niceness) as child:
         (niceness,) = list(child)
     assert niceness == min(parent + NICENESS, 19) and (niceness > parent or parent == 19)
+    with Offloaded(_niceness, niceness=CHECK_NICENESS) as check:  # (the check's: below the axes')
+        (lowest,) = list(check)
+    assert lowest == min(parent + CHECK_NICENESS, 19) and (lowest > niceness or niceness == 19)
 
 
 def test_help_loads_no_scipy():

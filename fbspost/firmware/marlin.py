@@ -131,26 +131,39 @@ class MarlinRun:
                      self.accel_mm_s2, self.length_mm)
 
 
+# (minimum, maximum, sqrt) of numpy arrays, and of Python floats: the buffers' scans time one
+# block at a time, where numpy's functions cost several times Python's on a float
+_ARRAY_OPS = (np.minimum, np.maximum, np.sqrt)
+_FLOAT_OPS = (min, max, math.sqrt)
+
+
+def _ops(x) -> tuple:
+    return _FLOAT_OPS if isinstance(x, float) else _ARRAY_OPS
+
+
 def _peak(v0, v1, nominal, accel, length):
     """Trapezoid peak: nominal, or where accelerating from v0 meets decelerating to v1 (v0, v1 at
     most nominal: see ``_within``)."""
+    minimum, maximum, sqrt = _ops(v0)
     meet2 = 0.5 * (v0 * v0 + v1 * v1) + accel * length
-    return np.maximum(np.sqrt(np.minimum(nominal * nominal, meet2)), np.maximum(v0, v1))
+    return maximum(sqrt(minimum(nominal * nominal, meet2)), maximum(v0, v1))
 
 
 def _within(v0, v1, nominal):
     """The speeds a block starts and ends with in the stepper: a junction above the block's
     nominal speed (the minimum planner speed allows it where the acceleration is high) is left
     at once, the step rate capped at nominal_rate (stepper.cpp), and reached by a jump."""
-    return np.minimum(v0, nominal), np.minimum(v1, nominal)
+    minimum = _ops(v0)[0]
+    return minimum(v0, nominal), minimum(v1, nominal)
 
 
 def trapezoid_time_s(v0, v1, nominal, accel, length):
-    """Duration of a block: v0 -> peak at accel, cruise, peak -> v1 (calculate_trapezoid_for_block)."""
+    """Duration of a block: v0 -> peak at accel, cruise, peak -> v1 (calculate_trapezoid_for_block).
+    Arrays, or Python floats (all of them)."""
     v0, v1 = _within(v0, v1, nominal)
     peak = _peak(v0, v1, nominal, accel, length)
     ramps = (peak * peak - 0.5 * (v0 * v0 + v1 * v1)) / accel
-    return (2.0 * peak - v0 - v1) / accel + np.maximum(length - ramps, 0.0) / peak
+    return (2.0 * peak - v0 - v1) / accel + _ops(v0)[1](length - ramps, 0.0) / peak
 
 
 def _distance_at(tau, v0, peak, v1, accel, length):
@@ -483,8 +496,8 @@ class _Buffer:
             exit2 = max(reach2, self.min_speed2[k + 1])
         self.exit2[k] = exit2
         self.start[k] = start_s
-        self.end[k] = start_s + float(trapezoid_time_s(math.sqrt(self.entry2[k]), math.sqrt(exit2), self.nominal[k],
-                                                       geo.accel[k], geo.length[k]))
+        self.end[k] = start_s + trapezoid_time_s(math.sqrt(self.entry2[k]), math.sqrt(exit2), self.nominal[k],
+                                                 geo.accel[k], geo.length[k])
         self.done = k + 1
 
 

@@ -4,7 +4,7 @@ program runs beside its writer on another core.
 Takes a module-level generator function and its (picklable) arguments; gives its items in
 order, and at the end the value it returns (``value``). An exception in the child is raised
 here (as itself where it pickles, else as a RuntimeError with its traceback). The child runs
-at most ``ahead`` items ahead of the reader, at a lower priority (``NICENESS``); it is ended if
+at most ``ahead`` items ahead of the reader, at a lower priority (``niceness``); it is ended if
 the reader stops early. With ``requests`` (a queue) the two talk: the generator gets a
 ``Channel`` first, whose ``request()`` puts the worker's ``key`` in ``requests`` here, and whose
 ``get()`` gives what the parent ``send``s.
@@ -51,7 +51,7 @@ class Offloaded:
     the child if it still runs)."""
 
     def __init__(self, function: Callable[..., Iterator], *args, ahead: int = _AHEAD,
-                 requests: queue.Queue | None = None, key=None, start: bool = True):
+                 requests: queue.Queue | None = None, key=None, start: bool = True, niceness: int = NICENESS):
         if FORK:
             self._process = _Forked()
         else:
@@ -62,7 +62,7 @@ class Offloaded:
         for pipe in (self._process.stdin, self._process.stdout):
             _widen(pipe)
         self._requests, self._key = requests, key
-        self.send((function, args, requests is not None))
+        self.send((function, args, requests is not None, niceness))
         if requests is None:
             self._process.stdin.close()
         self._items: queue.Queue = queue.Queue(ahead)
@@ -236,7 +236,9 @@ def _serve(source, sink) -> None:
         sink.flush()
 
     try:
-        function, args, talks = pickle.load(source)
+        function, args, talks, niceness = pickle.load(source)
+        if hasattr(os, "nice"):  # (POSIX)
+            os.nice(niceness)
         gc.freeze()  # (the imports' objects: see cli.compensate)
         generator = function(Channel(source, send), *args) if talks else function(*args)
         while True:
@@ -263,8 +265,6 @@ def _child(sink_fd: int) -> None:
     printed goes to stderr. It never returns."""
     code = 0
     try:
-        if hasattr(os, "nice"):  # (POSIX)
-            os.nice(NICENESS)
         os.dup2(2, 1)
         _serve(open(0, "rb", closefd=False), open(sink_fd, "wb"))
     except (BrokenPipeError, KeyboardInterrupt):  # the parent ended first: nobody to tell

@@ -18,12 +18,16 @@ import numpy as np
 from ..firmware.verify import Verdict, measured_beside
 from ..plan.planner import PlanStream
 from ..profile import MachineProfile
-from .offload import Offloaded
+from .offload import NICENESS, Offloaded
 
 _ANNOUNCE_BYTES = 1 << 20  # of the output written, told the check's process at once (a few hundred ms of writing)
 # Chunks of the original the check (LinuxCNC: their line times) may be ahead of the feeds that
 # need them: 64 chunks of 50,000 lines, at most about 26 MB held here
 _CHECK_AHEAD = 64
+# The check's priority: below the axes' processes (offload.NICENESS), which the writer waits for,
+# so that where the cores are short it takes what they leave; its verdict is wanted only after the
+# last line. Not for LinuxCNC, whose feeds wait for its plan of the original.
+CHECK_NICENESS = 19
 
 
 class Verification:
@@ -47,7 +51,7 @@ class Verification:
         self.written: Announced | None = None
         if self.wanted:  # (forked here, before the axes' processes and any thread: see Offloaded.start)
             self.worker = Offloaded(measured_beside, read_path, profile, flavor, requests=queue.Queue(), start=False,
-                                    ahead=_CHECK_AHEAD)
+                                    ahead=_CHECK_AHEAD, niceness=NICENESS if flavor == "linuxcnc" else CHECK_NICENESS)
 
     @property
     def original_kept(self) -> bool:
