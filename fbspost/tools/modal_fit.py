@@ -24,6 +24,7 @@ VALLEY_TIE = 0.005  # minima of the zeros' trade-off with the time offset this c
 PLAUSIBLE_SHARE = 0.01
 PLAUSIBLE_DAMPING = 0.9  # the automatic count skips a fit with a mode damped more (the patent stage: 0.54 at most)
 _VF_ITERATIONS = 30
+_DISTINCT = 1e-3  # minima whose responses differ less than this share of the peak are one
 
 
 @dataclass(frozen=True)
@@ -40,6 +41,10 @@ class Fit:
     # from the fit's covariance (``_relative_sd``)
     frequency_sd: tuple[float, ...] = ()
     damping_sd: tuple[float, ...] = ()
+    # the valley's other minimum lowest in cost (``_along_the_valley``): its cost over this fit's
+    # (inf: none found), and the largest difference of its response from this fit's over the band / peak
+    rival_cost: float = math.inf
+    rival_error: float = 0.0
 
     def response(self, frequency_hz: np.ndarray) -> np.ndarray:
         """The fitted model G(j 2 pi f), without the delay."""
@@ -103,9 +108,13 @@ def fit_frf(frequency_hz: np.ndarray, response: np.ndarray, n_modes: int | None 
                 break
         else:  # (no count of only plausible modes: the best, which assess_fit refuses)
             chosen = min(fits, key=lambda k: fits[k].rms_error)
+    rival = {}
     if fit_delay:
-        keep(chosen, _along_the_valley(xs[chosen], s, hn, weights, chosen, delays))
-    return replace(fits[chosen], errors_by_count={n: v.rms_error for n, v in fits.items()})
+        x, rival_x, rival_cost = _along_the_valley(xs[chosen], s, hn, weights, chosen, delays)
+        keep(chosen, x)
+        if rival_x is not None:
+            rival = dict(rival_cost=rival_cost, rival_error=_response_change(x, rival_x, s, chosen))
+    return replace(fits[chosen], errors_by_count={n: v.rms_error for n, v in fits.items()}, **rival)
 
 
 def _chosen_count(errors: dict[int, float], max_modes: int) -> int | None:
@@ -171,7 +180,7 @@ def _fit_count(s, hn, weights, n, delays, tau0, previous):
 
 
 def _along_the_valley(x, s, hn, weights, n, delays):
-    """The best of the fit ``x`` (with a time offset) and its refinements from two other points
+    """(the best of the fit ``x`` (with a time offset) and its refinements from two other points
     of the valley it lies in. The zeros and the time offset both set the low-frequency phase (its
     first-order term is sum (b - 2 zeta a) / w - tau sum a), so a recording's fit can have two
     nearly equal minima along that valley: also start from its points with no zeros (a mass
@@ -185,10 +194,11 @@ def _along_the_valley(x, s, hn, weights, n, delays):
     worse on the machine). Only a near tie: a stage whose zeros give it a net lead
     (tests/data/truth-stage.toml's X, 0.91 ms) leaves that much offset, and with a tie of 10% its
     minimum, 1.6% to 5.8% lower, lost to one at a third of the offset with the zeros rotated, 20%
-    off the truth's response."""
+    off the truth's response; the other minimum lowest in cost, whose response differs from the best's
+    (None: none), and its cost over the best's)."""
     wn, zeta, a, b = (x[i * n:(i + 1) * n] for i in range(4))
     if not abs(np.sum(a)) > 0:  # no DC gain: no term to keep
-        return x
+        return x, None, math.inf
     found = [(float(np.sum(_residual(x, s, hn, weights, n, delays) ** 2)) / 2, x)]
     for b_start in (np.zeros(n), 2 * zeta * a):
         delay = x[4 * n:].copy()
@@ -196,7 +206,19 @@ def _along_the_valley(x, s, hn, weights, n, delays):
         result = _refine(np.concatenate([wn, zeta, a, b_start, delay]), s, hn, weights, n, delays)
         found.append((result.cost, result.x))
     lowest = min(cost for cost, _ in found)
-    return min((c for c in found if c[0] <= (1 + VALLEY_TIE) * lowest), key=lambda c: abs(c[1][4 * n]))[1]
+    cost, best = min((c for c in found if c[0] <= (1 + VALLEY_TIE) * lowest), key=lambda c: abs(c[1][4 * n]))
+    others = [c for c in found if _response_change(best, c[1], s, n) > _DISTINCT]
+    if not others:
+        return best, None, math.inf
+    rival_cost, rival = min(others, key=lambda c: c[0])
+    return best, rival, rival_cost / cost - 1.0
+
+
+def _response_change(x, other, s, n) -> float:
+    """The largest difference of ``other``'s response from ``x``'s (their modes, without the
+    delays) over the band, relative to the peak of ``x``'s."""
+    g = _model(x[:4 * n], s, n, None)
+    return float(np.abs(_model(other[:4 * n], s, n, None) - g).max() / np.abs(g).max())
 
 
 def _refine(x0, s, hn, weights, n, delays):
