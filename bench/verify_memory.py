@@ -53,8 +53,8 @@ def main() -> int:
                                   env={**os.environ, "OPENBLAS_NUM_THREADS": "1"})
             duration_s, rms_um, peak_kb = map(float, done.stdout.split()[-3:])
             results.append((copies, duration_s, peak_kb / 1024))
-            print(f"{copies} gear(s), {lines} lines: {duration_s:.1f} s, RMS {rms_um:.4g} um, VmHWM {peak_kb / 1024:.0f} MB",
-                  flush=True)
+            print(f"{copies} gear(s), {lines} lines: {duration_s:.1f} s, RMS {rms_um:.4g} um, "
+                  f"VmHWM {peak_kb / 1024:.0f} MB", flush=True)
     (c0, d0, m0), (c1, d1, m1) = results[0], results[-1]
     flat = m1 <= m0 + args.slack_mb
     timed = abs(d1 / d0 - c1 / c0) <= 0.01 * c1 / c0  # (the copies' travels between them: within 1%)
