@@ -244,7 +244,8 @@ class PlanStream:
         self.notes: list[str] = []
         self.warnings: list[str] = []
         self.time_s = 0.0  # spent in advance(), reading included
-        self._pieces = PieceMaker(profile, klipper, self.notes, margins.travel_share, firmware in RESTS_WITHIN_RUNS)
+        self._pieces = PieceMaker(profile, klipper, self.notes, margins.travel_share, firmware in RESTS_WITHIN_RUNS,
+                                  firmware == "reprap")
         self._reader = BlockReader(blocks, profile, firmware, batch_blocks or BATCH_BLOCKS,
                                    functools.partial(margins.settle_at, fs=self._fs), self._pieces.piece_limits,
                                    every_axis or firmware in RESTS_WITHIN_RUNS)
