@@ -4,7 +4,8 @@ Takes the blocks' targets (machine mm), durations and end times, the G5 curves w
 and what the controller does to its modes and frame (the copied lines: ``passthrough``); gives
 the G1 / G5 lines' text, F from each block's time with the time residues and the firmware's
 ramps carried, relative values carrying their rounding residues, Marlin's whole steps and merge
-(``marlinmerge``) where its steps are given (``Emitter``, ``_feeds``).
+(``marlinmerge``) where its steps are given, RepRapFirmware's whole steps (each end written in the
+cell of the step chosen for it) (``Emitter``, ``_feeds``).
 """
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ import math
 
 import numpy as np
 
+from ..firmware.reprap import MIN_RAMP_S
 from ..firmware.steps import crossing_ends, rounding_for
 from ..read.blocks import AXES, Block, Kind, Modal, feed_lengths
 from .bezier import curve_lengths
@@ -20,6 +22,9 @@ from .linetext import DECIMALS, FEED_DECIMALS, line_text
 from .marlinmerge import last_in_both, marlin_merged, moved_in_time, rounded_ends
 
 _LINES = 1024  # lines formatted at once
+# How far inside its step's cell an end is written (of a step either side): RRF rounds in float32
+# (lrintf), and the written digits round too (at most 0.004 of a step at 80 steps/mm, 4 decimals).
+CELL_SHARE = 0.45
 
 
 
@@ -32,13 +37,18 @@ class Emitter:
     """
 
     def __init__(self, start_mm: np.ndarray, newline: bytes, steps_per_mm: np.ndarray | None = None,
-                 min_steps: int = 0, ramp_mm_s2: float = math.inf, axis_modes: tuple = (), crossings: bool = True):
+                 min_steps: int = 0, ramp_mm_s2: float = math.inf, axis_modes: tuple = (), crossings: bool = True,
+                 cells: bool = False):
         self.modal = Modal()  # the controller starts in its defaults
         # the firmware ramps each speed step at this acceleration, losing time the next blocks make up
         self.ramp_mm_s2, self.speed_mm_s = ramp_mm_s2, 0.0
         # Marlin merges a block of fewer than min_steps steps on every axis with the next (steps_per_mm per
         # axis, 0 where not known): such blocks are merged here, where their time can go with them
         self.steps_per_mm, self.min_steps, self.crossings = steps_per_mm, min_steps, crossings
+        # RRF (``cells``): no merge; it rounds each written end to its nearest step and times the block
+        # over the written length, so an end is written in its step's cell, as near the command as
+        # that allows: the steps as the rounding chooses them, F as smooth as the command's
+        self.cells, self.cell_offset = cells, np.zeros(3)  # (the offset of the ends written from the wanted)
         self.held = None  # (targets, durations, ends) of blocks that wait for the next call
         self.crossing_from = self.plain = None  # on crossings: the last kept end written (_held_from), the merge
         self.rounding = [rounding_for(axis_modes[i] if i < len(axis_modes) else ()) for i in range(3)]  # X Y Z steps
@@ -108,7 +118,7 @@ class Emitter:
 
     def _shaped(self, units: np.ndarray, ints: np.ndarray, scale: np.ndarray, durations_s: np.ndarray,
                 exact_last: bool) -> tuple[np.ndarray, list[np.ndarray | None] | None]:
-        """MIN_STEPS_PER_SEGMENT 1: block ends (``units`` wanted, ``ints`` rounded) with X Y Z on
+        """MIN_STEPS_PER_SEGMENT 1 (and RRF): block ends (``units`` wanted, ``ints`` rounded) with X Y Z on
         whole steps chosen by ``steps``, and per axis the rounding's state before each row and
         after the last. With ``exact_last`` the last end is exact and the rounding restarts.
         (Above 1 without crossings: plain rounding, as the merge moves the ends again.)"""
@@ -124,6 +134,30 @@ class Emitter:
         if exact_last:
             ints[-1] = np.rint(units[-1])
         return ints, states
+
+    def _in_cells(self, units: np.ndarray, stepped: np.ndarray, written: np.ndarray, scale: np.ndarray,
+                  exact_last: bool) -> np.ndarray:
+        """``cells``: the ends to write (integer units): on the axes with steps, the wanted
+        ``units`` plus an offset kept from end to end as long as it leaves the end in the cell of
+        the whole step ``stepped`` is on (within ``CELL_SHARE`` of it), else moved just into it:
+        the written blocks as long as the command's, so F is as smooth (RRF skips a small speed
+        step up, RecalculateMove: an F jittering with the steps ran the gear 0.7% long). The last
+        end of a run is the command's. Elsewhere ``written``."""
+        spu = self.steps_per_mm * self.unit_mm / scale
+        out = written.copy()
+        for i in np.flatnonzero(spu[:3] > 0):
+            counts = np.rint(stepped[:, i] * spu[i])
+            lo = ((counts - CELL_SHARE) / spu[i] - units[:, i]).tolist()
+            hi = ((counts + CELL_SHARE) / spu[i] - units[:, i]).tolist()
+            offset, offsets = self.cell_offset[i], []
+            for low, high in zip(lo, hi, strict=True):
+                offset = low if offset < low else high if offset > high else offset
+                offsets.append(offset)
+            self.cell_offset[i] = 0.0 if exact_last else offset
+            out[:, i] = np.rint(units[:, i] + offsets)
+        if exact_last and len(out):
+            out[-1] = written[-1]
+        return out
 
     def _on_crossings(self, start: np.ndarray, ints: np.ndarray, scale: np.ndarray, durations_s: np.ndarray,
                       ends_s: np.ndarray, targets_mm: np.ndarray, exact_last: bool) -> tuple:
@@ -194,20 +228,25 @@ class Emitter:
         relative = np.array([not (self.modal.absolute_e if a == "E" else self.modal.absolute_xyz) for a in AXES])
         start = np.rint(self.written * scale).astype(np.int64)
         ints = np.rint(self.to_program(targets_mm) * scale).astype(np.int64)
-        marlin = self.min_steps and curves is None
+        marlin = bool(self.min_steps or self.cells) and curves is None
+        stepped = ints  # (RRF: the whole steps its written ends round to)
         if marlin:
             crossing = self.min_steps > 1 and self.crossings
             wanted = targets_mm, durations_s, ends_s  # (the rows before they are moved onto crossings)
             if crossing:
                 ints, durations_s, ends_s, targets_mm, states = self._on_crossings(
                     start, ints, scale, durations_s, ends_s, targets_mm, exact_last)
+            elif self.cells:
+                units = self.to_program(targets_mm) * scale
+                stepped, states = self._shaped(units, ints, scale, durations_s, exact_last)
+                ints = self._in_cells(units, stepped, ints, scale, exact_last)
             else:
                 ints, states = self._shaped(self.to_program(targets_mm) * scale, ints, scale, durations_s, exact_last)
                 ints = marlin_merged(start, ints, self.steps_per_mm * self.unit_mm / scale, self.min_steps, exact_last)
             self._keep_rounding(states, len(ints))
             if exact_last:
                 self.crossing_from = None
-            else:
+            elif not self.cells:  # (RRF merges nothing: no block waits for a later one)
                 # held: the last kept block (a later one may merge it); on crossings from the end before it
                 kept = np.flatnonzero((np.diff(np.vstack([start, ints]), axis=0) != 0).any(axis=1))
                 last = self._held_from(kept, wanted[2], ends_s, wanted[0], targets_mm, scale) if crossing else \
@@ -219,7 +258,7 @@ class Emitter:
         moved = steps != 0
         moving = moved.any(axis=1)
         jump = np.zeros(len(steps))
-        if marlin:  # (of the moving blocks alone: two in three rows are merged away)
+        if marlin and not self.cells:  # (of the moving blocks alone: two in three rows are merged away)
             length = np.zeros(len(steps))
             length[moving], jump[moving] = self._marlin_lengths(start, ints[moving], scale)
         else:
@@ -227,12 +266,14 @@ class Emitter:
         if curves is not None:
             offsets = self._curve_offsets(curves, start, ints, scale, length, moved, moving)
         self.written_s, self.written_mm = ends_s[moving], targets_mm[moving]
-        # where the firmware goes: Marlin's whole steps (else the targets: 0.1 um from them)
-        self.stepped_mm = self.to_machine(ints[moving] / scale) if marlin else self.written_mm
+        # where the firmware goes: Marlin's (RRF's) whole steps (else the targets: 0.1 um from them)
+        self.stepped_mm = self.to_machine((stepped if self.cells else ints)[moving] / scale) if marlin else \
+            self.written_mm
         rows = slice(None) if moving.all() else moving  # nearly always all of them: no copies
+        skipped_mm_s = self.ramp_mm_s2 * MIN_RAMP_S if self.cells and math.isfinite(self.ramp_mm_s2) else 0.0
         feed, self.residue_s, self.speed_mm_s = _feeds(length, durations_s, moving, self.residue_s,
                                                        60.0 * 10 ** FEED_DECIMALS / self.unit_mm,
-                                                       self.speed_mm_s, self.ramp_mm_s2, jump)
+                                                       self.speed_mm_s, self.ramp_mm_s2, jump, skipped_mm_s)
         new_feed = feed != np.concatenate([[self.feed], feed[:-1]])  # F only where it changes
         if len(feed):
             self.feed = int(feed[-1])
@@ -294,7 +335,7 @@ def _lengths(delta_mm: np.ndarray, xyz_moves: np.ndarray | None = None) -> np.nd
 
 def _feeds(length_mm: np.ndarray, durations_s: np.ndarray, moving: np.ndarray, residue_s: float,
            units_per_mm_s: float, speed_mm_s: float = 0.0, ramp_mm_s2: float = math.inf,
-           jump_mm_s: np.ndarray | None = None) -> tuple[np.ndarray, float, float]:
+           jump_mm_s: np.ndarray | None = None, skipped_mm_s: float = 0.0) -> tuple[np.ndarray, float, float]:
     """The F of each moving block (integer units of its last digit; ``units_per_mm_s`` per mm/s),
     the time residue left after them and the last block's speed (``speed_mm_s``: the one's before).
 
@@ -306,6 +347,8 @@ def _feeds(length_mm: np.ndarray, durations_s: np.ndarray, moving: np.ndarray, r
     (dv)^2 / (2 ramp max(v)) late: the next block makes that up too. (Where the residue is more
     negative than half a block's duration, the block keeps half its own and the rest goes on.)
     Marlin enters a faster block at once up to its ``jump_mm_s`` (see ``Emitter._marlin_lengths``).
+    RRF does not take a speed step up under ``skipped_mm_s`` from at least 0.9 of the block's F
+    (``reprap.top_speed``): the block cruises at the speed before, and the next ones make up the time.
     """
     residue_s = float(residue_s)  # (a numpy scalar makes every step of the loop three times slower)
     feeds = []
@@ -325,7 +368,10 @@ def _feeds(length_mm: np.ndarray, durations_s: np.ndarray, moving: np.ndarray, r
             add(feed)
             residue_s -= length_units_s / feed
             speed = feed / units_per_mm_s
-            if ramped:
+            if speed_mm_s < speed < speed_mm_s + skipped_mm_s and speed_mm_s >= 0.9 * speed:
+                residue_s -= length_units_s / (speed_mm_s * units_per_mm_s) - length_units_s / feed
+                speed = speed_mm_s
+            elif ramped:
                 lower_mm_s = speed_mm_s if speed_mm_s >= jump else jump
                 step = speed - lower_mm_s if speed > speed_mm_s else speed_mm_s - speed
                 if step > 0.0:
