@@ -20,11 +20,9 @@ from .bezier import curve_lengths
 from .blockends import Curves
 from .linetext import DECIMALS, FEED_DECIMALS, line_text
 from .marlinmerge import last_in_both, marlin_merged, moved_in_time, rounded_ends
+from .stepcells import StepCells
 
 _LINES = 1024  # lines formatted at once
-# How far inside its step's cell an end is written (of a step either side): RRF rounds in float32
-# (lrintf), and the written digits round too (at most 0.004 of a step at 80 steps/mm, 4 decimals).
-CELL_SHARE = 0.45
 
 
 
@@ -45,10 +43,7 @@ class Emitter:
         # Marlin merges a block of fewer than min_steps steps on every axis with the next (steps_per_mm per
         # axis, 0 where not known): such blocks are merged here, where their time can go with them
         self.steps_per_mm, self.min_steps, self.crossings = steps_per_mm, min_steps, crossings
-        # RRF (``cells``): no merge; it rounds each written end to its nearest step and times the block
-        # over the written length, so an end is written in its step's cell, as near the command as
-        # that allows: the steps as the rounding chooses them, F as smooth as the command's
-        self.cells, self.cell_offset = cells, np.zeros(3)  # (the offset of the ends written from the wanted)
+        self.cells = StepCells() if cells else None  # RRF: no merge, each end written in its step's cell
         self.held = None  # (targets, durations, ends) of blocks that wait for the next call
         self.crossing_from = self.plain = None  # on crossings: the last kept end written (_held_from), the merge
         self.rounding = [rounding_for(axis_modes[i] if i < len(axis_modes) else ()) for i in range(3)]  # X Y Z steps
@@ -135,30 +130,6 @@ class Emitter:
             ints[-1] = np.rint(units[-1])
         return ints, states
 
-    def _in_cells(self, units: np.ndarray, stepped: np.ndarray, written: np.ndarray, scale: np.ndarray,
-                  exact_last: bool) -> np.ndarray:
-        """``cells``: the ends to write (integer units): on the axes with steps, the wanted
-        ``units`` plus an offset kept from end to end as long as it leaves the end in the cell of
-        the whole step ``stepped`` is on (within ``CELL_SHARE`` of it), else moved just into it:
-        the written blocks as long as the command's, so F is as smooth (RRF skips a small speed
-        step up, RecalculateMove: an F jittering with the steps ran the gear 0.7% long). The last
-        end of a run is the command's. Elsewhere ``written``."""
-        spu = self.steps_per_mm * self.unit_mm / scale
-        out = written.copy()
-        for i in np.flatnonzero(spu[:3] > 0):
-            counts = np.rint(stepped[:, i] * spu[i])
-            lo = ((counts - CELL_SHARE) / spu[i] - units[:, i]).tolist()
-            hi = ((counts + CELL_SHARE) / spu[i] - units[:, i]).tolist()
-            offset, offsets = self.cell_offset[i], []
-            for low, high in zip(lo, hi, strict=True):
-                offset = low if offset < low else high if offset > high else offset
-                offsets.append(offset)
-            self.cell_offset[i] = 0.0 if exact_last else offset
-            out[:, i] = np.rint(units[:, i] + offsets)
-        if exact_last and len(out):
-            out[-1] = written[-1]
-        return out
-
     def _on_crossings(self, start: np.ndarray, ints: np.ndarray, scale: np.ndarray, durations_s: np.ndarray,
                       ends_s: np.ndarray, targets_mm: np.ndarray, exact_last: bool) -> tuple:
         """MIN_STEPS_PER_SEGMENT above 1: the blocks Marlin keeps (``marlin_merged``), each end moved to where
@@ -206,6 +177,37 @@ class Emitter:
             self.rounding_state = [np.zeros(r.size) if st is None else st[row]
                                    for r, st in zip(self.rounding, states, strict=True)]
 
+    def _on_steps(self, start: np.ndarray, ints: np.ndarray, scale: np.ndarray, targets_mm: np.ndarray,
+                  durations_s: np.ndarray, ends_s: np.ndarray, exact_last: bool) -> tuple:
+        """The blocks on the firmware's whole steps: Marlin's (merged, on crossings or rounded; the
+        last kept held for the next call unless ``exact_last``) or RRF's (each end in its step's
+        cell). Gives the targets, durations, end times and ends to write, and the whole steps."""
+        crossing = self.min_steps > 1 and self.crossings
+        wanted = targets_mm, durations_s, ends_s  # (the rows before they are moved onto crossings)
+        stepped = ints
+        if crossing:
+            ints, durations_s, ends_s, targets_mm, states = self._on_crossings(
+                start, ints, scale, durations_s, ends_s, targets_mm, exact_last)
+        elif self.cells is not None:
+            units = self.to_program(targets_mm) * scale
+            stepped, states = self._shaped(units, ints, scale, durations_s, exact_last)
+            ints = self.cells.ends(units, stepped, ints, self.steps_per_mm * self.unit_mm / scale, exact_last)
+        else:
+            ints, states = self._shaped(self.to_program(targets_mm) * scale, ints, scale, durations_s, exact_last)
+            ints = marlin_merged(start, ints, self.steps_per_mm * self.unit_mm / scale, self.min_steps, exact_last)
+        self._keep_rounding(states, len(ints))
+        if exact_last:
+            self.crossing_from = None
+        elif self.cells is None:  # (RRF merges nothing: no block waits for a later one)
+            # held: the last kept block (a later one may merge it); on crossings from the end before it
+            kept = np.flatnonzero((np.diff(np.vstack([start, ints]), axis=0) != 0).any(axis=1))
+            last = self._held_from(kept, wanted[2], ends_s, wanted[0], targets_mm, scale) if crossing else \
+                (kept[-1] if len(kept) else 0)
+            self._keep_rounding(states, last)
+            self.held = _held(*wanted, ends_s, last)
+            targets_mm, durations_s, ends_s, ints = (x[:last] for x in (targets_mm, durations_s, ends_s, ints))
+        return targets_mm, durations_s, ends_s, ints, stepped if self.cells is not None else ints
+
     def blocks(self, targets_mm: np.ndarray, durations_s: np.ndarray, ends_s: np.ndarray | None = None,
                curves: Curves | None = None, exact_last: bool = True) -> tuple[bytes, int]:
         """G1 lines (G5 where ``curves`` says so) reaching each target (machine mm) in its
@@ -228,49 +230,28 @@ class Emitter:
         relative = np.array([not (self.modal.absolute_e if a == "E" else self.modal.absolute_xyz) for a in AXES])
         start = np.rint(self.written * scale).astype(np.int64)
         ints = np.rint(self.to_program(targets_mm) * scale).astype(np.int64)
-        marlin = bool(self.min_steps or self.cells) and curves is None
+        marlin = bool(self.min_steps or self.cells is not None) and curves is None
         stepped = ints  # (RRF: the whole steps its written ends round to)
         if marlin:
-            crossing = self.min_steps > 1 and self.crossings
-            wanted = targets_mm, durations_s, ends_s  # (the rows before they are moved onto crossings)
-            if crossing:
-                ints, durations_s, ends_s, targets_mm, states = self._on_crossings(
-                    start, ints, scale, durations_s, ends_s, targets_mm, exact_last)
-            elif self.cells:
-                units = self.to_program(targets_mm) * scale
-                stepped, states = self._shaped(units, ints, scale, durations_s, exact_last)
-                ints = self._in_cells(units, stepped, ints, scale, exact_last)
-            else:
-                ints, states = self._shaped(self.to_program(targets_mm) * scale, ints, scale, durations_s, exact_last)
-                ints = marlin_merged(start, ints, self.steps_per_mm * self.unit_mm / scale, self.min_steps, exact_last)
-            self._keep_rounding(states, len(ints))
-            if exact_last:
-                self.crossing_from = None
-            elif not self.cells:  # (RRF merges nothing: no block waits for a later one)
-                # held: the last kept block (a later one may merge it); on crossings from the end before it
-                kept = np.flatnonzero((np.diff(np.vstack([start, ints]), axis=0) != 0).any(axis=1))
-                last = self._held_from(kept, wanted[2], ends_s, wanted[0], targets_mm, scale) if crossing else \
-                    (kept[-1] if len(kept) else 0)
-                self._keep_rounding(states, last)
-                self.held = _held(*wanted, ends_s, last)
-                targets_mm, durations_s, ends_s, ints = (x[:last] for x in (targets_mm, durations_s, ends_s, ints))
+            targets_mm, durations_s, ends_s, ints, stepped = self._on_steps(start, ints, scale, targets_mm,
+                                                                            durations_s, ends_s, exact_last)
         steps = np.diff(np.vstack([start, ints]), axis=0)
         moved = steps != 0
         moving = moved.any(axis=1)
         jump = np.zeros(len(steps))
-        if marlin and not self.cells:  # (of the moving blocks alone: two in three rows are merged away)
+        if marlin and self.cells is None:  # (of the moving blocks alone: two in three rows are merged away)
             length = np.zeros(len(steps))
             length[moving], jump[moving] = self._marlin_lengths(start, ints[moving], scale)
         else:
             length = _lengths(steps / scale * self.unit_mm)
         if curves is not None:
-            offsets = self._curve_offsets(curves, start, ints, scale, length, moved, moving)
+            offsets = _curve_offsets(self, curves, start, ints, scale, length, moved, moving)
         self.written_s, self.written_mm = ends_s[moving], targets_mm[moving]
         # where the firmware goes: Marlin's (RRF's) whole steps (else the targets: 0.1 um from them)
-        self.stepped_mm = self.to_machine((stepped if self.cells else ints)[moving] / scale) if marlin else \
-            self.written_mm
+        self.stepped_mm = self.to_machine(stepped[moving] / scale) if marlin else self.written_mm
         rows = slice(None) if moving.all() else moving  # nearly always all of them: no copies
-        skipped_mm_s = self.ramp_mm_s2 * MIN_RAMP_S if self.cells and math.isfinite(self.ramp_mm_s2) else 0.0
+        skipped_mm_s = self.ramp_mm_s2 * MIN_RAMP_S if self.cells is not None and math.isfinite(self.ramp_mm_s2) \
+            else 0.0
         feed, self.residue_s, self.speed_mm_s = _feeds(length, durations_s, moving, self.residue_s,
                                                        60.0 * 10 ** FEED_DECIMALS / self.unit_mm,
                                                        self.speed_mm_s, self.ramp_mm_s2, jump, skipped_mm_s)
@@ -294,26 +275,28 @@ class Emitter:
         return b"".join(line_text(values[a:a + _LINES], shown[a:a + _LINES], digits, letters, self.newline,
                                   g5[a:a + _LINES]) for a in range(0, len(feed), _LINES)), len(feed)
 
-    def _curve_offsets(self, curves: Curves, start: np.ndarray, ints: np.ndarray, scale: np.ndarray,
-                       length: np.ndarray, moved: np.ndarray, moving: np.ndarray) -> np.ndarray:
-        """The G5 blocks' I J P Q in integer units of the last digit; their rounded curves'
-        lengths into ``length``, and their ends shown (``moved``, ``moving``), in place.
 
-        Control points rounded as written: I J (P Q) are the rounded point minus the rounded
-        start (end), as the controller adds them to the positions it has. The rounded curve is
-        what it times: its length differs from the fitted one's by up to 1e-2 on short curves."""
-        xy_scale = scale[:2]
-        origins = np.vstack([start, ints[:-1]])[:, :2]  # where each block starts
-        offsets = np.column_stack([
-            np.rint(self.to_program(curves.p1_mm, slice(0, 2)) * xy_scale).astype(np.int64) - origins,
-            np.rint(self.to_program(curves.p2_mm, slice(0, 2)) * xy_scale).astype(np.int64) - ints[:, :2]])
-        g5_rows = np.flatnonzero(curves.curve)
-        p0, p3 = origins[g5_rows], ints[g5_rows, :2]
-        length[g5_rows] = curve_lengths(p0 / xy_scale, (p0 + offsets[g5_rows, :2]) / xy_scale,
-                                        (p3 + offsets[g5_rows, 2:]) / xy_scale, p3 / xy_scale) * self.unit_mm
-        moved[:, :2] |= curves.curve[:, None]  # G5 needs its end point, also where it closes a loop
-        moving |= curves.curve
-        return offsets
+
+def _curve_offsets(emitter: Emitter, curves: Curves, start: np.ndarray, ints: np.ndarray, scale: np.ndarray,
+                   length: np.ndarray, moved: np.ndarray, moving: np.ndarray) -> np.ndarray:
+    """The G5 blocks' I J P Q in integer units of the last digit (in ``emitter``'s frame); their
+    rounded curves' lengths into ``length``, and their ends shown (``moved``, ``moving``), in place.
+
+    Control points rounded as written: I J (P Q) are the rounded point minus the rounded
+    start (end), as the controller adds them to the positions it has. The rounded curve is
+    what it times: its length differs from the fitted one's by up to 1e-2 on short curves."""
+    xy_scale = scale[:2]
+    origins = np.vstack([start, ints[:-1]])[:, :2]  # where each block starts
+    offsets = np.column_stack([
+        np.rint(emitter.to_program(curves.p1_mm, slice(0, 2)) * xy_scale).astype(np.int64) - origins,
+        np.rint(emitter.to_program(curves.p2_mm, slice(0, 2)) * xy_scale).astype(np.int64) - ints[:, :2]])
+    g5_rows = np.flatnonzero(curves.curve)
+    p0, p3 = origins[g5_rows], ints[g5_rows, :2]
+    length[g5_rows] = curve_lengths(p0 / xy_scale, (p0 + offsets[g5_rows, :2]) / xy_scale,
+                                    (p3 + offsets[g5_rows, 2:]) / xy_scale, p3 / xy_scale) * emitter.unit_mm
+    moved[:, :2] |= curves.curve[:, None]  # G5 needs its end point, also where it closes a loop
+    moving |= curves.curve
+    return offsets
 
 
 def _held(targets_mm: np.ndarray, durations_s: np.ndarray, ends_s: np.ndarray, moved_ends_s: np.ndarray,
