@@ -19,6 +19,17 @@ def continuous_model(modes):
     return linalg.block_diag(*blocks), np.array(b)[:, None], np.array(c)[None, :], np.zeros((1, 1))
 
 
+def felt_um(profile, wanted, knots_s, knots_mm) -> np.ndarray:
+    """RMS (um) per axis of the modes' response (``profile``'s X and Y, continuous, scipy's lsim)
+    to the error of a motion linear between ``knots_mm`` (X Y) at ``knots_s`` from ``wanted(t)``,
+    on a 20 us grid over the knots."""
+    t = np.arange(knots_s[0], knots_s[-1], 2e-5)
+    error_mm = np.column_stack([np.interp(t, knots_s, knots_mm[:, c]) for c in range(2)]) - wanted(t)
+    felt = [signal.lsim(continuous_model(profile.axes[a].modes), error_mm[:, c], t - t[0])[1]
+            for c, a in enumerate("XY")]
+    return 1e3 * np.sqrt(np.mean(np.square(felt), axis=1))
+
+
 def simulate_lsim(modes, period_s, command):
     """Actual position for a zero-order-hold command, from rest at command[0]: each mode's state
     space discretized exactly by scipy (``cont2discrete``, zero-order hold) and run by ``lfilter``,
