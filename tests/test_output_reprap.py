@@ -61,3 +61,34 @@ def test_block_ends_rounded_against_the_modes_in_their_step_cells():
                                                                          / 80.0]) + start)
     print(f"felt: in cells {cells} um, RRF's nearest steps {nearest} um")
     assert (cells < 0.5 * nearest).all()
+
+
+@pytest.mark.slow
+def test_rrf_output_lasts_as_rrf_runs_the_original(tmp_path):
+    """The gear's first 1000 lines compensated for RRF (printer-two-mode, an SD card), the
+    original and the output each run by the model of RRF's planner (fbspost/firmware/reprap.py):
+    the output lasts within 0.5% of the original (issue 32), and its RMS contour error through
+    whole steps and the modes is under a quarter of the original's. Measured (29 November 2026):
+    +0.39%, 22.39 -> 3.61 um (20 s at a load of 8)."""
+    import sys
+    from pathlib import Path
+
+    from fbspost.firmware.shaping import stepper_positions
+    from fbspost.firmware.verify import contour_um, modelled
+    from fbspost.job.pipeline import compensate_file
+    from fbspost.job.report import CompensateOptions
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+    from firmware import model_run
+
+    source, target = tmp_path / "gear.gcode", tmp_path / "out.gcode"
+    with open("tests/data/gear-marlin2.gcode", "rb") as f:
+        source.write_bytes(b"".join(f.readlines()[:1000]))
+    compensate_file(source, target, PROFILE, CompensateOptions(flavor="reprap"))
+    plain, fbs = (model_run(path, PROFILE, "reprap", None) for path in (source, target))
+    spm = PROFILE.firmware.steps_per_mm
+    rms = [contour_um(modelled(stepper_positions(run.samples, spm), PROFILE), run.samples, plain.path,
+                      plain.printer)[0] for run in (plain, fbs)]
+    print(f"time {100 * (fbs.seconds / plain.seconds - 1):+.3f}%, RMS {rms[0]:.2f} -> {rms[1]:.2f} um")
+    assert fbs.seconds == pytest.approx(plain.seconds, rel=5e-3)
+    assert rms[1] < 0.25 * rms[0]
