@@ -330,8 +330,10 @@ def _feeds(length_mm: np.ndarray, durations_s: np.ndarray, moving: np.ndarray, r
     (dv)^2 / (2 ramp max(v)) late: the next block makes that up too. (Where the residue is more
     negative than half a block's duration, the block keeps half its own and the rest goes on.)
     Marlin enters a faster block at once up to its ``jump_mm_s`` (see ``Emitter._marlin_lengths``).
-    RRF does not take a speed step up under ``skipped_mm_s`` from at least 0.9 of the block's F
-    (``reprap.top_speed``): the block cruises at the speed before, and the next ones make up the time.
+    RRF does not ramp up to a block's F for under ``skipped_mm_s`` from at least 0.9 of it where the
+    block is faster than its neighbours (``reprap.top_speed``: from the larger of the speed before
+    and its exit, here the next block's wanted speed): it cruises at that, and the next blocks
+    make up the time.
     """
     residue_s = float(residue_s)  # (a numpy scalar makes every step of the loop three times slower)
     feeds = []
@@ -340,8 +342,14 @@ def _feeds(length_mm: np.ndarray, durations_s: np.ndarray, moving: np.ndarray, r
     # (One line per block, the slowest loop of the writer: max() and the ramp's term only where they count.)
     lengths = (length_mm * units_per_mm_s).tolist()
     jumps = [0.0] * len(lengths) if jump_mm_s is None else jump_mm_s.tolist()
-    for length_units_s, duration, moves, jump in zip(lengths, durations_s.tolist(), moving.tolist(), jumps,
-                                                     strict=True):
+    aheads = [math.inf] * len(lengths)
+    if skipped_mm_s:  # each block's next moving block's wanted speed (the last: not known, none)
+        rows = np.flatnonzero(moving)
+        ahead = np.full(len(lengths), math.inf)
+        ahead[rows[:-1]] = length_mm[rows[1:]] / np.maximum(durations_s[rows[1:]], 1e-9)
+        aheads = ahead.tolist()
+    for length_units_s, duration, moves, jump, ahead_mm_s in zip(lengths, durations_s.tolist(), moving.tolist(),
+                                                                  jumps, aheads, strict=True):
         residue_s += duration
         if moves:
             half = 0.5 * duration
@@ -351,9 +359,10 @@ def _feeds(length_mm: np.ndarray, durations_s: np.ndarray, moving: np.ndarray, r
             add(feed)
             residue_s -= length_units_s / feed
             speed = feed / units_per_mm_s
-            if speed_mm_s < speed < speed_mm_s + skipped_mm_s and speed_mm_s >= 0.9 * speed:
-                residue_s -= length_units_s / (speed_mm_s * units_per_mm_s) - length_units_s / feed
-                speed = speed_mm_s
+            near = max(speed_mm_s, min(speed, ahead_mm_s))
+            if near < speed < near + skipped_mm_s and near >= 0.9 * speed:
+                residue_s -= length_units_s / (near * units_per_mm_s) - length_units_s / feed
+                speed = near
             elif ramped:
                 lower_mm_s = speed_mm_s if speed_mm_s >= jump else jump
                 step = speed - lower_mm_s if speed > speed_mm_s else speed_mm_s - speed
