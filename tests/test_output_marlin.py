@@ -22,7 +22,7 @@ from fbspost.profile import load_profile, with_travel
 from fbspost.read.blocks import AXES, Kind
 from fbspost.read.gcode import read_gcode
 from fbspost.write.emitter import Emitter
-from reference import felt_um, serial
+from reference import felt_um, serial, slow_swing, swing_ends
 
 PROFILE = serial(load_profile("printer-two-mode"), 300.0)  # 80 steps/mm on X Y, 400 Z, 415 E; 300 lines/s
 MIN_STEPS = 6
@@ -126,14 +126,9 @@ def test_block_ends_on_step_crossings_leave_the_modes_less_error():
     the next's; worked here), the plain rounding the writer did before: measured 0.24 and 2.75
     um against 5.31 and 10.5 um RMS on X and Y (X, dominant, ends on its steps; Y rounded
     against its mode). No block under 6 steps."""
-    def wanted(t):
-        return np.column_stack([20.0 * t + 0.5 * np.sin(2 * np.pi * 3.0 * t),
-                                6.0 * t + 0.3 * np.sin(2 * np.pi * 2.0 * t + 1.0)])
-
+    wanted = slow_swing
     spm = np.array([80.0 if a in "XY" else 0.0 for a in AXES])
-    t_s = np.arange(1, 1001) * 1e-3
-    targets = np.zeros((1000, len(AXES)))
-    targets[:, :2] = wanted(t_s) - wanted(np.zeros(1))
+    t_s, targets = swing_ends(len(AXES))
     emitter = Emitter(np.zeros(len(AXES)), b"\n", spm, MIN_STEPS,
                       axis_modes=(PROFILE.axes["X"].modes, PROFILE.axes["Y"].modes))
     text, _ = emitter.blocks(targets, np.full(1000, 1e-3), t_s)

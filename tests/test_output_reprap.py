@@ -16,7 +16,7 @@ import pytest
 from fbspost.profile import load_profile
 from fbspost.read.blocks import AXES
 from fbspost.write.emitter import Emitter
-from reference import felt_um
+from reference import felt_um, slow_swing, swing_ends
 
 PROFILE = load_profile("printer-two-mode")  # 80 steps/mm on X and Y
 
@@ -43,14 +43,9 @@ def test_block_ends_rounded_against_the_modes_in_their_step_cells():
     writer before), and RRF's times of the written ends stay within 0.2 ms of the command's (the
     written lengths are the command's: F does not jitter with the steps). Measured (29 November
     2026): 0.87 and 0.69 um RMS on X and Y, against 3.56 and 2.67 um."""
-    def wanted(t):
-        return np.column_stack([20.0 * t + 0.5 * np.sin(2 * np.pi * 3.0 * t),
-                                6.0 * t + 0.3 * np.sin(2 * np.pi * 2.0 * t + 1.0)])
-
+    wanted = slow_swing
     spm = np.array([80.0 if a in "XY" else 0.0 for a in AXES])
-    t_s = np.arange(1, 1001) * 1e-3
-    targets = np.zeros((1000, len(AXES)))
-    targets[:, :2] = wanted(t_s) - wanted(np.zeros(1))
+    t_s, targets = swing_ends(len(AXES))
     emitter = Emitter(np.zeros(len(AXES)), b"\n", spm, axis_modes=(PROFILE.axes["X"].modes, PROFILE.axes["Y"].modes),
                       cells=True)
     times_s, ends = _as_rrf_runs(emitter.blocks(targets, np.full(1000, 1e-3), t_s)[0])
