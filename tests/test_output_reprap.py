@@ -64,7 +64,8 @@ def test_rrf_output_lasts_as_rrf_runs_the_original(tmp_path):
     original and the output each run by the model of RRF's planner (fbspost/firmware/reprap.py):
     the output lasts within 0.5% of the original (issue 32), and its RMS contour error through
     whole steps and the modes is under a quarter of the original's. Measured (29 November 2026):
-    +0.39%, 22.39 -> 3.61 um (20 s at a load of 8)."""
+    +0.44%, 22.39 -> 3.49 um (17 s at a load of 7): near the bar, the margins a larger share of a
+    short print (the first 2000 lines: +0.21%)."""
     import sys
     from pathlib import Path
 
