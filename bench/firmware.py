@@ -9,7 +9,9 @@ once at the profile's max_line_rate, else at a serial host's 300 lines/s (the ho
 by line) and once without a line budget (an SD-card print; the output written from a copy of
 the profile with that max_line_rate, or without one); also where the buffer (ring) ran dry.
 The original's path is its commanded one (not the firmware's whole steps); on RepRapFirmware
-the output is also run with motors that take no whole steps (the cost of the steps), and every
+the output is also run with motors that take no whole steps (its ends are written inside their
+steps' cells, so this carries their offsets: the floor is bench/marlin_baseline.py --flavor
+reprap's, the output written for fine steps), and every
 run is put on its whole steps, the shapers too: RRF's own M593 types (ZVD, ZVDD, ZVDDD, MZV,
 EI2, EI3, fbspost/firmware/shaping.py: its impulses on the whole plan, not its per-move segments),
 one for X and Y together at each of the profile's dominant modes, as M593 has one. Marlin's own

@@ -1,9 +1,15 @@
 """Marlin's own input shaping against fbspost's Marlin output, all through whole steps (issue 32).
 
 Run from the repository root:  python bench/marlin_baseline.py [PROFILE ...] [--lines N] [--prints P ...]
+    [--budgets 300 0] [--flavor marlin|reprap]
 Default: printer-two-mode and bedslinger-example, the first 8000 lines of every sliced print in
 tests/data, once at a serial host's 300 lines/s and once without a line budget (an SD card).
 A print named with a path is read from there (a print sliced anew: bench/sliced_anew.py).
+With ``--flavor reprap`` the same for RepRapFirmware: *the model of its planner*
+(fbspost/firmware/reprap.py: whole-step targets, its ring, junctions and look-ahead), its
+stepper's whole steps, and in place of Marlin's shapers RRF's own M593 types (ZVD, ZVDD, ZVDDD,
+MZV, EI2, EI3, ``shaping.reprap_shaper``: one for X and Y together, at each of the profile's
+dominant modes, through whole steps), the best by RMS; fbspost's default RRF output.
 
 Every run is *the model of Marlin's planner* (fbspost/firmware/marlin.py: whole-step block ends, the
 6-step merge, its buffer and look-ahead), then *the model of its stepper* (each axis on the whole
@@ -33,7 +39,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT), str(ROOT / "bench"), str(ROOT / "tests")]
 
-from firmware import compensated, excerpt, model_run  # noqa: E402
+from firmware import compensated, excerpt, model_run, reprap_shapers  # noqa: E402
 
 from fbspost.firmware.shaping import (  # noqa: E402
     FT_MOTION_SHAPERS,
@@ -72,20 +78,49 @@ def fine_steps(machine: str, folder: Path, times: float = 100.0) -> Path:
 
 
 def rows(original: Path, output: Path, profile, budget: float | None,
-         floor: tuple[Path, object] | None = None, **config_changes) -> list[tuple[str, float, tuple]]:
+         floor: tuple[Path, object] | None = None, flavor: str = "marlin",
+         **config_changes) -> list[tuple[str, float, tuple]]:
     """(name, seconds, (RMS um, max um)) of every run (see the module docstring); ``floor``: the
-    output for fine steps and that profile (None: no floor row); ``config_changes``: MarlinConfig
-    fields the profile does not set (``classic_jerk=True``), for every run."""
-    plain = model_run(original, profile, "marlin", budget, **config_changes)
-    fbs = model_run(output, profile, "marlin", budget, **config_changes)
-    settings = shaper_settings(profile)
-
+    output for fine steps and that profile (None: no floor row); ``flavor``: marlin (Marlin ZV,
+    FT_MOTION's best) or reprap (RRF's best M593 shaper); ``config_changes``: MarlinConfig
+    (ReprapConfig) fields the profile does not set (``classic_jerk=True``), for every run."""
+    plain = model_run(original, profile, flavor, budget, **config_changes)
+    fbs = model_run(output, profile, flavor, budget, **config_changes)
     spm = profile.firmware.steps_per_mm
 
     def error(command, mask_source):
         return contour_um(modelled(command, profile), mask_source, plain.path, plain.printer)
 
     out = [("original", plain.seconds, error(stepper_positions(plain.samples, spm), plain.samples))]
+    if flavor == "reprap":
+        out.append(_best_reprap_shaper(plain, profile, error))
+    else:
+        out += _marlin_shapers(plain, profile, error)
+    out.append(("fbspost", fbs.seconds, error(stepper_positions(fbs.samples, spm), fbs.samples)))
+    out.append(("fbspost, no stepper", fbs.seconds, error(fbs.samples, fbs.samples)))
+    if floor is not None:
+        fine = model_run(floor[0], floor[1], flavor, budget, **config_changes)
+        out.append(("floor", fine.seconds, error(fine.samples, fine.samples)))
+    return out
+
+
+def _best_reprap_shaper(plain, profile, error) -> tuple[str, float, tuple]:
+    """RRF's best M593 shaper on ``plain`` through whole steps (``firmware.reprap_shapers``)."""
+    spm = profile.firmware.steps_per_mm
+    best = None
+    for name, per_axis in reprap_shapers(profile)["shapers"].items():
+        command, padded, added_s = shaped(plain.samples, profile, per_axis,
+                                          lambda x, period_s, s, axis: shaped_steps(x, period_s, spm[axis], s))
+        row = (f"RRF {name.upper().replace(' HZ', 'Hz').replace(' ', '@')}", plain.seconds + added_s,
+               error(command, padded))
+        best = row if best is None or row[2][0] < best[2][0] else best
+    return best
+
+
+def _marlin_shapers(plain, profile, error) -> list[tuple[str, float, tuple]]:
+    """Marlin's ZV and FT_MOTION's best shaper on ``plain``, through whole steps."""
+    settings, spm = shaper_settings(profile), profile.firmware.steps_per_mm
+    out = []
     command, padded, added_s = shaped(
         plain.samples, profile, {a: marlin_zv_shaper(*settings[a]) for a in settings},
         lambda x, period_s, s, axis: marlin_zv(x, period_s, spm[axis], s.frequency_hz, s.damping))
@@ -98,11 +133,6 @@ def rows(original: Path, output: Path, profile, budget: float | None,
         row = (f"FT_MOTION {name.upper()}", plain.seconds + added_s, error(command, padded))
         best = row if best is None or row[2][0] < best[2][0] else best
     out.append(best)
-    out.append(("fbspost", fbs.seconds, error(stepper_positions(fbs.samples, spm), fbs.samples)))
-    out.append(("fbspost, no stepper", fbs.seconds, error(fbs.samples, fbs.samples)))
-    if floor is not None:
-        fine = model_run(floor[0], floor[1], "marlin", budget, **config_changes)
-        out.append(("floor", fine.seconds, error(fine.samples, fine.samples)))
     return out
 
 
@@ -111,28 +141,38 @@ def main() -> None:
     parser.add_argument("profiles", nargs="*", default=["printer-two-mode", "bedslinger-example"])
     parser.add_argument("--lines", type=int, default=8000)
     parser.add_argument("--prints", nargs="*", default=list(PRINTS))
+    parser.add_argument("--budgets", nargs="*", type=float, default=[b or 0.0 for b in BUDGETS])
+    parser.add_argument("--flavor", choices=("marlin", "reprap"), default="marlin")
     args = parser.parse_args()
-    print("| profile | program | line budget | original um (max) | Marlin ZV um (max) | FT_MOTION best um (max) "
+    shapers = ["RRF best"] if args.flavor == "reprap" else ["Marlin ZV", "FT_MOTION best"]
+    print(f"| profile | program | line budget | original um (max) | {' um (max) | '.join(shapers)} um (max) "
           "| fbspost um (max) | fbspost, no stepper um (max) | floor um (max) | fbspost time vs original "
-          "| fbspost / ZV | fbspost / FT best | fbspost / floor |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+          f"| fbspost / {' | fbspost / '.join(shapers)} | fbspost / floor |")
+    print("|---" * (11 + 2 * len(shapers) - 2) + "|")
     for machine in args.profiles:
         profile = load_profile(machine)
         for program in args.prints:
-            for budget in BUDGETS:
+            for budget in (b or None for b in args.budgets):
                 with tempfile.TemporaryDirectory() as tmp:
                     original = excerpt(program if "/" in program else f"tests/data/{program}", args.lines, Path(tmp))
-                    output = compensated(original, machine, "marlin", budget).rename(Path(tmp) / "fbspost.gcode")
+                    output = compensated(original, machine, args.flavor, budget).rename(Path(tmp) / "fbspost.gcode")
                     fine = fine_steps(machine, Path(tmp))
-                    floor = (compensated(original, str(fine), "marlin", budget), load_profile(fine))
-                    result = rows(original, output, profile, budget, floor)
-                cells = [f"{rms:.2f} ({peak:.0f})" for _, _, (rms, peak) in result]
-                cells[2] = f"{result[2][0].split()[-1]} {cells[2]}"
-                time = 100 * (result[3][1] / result[0][1] - 1)
-                ratios = " | ".join(f"{result[3][2][0] / result[k][2][0]:.2f}" for k in (1, 2, 5))
-                name = Path(program).name.split("-")[0]
-                print(f"| {machine} | {name} | {f'{budget:g} lines/s' if budget else 'none'} | "
-                      f"{' | '.join(cells)} | {time:+.2f}% of {result[0][1]:.1f} s | {ratios} |", flush=True)
+                    floor = (compensated(original, str(fine), args.flavor, budget), load_profile(fine))
+                    result = rows(original, output, profile, budget, floor, args.flavor)
+                print(_row(machine, program, budget, result, len(shapers)), flush=True)
+
+
+def _row(machine: str, program: str, budget: float | None, result: list, n_shapers: int) -> str:
+    """A table row of ``rows``' ``result`` (the shapers' after the original, then fbspost's)."""
+    cells = [f"{rms:.2f} ({peak:.0f})" for _, _, (rms, peak) in result]
+    for k in range(1, 1 + n_shapers):
+        if result[k][0] != "Marlin ZV":  # (the best of several: which)
+            cells[k] = f"{result[k][0].split(maxsplit=1)[-1]} {cells[k]}"
+    fbs = 1 + n_shapers
+    time = 100 * (result[fbs][1] / result[0][1] - 1)
+    ratios = " | ".join(f"{result[fbs][2][0] / result[k][2][0]:.2f}" for k in [*range(1, fbs), len(result) - 1])
+    return (f"| {machine} | {Path(program).name.split('-')[0]} | {f'{budget:g} lines/s' if budget else 'none'} | "
+            f"{' | '.join(cells)} | {time:+.2f}% of {result[0][1]:.1f} s | {ratios} |")
 
 
 if __name__ == "__main__":

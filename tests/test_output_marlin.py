@@ -12,7 +12,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from scipy import signal
 
 from fbspost.firmware.marlin import run_marlin
 from fbspost.job.pipeline import compensate_file, compensated_samples
@@ -23,7 +22,7 @@ from fbspost.profile import load_profile, with_travel
 from fbspost.read.blocks import AXES, Kind
 from fbspost.read.gcode import read_gcode
 from fbspost.write.emitter import Emitter
-from reference import continuous_model, serial
+from reference import felt_um, serial, slow_swing, swing_ends
 
 PROFILE = serial(load_profile("printer-two-mode"), 300.0)  # 80 steps/mm on X Y, 400 Z, 415 E; 300 lines/s
 MIN_STEPS = 6
@@ -117,17 +116,6 @@ def test_step_rounding_is_noise_shaped_across_calls():
     assert np.abs(np.cumsum(np.floor(wanted + 0.5) - wanted, axis=0)).max() > 2.0
 
 
-def _felt_um(wanted, knots_s, knots_mm) -> np.ndarray:
-    """RMS (um) per axis of the modes' response (printer-two-mode's X and Y, continuous, scipy's
-    lsim) to the error of a motion linear between ``knots_mm`` at ``knots_s`` from ``wanted(t)``,
-    on a 20 us grid over the knots."""
-    t = np.arange(knots_s[0], knots_s[-1], 2e-5)
-    error_mm = np.column_stack([np.interp(t, knots_s, knots_mm[:, c]) for c in range(2)]) - wanted(t)
-    felt = [signal.lsim(continuous_model(PROFILE.axes[a].modes), error_mm[:, c], t - t[0])[1]
-            for c, a in enumerate("XY")]
-    return 1e3 * np.sqrt(np.mean(np.square(felt), axis=1))
-
-
 def test_block_ends_on_step_crossings_leave_the_modes_less_error():
     """A slow line (X 20 mm/s with a 0.5 mm 3 Hz swing, Y 6 mm/s with 0.3 mm at 2 Hz; ends every
     ms, 80 steps/mm, Marlin's minimum of 6 steps, printer-two-mode's X and Y modes): the blocks
@@ -138,14 +126,9 @@ def test_block_ends_on_step_crossings_leave_the_modes_less_error():
     the next's; worked here), the plain rounding the writer did before: measured 0.24 and 2.75
     um against 5.31 and 10.5 um RMS on X and Y (X, dominant, ends on its steps; Y rounded
     against its mode). No block under 6 steps."""
-    def wanted(t):
-        return np.column_stack([20.0 * t + 0.5 * np.sin(2 * np.pi * 3.0 * t),
-                                6.0 * t + 0.3 * np.sin(2 * np.pi * 2.0 * t + 1.0)])
-
+    wanted = slow_swing
     spm = np.array([80.0 if a in "XY" else 0.0 for a in AXES])
-    t_s = np.arange(1, 1001) * 1e-3
-    targets = np.zeros((1000, len(AXES)))
-    targets[:, :2] = wanted(t_s) - wanted(np.zeros(1))
+    t_s, targets = swing_ends(len(AXES))
     emitter = Emitter(np.zeros(len(AXES)), b"\n", spm, MIN_STEPS,
                       axis_modes=(PROFILE.axes["X"].modes, PROFILE.axes["Y"].modes))
     text, _ = emitter.blocks(targets, np.full(1000, 1e-3), t_s)
@@ -164,8 +147,8 @@ def test_block_ends_on_step_crossings_leave_the_modes_less_error():
             plain.append(row / 80.0)
             kept.append(t)
     start = wanted(np.zeros(1))[0]
-    crossing = _felt_um(wanted, np.array(knots_s), np.array(knots) + start)
-    rounded = _felt_um(wanted, np.array(kept), np.array(plain) + start)
+    crossing = felt_um(PROFILE, wanted, np.array(knots_s), np.array(knots) + start)
+    rounded = felt_um(PROFILE, wanted, np.array(kept), np.array(plain) + start)
     print(f"felt: on crossings {crossing} um, plain rounding {rounded} um; {len(knots)} and {len(plain)} ends")
     assert crossing[0] < 0.1 * rounded[0] and crossing[1] < 0.4 * rounded[1]
 

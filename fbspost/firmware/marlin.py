@@ -252,7 +252,7 @@ class Segments:
     start: list[np.ndarray] = field(default_factory=list)
     end: list[np.ndarray] = field(default_factory=list)
     feed: list[float] = field(default_factory=list)
-    settings: list[list[float]] = field(default_factory=list)  # LimitState.row(), jerk, M205 B (us)
+    settings: list[list[float]] = field(default_factory=list)  # LimitState.row() (jerk in it), M205 B (us)
 
 
 def _read(blocks: list[Block], profile: MachineProfile) -> tuple[Segments, list[tuple[Kind, bool, float]]]:
@@ -287,7 +287,7 @@ def _read(blocks: list[Block], profile: MachineProfile) -> tuple[Segments, list[
             if settings is None:
                 row = state.row()
                 row[3] = junction_mm
-                settings = [*row, state.scv, min_segment_us]
+                settings = [*row, min_segment_us]
             segments.settings.append(settings)
             position = point
     return segments, lines
@@ -329,7 +329,7 @@ class _Geometry:
         accel = np.where(has_xyz, np.minimum(accel, axis_limited(axis_a, per_mm)), accel)  # LIMIT_ACCEL_*
         unit = delta / np.linalg.norm(delta, axis=1)[:, None]  # normalize_junction_vector (XYZE)
         junction2, reversal = _junction_deviation(unit, accel, length, rows[:, 3], axis_a)
-        jerk = np.column_stack([rows[:, 5 + 2 * _NA], rows[:, 5 + 2 * _NA],
+        jerk = np.column_stack([rows[:, 4 + 2 * _NA], rows[:, 4 + 2 * _NA],
                                 np.full(len(rows), config.z_jerk_mm_s), np.full(len(rows), config.e_jerk_mm_s)])
         return cls(start, end, np.array(segments.line, dtype=int), np.array(segments.feed, dtype=float), length,
                    accel, axis_limited(axis_v, per_mm), 0.5 * accel * length / event_count, per_mm[:, :_E + 1],

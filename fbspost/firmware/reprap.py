@@ -52,7 +52,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..plan.limits import LimitState
+from ..plan.limits import REPRAP_AXIS_JERK_MM_S, REPRAP_JERK_MM_S, LimitState
 from ..profile import MachineProfile
 from ..read.blocks import AXES, Block, Kind
 from .marlin import MarlinRun, axis_limited, send_lines, trapezoid_time_s
@@ -62,10 +62,9 @@ _X, _Y, _E = AXES.index("X"), AXES.index("Y"), AXES.index("E")
 _OTHER = [i for i in range(_NA) if i > _E]
 M566 = re.compile(rb"^\s*(?:[Nn]\s*\d+\s*)?[Mm]\s*0*566(?![\d.])([^;(]*)")
 _WORD = re.compile(rb"([A-Za-z])\s*([-+]?[\d.]+)")
-_JERK_MM_S = {"Z": 10.0, "E": 5.0}  # DefaultZInstantDv, DefaultEInstantDv; other axes DefaultAxisInstantDv
-_AXIS_JERK_MM_S = 15.0
 MIN_FEED_FLOOR_MM_S = 0.01  # the lowest M203 I RRF takes (Platform::SetMinMovementSpeed)
 STEP_CLOCK_HZ = 750_000.0  # StepClockRate, 48 MHz / 64 on every Duet 3
+MIN_RAMP_S = 10.0 / STEP_CLOCK_HZ  # MinimumAccelOrDecelClocks: a shorter ramp to F is not taken
 
 
 @dataclass(frozen=True)
@@ -80,12 +79,12 @@ class ReprapConfig:
     min_speed_mm_s: float = 0.5  # M203 I (DefaultMinFeedrate), until the program sets it
     prepare_ahead_s: float = 0.1  # UsualMinimumPreparedTime
     grace_s: float = 0.01  # DefaultGracePeriod (M595 R)
-    min_ramp_s: float = 10.0 / STEP_CLOCK_HZ  # MinimumAccelOrDecelClocks
+    min_ramp_s: float = MIN_RAMP_S
 
     @classmethod
     def from_profile(cls, profile: MachineProfile, **changes) -> ReprapConfig:
         fw, scv = profile.firmware, profile.planner_square_corner_velocity_mm_s
-        jerk = tuple(scv if a in "XY" else _JERK_MM_S.get(a, _AXIS_JERK_MM_S) for a in AXES)
+        jerk = tuple(scv if a in "XY" else REPRAP_JERK_MM_S.get(a, REPRAP_AXIS_JERK_MM_S) for a in AXES)
         values = dict(steps_per_mm=tuple(fw.steps_per_mm.get(a, math.nan) for a in AXES), jerk_mm_s=jerk,
                       ring_length=fw.dda_ring_length, line_rate_hz=fw.max_line_rate_hz)
         return cls(**{**values, **changes})

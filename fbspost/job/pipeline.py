@@ -214,7 +214,7 @@ def _write_options(profile: MachineProfile, options: CompensateOptions, flavor: 
         ),
         firmware=FirmwareSettings.from_profile(profile),
         max_line_rate_hz=profile.firmware.max_line_rate_hz,
-        **marlin_steps(profile, flavor),
+        **firmware_steps(profile, flavor),
     )
 
 
@@ -249,12 +249,15 @@ def step_tolerance_mm(profile: MachineProfile, flavor: str, output_format: str =
     return STEP_TOLERANCE_SHARE / min(xy)
 
 
-def marlin_steps(profile: MachineProfile, flavor: str) -> dict:
-    """The writer's options for Marlin's merge of short blocks (steps per mm X Y Z E, 0 where the
-    profile does not give them), none for other flavors or without steps."""
+def firmware_steps(profile: MachineProfile, flavor: str) -> dict:
+    """The writer's options for the firmware's whole steps (steps per mm X Y Z E, 0 where the
+    profile does not give them): Marlin's, with its merge of short blocks; RepRapFirmware's, each
+    end written in the cell of its step (``WriteOptions.step_cells``); none for other flavors
+    or without steps."""
     steps = profile.firmware.steps_per_mm
-    if flavor != "marlin" or not steps:
+    if flavor not in ("marlin", "reprap") or not steps:
         return {}
-    return {"steps_per_mm": tuple(steps.get(a, 0.0) for a in AXES),
-            "min_steps_per_segment": profile.firmware.min_steps_per_segment,
+    merge = {"min_steps_per_segment": profile.firmware.min_steps_per_segment} if flavor == "marlin" else \
+        {"step_cells": True}
+    return {"steps_per_mm": tuple(steps.get(a, 0.0) for a in AXES), **merge,
             "axis_modes": tuple(tuple(profile.axes[a].modes) if a in profile.axes else () for a in "XYZ")}

@@ -3,7 +3,8 @@
 Takes the profile and the limit changes of the blocks (``blocks.PlannerLimits``); gives a row of
 the limits in force per block (``LimitState.row``), the cruise limits and accelerations of
 pieces by the per-axis rules (``axis_piece_limits``) and the largest speeds at the junctions
-between them (``junction_limits``, Klipper's Move.calc_junction).
+between them (``junction_limits``, Klipper's Move.calc_junction; ``jerk_junction_limits``,
+RepRapFirmware's DDA::MatchSpeeds).
 """
 from __future__ import annotations
 
@@ -16,12 +17,18 @@ from ..read.blocks import AXES
 
 _NA = len(AXES)
 _E = AXES.index("E")
+# RepRapFirmware 3.5's instantaneous speed changes (M566) where neither the program nor the profile
+# gives one (Configuration.h DefaultZInstantDv, DefaultEInstantDv; DefaultAxisInstantDv the others);
+# X and Y take the square corner velocity in force
+REPRAP_JERK_MM_S = {"Z": 10.0, "E": 5.0}
+REPRAP_AXIS_JERK_MM_S = 15.0
 
 
 class LimitState:
     """The planner settings as the blocks change them; ``row()`` is one row of the state table:
     accel, travel accel (NaN: none), planner max velocity, junction deviation, axis max velocity
-    (4), axis max acceleration (4), accel_to_decel (Klipper's smoothing; accel elsewhere).
+    (4), axis max acceleration (4), square corner velocity (classic jerk: Marlin's M205 X Y, RRF's
+    M566 X Y), accel_to_decel (Klipper's smoothing; accel elsewhere).
 
     max_velocity starts at the speed along the path the firmware caps (``profile.path_velocity_mm_s``:
     Klipper's max_velocity, LinuxCNC's MAX_LINEAR_VELOCITY). Klipper: accel_to_decel is
@@ -91,7 +98,7 @@ class LimitState:
             to_decel = self.accel * (1.0 - self.cruise_ratio)
         else:
             to_decel = min(self.accel_to_decel, self.accel)
-        return [self.accel, self.travel_accel, self.max_velocity, jd, *self.axis_v, *self.axis_a, to_decel]
+        return [self.accel, self.travel_accel, self.max_velocity, jd, *self.axis_v, *self.axis_a, self.scv, to_decel]
 
 
 
@@ -114,8 +121,28 @@ def junction_limits(unit_prev: np.ndarray, unit_next: np.ndarray, jd_prev, jd_ne
 
 
 
-def axis_piece_limits(delta, length, extrude_only, feed, planner_v, accel_print, accel_travel, axis_v, axis_a):
-    """(unit, cruise limit, accel, feed clamped) of pieces by the per-axis rules (not Klipper's)."""
+def reprap_jerk_mm_s(scv_mm_s: np.ndarray) -> np.ndarray:
+    """(n, len(AXES)) RepRapFirmware's M566 per drive: X and Y ``scv_mm_s`` (per row), the others its defaults."""
+    jerk = np.array([REPRAP_JERK_MM_S.get(a, REPRAP_AXIS_JERK_MM_S) for a in AXES]) * np.ones((len(scv_mm_s), 1))
+    jerk[:, :2] = np.asarray(scv_mm_s)[:, None]
+    return jerk
+
+
+def jerk_junction_limits(unit_prev, unit_next, jerk_mm_s, cruise_v2_prev, cruise_v2_next, meld) -> np.ndarray:
+    """Largest squared speed at junctions by RepRapFirmware's rule (DDA::MatchSpeeds): on every
+    drive, E included, the change of its speed per unit of path speed (``unit``: per mm of
+    length) at most its ``jerk_mm_s`` (M566, the next piece's), and both cruise speeds; 0 where
+    the pieces do not ``meld`` (jerk policy P0: a printing move, a travel, an extrude-only move)."""
+    step = np.abs(unit_next - unit_prev)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cap = np.where(step > 0, jerk_mm_s / step, np.inf).min(axis=1)
+    return np.where(meld, np.minimum(np.minimum(cruise_v2_prev, cruise_v2_next), cap * cap), 0.0)
+
+
+def axis_piece_limits(delta, length, extrude_only, feed, planner_v, accel_print, accel_travel, axis_v, axis_a,
+                      xy_accel_only: bool = False):
+    """(unit, cruise limit, accel, feed clamped) of pieces by the per-axis rules (not Klipper's);
+    ``xy_accel_only`` (RepRapFirmware): M204's accelerations only for pieces that move X or Y."""
     unit = delta / length[:, None]
     unit[extrude_only, :3] = 0.0  # along E (or LinuxCNC's other axes) alone
     abs_unit = np.abs(unit)
@@ -126,5 +153,7 @@ def axis_piece_limits(delta, length, extrude_only, feed, planner_v, accel_print,
     clamped = np.isfinite(feed) & (axis_v_limit < feed)  # as the controller does (a G0 means it)
     extrudes = delta[:, _E] > 0
     accel = np.where(extrudes | np.isnan(accel_travel), accel_print, accel_travel)
+    if xy_accel_only:  # (an axis without a limit keeps M204's)
+        accel = np.where((delta[:, 0] != 0) | (delta[:, 1] != 0) | ~np.isfinite(axis_a_limit), accel, np.inf)
     return unit, max_v, np.minimum(accel, axis_a_limit), clamped
 

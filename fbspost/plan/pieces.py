@@ -20,7 +20,7 @@ import numpy as np
 from ..profile import MachineProfile
 from ..read.blocks import AXES, Block, Kind, feed_lengths
 from . import klipper_rules
-from .limits import LimitState, axis_piece_limits, junction_limits
+from .limits import LimitState, axis_piece_limits, jerk_junction_limits, junction_limits, reprap_jerk_mm_s
 
 EXTRUDE_ONLY_MM = 1e-9  # Klipper: an XYZ length below this makes an extrude-only move
 PROLOGUE_ROWS = 1 << 16  # waypoints searched for an unknown axis' first position (held until then)
@@ -59,8 +59,11 @@ class PieceMaker:
     notes say where) and counts the feeds clamped by the machine's limits."""
 
     def __init__(self, profile: MachineProfile, klipper: bool, notes: list[str], travel_share: float = 0.0,
-                 rests_apart: bool = False):
+                 rests_apart: bool = False, reprap: bool = False):
         self._klipper = klipper
+        # RepRapFirmware's junctions (``jerk_junction_limits``), and M204 only where X or Y move: its
+        # model ran the gear's first 8000 lines 1.66% longer than the junction deviation planned them
+        self._reprap = reprap
         self._rests_apart = rests_apart  # a piece that moves no compensated axis starts and ends at rest
         # a travel's acceleration along each axis (inf: none): a share of its hard limit, on the compensated axes
         hard = [profile.axes[a].max_acceleration_mm_s2 if a in profile.axes else math.inf for a in AXES]
@@ -103,7 +106,8 @@ class PieceMaker:
         feed = np.asarray([r[3] for r in moving])[group]
         unit, max_v, accel, delta_v2, smooth_delta_v2, clamped, corner_a = self.piece_limits(
             delta, length, extrude_only, feed, table, run_key > printing_from)
-        inner = self._junction_limits(unit, max_v, corner_a, length, 2.0 * corner_a * length, table[:, 3])
+        inner = self._junction_limits(unit, max_v, corner_a, length, 2.0 * corner_a * length, table[:, 3],
+                                      table[:, 4 + 2 * _NA], delta)
         self._count_clamped(clamped, feed, max_v, piece_block, piece_line)
 
         # junction limits: limit_v2[i] is the junction before piece i (the first after the last
@@ -189,7 +193,8 @@ class PieceMaker:
         else:
             axis_v, axis_a = table[:, 4:4 + _NA], table[:, 4 + _NA:4 + 2 * _NA]
             unit, max_v, firmware_a, clamped = axis_piece_limits(delta, length, extrude_only, feed, planner_v,
-                                                                 accel_print, accel_travel, axis_v, axis_a)
+                                                                 accel_print, accel_travel, axis_v, axis_a,
+                                                                 self._reprap)
             smooth_a = firmware_a
         accel = firmware_a if after_print is None else self._in_travel(unit, firmware_a, delta, extrude_only,
                                                                        after_print)
@@ -208,10 +213,17 @@ class PieceMaker:
             fast = np.where(abs_unit > 0, self._travel_a / abs_unit, np.inf).min(axis=1)
         return np.where(travel, np.maximum(accel, fast), accel)
 
-    def _junction_limits(self, unit, max_v, accel, length, delta_v2, jd) -> np.ndarray:
+    def _junction_limits(self, unit, max_v, accel, length, delta_v2, jd, scv, delta) -> np.ndarray:
         """The junction limit before each piece (with the last piece made before): Klipper's rules,
-        or the junction-deviation model of ``junction_limits``."""
+        RepRapFirmware's (``jerk_junction_limits``, M566 X Y the ``scv`` in force), or the
+        junction-deviation model of ``junction_limits``."""
         cruise_v2 = max_v * max_v
+        if self._reprap:
+            xy = (delta[:, 0] != 0) | (delta[:, 1] != 0)
+            printing = xy & (delta[:, _E] > 0)
+            kind = xy + 2 * printing + 4 * ((delta[:, _E] != 0) & ~printing)  # (RRF's flags: they meld if equal)
+            u, jerk, cv2, k = self._junction_carry((unit, reprap_jerk_mm_s(scv), cruise_v2, kind))
+            return jerk_junction_limits(u[:-1], u[1:], jerk[1:], cv2[:-1], cv2[1:], k[1:] == k[:-1])
         if self._klipper:
             u, jd_, acc, d, cv2 = self._junction_carry((unit, jd, accel, length, cruise_v2))
             return klipper_rules.junction_limits(u[:-1], u[1:], jd_[:-1], jd_[1:], acc[:-1], acc[1:], d[:-1], d[1:],

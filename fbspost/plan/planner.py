@@ -26,7 +26,11 @@ switched off and the profile's per-axis limits, as follows:
   (junction deviation scv^2 (sqrt 2 - 1) / accel, accel the M204 S/P value in force, as
   Klipper recomputes it; or Marlin's M205 J directly), the approximated centripetal limit of
   both pieces, and both cruise speeds. Extrude-only pieces start and end at rest; Klipper's
-  extruder junction limit (instantaneous_corner_velocity) is not modelled.
+  extruder junction limit (instantaneous_corner_velocity) is not modelled. For RepRapFirmware
+  (``firmware="reprap"``) RRF's own rule instead (``limits.jerk_junction_limits``: every drive's
+  M566 over the change of its speed per unit of path speed, E included, X and Y at the square
+  corner velocity; jerk policy 0: printing moves, travels and extrude-only moves do not meld),
+  and M204 only for pieces that move X or Y (a retraction takes M201 E alone), as RRF runs them.
 - Look-ahead is complete (Klipper's lazy flush gives the same result): the forward and backward
   passes over squared junction speeds are vectorized min-plus scans; each piece is then a
   trapezoid peaking at min(cruise^2, (v0^2 + v1^2 + 2 a d) / 2).
@@ -244,7 +248,8 @@ class PlanStream:
         self.notes: list[str] = []
         self.warnings: list[str] = []
         self.time_s = 0.0  # spent in advance(), reading included
-        self._pieces = PieceMaker(profile, klipper, self.notes, margins.travel_share, firmware in RESTS_WITHIN_RUNS)
+        self._pieces = PieceMaker(profile, klipper, self.notes, margins.travel_share, firmware in RESTS_WITHIN_RUNS,
+                                  firmware == "reprap")
         self._reader = BlockReader(blocks, profile, firmware, batch_blocks or BATCH_BLOCKS,
                                    functools.partial(margins.settle_at, fs=self._fs), self._pieces.piece_limits,
                                    every_axis or firmware in RESTS_WITHIN_RUNS)

@@ -25,7 +25,7 @@ import numpy as np
 from ..errors import InputError
 from ..firmware.planners import replan
 from ..firmware.transparency import FirmwareSettings, Transparency
-from ..job.pipeline import marlin_steps
+from ..job.pipeline import firmware_steps
 from ..profile import FLAVORS, AxisProfile, MachineProfile, bundled_profiles, load_profile
 from ..read.blocks import AXES, Kind, Modal
 from ..read.gcode import read_gcode
@@ -155,7 +155,7 @@ def sweep_program(profile: MachineProfile, axis_name: str, positions_mm: np.ndar
     blocks (F in mm/s, where the clock mark starts) in G61.1, ``block_s`` its servo period."""
     axis = profile.axes[axis_name]
     options = WriteOptions(flavor, tolerance_mm=_TOLERANCE_MM, firmware=FirmwareSettings.from_profile(profile),
-                           max_line_rate_hz=profile.firmware.max_line_rate_hz, **marlin_steps(profile, flavor))
+                           max_line_rate_hz=profile.firmware.max_line_rate_hz, **firmware_steps(profile, flavor))
     settings = Transparency(flavor, options.firmware, options.tolerance_mm)
     if linuxcnc is None:
         command = np.zeros((len(positions_mm), len(AXES)))

@@ -4,7 +4,8 @@ Takes the blocks' targets (machine mm), durations and end times, the G5 curves w
 and what the controller does to its modes and frame (the copied lines: ``passthrough``); gives
 the G1 / G5 lines' text, F from each block's time with the time residues and the firmware's
 ramps carried, relative values carrying their rounding residues, Marlin's whole steps and merge
-(``marlinmerge``) where its steps are given (``Emitter``, ``_feeds``).
+(``marlinmerge``) where its steps are given, RepRapFirmware's whole steps (each end written in the
+cell of the step chosen for it) (``Emitter``, ``_feeds``).
 """
 from __future__ import annotations
 
@@ -12,12 +13,14 @@ import math
 
 import numpy as np
 
+from ..firmware.reprap import MIN_RAMP_S
 from ..firmware.steps import crossing_ends, rounding_for
 from ..read.blocks import AXES, Block, Kind, Modal, feed_lengths
 from .bezier import curve_lengths
 from .blockends import Curves
 from .linetext import DECIMALS, FEED_DECIMALS, line_text
 from .marlinmerge import last_in_both, marlin_merged, moved_in_time, rounded_ends
+from .stepcells import StepCells
 
 _LINES = 1024  # lines formatted at once
 
@@ -32,13 +35,15 @@ class Emitter:
     """
 
     def __init__(self, start_mm: np.ndarray, newline: bytes, steps_per_mm: np.ndarray | None = None,
-                 min_steps: int = 0, ramp_mm_s2: float = math.inf, axis_modes: tuple = (), crossings: bool = True):
+                 min_steps: int = 0, ramp_mm_s2: float = math.inf, axis_modes: tuple = (), crossings: bool = True,
+                 cells: bool = False):
         self.modal = Modal()  # the controller starts in its defaults
         # the firmware ramps each speed step at this acceleration, losing time the next blocks make up
         self.ramp_mm_s2, self.speed_mm_s = ramp_mm_s2, 0.0
         # Marlin merges a block of fewer than min_steps steps on every axis with the next (steps_per_mm per
         # axis, 0 where not known): such blocks are merged here, where their time can go with them
         self.steps_per_mm, self.min_steps, self.crossings = steps_per_mm, min_steps, crossings
+        self.cells = StepCells() if cells else None  # RRF: no merge, each end written in its step's cell
         self.held = None  # (targets, durations, ends) of blocks that wait for the next call
         self.crossing_from = self.plain = None  # on crossings: the last kept end written (_held_from), the merge
         self.rounding = [rounding_for(axis_modes[i] if i < len(axis_modes) else ()) for i in range(3)]  # X Y Z steps
@@ -108,7 +113,7 @@ class Emitter:
 
     def _shaped(self, units: np.ndarray, ints: np.ndarray, scale: np.ndarray, durations_s: np.ndarray,
                 exact_last: bool) -> tuple[np.ndarray, list[np.ndarray | None] | None]:
-        """MIN_STEPS_PER_SEGMENT 1: block ends (``units`` wanted, ``ints`` rounded) with X Y Z on
+        """MIN_STEPS_PER_SEGMENT 1 (and RRF): block ends (``units`` wanted, ``ints`` rounded) with X Y Z on
         whole steps chosen by ``steps``, and per axis the rounding's state before each row and
         after the last. With ``exact_last`` the last end is exact and the rounding restarts.
         (Above 1 without crossings: plain rounding, as the merge moves the ends again.)"""
@@ -172,6 +177,37 @@ class Emitter:
             self.rounding_state = [np.zeros(r.size) if st is None else st[row]
                                    for r, st in zip(self.rounding, states, strict=True)]
 
+    def _on_steps(self, start: np.ndarray, ints: np.ndarray, scale: np.ndarray, targets_mm: np.ndarray,
+                  durations_s: np.ndarray, ends_s: np.ndarray, exact_last: bool) -> tuple:
+        """The blocks on the firmware's whole steps: Marlin's (merged, on crossings or rounded; the
+        last kept held for the next call unless ``exact_last``) or RRF's (each end in its step's
+        cell). Gives the targets, durations, end times and ends to write, and the whole steps."""
+        crossing = self.min_steps > 1 and self.crossings
+        wanted = targets_mm, durations_s, ends_s  # (the rows before they are moved onto crossings)
+        stepped = ints
+        if crossing:
+            ints, durations_s, ends_s, targets_mm, states = self._on_crossings(
+                start, ints, scale, durations_s, ends_s, targets_mm, exact_last)
+        elif self.cells is not None:
+            units = self.to_program(targets_mm) * scale
+            stepped, states = self._shaped(units, ints, scale, durations_s, exact_last)
+            ints = self.cells.ends(units, stepped, ints, self.steps_per_mm * self.unit_mm / scale, exact_last)
+        else:
+            ints, states = self._shaped(self.to_program(targets_mm) * scale, ints, scale, durations_s, exact_last)
+            ints = marlin_merged(start, ints, self.steps_per_mm * self.unit_mm / scale, self.min_steps, exact_last)
+        self._keep_rounding(states, len(ints))
+        if exact_last:
+            self.crossing_from = None
+        elif self.cells is None:  # (RRF merges nothing: no block waits for a later one)
+            # held: the last kept block (a later one may merge it); on crossings from the end before it
+            kept = np.flatnonzero((np.diff(np.vstack([start, ints]), axis=0) != 0).any(axis=1))
+            last = self._held_from(kept, wanted[2], ends_s, wanted[0], targets_mm, scale) if crossing else \
+                (kept[-1] if len(kept) else 0)
+            self._keep_rounding(states, last)
+            self.held = _held(*wanted, ends_s, last)
+            targets_mm, durations_s, ends_s, ints = (x[:last] for x in (targets_mm, durations_s, ends_s, ints))
+        return targets_mm, durations_s, ends_s, ints, stepped if self.cells is not None else ints
+
     def blocks(self, targets_mm: np.ndarray, durations_s: np.ndarray, ends_s: np.ndarray | None = None,
                curves: Curves | None = None, exact_last: bool = True) -> tuple[bytes, int]:
         """G1 lines (G5 where ``curves`` says so) reaching each target (machine mm) in its
@@ -194,45 +230,31 @@ class Emitter:
         relative = np.array([not (self.modal.absolute_e if a == "E" else self.modal.absolute_xyz) for a in AXES])
         start = np.rint(self.written * scale).astype(np.int64)
         ints = np.rint(self.to_program(targets_mm) * scale).astype(np.int64)
-        marlin = self.min_steps and curves is None
+        marlin = bool(self.min_steps or self.cells is not None) and curves is None
+        stepped = ints  # (RRF: the whole steps its written ends round to)
         if marlin:
-            crossing = self.min_steps > 1 and self.crossings
-            wanted = targets_mm, durations_s, ends_s  # (the rows before they are moved onto crossings)
-            if crossing:
-                ints, durations_s, ends_s, targets_mm, states = self._on_crossings(
-                    start, ints, scale, durations_s, ends_s, targets_mm, exact_last)
-            else:
-                ints, states = self._shaped(self.to_program(targets_mm) * scale, ints, scale, durations_s, exact_last)
-                ints = marlin_merged(start, ints, self.steps_per_mm * self.unit_mm / scale, self.min_steps, exact_last)
-            self._keep_rounding(states, len(ints))
-            if exact_last:
-                self.crossing_from = None
-            else:
-                # held: the last kept block (a later one may merge it); on crossings from the end before it
-                kept = np.flatnonzero((np.diff(np.vstack([start, ints]), axis=0) != 0).any(axis=1))
-                last = self._held_from(kept, wanted[2], ends_s, wanted[0], targets_mm, scale) if crossing else \
-                    (kept[-1] if len(kept) else 0)
-                self._keep_rounding(states, last)
-                self.held = _held(*wanted, ends_s, last)
-                targets_mm, durations_s, ends_s, ints = (x[:last] for x in (targets_mm, durations_s, ends_s, ints))
+            targets_mm, durations_s, ends_s, ints, stepped = self._on_steps(start, ints, scale, targets_mm,
+                                                                            durations_s, ends_s, exact_last)
         steps = np.diff(np.vstack([start, ints]), axis=0)
         moved = steps != 0
         moving = moved.any(axis=1)
         jump = np.zeros(len(steps))
-        if marlin:  # (of the moving blocks alone: two in three rows are merged away)
+        if marlin and self.cells is None:  # (of the moving blocks alone: two in three rows are merged away)
             length = np.zeros(len(steps))
             length[moving], jump[moving] = self._marlin_lengths(start, ints[moving], scale)
         else:
             length = _lengths(steps / scale * self.unit_mm)
         if curves is not None:
-            offsets = self._curve_offsets(curves, start, ints, scale, length, moved, moving)
+            offsets = _curve_offsets(self, curves, start, ints, scale, length, moved, moving)
         self.written_s, self.written_mm = ends_s[moving], targets_mm[moving]
-        # where the firmware goes: Marlin's whole steps (else the targets: 0.1 um from them)
-        self.stepped_mm = self.to_machine(ints[moving] / scale) if marlin else self.written_mm
+        # where the firmware goes: Marlin's (RRF's) whole steps (else the targets: 0.1 um from them)
+        self.stepped_mm = self.to_machine(stepped[moving] / scale) if marlin else self.written_mm
         rows = slice(None) if moving.all() else moving  # nearly always all of them: no copies
+        skipped_mm_s = self.ramp_mm_s2 * MIN_RAMP_S if self.cells is not None and math.isfinite(self.ramp_mm_s2) \
+            else 0.0
         feed, self.residue_s, self.speed_mm_s = _feeds(length, durations_s, moving, self.residue_s,
                                                        60.0 * 10 ** FEED_DECIMALS / self.unit_mm,
-                                                       self.speed_mm_s, self.ramp_mm_s2, jump)
+                                                       self.speed_mm_s, self.ramp_mm_s2, jump, skipped_mm_s)
         new_feed = feed != np.concatenate([[self.feed], feed[:-1]])  # F only where it changes
         if len(feed):
             self.feed = int(feed[-1])
@@ -253,26 +275,28 @@ class Emitter:
         return b"".join(line_text(values[a:a + _LINES], shown[a:a + _LINES], digits, letters, self.newline,
                                   g5[a:a + _LINES]) for a in range(0, len(feed), _LINES)), len(feed)
 
-    def _curve_offsets(self, curves: Curves, start: np.ndarray, ints: np.ndarray, scale: np.ndarray,
-                       length: np.ndarray, moved: np.ndarray, moving: np.ndarray) -> np.ndarray:
-        """The G5 blocks' I J P Q in integer units of the last digit; their rounded curves'
-        lengths into ``length``, and their ends shown (``moved``, ``moving``), in place.
 
-        Control points rounded as written: I J (P Q) are the rounded point minus the rounded
-        start (end), as the controller adds them to the positions it has. The rounded curve is
-        what it times: its length differs from the fitted one's by up to 1e-2 on short curves."""
-        xy_scale = scale[:2]
-        origins = np.vstack([start, ints[:-1]])[:, :2]  # where each block starts
-        offsets = np.column_stack([
-            np.rint(self.to_program(curves.p1_mm, slice(0, 2)) * xy_scale).astype(np.int64) - origins,
-            np.rint(self.to_program(curves.p2_mm, slice(0, 2)) * xy_scale).astype(np.int64) - ints[:, :2]])
-        g5_rows = np.flatnonzero(curves.curve)
-        p0, p3 = origins[g5_rows], ints[g5_rows, :2]
-        length[g5_rows] = curve_lengths(p0 / xy_scale, (p0 + offsets[g5_rows, :2]) / xy_scale,
-                                        (p3 + offsets[g5_rows, 2:]) / xy_scale, p3 / xy_scale) * self.unit_mm
-        moved[:, :2] |= curves.curve[:, None]  # G5 needs its end point, also where it closes a loop
-        moving |= curves.curve
-        return offsets
+
+def _curve_offsets(emitter: Emitter, curves: Curves, start: np.ndarray, ints: np.ndarray, scale: np.ndarray,
+                   length: np.ndarray, moved: np.ndarray, moving: np.ndarray) -> np.ndarray:
+    """The G5 blocks' I J P Q in integer units of the last digit (in ``emitter``'s frame); their
+    rounded curves' lengths into ``length``, and their ends shown (``moved``, ``moving``), in place.
+
+    Control points rounded as written: I J (P Q) are the rounded point minus the rounded
+    start (end), as the controller adds them to the positions it has. The rounded curve is
+    what it times: its length differs from the fitted one's by up to 1e-2 on short curves."""
+    xy_scale = scale[:2]
+    origins = np.vstack([start, ints[:-1]])[:, :2]  # where each block starts
+    offsets = np.column_stack([
+        np.rint(emitter.to_program(curves.p1_mm, slice(0, 2)) * xy_scale).astype(np.int64) - origins,
+        np.rint(emitter.to_program(curves.p2_mm, slice(0, 2)) * xy_scale).astype(np.int64) - ints[:, :2]])
+    g5_rows = np.flatnonzero(curves.curve)
+    p0, p3 = origins[g5_rows], ints[g5_rows, :2]
+    length[g5_rows] = curve_lengths(p0 / xy_scale, (p0 + offsets[g5_rows, :2]) / xy_scale,
+                                    (p3 + offsets[g5_rows, 2:]) / xy_scale, p3 / xy_scale) * emitter.unit_mm
+    moved[:, :2] |= curves.curve[:, None]  # G5 needs its end point, also where it closes a loop
+    moving |= curves.curve
+    return offsets
 
 
 def _held(targets_mm: np.ndarray, durations_s: np.ndarray, ends_s: np.ndarray, moved_ends_s: np.ndarray,
@@ -294,7 +318,7 @@ def _lengths(delta_mm: np.ndarray, xyz_moves: np.ndarray | None = None) -> np.nd
 
 def _feeds(length_mm: np.ndarray, durations_s: np.ndarray, moving: np.ndarray, residue_s: float,
            units_per_mm_s: float, speed_mm_s: float = 0.0, ramp_mm_s2: float = math.inf,
-           jump_mm_s: np.ndarray | None = None) -> tuple[np.ndarray, float, float]:
+           jump_mm_s: np.ndarray | None = None, skipped_mm_s: float = 0.0) -> tuple[np.ndarray, float, float]:
     """The F of each moving block (integer units of its last digit; ``units_per_mm_s`` per mm/s),
     the time residue left after them and the last block's speed (``speed_mm_s``: the one's before).
 
@@ -306,6 +330,10 @@ def _feeds(length_mm: np.ndarray, durations_s: np.ndarray, moving: np.ndarray, r
     (dv)^2 / (2 ramp max(v)) late: the next block makes that up too. (Where the residue is more
     negative than half a block's duration, the block keeps half its own and the rest goes on.)
     Marlin enters a faster block at once up to its ``jump_mm_s`` (see ``Emitter._marlin_lengths``).
+    RRF does not ramp up to a block's F for under ``skipped_mm_s`` from at least 0.9 of it where the
+    block is faster than its neighbours (``reprap.top_speed``: from the larger of the speed before
+    and its exit, here the next block's wanted speed): it cruises at that, and the next blocks
+    make up the time.
     """
     residue_s = float(residue_s)  # (a numpy scalar makes every step of the loop three times slower)
     feeds = []
@@ -314,8 +342,14 @@ def _feeds(length_mm: np.ndarray, durations_s: np.ndarray, moving: np.ndarray, r
     # (One line per block, the slowest loop of the writer: max() and the ramp's term only where they count.)
     lengths = (length_mm * units_per_mm_s).tolist()
     jumps = [0.0] * len(lengths) if jump_mm_s is None else jump_mm_s.tolist()
-    for length_units_s, duration, moves, jump in zip(lengths, durations_s.tolist(), moving.tolist(), jumps,
-                                                     strict=True):
+    aheads = [math.inf] * len(lengths)
+    if skipped_mm_s:  # each block's next moving block's wanted speed (the last: not known, none)
+        rows = np.flatnonzero(moving)
+        ahead = np.full(len(lengths), math.inf)
+        ahead[rows[:-1]] = length_mm[rows[1:]] / np.maximum(durations_s[rows[1:]], 1e-9)
+        aheads = ahead.tolist()
+    for length_units_s, duration, moves, jump, ahead_mm_s in zip(lengths, durations_s.tolist(), moving.tolist(),
+                                                                  jumps, aheads, strict=True):
         residue_s += duration
         if moves:
             half = 0.5 * duration
@@ -325,7 +359,11 @@ def _feeds(length_mm: np.ndarray, durations_s: np.ndarray, moving: np.ndarray, r
             add(feed)
             residue_s -= length_units_s / feed
             speed = feed / units_per_mm_s
-            if ramped:
+            near = max(speed_mm_s, min(speed, ahead_mm_s))
+            if near < speed < near + skipped_mm_s and near >= 0.9 * speed:
+                residue_s -= length_units_s / (near * units_per_mm_s) - length_units_s / feed
+                speed = near
+            elif ramped:
                 lower_mm_s = speed_mm_s if speed_mm_s >= jump else jump
                 step = speed - lower_mm_s if speed > speed_mm_s else speed_mm_s - speed
                 if step > 0.0:

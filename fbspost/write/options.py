@@ -31,6 +31,9 @@ class WriteOptions:
     steps_per_mm: tuple[float, ...] | None = None  # X Y Z E (0: not known): blocks Marlin would merge are merged here
     min_steps_per_segment: int = 0
     axis_modes: tuple = ()  # X Y Z: each axis' profile modes, for the rounding to whole steps (``steps``)
+    # RepRapFirmware: it rounds each written end to its nearest step and times the block over the written
+    # length, so X Y Z ends are written inside the cell of the step the rounding chooses (``Emitter``)
+    step_cells: bool = False
 
 
 @dataclass

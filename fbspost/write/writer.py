@@ -56,7 +56,7 @@ class _ProgramWriter:
                 motion.emitter = Emitter(self._samples.rows(0, 1)[0], out.newline, steps,
                                          self._options.min_steps_per_segment,
                                          math.inf if self._settings is None else self._settings.ramp_mm_s2,
-                                         self._options.axis_modes)
+                                         self._options.axis_modes, cells=self._options.step_cells)
             if not header_done and _is_code(block):
                 self._header()
                 header_done = True
@@ -163,7 +163,7 @@ def timed_blocks(command_mm: np.ndarray, block_s: float, options: WriteOptions) 
         Transparency(options.flavor, options.firmware, options.tolerance_mm).ramp_mm_s2
     steps = None if options.steps_per_mm is None else np.asarray(options.steps_per_mm)
     emitter = Emitter(command_mm[0], b"\n", steps, options.min_steps_per_segment, ramp_mm_s2, options.axis_modes,
-                      crossings=False)  # (blocks of equal time: identify's sweep)
+                      crossings=False, cells=options.step_cells)  # (blocks of equal time: identify's sweep)
     text = io.BytesIO()
     out = Output(text, options.flavor)
     ends_s, targets_mm = np.arange(1, len(command_mm)) * block_s, command_mm[1:]
