@@ -58,7 +58,7 @@ def butterfly_runs(tmp_path_factory):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name, duration_tolerance", [("butterfly-dense", 0.005), ("butterfly-polyline", 0.03)])
+@pytest.mark.parametrize("name, duration_tolerance", [("butterfly-dense", 0.005), ("butterfly-polyline", 0.01)])
 def test_butterfly_programs_on_patent_stage(butterfly_runs, name, duration_tolerance):
     source, target, report = butterfly_runs[name]
     period_s = 1.0 / PATENT.sample_rate_hz
@@ -73,8 +73,10 @@ def test_butterfly_programs_on_patent_stage(butterfly_runs, name, duration_toler
     _, command = sample_blocks(compensated.ends, PATENT.sample_rate_hz)
     after = contour_error(path, modelled_xy(PATENT, command[:, :2], period_s))
     assert rms(after) * 20 <= rms(before), f"{rms(before) * 1e3:.3f} -> {rms(after) * 1e3:.3f} um"
-    # As long as LinuxCNC runs the original (the model of its planner), with the margins.
-    reference_s = linuxcnc_s(source, PATENT)
+    # As long as LinuxCNC runs the original (the model of its planner): at 1 ms LinuxCNC caps the
+    # short blocks below their F, and the run, faster there, pays its margins (linuxcnc_time._paid;
+    # before, the dense butterfly's lasted 1.6% longer)
+    reference_s = run_linuxcnc(list(read_gcode(source, "linuxcnc")), PATENT).duration_s
     assert abs(compensated.ends[-1][0] - reference_s) <= duration_tolerance * reference_s
     # Block-to-block velocity and acceleration within the profile's limits.
     ends = np.array(compensated.ends)
