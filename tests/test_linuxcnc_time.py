@@ -11,7 +11,7 @@ import math
 
 import pytest
 
-from fbspost.firmware.linuxcnc_time import MAX_PAID, linuxcnc_feeds, retimed
+from fbspost.firmware.linuxcnc_time import MAX_PAID, UNPAID_SHARE, linuxcnc_feeds, retimed
 from fbspost.firmware.linuxcnc_tp import run_linuxcnc
 from fbspost.plan.planner import plan_blocks
 from fbspost.profile import load_profile
@@ -53,9 +53,9 @@ def test_short_segments_get_linuxcnc_s_capped_speed_and_the_plan_its_time(tmp_pa
 
 def test_a_run_pays_its_margins_where_linuxcnc_caps_it_below_its_feed(tmp_path):
     """Each chain is a run LinuxCNC caps at 49 mm/s (F6000 written): given margins M, its feeds
-    are raised by its time T on LinuxCNC over T - M, the same on every line of it, never above F;
-    fbspost's plan of each chain is then M * (20 mm / v) / T shorter (its cruise at v k for v; the
-    ramps' v / a a little longer), the closed form of the trapezoid."""
+    are raised by its time T on LinuxCNC over T less what it owes, M - UNPAID_SHARE T, the same on
+    every line of it, never above F; fbspost's plan of each chain is then shorter by its cruise at
+    v k for v, less its ramps' v / a made longer: the closed form of the trapezoid."""
     path = chain(tmp_path)
     blocks = list(read_gcode(path, "linuxcnc", STAGE.home_mm))
     plain, margins_s = list(linuxcnc_feeds(path, STAGE)), 0.015
@@ -66,7 +66,7 @@ def test_a_run_pays_its_margins_where_linuxcnc_caps_it_below_its_feed(tmp_path):
     saved_s = 0.0
     for run in (moving[:400], moving[400:]):
         taken_s = line_time_s[run[-1]] - line_time_s[run[0] - 1]
-        factor = taken_s / (taken_s - margins_s)
+        factor = taken_s / (taken_s - (margins_s - UNPAID_SHARE * taken_s))
         assert 1.0 < factor < 1.0 + MAX_PAID
         assert all(paid[k] == pytest.approx(plain[k] * factor, rel=1e-12) for k in run[100:300])
         assert all(paid[k] <= max(plain[k], 100.0) for k in run)  # never above F, unless the plain feed was
