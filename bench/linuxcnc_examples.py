@@ -15,7 +15,8 @@ between every few cuts).
 
 Each program is expanded by rs274, cut to its first lines that the model of LinuxCNC runs in
 about ``EXCERPT_S`` (a whole line's end), and run on the stage's profile with its travel widened
-to the program's extent (the stage's travel is an example value) at the given servo period.
+to the program's extent (the stage's travel is an example value) at the given servo period, with
+the sim's parameter file (every work offset 0, as LinuxCNC itself runs it here).
 
     python bench/linuxcnc_examples.py [--list] [--servo-period S] [--itself] [--only NAME ...]
 """
@@ -96,7 +97,10 @@ def chosen(m: dict) -> bool:
 def stage(folder: Path, servo_period_s: float, extent_mm: float) -> Path:
     """The stage's profile at ``servo_period_s`` with its travel widened to +-``extent_mm``."""
     text = STAGE.read_text()
-    text = re.sub(r"(?m)^\[firmware\]$", f"[firmware]\nservo_period = {servo_period_s!r}", text)
+    # the sim's parameter file (tests/linuxcnc_itself.py: empty, every work offset 0)
+    (folder / "sim.var").touch()
+    text = re.sub(r"(?m)^\[firmware\]$", f'[firmware]\nservo_period = {servo_period_s!r}\nparameter_file = "sim.var"',
+                  text)
     text = re.sub(r"(?m)^position_min = .*$", f"position_min = {-extent_mm!r}", text)
     text = re.sub(r"(?m)^position_max = .*$", f"position_max = {extent_mm!r}", text)
     path = folder / f"stage-{servo_period_s:g}.toml"
@@ -111,12 +115,14 @@ def excerpt(expanded: Path, folder: Path, servo_period_s: float) -> tuple[Path, 
         head = list(itertools.islice(f, FIRST_LINES))
     wide = stage(folder, servo_period_s, 1000.0)
     (folder / "head.ngc").write_bytes(b"".join(head))
-    blocks = list(read_gcode(folder / "head.ngc", "linuxcnc"))
-    line_time_s = run_linuxcnc(blocks, load_profile(wide)).line_time_s
+    profile = load_profile(wide)
+    blocks = list(read_gcode(folder / "head.ngc", "linuxcnc", work_offsets_mm=profile.work_offsets_mm))
+    line_time_s = run_linuxcnc(blocks, profile).line_time_s
     lines = int(np.searchsorted(np.maximum.accumulate(np.nan_to_num(line_time_s)), EXCERPT_S)) + 1
     cut = folder / expanded.name
     cut.write_bytes(b"".join(head[:lines]))
-    ends = [b.points_mm[:, :2] for b in read_gcode(cut, "linuxcnc") if b.points_mm is not None]
+    ends = [b.points_mm[:, :2] for b in read_gcode(cut, "linuxcnc", work_offsets_mm=profile.work_offsets_mm)
+            if b.points_mm is not None]
     extent_mm = math.ceil(np.nanmax(np.abs(np.vstack(ends))) / 10.0) * 10.0 + 10.0 if ends else 50.0
     return cut, lines, max(extent_mm, 50.0)
 

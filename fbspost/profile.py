@@ -87,6 +87,11 @@ class LinuxCNCSettings:
     # and the output restores (0: LinuxCNC's G64 without P or Q)
     g64_p_mm: float = 0.0
     g64_q_mm: float = 0.0
+    # [RS274NGC] PARAMETER_FILE, LinuxCNC's var file ("": not given), and G54..G59.3's X Y Z offsets
+    # (mm) read from it as the profile loads (None: a system rotated by R): a switch between them
+    # is then a planned move, not a jump from an unknown place
+    parameter_file: str = ""
+    work_offsets_mm: tuple[tuple[float, float, float] | None, ...] = ()
 
 
 # [firmware] key -> LinuxCNCSettings field
@@ -139,6 +144,11 @@ class MachineProfile:
     axes: dict[str, AxisProfile]
     firmware: FirmwareProfile = field(default_factory=FirmwareProfile)
     home_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)  # X Y Z where G28 leaves the homed axes
+
+    @property
+    def work_offsets_mm(self) -> tuple:
+        """LinuxCNC's G54..G59.3 X Y Z offsets from its parameter file (empty: not given)."""
+        return self.firmware.linuxcnc.work_offsets_mm
 
     @property
     def toolhead_max_velocity_mm_s(self) -> float:
@@ -219,7 +229,7 @@ _FIRMWARE_NUMBERS = {
 FLAVORS = ("marlin", "klipper", "reprap", "linuxcnc")  # the firmwares fbspost writes for
 _FIRMWARE_KEYS = {*_FIRMWARE_NUMBERS, "flavor", "steps_per_mm", "shaper_frequency", "block_buffer",
                   "minimum_cruise_ratio", "instantaneous_corner_velocity", "min_segment_time",
-                  "min_steps_per_segment", "dda_ring_length", *_LINUXCNC_KEYS}
+                  "min_steps_per_segment", "dda_ring_length", "parameter_file", *_LINUXCNC_KEYS}
 
 
 def bundled_profiles() -> dict[str, Path]:
@@ -314,6 +324,9 @@ def parse_profile(data: dict, source: str) -> MachineProfile:
     firmware = FirmwareProfile()
     if "firmware" in data:
         firmware = _parse_firmware(table(data, "firmware", "firmware", _FIRMWARE_KEYS), fail, number)
+        if "parameter_file" in data["firmware"]:
+            linuxcnc = _with_work_offsets(firmware.linuxcnc, data["firmware"]["parameter_file"], source, fail)
+            firmware = replace(firmware, linuxcnc=linuxcnc)
     return MachineProfile(name.strip(), description, source, sample_rate, acceleration, scv, axes, firmware,
                           home_mm)
 
@@ -478,6 +491,30 @@ def _parse_linuxcnc(raw: dict, fail, number) -> LinuxCNCSettings:
     return LinuxCNCSettings(**values)
 
 
+def _with_work_offsets(settings: LinuxCNCSettings, name, source: str, fail) -> LinuxCNCSettings:
+    """``settings`` with LinuxCNC's var file ``name`` (relative to the profile's folder) and the
+    work offsets in it: parameter 5221 + 20 k + axis (G54 k = 0 .. G59.3 k = 8), 5230 + 20 k the
+    rotation; a parameter the file leaves out is 0, as LinuxCNC reads it."""
+    if not isinstance(name, str) or not name:
+        raise fail("firmware.parameter_file", f"must be a file name, got {name!r}")
+    path = Path(source).parent / Path(name).expanduser()
+    values = {}
+    try:
+        with open(path, encoding="utf-8") as f:
+            for n, text in enumerate(f, 1):
+                words = text.split()
+                if len(words) >= 2:
+                    try:
+                        values[int(words[0])] = float(words[1])
+                    except ValueError:
+                        raise fail("firmware.parameter_file", f"{path}:{n}: not a parameter and its value") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise fail("firmware.parameter_file", f"cannot read {path}: {exc}") from None
+    offsets = tuple(None if values.get(5230 + 20 * k, 0.0) else
+                    tuple(values.get(5221 + 20 * k + i, 0.0) for i in range(3)) for k in range(9))
+    return replace(settings, parameter_file=str(path), work_offsets_mm=offsets)
+
+
 def _axis_table(raw: dict, key: str, what: str, fail, number) -> dict[str, float]:
     """The ``[firmware]`` table ``key`` of positive numbers per axis."""
     values = raw.get(key, {})
@@ -508,7 +545,7 @@ def format_profile(profile: MachineProfile) -> str:
              f"square_corner_velocity = {number(profile.planner_square_corner_velocity_mm_s)}"]
     if any(profile.home_mm):
         lines += ["", "[home]", *(f"{a} = {number(v)}" for a, v in zip("XYZ", profile.home_mm, strict=True))]
-    lines += _format_firmware(profile.firmware, number)
+    lines += _format_firmware(profile.firmware, number, string)
     for name, axis in profile.axes.items():
         lines += ["", f"[axes.{name}]", f"max_velocity = {number(axis.max_velocity_mm_s)}",
                   f"max_acceleration = {number(axis.max_acceleration_mm_s2)}"]
@@ -534,7 +571,7 @@ def format_profile(profile: MachineProfile) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _format_firmware(firmware: FirmwareProfile, number) -> list[str]:
+def _format_firmware(firmware: FirmwareProfile, number, string) -> list[str]:
     """The ``[firmware]`` lines of ``format_profile`` (none when every value is the default)."""
     if firmware == FirmwareProfile():
         return []
@@ -556,4 +593,6 @@ def _format_firmware(firmware: FirmwareProfile, number) -> list[str]:
         if value != getattr(LinuxCNCSettings, attr):  # (TOML's true / false; INI integers as such)
             text = str(value).lower() if isinstance(value, bool) else str(value)
             lines.append(f"{key} = {text if isinstance(value, (bool, int)) else number(value)}")
+    if firmware.linuxcnc.parameter_file:
+        lines.append(f"parameter_file = {string(firmware.linuxcnc.parameter_file)}")
     return lines

@@ -58,7 +58,7 @@ def joint_commands(program: Path, profile, timeout_s: float = 900.0) -> np.ndarr
     move from an unknown position being no part of it); None where LinuxCNC is not installed."""
     if not installed():
         return None
-    blocks = list(read_gcode(program, "linuxcnc", profile.home_mm))
+    blocks = list(read_gcode(program, "linuxcnc", profile.home_mm, work_offsets_mm=profile.work_offsets_mm))
     start = next(b.position_mm[:3] for b in blocks if not np.isnan(b.position_mm[:2]).any())
     given = np.isfinite(start)
     last = next(b.position_mm[:2] for b in reversed(blocks) if not np.isnan(b.position_mm[:2]).any())

@@ -58,7 +58,7 @@ def butterfly_runs(tmp_path_factory):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name, duration_tolerance", [("butterfly-dense", 0.005), ("butterfly-polyline", 0.03)])
+@pytest.mark.parametrize("name, duration_tolerance", [("butterfly-dense", 0.005), ("butterfly-polyline", 0.01)])
 def test_butterfly_programs_on_patent_stage(butterfly_runs, name, duration_tolerance):
     source, target, report = butterfly_runs[name]
     period_s = 1.0 / PATENT.sample_rate_hz
@@ -73,8 +73,10 @@ def test_butterfly_programs_on_patent_stage(butterfly_runs, name, duration_toler
     _, command = sample_blocks(compensated.ends, PATENT.sample_rate_hz)
     after = contour_error(path, modelled_xy(PATENT, command[:, :2], period_s))
     assert rms(after) * 20 <= rms(before), f"{rms(before) * 1e3:.3f} -> {rms(after) * 1e3:.3f} um"
-    # As long as LinuxCNC runs the original (the model of its planner), with the margins.
-    reference_s = linuxcnc_s(source, PATENT)
+    # As long as LinuxCNC runs the original (the model of its planner): at 1 ms LinuxCNC caps the
+    # short blocks below their F, and the run, faster there, pays its margins (linuxcnc_time._paid;
+    # before, the dense butterfly's lasted 1.6% longer)
+    reference_s = run_linuxcnc(list(read_gcode(source, "linuxcnc")), PATENT).duration_s
     assert abs(compensated.ends[-1][0] - reference_s) <= duration_tolerance * reference_s
     # Block-to-block velocity and acceleration within the profile's limits.
     ends = np.array(compensated.ends)
@@ -106,7 +108,8 @@ def strokes_between_plunges(path: Path) -> Path:
 def linuxcnc_result(program: Path, path, profile) -> tuple[float, float, float]:
     """(time s, RMS and largest contour error um) of ``program`` as the model of LinuxCNC's planner
     runs it, through the profile's modes, from ``path`` (verify.printed_path)."""
-    run = run_linuxcnc(list(read_gcode(program, "linuxcnc", profile.home_mm)), profile)
+    run = run_linuxcnc(list(read_gcode(program, "linuxcnc", profile.home_mm, work_offsets_mm=profile.work_offsets_mm)),
+                       profile)
     samples = run.positions_mm(profile.sample_rate_hz)[:, :4]
     return (run.duration_s, *contour_um(modelled(samples, profile), samples, *path))
 
@@ -127,6 +130,33 @@ def test_linuxcnc_strokes_between_plunges_settle_while_z_moves(tmp_path):
     after_s, after_rms, after_max = linuxcnc_result(target, path, PATENT)
     assert after_s <= 1.01 * before_s
     assert after_rms * 14 <= before_rms, f"{before_rms:.1f} -> {after_rms:.2f} um"
+    assert after_max < before_max
+
+
+@pytest.mark.slow
+def test_linuxcnc_switch_of_work_coordinate_system_is_planned_with_the_parameter_file(tmp_path):
+    """Strokes in G54 and G55 by turns (systems.ngc's shape), G55's offset 10, 2 mm in LinuxCNC's
+    parameter file: given in the profile, the rapid after each switch is a planned move, so the
+    command leads and settles around it. On the model of LinuxCNC's planner, run with those
+    offsets: 173 -> 12.6 um RMS (13.8x), -1.5% time; without the file (the switch loses the
+    position, the rapid copied from an unknown place, as before) 146 um, +5.1%."""
+    (tmp_path / "mill.var").write_text("5241\t10.0\n5242\t2.0\n")
+    machine = tmp_path / "stage.toml"
+    machine.write_text(Path(PATENT.source).read_text().replace("[firmware]", '[firmware]\nparameter_file = "mill.var"'))
+    profile = load_profile(machine)
+    lines = ["G21 G90 G17 G64 P0.01", "G54", "G1 Z1 F600", "G0 X0 Y0"]
+    for k in range(6):
+        lines += ["G55" if k % 2 else "G54", "G0 X0 Y0", "G1 Z-0.2 F300", "G2 X6 Y0 I3 J0 F1200", "G1 Y3",
+                  "G3 X0 Y3 I-3 J0", "G1 Z1 F600"]
+    source, target = tmp_path / "systems.ngc", tmp_path / "out.ngc"
+    source.write_text("\n".join(lines + ["M2"]) + "\n")
+    assert not compensate_file(source, target, profile).original_kept
+    blocks = list(read_gcode(source, "linuxcnc", work_offsets_mm=profile.work_offsets_mm))
+    path = printed_path(*as_written(blocks, profile.sample_rate_hz)[1:])
+    before_s, before_rms, before_max = linuxcnc_result(source, path, profile)
+    after_s, after_rms, after_max = linuxcnc_result(target, path, profile)
+    assert after_s <= 1.01 * before_s
+    assert after_rms * 10 <= before_rms, f"{before_rms:.1f} -> {after_rms:.2f} um"
     assert after_max < before_max
 
 

@@ -11,7 +11,8 @@ import math
 
 import pytest
 
-from fbspost.firmware.linuxcnc_time import linuxcnc_feeds, retimed
+from fbspost.firmware.linuxcnc_time import MAX_PAID, UNPAID_SHARE, linuxcnc_feeds, retimed
+from fbspost.firmware.linuxcnc_tp import run_linuxcnc
 from fbspost.plan.planner import plan_blocks
 from fbspost.profile import load_profile
 from fbspost.read.gcode import read_gcode
@@ -48,3 +49,27 @@ def test_short_segments_get_linuxcnc_s_capped_speed_and_the_plan_its_time(tmp_pa
     one_chain_s = 20.0 / v + v / a
     moving_s = plan.n_samples / STAGE.sample_rate_hz - 0.5
     assert moving_s == pytest.approx(2 * one_chain_s, rel=0.002)
+
+
+def test_a_run_pays_its_margins_where_linuxcnc_caps_it_below_its_feed(tmp_path):
+    """Each chain is a run LinuxCNC caps at 49 mm/s (F6000 written): given margins M, its feeds
+    are raised by its time T on LinuxCNC over T less what it owes, M - UNPAID_SHARE T, the same on
+    every line of it, never above F; fbspost's plan of each chain is then shorter by its cruise at
+    v k for v, less its ramps' v / a made longer: the closed form of the trapezoid."""
+    path = chain(tmp_path)
+    blocks = list(read_gcode(path, "linuxcnc", STAGE.home_mm))
+    plain, margins_s = list(linuxcnc_feeds(path, STAGE)), 0.015
+    paid = list(linuxcnc_feeds(path, STAGE, margins_s=margins_s))
+    moving = [k for k, f in enumerate(plain) if f is not None]
+    line_time_s = run_linuxcnc(blocks, STAGE).line_time_s
+    v, a = CAPPED_MM_S, STAGE.planner_acceleration_mm_s2
+    saved_s = 0.0
+    for run in (moving[:400], moving[400:]):
+        taken_s = line_time_s[run[-1]] - line_time_s[run[0] - 1]
+        factor = taken_s / (taken_s - (margins_s - UNPAID_SHARE * taken_s))
+        assert 1.0 < factor < 1.0 + MAX_PAID
+        assert all(paid[k] == pytest.approx(plain[k] * factor, rel=1e-12) for k in run[100:300])
+        assert all(paid[k] <= max(plain[k], 100.0) for k in run)  # never above F, unless the plain feed was
+        saved_s += 20.0 / v * (1.0 - 1.0 / factor) - (factor - 1.0) * v / a
+    plans = [plan_blocks(retimed(iter(blocks), path, STAGE, margins_s=m), STAGE) for m in (0.0, margins_s)]
+    assert (plans[0].n_samples - plans[1].n_samples) / STAGE.sample_rate_hz == pytest.approx(saved_s, rel=0.05)

@@ -426,3 +426,27 @@ def test_linuxcnc_settings_default_to_linuxcnc_s_and_round_trip(tmp_path):
     assert FirmwareSettings.from_profile(profile).startup_blend_mm == (0.01, 0.0)
     again = load_profile(write(tmp_path, format_profile(profile)))
     assert again.firmware.linuxcnc == profile.firmware.linuxcnc
+
+
+def test_linuxcnc_parameter_file_gives_the_work_offsets(tmp_path):
+    """``parameter_file`` (relative to the profile) is LinuxCNC's var file: G54..G59.3's X Y Z are
+    its parameters 5221 + 20 k + axis, a parameter it leaves out 0 (as LinuxCNC reads it), a system
+    rotated by its 5230 + 20 k unknown; format_profile writes it back; a missing file or a line
+    that is no parameter is a one-line error naming the key."""
+    from fbspost.profile import format_profile
+
+    (tmp_path / "mill.var").write_text("5220\t2.000000\n5241\t10.500000\n5243\t-2.000000\n5261\t1.0\n"
+                                       "5270\t30.0\n5381\t-7.25\n")
+    profile = load_profile(write(tmp_path, BASE + FIRMWARE + 'parameter_file = "mill.var"\n'))
+    offsets = profile.work_offsets_mm
+    assert offsets[:3] == ((0.0, 0.0, 0.0), (10.5, 0.0, -2.0), None)
+    assert offsets[3:] == ((0.0, 0.0, 0.0),) * 5 + ((-7.25, 0.0, 0.0),)
+    assert load_profile(write(tmp_path, BASE)).work_offsets_mm == ()
+    again = load_profile(write(tmp_path, format_profile(profile)))
+    assert again.firmware.linuxcnc == profile.firmware.linuxcnc
+    for var, key in (("missing.var", "firmware.parameter_file"), ("bad.var", "firmware.parameter_file")):
+        (tmp_path / "bad.var").write_text("5221 zero\n")
+        path = write(tmp_path, BASE + FIRMWARE + f'parameter_file = "{var}"\n')
+        with pytest.raises(ProfileError) as info:
+            load_profile(path)
+        assert_one_line_naming(str(info.value), path, key)

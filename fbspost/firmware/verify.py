@@ -225,7 +225,8 @@ class _PathFile:
     def of(cls, program: Path, profile: MachineProfile, flavor: str, store) -> _PathFile | None:
         """The path of ``program`` written to the open binary file ``store`` (None: no X Y Z motion)."""
         pending, any_extrudes, any_moves = [], False, False
-        for _, _, pieces in commanded_pieces(read_gcode(program, flavor, profile.home_mm)):
+        blocks = read_gcode(program, flavor, profile.home_mm, work_offsets_mm=profile.work_offsets_mm)
+        for _, _, pieces in commanded_pieces(blocks):
             pending.extend(pieces)
             if len(pending) >= GROUP_PIECES:
                 any_moves, any_extrudes = cls._write(pending, store, any_moves, any_extrudes)
@@ -333,7 +334,7 @@ def program_chunks(program: Path, profile: MachineProfile, flavor: str, chunk_li
     ``lines``: the program's lines, read instead of its file (``read_gcode``)."""
     held, held_from, settings = [], 0, {}  # held[i] is line held_from + i
     first = 0  # the chunk's first measured line
-    for block in read_gcode(program, flavor, profile.home_mm, lines=lines):
+    for block in read_gcode(program, flavor, profile.home_mm, lines=lines, work_offsets_mm=profile.work_offsets_mm):
         held.append(block)
         if held_from + len(held) < first + chunk_lines + overlap_lines:
             continue

@@ -26,6 +26,7 @@ from .. import __version__
 from ..errors import InputError
 from ..firmware.linuxcnc_time import retimed
 from ..firmware.transparency import FirmwareSettings
+from ..plan.margins import RunMargins
 from ..plan.planner import Plan
 from ..profile import MachineProfile, with_travel
 from ..read.blocks import AXES, NeedsInterpreter
@@ -127,7 +128,8 @@ def _compensate(read_path, input_path, output_path, profile, options, flavor, pr
     verification = Verification(read_path, input_path, profile, flavor, options.verify, stages)
     blocks = read_blocks(read_path, flavor, profile, stages, progress)
     if flavor == "linuxcnc":  # the original's time as LinuxCNC runs it
-        blocks = retimed(blocks, read_path, profile, verification.line_times())
+        margins = RunMargins.for_profile(profile, options.lead_time_s, options.settle_time_s, flavor)
+        blocks = retimed(blocks, read_path, profile, verification.line_times(), margins.lead_s + margins.settle_s)
     plan = verification.plan = plan_stream(blocks, profile, options, flavor)
     compensators = axis_compensators(profile, options)
     follows_plan = np.array([c not in compensators for c in range(len(AXES))])

@@ -29,7 +29,8 @@ def read_blocks(read_path, flavor: str, profile: MachineProfile, stages: dict[st
     """The program's blocks (a move beyond the profile's travel refused), read a batch at a time:
     the time taken goes to ``stages["read"]``, and ``progress`` is told the fraction of the lines
     read after each batch. (Timed block by block, a CAM program's reading took a tenth longer.)"""
-    blocks = read_gcode(read_path, flavor, profile.home_mm, profile.travel_mm("".join(AXES)))
+    blocks = read_gcode(read_path, flavor, profile.home_mm, profile.travel_mm("".join(AXES)),
+                        work_offsets_mm=profile.work_offsets_mm)
     total_lines = _count_lines(read_path) if progress else 1
 
     def batches() -> Iterator[list[Block]]:

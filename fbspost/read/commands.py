@@ -181,16 +181,15 @@ class Commands:
             fx.sets_position = self.g92(n, params, dups, junk, scale)
             fx.modal_changed |= bool(fx.sets_position)
         elif g == 92.1 or (self.state.cnc and g == 92.2):
-            if g == 92.2:
-                self.saved_off = self.state.off[:]
-            else:
-                self.saved_off = None
+            off, g5x = self.state.off, self.state.g5x
+            # G92's own part kept (the work offsets' taken off: G92.3 restores it in the system then in use)
+            self.saved_off = [o - w for o, w in zip(off, g5x, strict=True)] if g == 92.2 else None
             for i in self.state.frame:
-                self.state.off[i] = 0.0
+                off[i] = g5x[i]
             fx.modal_changed = True
         elif g == 92.3 and self.state.cnc:
             if self.saved_off is not None:
-                self.state.off = self.saved_off
+                self.state.off = [o + w for o, w in zip(self.saved_off, self.state.g5x, strict=True)]
                 self.saved_off = None
                 fx.modal_changed = True
         elif g == 28.0:
@@ -211,6 +210,7 @@ class Commands:
             fx.kind = Kind.STOP
             if self.state.cnc or "L" in params or any(a in params for a in "XYZ"):
                 fx.unknown = True  # coordinate system or tool offsets
+                self.state.work_offsets = {}  # the parameter file's no longer
         elif self.state.cnc and 43.0 <= g < 44.0:
             self.state.tool_length = True
             fx.axis_words_used = True

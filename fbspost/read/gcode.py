@@ -22,7 +22,11 @@ from the first 2000 and last 300 lines. How lines are read:
   in LinuxCNC, whose G28 goes to a position stored outside the file, they are unknown); E starts
   known at 0 and is lost only where an unknown command
   may have changed it while E is absolute. A G92 on an unknown axis makes it known; selecting
-  another work coordinate system (G54..G59.3, offsets not in the file) makes XYZ unknown. A move
+  another work coordinate system (G54..G59.3, offsets not in the file) makes XYZ unknown, unless
+  the profile gives LinuxCNC's parameter file (``work_offsets_mm``) and the system in use was
+  selected by the program: the switch then moves the offsets by the difference of the two
+  (positions stay in the frame of the program's first system; a G10 there drops the file's
+  offsets, the program setting its own; with the file, a program's first selection loses XYZ). A move
   is a MOVE when the start of every axis it moves (its axis words, and both axes of an arc's
   plane) is known and a feed is set; axes it does not move may be unknown: their column of
   ``points_mm`` is NaN (an XY program that never sets Z). Otherwise it is a STOP (points None):
@@ -92,11 +96,12 @@ _TRAVEL_BATCH = 256  # blocks checked against the travel at once
 
 
 def read_gcode(path: str | Path, flavor: str, home_mm=(0.0, 0.0, 0.0), travel_mm=None,
-               lines: Iterable[bytes] | None = None) -> Iterator[Block]:
+               lines: Iterable[bytes] | None = None, work_offsets_mm=()) -> Iterator[Block]:
     """Blocks of the G-code file ``path`` read as ``flavor`` (one of FLAVORS), one per line, in order.
     ``lines``: the file's lines (with their endings) as they come, read instead of the file (a
     file still being written, ``verify.following``); ``path`` names them in errors.
     ``home_mm``: the X Y Z machine position a G28 leaves the axes it homes at (printers).
+    ``work_offsets_mm``: LinuxCNC's G54..G59.3 X Y Z offsets (``LinuxCNCSettings.work_offsets_mm``).
     ``travel_mm``: the lowest and the highest machine position of each axis of AXES
     (``MachineProfile.travel_mm``): a line that moves an axis beyond them is refused, as the
     firmware refuses it (Klipper: "Move out of range"; LinuxCNC's soft limits).
@@ -107,7 +112,7 @@ def read_gcode(path: str | Path, flavor: str, home_mm=(0.0, 0.0, 0.0), travel_mm
     """
     if flavor not in FLAVORS:
         raise ValueError(f"unknown G-code flavor {flavor!r}: expected one of {', '.join(FLAVORS)}")
-    blocks = _blocks(path, flavor, home_mm, lines)
+    blocks = _blocks(path, flavor, home_mm, lines, work_offsets_mm)
     if travel_mm is None or not np.isfinite(travel_mm).any():
         return blocks
     return _within_travel(blocks, path, *np.asarray(travel_mm, dtype=float))
@@ -130,12 +135,12 @@ def _within_travel(blocks: Iterator[Block], path, lowest_mm: np.ndarray, highest
         yield from batch
 
 
-def _blocks(path: str | Path, flavor: str, home_mm, lines: Iterable[bytes] | None = None) -> Iterator[Block]:
+def _blocks(path: str | Path, flavor: str, home_mm, lines: Iterable[bytes] | None, work_offsets_mm) -> Iterator[Block]:
     try:
         handle = open(path, "rb") if lines is None else contextlib.nullcontext(lines)
     except OSError as exc:
         raise InputError(path, 0, f"cannot read: {exc}") from None
-    reader = Reader(path, flavor, home_mm)
+    reader = Reader(path, flavor, home_mm, work_offsets_mm)
     line = reader.line
     with handle as source:
         for line_no, raw in enumerate(source, 1):

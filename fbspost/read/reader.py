@@ -15,11 +15,10 @@ from .blocks import AXES, EXPAND_HINT, OTHER_AXES, Block, Kind, NeedsInterpreter
 from .commands import TEXT_CMD, Commands, Effects, Spindle
 from .motion import PLANES, Motion
 from .splines import Splines
-from .state import INCH, State
+from .state import INCH, WCS, State
 from .words import FAST_G01, Words
 
 _MOTION = {0.0: 0, 1.0: 1, 2.0: 2, 3.0: 3, 5.0: 5}
-_WCS = {54.0, 55.0, 56.0, 57.0, 58.0, 59.0, 59.1, 59.2, 59.3}
 _UNSUPPORTED_G = {
     41.0: "cutter radius compensation (G41)",
     42.0: "cutter radius compensation (G42)",
@@ -46,10 +45,10 @@ _NURBS_G = {5.1, 5.2, 5.3, 6.2}  # LinuxCNC splines (G6.2: LinuxCNC 2.10's NURBS
 class Reader:
     """The interpretation of one line, through the parts that hold the state between lines."""
 
-    def __init__(self, path: str | Path, flavor: str, home_mm=(0.0, 0.0, 0.0)):
+    def __init__(self, path: str | Path, flavor: str, home_mm=(0.0, 0.0, 0.0), work_offsets_mm=()):
         self.cnc = flavor == "linuxcnc"
         self.words = Words(path, self.cnc)
-        self.state = State(flavor)
+        self.state = State(flavor, work_offsets_mm if self.cnc else ())
         self.spindle = Spindle(self.words)
         self.commands = Commands(self.words, self.state, self.spindle, home_mm)
         self.moves = Motion(self.words, self.state, self.spindle)
@@ -169,9 +168,11 @@ class Reader:
                     fx.motion = g
                 else:
                     raise words.error(n, f"G{g:g} is not supported (a motion fbspost does not know)")
-            elif g in _WCS:
-                if g != state.wcs:  # another work coordinate system: offsets we do not know
-                    state.wcs = g
+            elif g in WCS:
+                changed = g != state.wcs
+                if state.select_wcs(g):
+                    fx.modal_changed |= changed
+                else:  # another work coordinate system: offsets not known
                     fx.unknown = True
             elif self.cnc and g in _LINUXCNC_PASS_G:
                 if g == 49.0 and state.tool_length:

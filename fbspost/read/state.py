@@ -15,6 +15,8 @@ import numpy as np
 
 from .blocks import AXES, EXTRA_AXES, Block, Modal
 
+WCS = (54.0, 55.0, 56.0, 57.0, 58.0, 59.0, 59.1, 59.2, 59.3)  # LinuxCNC's work coordinate systems, in order
+
 INCH = 25.4
 _NAN = math.nan
 
@@ -22,7 +24,7 @@ _NAN = math.nan
 class State:
     """The machine's position and modes after the lines read so far."""
 
-    def __init__(self, flavor: str):
+    def __init__(self, flavor: str, work_offsets_mm=()):
         self.flavor = flavor
         self.cnc = flavor == "linuxcnc"
         # machine position: XYZ (and LinuxCNC's other axes) unknown, E at 0 (the printers' other axes never move)
@@ -39,6 +41,10 @@ class State:
         self.plane = 17  # G17 / G18 / G19 (see motion.PLANES)
         self.abs_ijk = False  # G90.1
         self.wcs = 54.0
+        self.wcs_chosen = False  # the program has selected a work coordinate system (LinuxCNC)
+        # G54..G59.3 -> X Y Z offsets (mm; None: not known), from LinuxCNC's parameter file
+        self.work_offsets = dict(zip(WCS, work_offsets_mm, strict=False))
+        self.g5x = [0.0] * len(AXES)  # the offsets of the system in use, in its first one's frame
         self.tool_length = False  # G43 active (LinuxCNC)
 
     def e_absolute(self) -> bool:
@@ -52,6 +58,20 @@ class State:
 
     def block(self, n, raw, kind, **kw) -> Block:
         return Block(n, raw, kind, self.modal, np.array(self.pos), **kw)
+
+    def select_wcs(self, g: float) -> bool:
+        """Selects the work coordinate system ``g`` (54.0 .. 59.3); False where that loses the
+        position: another system than the one in use, unless both offsets are known and the one
+        in use was selected (not the machine's unknown one at the start, which a first selection
+        ends; there, the position before it is lost where the offsets are known)."""
+        old, self.wcs, chosen, self.wcs_chosen = self.wcs, g, self.wcs_chosen, True
+        before, after = self.work_offsets.get(old), self.work_offsets.get(g)
+        if before is None or after is None or not chosen:
+            return g == old and not (self.work_offsets and not chosen)
+        for i in range(3):
+            self.g5x[i] += after[i] - before[i]
+            self.off[i] += after[i] - before[i]
+        return True
 
     def forget(self, axes, e_too: bool = False) -> None:
         """The machine position of ``axes`` (indices) is unknown after this line."""

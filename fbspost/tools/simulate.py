@@ -168,7 +168,8 @@ def simulate_program(program: str | Path, profile: MachineProfile, shapers: tupl
         raise ProfileError(f"{profile.source}: no axis has modes: nothing to simulate")
     flavor = flavor or detect_flavor(program)
     profile = with_travel(profile, flavor)  # (as compensate: the command within the firmware's travel)
-    blocks = list(read_gcode(program, flavor, profile.home_mm, profile.travel_mm("".join(AXES))))
+    blocks = list(read_gcode(program, flavor, profile.home_mm, profile.travel_mm("".join(AXES)),
+                             work_offsets_mm=profile.work_offsets_mm))
     margins = margins or RunMargins.for_profile(profile, flavor=flavor)
     plan = plan_blocks(blocks, profile, margins=margins, firmware=flavor)
     if not plan.runs:
@@ -176,8 +177,10 @@ def simulate_program(program: str | Path, profile: MachineProfile, shapers: tupl
     settings = settings or shaper_settings(profile)
     shaper_rows = {name: {a: klipper_shaper(name, *settings[a]) for a in modelled} for name in shapers}
     period_s = 1.0 / profile.sample_rate_hz
-    executed = execute_program(_as_planned(read_gcode(compensated, flavor, profile.home_mm), profile, flavor)) \
-        if compensated else None
+    executed = None
+    if compensated:
+        written = read_gcode(compensated, flavor, profile.home_mm, work_offsets_mm=profile.work_offsets_mm)
+        executed = execute_program(_as_planned(written, profile, flavor))
 
     # The grid: rest before the earliest shaped start, after the latest end, then the settling.
     leads = [s.lead_s for row in shaper_rows.values() for s in row.values()]

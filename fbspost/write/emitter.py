@@ -68,8 +68,8 @@ class Emitter:
 
     def passthrough(self, block: Block, command_mm: np.ndarray, planned_mm: np.ndarray) -> None:
         """Follow what a copied line does to the controller. A G92 sets the frame where the command
-        is, not where the plan is: keep the difference. A copied move or homing puts the
-        controller where the plan says (the command is at rest there)."""
+        is, not where the plan is: keep the difference. A copied move or homing puts the controller
+        where the plan says (the command is at rest there)."""
         old_offsets, old_unit = np.asarray(self.modal.offsets_mm), self.unit_mm
         self.modal = block.modal
         self.feed = -1  # a copied line may set F (a retraction, "G1 F1800"): the next block says its own
@@ -80,8 +80,8 @@ class Emitter:
             self.written = self.to_program(planned_mm)
             return
         self.written *= old_unit / self.unit_mm
-        changed = np.asarray(block.modal.offsets_mm) != old_offsets
-        changed[list(block.sets_position)] = True  # an axis set where it already was: set where the command is
+        changed = np.isin(np.arange(len(old_offsets)), block.sets_position)  # G92.1, G5x: moved, not set
+        self.written[~changed] -= (np.asarray(block.modal.offsets_mm) - old_offsets)[~changed] / self.unit_mm
         if changed.any():
             self.shift_mm[changed] = (command_mm - planned_mm)[changed]
             self.written[changed] = self.to_program(command_mm)[changed]
