@@ -140,13 +140,14 @@ def _paid(feeds: list[float | None], blocks: list[Block], capped: list[Block], r
     cap (where fbspost's planner slows at a corner). Raised there too, the chords at 1 ms lost 15%
     of their gain; raised to F where LinuxCNC is not capped, rcone_demo's first 12 s at 0.25 ms
     lost 12% of its gain for 0.05% of time (the model)."""
-    lines = [i for i, feed in enumerate(feeds) if feed is not None]
-    if not lines or margins_s <= 0.0:
+    lines = np.array([i for i, feed in enumerate(feeds) if feed is not None], dtype=int)
+    if not lines.size or margins_s <= 0.0:
         return feeds
     before_s = np.append(0.0, line_time_s[:-1])
     paid = list(feeds)
-    for run in np.unique(runs[lines]):
-        members = [i for i in lines if runs[i] == run]
+    by_run = lines[np.argsort(runs[lines], kind="stable")]  # (each run's lines in order: one pass, not one a run)
+    for members in np.split(by_run, np.flatnonzero(np.diff(runs[by_run])) + 1):
+        members = members.tolist()
         taken_s = line_time_s[members[-1]] - before_s[members[0]]
         owed_s = margins_s - UNPAID_SHARE * taken_s
         if owed_s <= 0.0 or taken_s - owed_s <= taken_s / (1.0 + MAX_PAID):
