@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from fbspost.job import planfeed
-from fbspost.job.reading import plan_stream
-from fbspost.job.report import CompensateOptions
+from fbspost.plan.margins import RunMargins
+from fbspost.plan.planner import PlanStream
 from fbspost.profile import load_profile
 from fbspost.read.gcode import read_gcode
 
@@ -28,7 +28,8 @@ class _Wire:
 
 
 def _plan(source: Path, profile):
-    return plan_stream(read_gcode(source, "marlin", profile.home_mm), profile, CompensateOptions(), "marlin")
+    return PlanStream(read_gcode(source, "marlin", profile.home_mm), profile,
+                      margins=RunMargins.for_profile(profile, flavor="marlin"), firmware="marlin")
 
 
 @pytest.mark.parametrize("batch_samples", [700, planfeed.BATCH_SAMPLES])

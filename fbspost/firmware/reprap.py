@@ -52,7 +52,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..plan.limits import REPRAP_AXIS_JERK_MM_S, REPRAP_JERK_MM_S, LimitState
+from ..plan.limits import LimitState, reprap_jerk_mm_s
 from ..profile import MachineProfile
 from ..read.blocks import AXES, Block, Kind
 from .marlin import MarlinRun, axis_limited, send_lines, trapezoid_time_s
@@ -84,7 +84,7 @@ class ReprapConfig:
     @classmethod
     def from_profile(cls, profile: MachineProfile, **changes) -> ReprapConfig:
         fw, scv = profile.firmware, profile.planner_square_corner_velocity_mm_s
-        jerk = tuple(scv if a in "XY" else REPRAP_JERK_MM_S.get(a, REPRAP_AXIS_JERK_MM_S) for a in AXES)
+        jerk = tuple(reprap_jerk_mm_s(np.array([scv]))[0].tolist())
         values = dict(steps_per_mm=tuple(fw.steps_per_mm.get(a, math.nan) for a in AXES), jerk_mm_s=jerk,
                       ring_length=fw.dda_ring_length, line_rate_hz=fw.max_line_rate_hz)
         return cls(**{**values, **changes})

@@ -27,7 +27,7 @@ from ..errors import InputError
 from ..firmware.linuxcnc_time import retimed
 from ..firmware.transparency import FirmwareSettings
 from ..plan.margins import RunMargins
-from ..plan.planner import Plan
+from ..plan.planner import Plan, PlanStream
 from ..profile import MachineProfile, with_travel
 from ..read.blocks import AXES, NeedsInterpreter
 from ..read.expand import check_remaps, expand
@@ -40,7 +40,7 @@ from .axes import axis_compensators, compensated, compensation_chunks
 from .offload import Offloaded
 from .planfeed import PlanFeed
 from .processes import in_second_process, plan_columns, proxied_chunks, received
-from .reading import plan_stream, read_blocks
+from .reading import read_blocks
 from .report import AxisReport, CompensateOptions, ExecutedError, Outcome, Report, timed
 from .verification import Verification
 
@@ -127,10 +127,10 @@ def _compensate(read_path, input_path, output_path, profile, options, flavor, pr
     stages = dict.fromkeys(("read", "plan", "optimize", "fallback", "write"), 0.0)
     verification = Verification(read_path, input_path, profile, flavor, options.verify, stages)
     blocks = read_blocks(read_path, flavor, profile, stages, progress)
+    margins = RunMargins.for_profile(profile, options.lead_time_s, options.settle_time_s, flavor)
     if flavor == "linuxcnc":  # the original's time as LinuxCNC runs it
-        margins = RunMargins.for_profile(profile, options.lead_time_s, options.settle_time_s, flavor)
         blocks = retimed(blocks, read_path, profile, verification.line_times(), margins.lead_s + margins.settle_s)
-    plan = verification.plan = plan_stream(blocks, profile, options, flavor)
+    plan = verification.plan = PlanStream(blocks, profile, margins=margins, firmware=flavor)
     compensators = axis_compensators(profile, options)
     follows_plan = np.array([c not in compensators for c in range(len(AXES))])
     elsewhere = bool(compensators) and in_second_process(read_path, options)

@@ -1,22 +1,19 @@
 """A program read and planned as a stream, for the job.
 
-Takes the program's path, its flavor, the profile and options; gives its blocks a batch at a time
-(``read_blocks``: the time to ``stages["read"]``, the fraction read to ``progress``), and the
-planner's stream of them (``plan_stream``, with the runs' margins).
+Takes the program's path, its flavor and the profile; gives its blocks a batch at a time
+(``read_blocks``: the time to ``stages["read"]``, the fraction read to ``progress``).
 """
 from __future__ import annotations
 
 import itertools
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 
-from ..plan.margins import RunMargins
-from ..plan.planner import BATCH_BLOCKS, PlanStream
+from ..plan.planner import BATCH_BLOCKS
 from ..profile import MachineProfile
 from ..read.blocks import AXES, Block
 from ..read.gcode import read_gcode
-from .report import CompensateOptions
 
 
 def _count_lines(path: str | Path) -> int:
@@ -46,8 +43,3 @@ def read_blocks(read_path, flavor: str, profile: MachineProfile, stages: dict[st
 
     return itertools.chain.from_iterable(batches())
 
-
-def plan_stream(blocks: Iterable[Block], profile: MachineProfile, options: CompensateOptions,
-                 flavor: str) -> PlanStream:
-    margins = RunMargins.for_profile(profile, options.lead_time_s, options.settle_time_s, flavor)
-    return PlanStream(blocks, profile, margins=margins, firmware=flavor)

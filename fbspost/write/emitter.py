@@ -230,16 +230,16 @@ class Emitter:
         relative = np.array([not (self.modal.absolute_e if a == "E" else self.modal.absolute_xyz) for a in AXES])
         start = np.rint(self.written * scale).astype(np.int64)
         ints = np.rint(self.to_program(targets_mm) * scale).astype(np.int64)
-        marlin = bool(self.min_steps or self.cells is not None) and curves is None
+        stepping = bool(self.min_steps or self.cells is not None) and curves is None
         stepped = ints  # (RRF: the whole steps its written ends round to)
-        if marlin:
+        if stepping:
             targets_mm, durations_s, ends_s, ints, stepped = self._on_steps(start, ints, scale, targets_mm,
                                                                             durations_s, ends_s, exact_last)
         steps = np.diff(np.vstack([start, ints]), axis=0)
         moved = steps != 0
         moving = moved.any(axis=1)
         jump = np.zeros(len(steps))
-        if marlin and self.cells is None:  # (of the moving blocks alone: two in three rows are merged away)
+        if stepping and self.cells is None:  # (of the moving blocks alone: two in three rows are merged away)
             length = np.zeros(len(steps))
             length[moving], jump[moving] = self._marlin_lengths(start, ints[moving], scale)
         else:
@@ -248,7 +248,7 @@ class Emitter:
             offsets = _curve_offsets(self, curves, start, ints, scale, length, moved, moving)
         self.written_s, self.written_mm = ends_s[moving], targets_mm[moving]
         # where the firmware goes: Marlin's (RRF's) whole steps (else the targets: 0.1 um from them)
-        self.stepped_mm = self.to_machine(stepped[moving] / scale) if marlin else self.written_mm
+        self.stepped_mm = self.to_machine(stepped[moving] / scale) if stepping else self.written_mm
         rows = slice(None) if moving.all() else moving  # nearly always all of them: no copies
         skipped_mm_s = self.ramp_mm_s2 * MIN_RAMP_S if self.cells is not None and math.isfinite(self.ramp_mm_s2) \
             else 0.0
