@@ -5,6 +5,7 @@ Truths: scipy's BSpline on homogeneous coordinates (an independent NURBS evaluat
 closed form of a circle (a rational quadratic with weights 1, sqrt(2)/2, 1); LinuxCNC's rs274
 for the expanded programs (its canonical path and its non-motion calls, see canon_check)."""
 import math
+import os
 import shutil
 import subprocess
 from pathlib import Path
@@ -229,6 +230,50 @@ def test_expanded_program_follows_linuxcncs_canonical_path(tmp_path):
     expand(program, expanded, "test", table)
     assert path_problems(program, expanded, True, table) == []
     assert command_problems(program, expanded, table) == []
+
+
+def machine_positions(program: Path, var_file: Path) -> list[tuple[float, ...]]:
+    """X Y Z where rs274 (LinuxCNC's interpreter, on its own) moves the machine in ``program``, run
+    with the parameter file ``var_file`` (a copy: rs274 rewrites it): each traverse's and feed's end
+    plus the work and G92 offsets in force, in its units as it prints them."""
+    var = var_file.with_name(var_file.stem + "-run.var")
+    var.write_text(var_file.read_text())
+    out, table = program.with_suffix(".canon"), program.with_name("empty.tbl")
+    table.touch()
+    subprocess.run(["rs274", "-t", str(table), "-v", str(var), "-g", str(program), str(out)], check=True,
+                   capture_output=True, stdin=subprocess.DEVNULL, env={**os.environ, "HOME": str(program.parent)})
+    offsets, positions = {"SET_G5X_OFFSET": np.zeros(3), "SET_G92_OFFSET": np.zeros(3)}, []
+    for text in out.read_text().splitlines():
+        name, _, args = text.split(maxsplit=2)[-1].partition("(")
+        if name not in offsets and name not in ("STRAIGHT_TRAVERSE", "STRAIGHT_FEED"):
+            continue
+        values = [float(v) for v in args.rstrip(")").split(",")]
+        if name in offsets:
+            offsets[name] = np.array(values[-6:-3])
+        elif name in ("STRAIGHT_TRAVERSE", "STRAIGHT_FEED"):
+            positions.append(tuple(np.round(np.array(values[:3]) + sum(offsets.values()), 4)))
+    return positions
+
+
+@needs_rs274
+def test_expansion_runs_where_the_original_does_with_the_machines_g92_offsets(tmp_path):
+    """LinuxCNC keeps G92 offsets from program to program (parameters 5210-5213): a program that
+    sets none runs shifted by them, and so must its expansion (rs274, given the machine's
+    parameter file, is the judge); one that sets its own starts the expansion with the machine's
+    suspended (G92.2), not zeroed (G92.1)."""
+    var = tmp_path / "machine.var"
+    var.write_text("5210 1\n5211 10\n5212 -5\n5213 0\n5220 1\n")
+    program, expanded = tmp_path / "part.ngc", tmp_path / "part.expanded.ngc"
+    program.write_text("G21 G90\n#<r> = 2\nG0 X1 Y2 Z3\nG1 X[1 + #<r>] F600\nG2 X5 Y2 I1 J0\nM2\n")
+    expand(program, expanded, "test")
+    header = [line for line in expanded.read_text().splitlines() if line.startswith("G21")]
+    assert header == ["G21 G90 G91.1 G17 G94 G40 G49 G80 G54"]
+    original = machine_positions(program, var)
+    assert original[0] == (1 + 254.0, 2 - 127.0, 3.0)  # (rs274 reads the file's lengths as inches)
+    assert machine_positions(expanded, var) == original
+    program.write_text("G21 G90\n#<r> = 2\nG0 X1 Y2 Z3\nG92 X0\nG1 X[#<r>] F600\nM2\n")
+    expand(program, expanded, "test")
+    assert [line for line in expanded.read_text().splitlines() if line.startswith("G21")] == [header[0] + " G92.2"]
 
 
 @needs_rs274

@@ -7,7 +7,8 @@ interpreter, 2.9) and gives the program it executes as plain G-code: its canonic
 G1, G2/G3, with the spindle, coolant, tool changes, I/O, dwells, messages, stops, motion control
 mode and program end written back as G-code at their places. The expanded program is in mm (G21),
 absolute (G90, incremental arc centres G91.1); the program's G92 and tool length offsets (from the
-tool table given) are added into its coordinates (G92.1 G49 in its header); work coordinate
+tool table given) are added into its coordinates (G49 in its header; G92.2 where the program sets
+G92 offsets, which keeps the machine's for G92.3; else the machine's stay on); work coordinate
 systems are selected as the program selects them, and offsets the program sets itself (G10 L2,
 L20) are written back as G10 L2. Coordinates are rs274's: 4 decimals in the program's units
 (0.1 um in mm, 2.54 um in inches); a helix narrower than those digits is its axis' line. With
@@ -173,9 +174,14 @@ def expand(program: str | Path, output: str | Path, reason: str, tool_table: str
     if any(name == "STRAIGHT_PROBE" for name, _ in calls):
         check_static(program, ini)
         check_probes(program, calls, canonical_calls(program, tool_table, ini, timeout_s, probe_delta=DELTA))
+    # The machine's own G92 offsets (LinuxCNC keeps them across programs, parameters 5211-5219)
+    # apply to the original as to its expansion, which rs274 makes from none: a program that sets
+    # none leaves them on (the same positions); one that does starts with them suspended, as rs274
+    # has it, and kept for G92.3 (G92.1 would zero the parameters too).
+    g92 = " G92.2" if any(name == "SET_G92_OFFSET" for name, _ in _grouped(calls)) else ""
     header = [f"; fbspost: expanded by LinuxCNC's interpreter rs274 from {Path(program).name}: {reason}",
               "; fbspost: in mm, absolute; the program's G92 and tool length offsets added into the coordinates",
-              "G21 G90 G91.1 G17 G94 G40 G49 G80 G54 G92.1"]
+              "G21 G90 G91.1 G17 G94 G40 G49 G80 G54" + g92]
     percent = all(name != "PROGRAM_END" for name, _ in calls)  # a program between % lines, without M2
     writer = _Expander(program, _tool_numbers(tool_table))
     with open(output, "w", encoding="utf-8") as f:
