@@ -898,11 +898,12 @@ def test_linuxcnc_work_offsets_from_the_parameter_file_make_a_switch_a_move(tmp_
     """With LinuxCNC's work offsets known (the profile's parameter file), a switch between systems
     the program selected moves the frame by the difference of their offsets: the rapid after it
     is a MOVE from where the tool is, to the target in the new frame (machine = program + offset
-    difference, by hand); G92.1 keeps the work offset; the program's first selection loses XYZ
-    (the machine's system before it is unknown); a G10 drops the file's offsets."""
+    difference, by hand); G92.1 keeps the work offset but loses XYZ (it takes off the machine's own
+    G92 offsets too, which LinuxCNC keeps from program to program); the program's first selection
+    loses XYZ (the machine's system before it is unknown); a G10 drops the file's offsets."""
     offsets = [(0.0, 0.0, 0.0), (10.0, -5.0, 1.0), (2.0, 2.0, 0.0)] + [(0.0, 0.0, 0.0)] * 6
     program = ("G21 G90\nG0 X1 Y1 Z0\nG54\nG0 X1 Y1 Z0\nG1 X2 F600\nG55\nG0 X0 Y0\nG92 X5\nG92.1\nG56\n"
-               "G0 X3 Y1\nG10 L2 P2 X0\nG55\nG0 X0 Y0\n")
+               "G0 X3 Y1 Z0\nG10 L2 P2 X0\nG55\nG0 X0 Y0\n")
     (tmp_path / "p.ngc").write_text(program)
     blocks = list(read_gcode(tmp_path / "p.ngc", "linuxcnc", work_offsets_mm=offsets))
     assert np.isnan(blocks[2].position_mm[:3]).all()  # the first G54: from the machine's unknown system
@@ -911,7 +912,8 @@ def test_linuxcnc_work_offsets_from_the_parameter_file_make_a_switch_a_move(tmp_
     close(blocks[6].points_mm[-1, :3], (10.0, -5.0, 0.0))  # G55's X0 Y0 where G54's is (10, -5); Z stays
     assert blocks[6].modal.offsets_mm[:3] == (10.0, -5.0, 1.0)
     assert blocks[8].modal.offsets_mm[:3] == (10.0, -5.0, 1.0)  # G92.1: G55's own offsets stay
-    close(blocks[10].points_mm[-1, :3], (5.0, 3.0, 0.0))  # G56's (3, 1) + its offset (2, 2)
+    assert np.isnan(blocks[8].position_mm[:3]).all()
+    close(blocks[10].position_mm[:3], (5.0, 3.0, 0.0))  # G56's (3, 1) + its offset (2, 2)
     assert np.isnan(blocks[12].position_mm[:3]).all()  # after G10 the offsets are the program's own
     assert blocks[13].kind is Kind.STOP
     unknown = list(read_gcode(tmp_path / "p.ngc", "linuxcnc"))  # without the file: lost at every switch

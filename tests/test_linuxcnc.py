@@ -257,23 +257,23 @@ def machine_positions(program: Path, var_file: Path) -> list[tuple[float, ...]]:
 
 @needs_rs274
 def test_expansion_runs_where_the_original_does_with_the_machines_g92_offsets(tmp_path):
-    """LinuxCNC keeps G92 offsets from program to program (parameters 5210-5213): a program that
-    sets none runs shifted by them, and so must its expansion (rs274, given the machine's
-    parameter file, is the judge); one that sets its own starts the expansion with the machine's
-    suspended (G92.2), not zeroed (G92.1)."""
+    """LinuxCNC keeps G92 offsets from program to program (parameters 5210-5213): a program runs
+    shifted by them, its own G92 carries them on (it is relative to where the tool is) and its
+    G92.1 takes them off; so must its expansion, which rs274 makes from none (rs274, given the
+    machine's parameter file, is the judge). The expansion writes G92.2 for the program's G92.1
+    (the positions are the same; the machine's offsets stay stored) and never G92.1."""
     var = tmp_path / "machine.var"
     var.write_text("5210 1\n5211 10\n5212 -5\n5213 0\n5220 1\n")
     program, expanded = tmp_path / "part.ngc", tmp_path / "part.expanded.ngc"
-    program.write_text("G21 G90\n#<r> = 2\nG0 X1 Y2 Z3\nG1 X[1 + #<r>] F600\nG2 X5 Y2 I1 J0\nM2\n")
-    expand(program, expanded, "test")
-    header = [line for line in expanded.read_text().splitlines() if line.startswith("G21")]
-    assert header == ["G21 G90 G91.1 G17 G94 G40 G49 G80 G54"]
-    original = machine_positions(program, var)
-    assert original[0] == (1 + 254.0, 2 - 127.0, 3.0)  # (rs274 reads the file's lengths as inches)
-    assert machine_positions(expanded, var) == original
-    program.write_text("G21 G90\n#<r> = 2\nG0 X1 Y2 Z3\nG92 X0\nG1 X[#<r>] F600\nM2\n")
-    expand(program, expanded, "test")
-    assert [line for line in expanded.read_text().splitlines() if line.startswith("G21")] == [header[0] + " G92.2"]
+    for text, shifted in (("G0 X1 Y2 Z3\nG1 X[1 + #<r>] F600\nG2 X5 Y2 I1 J0\nG1 X6\n", 3),
+                          ("G0 X1 Y2 Z3\nG92 X0\nG1 X[#<r>] F600\nG92.1\nG0 X4 Y4\nG1 X5\n", 2)):
+        program.write_text(f"G21 G90\n#<r> = 2\n{text}M2\n")
+        expand(program, expanded, "test")
+        assert "G92.1" not in expanded.read_text()
+        original = machine_positions(program, var)
+        assert original[0] == (1 + 254.0, 2 - 127.0, 3.0)  # (rs274 reads the file's lengths as inches)
+        assert sum(p[0] > 200 for p in original) == shifted  # (the second: shifted until its G92.1)
+        assert machine_positions(expanded, var) == original
 
 
 @needs_rs274

@@ -57,6 +57,14 @@ class Commands:
         self.home_mm = [float(v) for v in home_mm]
         self.saved_off = None  # G92.2 keeps the offsets here for G92.3
 
+    def _forget_machine_g92(self) -> None:
+        """LinuxCNC keeps G92 offsets from program to program, which the file does not hold: a
+        program's G92.1, G92.2 or G92.3 takes them off or puts them back, so the tool's place in
+        the program's frame moves by offsets not known here (a G92 of the program's own is
+        relative to where the tool is and carries them on)."""
+        if self.state.cnc:
+            self.state.forget(self.state.frame)
+
     def extended(self, n, raw, code) -> Block:
         """Klipper extended commands and macros, RRF meta commands: a name, then NAME=VALUE."""
         name = re.match(r"[A-Za-z_][A-Za-z0-9_]*", code).group().upper()
@@ -187,11 +195,13 @@ class Commands:
             for i in self.state.frame:
                 off[i] = g5x[i]
             fx.modal_changed = True
+            self._forget_machine_g92()
         elif g == 92.3 and self.state.cnc:
             if self.saved_off is not None:
                 self.state.off = [o + w for o, w in zip(self.saved_off, self.state.g5x, strict=True)]
                 self.saved_off = None
                 fx.modal_changed = True
+            self._forget_machine_g92()
         elif g == 28.0:
             fx.axis_words_used = True
             named = [i for i in self.state.frame if AXES[i] in params] or self.state.frame

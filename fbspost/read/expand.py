@@ -7,8 +7,12 @@ interpreter, 2.9) and gives the program it executes as plain G-code: its canonic
 G1, G2/G3, with the spindle, coolant, tool changes, I/O, dwells, messages, stops, motion control
 mode and program end written back as G-code at their places. The expanded program is in mm (G21),
 absolute (G90, incremental arc centres G91.1); the program's G92 and tool length offsets (from the
-tool table given) are added into its coordinates (G49 in its header; G92.2 where the program sets
-G92 offsets, which keeps the machine's for G92.3; else the machine's stay on); work coordinate
+tool table given) are added into its coordinates (G49 in its header). The machine's own G92
+offsets (LinuxCNC keeps them from program to program) stay on, as for the original, whose G92
+offsets are rs274's plus them (a G92 is relative to where the tool is), until the program takes
+its offsets off (G92.1, G92.2): there G92.2 is written (it keeps the machine's stored; G92.1 would
+zero them; a G92.3 after it, which puts the machine's back for the original, is not
+reproduced); work coordinate
 systems are selected as the program selects them, and offsets the program sets itself (G10 L2,
 L20) are written back as G10 L2. Coordinates are rs274's: 4 decimals in the program's units
 (0.1 um in mm, 2.54 um in inches); a helix narrower than those digits is its axis' line. With
@@ -174,14 +178,9 @@ def expand(program: str | Path, output: str | Path, reason: str, tool_table: str
     if any(name == "STRAIGHT_PROBE" for name, _ in calls):
         check_static(program, ini)
         check_probes(program, calls, canonical_calls(program, tool_table, ini, timeout_s, probe_delta=DELTA))
-    # The machine's own G92 offsets (LinuxCNC keeps them across programs, parameters 5211-5219)
-    # apply to the original as to its expansion, which rs274 makes from none: a program that sets
-    # none leaves them on (the same positions); one that does starts with them suspended, as rs274
-    # has it, and kept for G92.3 (G92.1 would zero the parameters too).
-    g92 = " G92.2" if any(name == "SET_G92_OFFSET" for name, _ in _grouped(calls)) else ""
     header = [f"; fbspost: expanded by LinuxCNC's interpreter rs274 from {Path(program).name}: {reason}",
               "; fbspost: in mm, absolute; the program's G92 and tool length offsets added into the coordinates",
-              "G21 G90 G91.1 G17 G94 G40 G49 G80 G54" + g92]
+              "G21 G90 G91.1 G17 G94 G40 G49 G80 G54"]
     percent = all(name != "PROGRAM_END" for name, _ in calls)  # a program between % lines, without M2
     writer = _Expander(program, _tool_numbers(tool_table))
     with open(output, "w", encoding="utf-8") as f:
@@ -282,8 +281,12 @@ class _Expander:
         return ()
 
     def on_set_g92_offset(self, args):
-        self.g92 = self.length_values(args)
-        return ()
+        # the machine's own G92 offsets stay on until the program takes its own off (module docstring)
+        values = self.length_values(args)
+        suspend, self.g92 = any(self.g92) and not any(values), values
+        if suspend:
+            self.fresh = True
+            yield "G92.2"
 
     def on_use_tool_length_offset(self, args):
         self.tool = self.length_values(args)
