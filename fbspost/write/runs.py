@@ -49,13 +49,17 @@ def _start_dwell(dwell, rest_s: float, latency_s: float | None) -> tuple[float, 
 
 
 def still_as_dwell(emitter: Emitter, dwell, from_s: float, ends_s: np.ndarray, targets_mm: np.ndarray,
-                   latency_s: float | None) -> int:
+                   latency_s: float | None, within_mm: float = 0.0) -> int:
     """At a run's start (from ``from_s``), the first blocks (ends ``ends_s``, ``targets_mm``) that round
-    to no motion as a dwell (``dwell``: writes one for about the seconds given, gives how long it
-    dwells), not as a slow first block: how many it stands for (0: none, or the dwell rounds to none).
-    On Marlin (``latency_s`` not None) the dwell also takes up what the last run's end left
-    (``RunWriter._end_run``), with or without such blocks."""
+    to no motion (or move less than ``within_mm``) as a dwell (``dwell``: writes one for about the
+    seconds given, gives how long it dwells), not as a slow first block: how many it stands for (0:
+    none, or the dwell rounds to none). On Marlin (``latency_s`` not None) the dwell also takes up
+    what the last run's end left (``RunWriter._end_run``), with or without such blocks."""
     still = emitter.still(targets_mm[:-1])
+    if within_mm > 0.0:  # (those within it of where the controller is: rounded there, or nearer than it)
+        at_mm = emitter.to_machine(emitter.written)[:3]
+        away = np.linalg.norm(np.nan_to_num(targets_mm[:-1, :3] - at_mm), axis=1) > within_mm
+        still = max(still, int(np.argmax(away)) if away.any() else len(away))
     if still or latency_s is not None:
         span_s = ends_s[still - 1] - from_s if still else 0.0
         dwell_s, late_s = _start_dwell(dwell, span_s + emitter.residue_s, latency_s)
@@ -64,6 +68,11 @@ def still_as_dwell(emitter: Emitter, dwell, from_s: float, ends_s: np.ndarray, t
             return still
     return 0
 
+
+
+def _unwritten(seconds: float) -> float:
+    """A dwell not written: the machine rests there anyway (``RunWriter``'s program start)."""
+    return seconds
 
 
 def copied_sample(line_time_s: float, is_stop: bool, fs: float, previous: int) -> int:
@@ -97,6 +106,9 @@ class RunWriter:
         self.run_index = 0  # the run being written
         self.run_from_s = None  # the run's start while none of its blocks is written (then None)
         self.latency_s = _marlin_start_latency_s(options)
+        # LinuxCNC: the program's first run starts where the machine rests before the program: its first
+        # blocks that stay within the tolerance of there are neither written nor waited for (a dwell)
+        self._rests_before = options.flavor == "linuxcnc"
         self._run_breaks, self._run_g5 = None, None  # the current run's block ends (dense) or blocks and curves (g5)
 
     def runs_from(self, r: int) -> bool:
@@ -149,7 +161,11 @@ class RunWriter:
             if ends[-1] == stop_s and end_exact_mm is not None and not soft:
                 exact = np.where(np.isnan(end_exact_mm), samples.at(ends[-1:], fs, planned=True)[0], end_exact_mm)
                 targets[-1, follows_plan] = exact[follows_plan]
-            still = still_as_dwell(emitter, out.dwell, from_s, ends, targets, self.latency_s) if run_start else 0
+            still = 0
+            if run_start and self._rests_before and self.run_index == 0:  # (the dwell's time: the machine's before)
+                still = still_as_dwell(emitter, _unwritten, from_s, ends, targets, None, self._options.tolerance_mm)
+            elif run_start:
+                still = still_as_dwell(emitter, out.dwell, from_s, ends, targets, self.latency_s)
             if still:
                 from_s, ends, targets = ends[still - 1], ends[still:], targets[still:]
                 curves = None if curves is None else curves[still:]
