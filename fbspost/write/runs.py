@@ -3,7 +3,8 @@
 Takes the plan's runs, the command (``SampleWindow``), the options and the output; writes the
 blocks from where the output is up to a time (``RunWriter.until``): their ends
 (``blockends``), the firmware's settings before them, a dwell for the blocks at a run's start
-that round to no motion, and each run's end.
+that round to no motion (on LinuxCNC none at the program's first run: ``RunWriter``), and each
+run's end.
 """
 from __future__ import annotations
 
@@ -107,7 +108,9 @@ class RunWriter:
         self.run_from_s = None  # the run's start while none of its blocks is written (then None)
         self.latency_s = _marlin_start_latency_s(options)
         # LinuxCNC: the program's first run starts where the machine rests before the program: its first
-        # blocks that stay within the tolerance of there are neither written nor waited for (a dwell)
+        # blocks that stay within the tolerance of there are neither written nor waited for (a dwell).
+        # The dense butterfly at SERVO_PERIOD 0.25 ms on the model of LinuxCNC's planner: +1.92% ->
+        # +0.80% of the original's time at 18.3 um (18.2), a G4 P0.0168 and 12 ms under 0.5 um dropped
         self._rests_before = options.flavor == "linuxcnc"
         self._run_breaks, self._run_g5 = None, None  # the current run's block ends (dense) or blocks and curves (g5)
 
