@@ -59,8 +59,10 @@ def still_as_dwell(emitter: Emitter, dwell, from_s: float, ends_s: np.ndarray, t
     still = emitter.still(targets_mm[:-1])
     if within_mm > 0.0:  # (those within it of where the controller is: rounded there, or nearer than it)
         at_mm = emitter.to_machine(emitter.written)[:3]
-        away = np.linalg.norm(np.nan_to_num(targets_mm[:-1, :3] - at_mm), axis=1) > within_mm
-        still = max(still, int(np.argmax(away)) if away.any() else len(away))
+        off_mm = np.linalg.norm(np.nan_to_num(targets_mm[:, :3] - at_mm), axis=1)
+        creep = int(np.argmax(off_mm[:-1] > within_mm)) if (off_mm[:-1] > within_mm).any() else len(off_mm) - 1
+        if off_mm[creep] <= 2.0 * within_mm:  # (then caught up in one block: a lead that starts fast keeps its creep)
+            still = max(still, creep)
     if still or latency_s is not None:
         span_s = ends_s[still - 1] - from_s if still else 0.0
         dwell_s, late_s = _start_dwell(dwell, span_s + emitter.residue_s, latency_s)
@@ -72,8 +74,9 @@ def still_as_dwell(emitter: Emitter, dwell, from_s: float, ends_s: np.ndarray, t
 
 
 def _unwritten(seconds: float) -> float:
-    """A dwell not written: the machine rests there anyway (``RunWriter``'s program start)."""
-    return seconds
+    """A LinuxCNC dwell not written, the machine at rest there anyway (``RunWriter``'s program start):
+    how long the G4 would have dwelt (what the blocks after it take up, as after a written one)."""
+    return dwell_line("linuxcnc", seconds)[1]
 
 
 def copied_sample(line_time_s: float, is_stop: bool, fs: float, previous: int) -> int:
