@@ -12,6 +12,7 @@ import math
 
 import numpy as np
 
+from ..firmware.reprap import GRACE_S
 from ..firmware.transparency import Transparency
 from ..plan.planner import PlanStream
 from ..read.blocks import Kind
@@ -35,13 +36,24 @@ def _marlin_start_latency_s(options: WriteOptions) -> float | None:
     return 3.0 / options.max_line_rate_hz if options.max_line_rate_hz else 0.0
 
 
-def _start_dwell(dwell, rest_s: float, latency_s: float | None) -> tuple[float, float]:
+def idle_latency_s(options: WriteOptions) -> float:
+    """RepRapFirmware: how late the next move starts after a G4 has emptied its ring: a line's time
+    (the host sends it once the G4 is done), then the grace period RRF waits for more moves (0: not
+    RRF). Each G4 on RRF dwells that much less."""
+    if options.flavor != "reprap":
+        return 0.0
+    return GRACE_S + (1.0 / options.max_line_rate_hz if options.max_line_rate_hz else 0.0)
+
+
+def _start_dwell(dwell, rest_s: float, latency_s: float | None, idle_s: float = 0.0) -> tuple[float, float]:
     """The G4 before a run's first block, for ``rest_s`` of rest: (its dwell, the latency it takes:
     on Marlin, ``latency_s`` not None, the run starts that much after the G4, which dwells less;
     none where the rest is within that latency: the G4 would hold the blocks before it in the
-    buffer for BLOCK_DELAY_FOR_1ST_MOVE, the rest is better the first block's, slower)."""
+    buffer for BLOCK_DELAY_FOR_1ST_MOVE, the rest is better the first block's, slower; else the
+    firmware's ``idle_s`` after a G4, ``idle_latency_s``)."""
     if latency_s is None:
-        return dwell(rest_s), 0.0
+        dwell_s = dwell(max(rest_s - idle_s, 0.0))
+        return dwell_s, idle_s if dwell_s > 0 else 0.0
     if dwell_line("marlin", rest_s - latency_s)[1] > 0:
         return dwell(rest_s - latency_s), latency_s
     return 0.0, 0.0
@@ -49,16 +61,16 @@ def _start_dwell(dwell, rest_s: float, latency_s: float | None) -> tuple[float, 
 
 
 def still_as_dwell(emitter: Emitter, dwell, from_s: float, ends_s: np.ndarray, targets_mm: np.ndarray,
-                   latency_s: float | None) -> int:
+                   latency_s: float | None, idle_s: float = 0.0) -> int:
     """At a run's start (from ``from_s``), the first blocks (ends ``ends_s``, ``targets_mm``) that round
     to no motion as a dwell (``dwell``: writes one for about the seconds given, gives how long it
     dwells), not as a slow first block: how many it stands for (0: none, or the dwell rounds to none).
     On Marlin (``latency_s`` not None) the dwell also takes up what the last run's end left
-    (``RunWriter._end_run``), with or without such blocks."""
+    (``RunWriter._end_run``), with or without such blocks; ``idle_s``: ``idle_latency_s``."""
     still = emitter.still(targets_mm[:-1])
     if still or latency_s is not None:
         span_s = ends_s[still - 1] - from_s if still else 0.0
-        dwell_s, late_s = _start_dwell(dwell, span_s + emitter.residue_s, latency_s)
+        dwell_s, late_s = _start_dwell(dwell, span_s + emitter.residue_s, latency_s, idle_s)
         if dwell_s > 0:
             emitter.residue_s += span_s - dwell_s - late_s
             return still
@@ -97,6 +109,7 @@ class RunWriter:
         self.run_index = 0  # the run being written
         self.run_from_s = None  # the run's start while none of its blocks is written (then None)
         self.latency_s = _marlin_start_latency_s(options)
+        self.idle_s = idle_latency_s(options)
         self._run_breaks, self._run_g5 = None, None  # the current run's block ends (dense) or blocks and curves (g5)
 
     def runs_from(self, r: int) -> bool:
@@ -149,7 +162,8 @@ class RunWriter:
             if ends[-1] == stop_s and end_exact_mm is not None and not soft:
                 exact = np.where(np.isnan(end_exact_mm), samples.at(ends[-1:], fs, planned=True)[0], end_exact_mm)
                 targets[-1, follows_plan] = exact[follows_plan]
-            still = still_as_dwell(emitter, out.dwell, from_s, ends, targets, self.latency_s) if run_start else 0
+            still = still_as_dwell(emitter, out.dwell, from_s, ends, targets, self.latency_s, self.idle_s) \
+                if run_start else 0
             if still:
                 from_s, ends, targets = ends[still - 1], ends[still:], targets[still:]
                 curves = None if curves is None else curves[still:]
@@ -175,8 +189,10 @@ class RunWriter:
         # after it (a layer's Z move) would be alone there before the next run's G4, held 100 ms
         # (_start_dwell); the next run's G4 takes the time up (still_as_dwell), the copied lines
         # run that much earlier, X and Y at rest already.
+        # On RRF the next move starts ``idle_s`` after the G4 (idle_latency_s).
         if self.latency_s is None:
-            self.emitter.residue_s -= self._out.dwell(self.emitter.residue_s)
+            dwell_s = self._out.dwell(max(self.emitter.residue_s - self.idle_s, 0.0))
+            self.emitter.residue_s -= dwell_s + (self.idle_s if dwell_s > 0 else 0.0)
         if self._settings is not None and not self.runs_from(self.run_index):
             self._out.lines(*self._settings.restore())  # the program's own, as it left them
 
