@@ -65,7 +65,8 @@ def test_rrf_output_lasts_as_rrf_runs_the_original(tmp_path):
     the output lasts within 0.5% of the original (issue 32), and its RMS contour error through
     whole steps and the modes is under a quarter of the original's. Measured (29 November 2026):
     +0.44%, 22.39 -> 3.49 um (17 s at a load of 7): near the bar, the margins a larger share of a
-    short print (the first 2000 lines: +0.21%)."""
+    short print (the first 2000 lines: +0.21%); 30 November, a speed step RRF skips written at
+    its speed and M201 restored: +0.11%, 3.26 um."""
     import sys
     from pathlib import Path
 
@@ -99,7 +100,7 @@ def test_rrf_output_at_300_lines_s_lasts_as_the_original_and_copies_moves_as_the
     (RRF times an extrude-only move by M201 E alone, not M204). Measured (29 November 2026):
     +0.86% before (a G4 before every copied move emptied RRF's ring: 13 ms idle each, then the
     look-ahead starved for about 0.3 s, 7144 stops on the first 8000 lines; the copied moves ran
-    at 1e5 mm/s^2), -0.34% now."""
+    at 1e5 mm/s^2), +0.13% now (-0.34% before a speed step RRF skips was written at its speed)."""
     import dataclasses
 
     from fbspost.firmware.reprap import ReprapConfig, run_reprap
