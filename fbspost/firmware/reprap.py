@@ -65,6 +65,7 @@ _WORD = re.compile(rb"([A-Za-z])\s*([-+]?[\d.]+)")
 MIN_FEED_FLOOR_MM_S = 0.01  # the lowest M203 I RRF takes (Platform::SetMinMovementSpeed)
 STEP_CLOCK_HZ = 750_000.0  # StepClockRate, 48 MHz / 64 on every Duet 3
 MIN_RAMP_S = 10.0 / STEP_CLOCK_HZ  # MinimumAccelOrDecelClocks: a shorter ramp to F is not taken
+GRACE_S = 0.01  # DefaultGracePeriod (M595 R): a move that comes to an idle machine waits this long for more
 
 
 @dataclass(frozen=True)
@@ -78,7 +79,7 @@ class ReprapConfig:
     jerk_policy: int = 0  # M566 P
     min_speed_mm_s: float = 0.5  # M203 I (DefaultMinFeedrate), until the program sets it
     prepare_ahead_s: float = 0.1  # UsualMinimumPreparedTime
-    grace_s: float = 0.01  # DefaultGracePeriod (M595 R)
+    grace_s: float = GRACE_S
     min_ramp_s: float = MIN_RAMP_S
 
     @classmethod

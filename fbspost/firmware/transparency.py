@@ -81,6 +81,7 @@ class FirmwareSettings:
     axis_max_velocity_mm_s: dict[str, float] = field(default_factory=dict)  # Marlin, RRF M203 as the program set it
     # the compensated command's own limit per axis (the profile's axes): what the raised limits let through
     command_velocity_mm_s: dict[str, float] = field(default_factory=dict)
+    command_acceleration_mm_s2: dict[str, float] = field(default_factory=dict)
 
     @classmethod
     def from_profile(cls, profile: MachineProfile) -> FirmwareSettings:
@@ -91,7 +92,16 @@ class FirmwareSettings:
                    minimum_cruise_ratio=fw.minimum_cruise_ratio, max_accel_to_decel_mm_s2=fw.max_accel_to_decel_mm_s2,
                    min_segment_time_us=fw.min_segment_time_s * 1e6, shaper_frequency_hz=dict(fw.shaper_frequency_hz),
                    max_velocity_mm_s=fw.max_velocity_mm_s,
-                   command_velocity_mm_s={a: profile.axes[a].max_velocity_mm_s for a in "XYZ" if a in profile.axes})
+                   command_velocity_mm_s={a: profile.axes[a].max_velocity_mm_s for a in "XYZ" if a in profile.axes},
+                   command_acceleration_mm_s2={a: profile.axes[a].max_acceleration_mm_s2 for a in profile.axes})
+
+    def restored_m201(self, flavor: str) -> dict[str, float]:
+        """The M201 per axis the output restores: the program's; on RepRapFirmware else the profile's
+        axis limits (its retractions and Z moves take M201 alone, M204 applies to X Y moves only:
+        left raised, the copied moves ran at 1e5 mm/s^2, unlike the plan and the original)."""
+        if flavor == "reprap":
+            return {**self.command_acceleration_mm_s2, **self.axis_max_acceleration_mm_s2}
+        return self.axis_max_acceleration_mm_s2
 
     def raised_velocity(self) -> tuple[float | None, dict[str, float]]:
         """The velocity limits to raise around the compensated motion: Klipper's max_velocity to what
@@ -172,7 +182,7 @@ class Transparency:
         program = self.program
         kept = [f"input shaping on {a}" for a in self.unknown_shaping()]
         if self.flavor in ("marlin", "reprap"):
-            kept += [f"M201 {a}" for a in _M201_AXES[self.flavor] if a not in program.axis_max_acceleration_mm_s2]
+            kept += [f"M201 {a}" for a in _M201_AXES[self.flavor] if a not in program.restored_m201(self.flavor)]
         if self.flavor == "marlin" and program.junction_deviation_mm is None:
             kept.append("M205 J")
         if kept:
@@ -254,7 +264,7 @@ def _program_limits(flavor: str, program: FirmwareSettings, inches: bool) -> lis
     accel = _num(program.acceleration_mm_s2)
     travel = _num(first_given(program.travel_acceleration_mm_s2, program.acceleration_mm_s2))
     scv = program.square_corner_velocity_mm_s
-    axes = program.axis_max_acceleration_mm_s2
+    axes = program.restored_m201(flavor)
     # Marlin and RRF: M201 for X, Y and E, as the program or the profile gave them (else they stay raised)
     m201 = " ".join(f"{a}{_num(axes[a])}" for a in _M201_AXES.get(flavor, "") if a in axes)
     lines = [f"M201 {m201}"] if m201 and flavor in ("marlin", "reprap") else []

@@ -332,8 +332,9 @@ def _feeds(length_mm: np.ndarray, durations_s: np.ndarray, moving: np.ndarray, r
     Marlin enters a faster block at once up to its ``jump_mm_s`` (see ``Emitter._marlin_lengths``).
     RRF does not ramp up to a block's F for under ``skipped_mm_s`` from at least 0.9 of it where the
     block is faster than its neighbours (``reprap.top_speed``: from the larger of the speed before
-    and its exit, here the next block's wanted speed): it cruises at that, and the next blocks
-    make up the time.
+    and its exit, here the next block's wanted speed): it cruises at that, and is written so (the
+    next blocks make up the time: written at F, it would let them run faster than it, RRF would
+    ramp up to F after all, and the output would run short).
     """
     residue_s = float(residue_s)  # (a numpy scalar makes every step of the loop three times slower)
     feeds = []
@@ -361,8 +362,12 @@ def _feeds(length_mm: np.ndarray, durations_s: np.ndarray, moving: np.ndarray, r
             speed = feed / units_per_mm_s
             near = max(speed_mm_s, min(speed, ahead_mm_s))
             if near < speed < near + skipped_mm_s and near >= 0.9 * speed:
-                residue_s -= length_units_s / (near * units_per_mm_s) - length_units_s / feed
-                speed = near
+                # written at the speed RRF would cruise at: the next blocks, made faster by the time
+                # this loses, would else let RRF ramp up to F after all, and the output run short
+                slower = max(1, round(near * units_per_mm_s))
+                residue_s -= length_units_s / slower - length_units_s / feed
+                feeds[-1] = feed = slower
+                speed = feed / units_per_mm_s
             elif ramped:
                 lower_mm_s = speed_mm_s if speed_mm_s >= jump else jump
                 step = speed - lower_mm_s if speed > speed_mm_s else speed_mm_s - speed

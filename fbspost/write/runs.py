@@ -13,6 +13,7 @@ import math
 
 import numpy as np
 
+from ..firmware.reprap import GRACE_S
 from ..firmware.transparency import Transparency
 from ..plan.planner import PlanStream
 from ..read.blocks import Kind
@@ -36,13 +37,24 @@ def _marlin_start_latency_s(options: WriteOptions) -> float | None:
     return 3.0 / options.max_line_rate_hz if options.max_line_rate_hz else 0.0
 
 
-def _start_dwell(dwell, rest_s: float, latency_s: float | None) -> tuple[float, float]:
+def idle_latency_s(options: WriteOptions) -> float:
+    """RepRapFirmware: how late the next move starts after a G4 has emptied its ring: a line's time
+    (the host sends it once the G4 is done), then the grace period RRF waits for more moves (0: not
+    RRF). Each G4 on RRF dwells that much less."""
+    if options.flavor != "reprap":
+        return 0.0
+    return GRACE_S + (1.0 / options.max_line_rate_hz if options.max_line_rate_hz else 0.0)
+
+
+def _start_dwell(dwell, rest_s: float, latency_s: float | None, idle_s: float = 0.0) -> tuple[float, float]:
     """The G4 before a run's first block, for ``rest_s`` of rest: (its dwell, the latency it takes:
     on Marlin, ``latency_s`` not None, the run starts that much after the G4, which dwells less;
     none where the rest is within that latency: the G4 would hold the blocks before it in the
-    buffer for BLOCK_DELAY_FOR_1ST_MOVE, the rest is better the first block's, slower)."""
+    buffer for BLOCK_DELAY_FOR_1ST_MOVE, the rest is better the first block's, slower; else the
+    firmware's ``idle_s`` after a G4, ``idle_latency_s``)."""
     if latency_s is None:
-        return dwell(rest_s), 0.0
+        dwell_s = dwell(max(rest_s - idle_s, 0.0))
+        return dwell_s, idle_s if dwell_s > 0 else 0.0
     if dwell_line("marlin", rest_s - latency_s)[1] > 0:
         return dwell(rest_s - latency_s), latency_s
     return 0.0, 0.0
@@ -50,12 +62,13 @@ def _start_dwell(dwell, rest_s: float, latency_s: float | None) -> tuple[float, 
 
 
 def still_as_dwell(emitter: Emitter, dwell, from_s: float, ends_s: np.ndarray, targets_mm: np.ndarray,
-                   latency_s: float | None, within_mm: float = 0.0) -> int:
+                   latency_s: float | None, within_mm: float = 0.0, idle_s: float = 0.0) -> int:
     """At a run's start (from ``from_s``), the first blocks (ends ``ends_s``, ``targets_mm``) that round
     to no motion (or move less than ``within_mm``) as a dwell (``dwell``: writes one for about the
     seconds given, gives how long it dwells), not as a slow first block: how many it stands for (0:
     none, or the dwell rounds to none). On Marlin (``latency_s`` not None) the dwell also takes up
-    what the last run's end left (``RunWriter._end_run``), with or without such blocks."""
+    what the last run's end left (``RunWriter._end_run``), with or without such blocks; ``idle_s``:
+    ``idle_latency_s``."""
     still = emitter.still(targets_mm[:-1])
     if within_mm > 0.0:  # (those within it of where the controller is: rounded there, or nearer than it)
         at_mm = emitter.to_machine(emitter.written)[:3]
@@ -65,7 +78,7 @@ def still_as_dwell(emitter: Emitter, dwell, from_s: float, ends_s: np.ndarray, t
             still = max(still, creep)
     if still or latency_s is not None:
         span_s = ends_s[still - 1] - from_s if still else 0.0
-        dwell_s, late_s = _start_dwell(dwell, span_s + emitter.residue_s, latency_s)
+        dwell_s, late_s = _start_dwell(dwell, span_s + emitter.residue_s, latency_s, idle_s)
         if dwell_s > 0:
             emitter.residue_s += span_s - dwell_s - late_s
             return still
@@ -115,6 +128,7 @@ class RunWriter:
         # The dense butterfly at SERVO_PERIOD 0.25 ms on the model of LinuxCNC's planner: +1.92% ->
         # +0.80% of the original's time at 18.3 um (18.2), a G4 P0.0168 and 12 ms under 0.5 um dropped
         self._rests_before = options.flavor == "linuxcnc"
+        self.idle_s = idle_latency_s(options)
         self._run_breaks, self._run_g5 = None, None  # the current run's block ends (dense) or blocks and curves (g5)
 
     def runs_from(self, r: int) -> bool:
@@ -171,7 +185,7 @@ class RunWriter:
             if run_start and self._rests_before and self.run_index == 0:  # (the dwell's time: the machine's before)
                 still = still_as_dwell(emitter, _unwritten, from_s, ends, targets, None, self._options.tolerance_mm)
             elif run_start:
-                still = still_as_dwell(emitter, out.dwell, from_s, ends, targets, self.latency_s)
+                still = still_as_dwell(emitter, out.dwell, from_s, ends, targets, self.latency_s, idle_s=self.idle_s)
             if still:
                 from_s, ends, targets = ends[still - 1], ends[still:], targets[still:]
                 curves = None if curves is None else curves[still:]
@@ -197,8 +211,10 @@ class RunWriter:
         # after it (a layer's Z move) would be alone there before the next run's G4, held 100 ms
         # (_start_dwell); the next run's G4 takes the time up (still_as_dwell), the copied lines
         # run that much earlier, X and Y at rest already.
+        # On RRF the next move starts ``idle_s`` after the G4 (idle_latency_s).
         if self.latency_s is None:
-            self.emitter.residue_s -= self._out.dwell(self.emitter.residue_s)
+            dwell_s = self._out.dwell(max(self.emitter.residue_s - self.idle_s, 0.0))
+            self.emitter.residue_s -= dwell_s + (self.idle_s if dwell_s > 0 else 0.0)
         if self._settings is not None and not self.runs_from(self.run_index):
             self._out.lines(*self._settings.restore())  # the program's own, as it left them
 

@@ -90,7 +90,10 @@ class _ProgramWriter:
             # a move fbspost copies runs under the program's own settings (shaping: where it moves X or Y)
             moves_xy = _may_move(previous_mm, block.position_mm, slice(0, 2))
             out.lines(*settings.restore(shaping=moves_xy))
-            if motion.emitter.speed_mm_s > 0 and motion.latency_s is None:
+            # (RRF, at jerk policy 0 as fbspost plans it, stops before a move without X or Y itself; a G4
+            # there would empty its ring: the move then waits its grace period, the look-ahead starves)
+            stops_itself = self._options.flavor == "reprap" and not moves_xy
+            if motion.emitter.speed_mm_s > 0 and motion.latency_s is None and not stops_itself:
                 # from rest, as planned: the last block's speed would carry into it
                 out.lines(dwell_line(self._options.flavor, 0.0)[0])
             # (Marlin: no G4. Its junction caps the move's entry at the slow last block's speed, and a G4
