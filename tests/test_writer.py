@@ -17,7 +17,6 @@ from fbspost.read.blocks import AXES
 from fbspost.write.blockends import breakpoints
 from fbspost.write.emitter import Emitter
 from fbspost.write.linetext import line_text
-from fbspost.write.runs import still_as_dwell
 from reference import execute, fine_servo, positions_at, rest_limits, unbudgeted
 
 PRINTER = unbudgeted(load_profile("bedslinger-example"))
@@ -262,22 +261,6 @@ def test_feed_is_written_only_when_it_changes_also_across_calls():
     targets[:, 0] = [6, 7, 9, 11, 13]  # 2 mm in 0.1 s from the third block on: F1200
     second, count = emitter.blocks(targets, np.full(5, 0.1))
     assert second == b"G1 X6\nG1 X7\nG1 X9 F1200\nG1 X11\nG1 X13\n"
-
-
-@pytest.mark.parametrize("creep_um, still", [((0.03, 0.2, 0.5, 0.8, 1.5, 4.0), 4), ((0.03, 0.2, 3.0, 6.0), 1)])
-def test_a_run_s_creep_within_the_tolerance_is_rest_where_the_next_block_catches_up(creep_um, still):
-    """write.runs.still_as_dwell at a LinuxCNC program's start (within 1 um): the first blocks that
-    stay within it of where the controller is stand for rest, where the block after them ends
-    within twice it (caught up in one block); else only those that round to no motion (0.03 um,
-    under the written 0.1 um) do: a lead that starts fast keeps its creep."""
-    emitter = Emitter(np.zeros(len(AXES)), b"\n")
-    targets = np.zeros((len(creep_um), len(AXES)))
-    targets[:, 0] = np.array(creep_um) * 1e-3
-    asked = []
-    count = still_as_dwell(emitter, lambda s: asked.append(s) or s, 0.0, 0.001 * np.arange(1, len(creep_um) + 1),
-                           targets, None, within_mm=1e-3)
-    assert count == still
-    assert asked == pytest.approx([0.001 * still])
 
 
 def test_retraction_and_z_hop_are_copied_lines_with_xy_still(tmp_path):

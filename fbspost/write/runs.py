@@ -3,8 +3,7 @@
 Takes the plan's runs, the command (``SampleWindow``), the options and the output; writes the
 blocks from where the output is up to a time (``RunWriter.until``): their ends
 (``blockends``), the firmware's settings before them, a dwell for the blocks at a run's start
-that round to no motion (on LinuxCNC none at the program's first run: ``RunWriter``), and each
-run's end.
+that round to no motion, and each run's end.
 """
 from __future__ import annotations
 
@@ -62,20 +61,13 @@ def _start_dwell(dwell, rest_s: float, latency_s: float | None, idle_s: float = 
 
 
 def still_as_dwell(emitter: Emitter, dwell, from_s: float, ends_s: np.ndarray, targets_mm: np.ndarray,
-                   latency_s: float | None, within_mm: float = 0.0, idle_s: float = 0.0) -> int:
+                   latency_s: float | None, idle_s: float = 0.0) -> int:
     """At a run's start (from ``from_s``), the first blocks (ends ``ends_s``, ``targets_mm``) that round
-    to no motion (or move less than ``within_mm``) as a dwell (``dwell``: writes one for about the
-    seconds given, gives how long it dwells), not as a slow first block: how many it stands for (0:
-    none, or the dwell rounds to none). On Marlin (``latency_s`` not None) the dwell also takes up
-    what the last run's end left (``RunWriter._end_run``), with or without such blocks; ``idle_s``:
-    ``idle_latency_s``."""
+    to no motion as a dwell (``dwell``: writes one for about the seconds given, gives how long it
+    dwells), not as a slow first block: how many it stands for (0: none, or the dwell rounds to none).
+    On Marlin (``latency_s`` not None) the dwell also takes up what the last run's end left
+    (``RunWriter._end_run``), with or without such blocks; ``idle_s``: ``idle_latency_s``."""
     still = emitter.still(targets_mm[:-1])
-    if within_mm > 0.0:  # (those within it of where the controller is: rounded there, or nearer than it)
-        at_mm = emitter.to_machine(emitter.written)[:3]
-        off_mm = np.linalg.norm(np.nan_to_num(targets_mm[:, :3] - at_mm), axis=1)
-        creep = int(np.argmax(off_mm[:-1] > within_mm)) if (off_mm[:-1] > within_mm).any() else len(off_mm) - 1
-        if off_mm[creep] <= 2.0 * within_mm:  # (then caught up in one block: a lead that starts fast keeps its creep)
-            still = max(still, creep)
     if still or latency_s is not None:
         span_s = ends_s[still - 1] - from_s if still else 0.0
         dwell_s, late_s = _start_dwell(dwell, span_s + emitter.residue_s, latency_s, idle_s)
@@ -84,12 +76,6 @@ def still_as_dwell(emitter: Emitter, dwell, from_s: float, ends_s: np.ndarray, t
             return still
     return 0
 
-
-
-def _unwritten(seconds: float) -> float:
-    """A LinuxCNC dwell not written, the machine at rest there anyway (``RunWriter``'s program start):
-    how long the G4 would have dwelt (what the blocks after it take up, as after a written one)."""
-    return dwell_line("linuxcnc", seconds)[1]
 
 
 def copied_sample(line_time_s: float, is_stop: bool, fs: float, previous: int) -> int:
@@ -123,11 +109,6 @@ class RunWriter:
         self.run_index = 0  # the run being written
         self.run_from_s = None  # the run's start while none of its blocks is written (then None)
         self.latency_s = _marlin_start_latency_s(options)
-        # LinuxCNC: the program's first run starts where the machine rests before the program: its first
-        # blocks that stay within the tolerance of there are neither written nor waited for (a dwell).
-        # The dense butterfly at SERVO_PERIOD 0.25 ms on the model of LinuxCNC's planner: +1.92% ->
-        # +0.80% of the original's time at 18.3 um (18.2), a G4 P0.0168 and 12 ms under 0.5 um dropped
-        self._rests_before = options.flavor == "linuxcnc"
         self.idle_s = idle_latency_s(options)
         self._run_breaks, self._run_g5 = None, None  # the current run's block ends (dense) or blocks and curves (g5)
 
@@ -181,11 +162,8 @@ class RunWriter:
             if ends[-1] == stop_s and end_exact_mm is not None and not soft:
                 exact = np.where(np.isnan(end_exact_mm), samples.at(ends[-1:], fs, planned=True)[0], end_exact_mm)
                 targets[-1, follows_plan] = exact[follows_plan]
-            still = 0
-            if run_start and self._rests_before and self.run_index == 0:  # (the dwell's time: the machine's before)
-                still = still_as_dwell(emitter, _unwritten, from_s, ends, targets, None, self._options.tolerance_mm)
-            elif run_start:
-                still = still_as_dwell(emitter, out.dwell, from_s, ends, targets, self.latency_s, idle_s=self.idle_s)
+            still = still_as_dwell(emitter, out.dwell, from_s, ends, targets, self.latency_s, self.idle_s) \
+                if run_start else 0
             if still:
                 from_s, ends, targets = ends[still - 1], ends[still:], targets[still:]
                 curves = None if curves is None else curves[still:]
