@@ -94,6 +94,36 @@ REST_S = 1.0  # the recording runs this long before the program starts and after
 COMPENSATE_TIMEOUT_S = 600.0
 
 
+def g_of(modes, frequency_hz):
+    """sum (alpha + beta s) / (s^2 + 2 zeta w s + w^2), s = j 2 pi f."""
+    s = 2j * math.pi * np.asarray(frequency_hz)
+    return sum((m.alpha + m.beta * s) / (s * s + 2 * m.damping * 2 * math.pi * m.frequency_hz * s
+                                         + (2 * math.pi * m.frequency_hz) ** 2) for m in modes)
+
+
+def assert_identified(truth: Path, identified: Path, end_hz: float) -> None:
+    """The identified responses within 10% of the truth's peak over the sweep's band, 5 Hz to
+    ``end_hz`` (fail here, not after minutes of compensating with a wrong model)."""
+    f_hz = np.linspace(5.0, end_hz, 2000)
+    for axis in "XY":
+        true_g = g_of(load_profile(truth).axes[axis].modes, f_hz)
+        error = float(np.abs(g_of(load_profile(identified).axes[axis].modes, f_hz) - true_g).max()
+                      / np.abs(true_g).max())
+        print(f"{axis}: identified response off the truth's by {100 * error:.1f}% of its peak")
+        assert error <= 0.1
+
+
+def assert_the_bar(rows: dict, baselines: tuple[str, ...]) -> None:
+    """Issue 30's bar: FBS from the recordings leaves at most half the RMS contour error of the
+    best of the rows named ``baselines...``, a largest error below the original's, and its
+    prediction within 2x of what the firmware and the truth give."""
+    original, fbs = rows["original"], rows["FBS, measured"]
+    baseline = min(row.rms_um for name, row in rows.items() if name.startswith(baselines))
+    assert fbs.rms_um <= 0.5 * baseline
+    assert fbs.max_um < original.max_um
+    assert 0.5 <= fbs.predicted_rms_um / fbs.rms_um <= 2.0
+
+
 @dataclass(frozen=True)
 class Baseline:
     """A firmware's own input shaping: the types it has (Klipper's name -> the firmware's; None:

@@ -18,38 +18,9 @@ import pytest
 
 from accel_recording import GRAVITY_MM_S2, Accelerometer, record, write_csv
 from fbspost.profile import Mode, load_profile
+from recording_chain import assert_identified, assert_the_bar, g_of
 
 DATA = Path(__file__).resolve().parent / "data"
-
-
-def g_of(modes, frequency_hz):
-    """sum (alpha + beta s) / (s^2 + 2 zeta w s + w^2), s = j 2 pi f."""
-    s = 2j * math.pi * np.asarray(frequency_hz)
-    return sum((m.alpha + m.beta * s) / (s * s + 2 * m.damping * 2 * math.pi * m.frequency_hz * s
-                                         + (2 * math.pi * m.frequency_hz) ** 2) for m in modes)
-
-
-def assert_identified(truth: Path, identified: Path, end_hz: float) -> None:
-    """The identified responses within 10% of the truth's peak over the sweep's band, 5 Hz to
-    ``end_hz`` (fail here, not after minutes of compensating with a wrong model)."""
-    f_hz = np.linspace(5.0, end_hz, 2000)
-    for axis in "XY":
-        true_g = g_of(load_profile(truth).axes[axis].modes, f_hz)
-        error = float(np.abs(g_of(load_profile(identified).axes[axis].modes, f_hz) - true_g).max()
-                      / np.abs(true_g).max())
-        print(f"{axis}: identified response off the truth's by {100 * error:.1f}% of its peak")
-        assert error <= 0.1
-
-
-def assert_the_bar(rows: dict, baselines: tuple[str, ...]) -> None:
-    """Issue 30's bar: FBS from the recordings leaves at most half the RMS contour error of the
-    best of the rows named ``baselines...``, a largest error below the original's, and its
-    prediction within 2x of what the firmware and the truth give."""
-    original, fbs = rows["original"], rows["FBS, measured"]
-    baseline = min(row.rms_um for name, row in rows.items() if name.startswith(baselines))
-    assert fbs.rms_um <= 0.5 * baseline
-    assert fbs.max_um < original.max_um
-    assert 0.5 <= fbs.predicted_rms_um / fbs.rms_um <= 2.0
 
 
 def test_sine_through_one_mode_gives_g_w2_a_and_its_phase(tmp_path):
@@ -191,68 +162,5 @@ def test_measured_profile_beats_shaper_calibrate_on_klippy(tmp_path):
     print(measured.identify_output, modes_text(measured.identified), measured.shapers, sep="\n")
     assert_identified(truth, measured.identified, 120.0)
     rows = evaluate(excerpt("tests/data/gear-marlin2.gcode", 1500, tmp_path), truth, measured, tmp_path, 300.0)
-    print(table(rows))
-    assert_the_bar(rows, ("shaper_calibrate",))
-
-
-# Marlin's and RRF's chains (their planners' models, fbspost.firmware.planners.PLANNER_MODELS): the sweep
-# written for the firmware and recorded from the model's run of it; the baseline the firmware's own
-# shaping through whole steps at what shaper_calibrate picks among its types (tests/recording_chain.py).
-# Sweeps: RRF 12 s; Marlin 30 s (truth A's 12 s Y recording on the Marlin model was refused by
-# identify: a second mode of damping 8.1e-5, uncertain by 393%; 30 s identifies it).
-FIRMWARE_CHAINS = [
-    ("reprap", "truth-a.toml", 12.0),
-    ("reprap", "truth-b.toml", 12.0),
-    ("marlin", "truth-a.toml", 30.0),
-    ("marlin", "truth-b.toml", 30.0),
-]
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("flavor, truth_name, sweep_s", FIRMWARE_CHAINS)
-def test_measured_profile_beats_the_firmwares_own_shaping(tmp_path, flavor, truth_name, sweep_s):
-    """Marlin's and RRF's chains (their planners' models), the gear's first 1500 lines: FBS from the
-    recordings leaves at most half the RMS contour error of the firmware's own shaping (Marlin:
-    INPUT_SHAPING's ZV per axis, the better of shaper_calibrate's ZV and the identified modes;
-    RRF: the better of its M593 shaper at X's and at Y's choice) from the same recordings, a
-    largest error below the original's, and predicts its error within 2x. Every figure: the
-    firmware model's plan on whole steps through the truth's modes. FT_MOTION is printed, not asserted."""
-    from recording_chain import evaluate, excerpt, measure, modes_text, table
-
-    truth = DATA / truth_name
-    measured = measure(truth, tmp_path, ("--duration", sweep_s), flavor=flavor)
-    print(measured.identify_output, modes_text(measured.identified), sep="\n")
-    rows = evaluate(excerpt("tests/data/gear-marlin2.gcode", 1500, tmp_path), truth, measured, tmp_path, 300.0,
-                    fbs=("FBS, measured",))
-    print(table(rows))
-    assert_the_bar(rows, ("Marlin ZV", "RRF M593"))
-
-
-@pytest.mark.slow
-def test_measured_profile_beats_shaper_calibrate_on_linuxcnc_itself(tmp_path):
-    """LinuxCNC's chain, run by LinuxCNC 2.9 itself (skipped where linuxcnc-uspace is not
-    installed): the held-out CNC truth tests/data/truth-stage.toml, excite's LinuxCNC sweeps of X
-    and Y (30 s, excite's default, 5-100 Hz: at 10 s this truth's X, whose zeros lead by 0.91 ms,
-    came out 20% off in 2 of 6 noise draws on the model and in one CI run, with identify's warning
-    that the recording cannot tell its zeros from a time offset) run by LinuxCNC and recorded
-    through the truth, identify with the model of LinuxCNC's planner as the plan; the dense
-    butterfly compensated --flavor linuxcnc and run by LinuxCNC: at most half the RMS contour error
-    of Klipper's shaper at shaper_calibrate's choice from the same recordings on LinuxCNC's run of
-    the original (LinuxCNC has none), a largest error below the original's, and fbspost's
-    prediction (the model of LinuxCNC's planner through the identified modes) within 2x. First, the
-    identified responses within 10% of the truth's peak over the band."""
-    from klippy_planner import klippy_or_skip
-    from linuxcnc_itself import installed
-    from recording_chain import evaluate, measure, modes_text, table
-
-    if not installed():
-        pytest.skip("LinuxCNC is not installed (apt-get install linuxcnc-uspace)")
-    klippy_or_skip()
-    truth = DATA / "truth-stage.toml"
-    measured = measure(truth, tmp_path, ("--end-hz", 100), flavor="linuxcnc")
-    print(measured.identify_output, modes_text(measured.identified), measured.shapers, sep="\n")
-    assert_identified(truth, measured.identified, 100.0)
-    dense = Path(__file__).resolve().parents[1] / "samples" / "butterfly-dense.gcode"
-    rows = evaluate(dense, truth, measured, tmp_path, 300.0, fbs=("FBS, measured",))
     print(table(rows))
     assert_the_bar(rows, ("shaper_calibrate",))
