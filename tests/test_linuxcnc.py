@@ -5,7 +5,6 @@ Truths: scipy's BSpline on homogeneous coordinates (an independent NURBS evaluat
 closed form of a circle (a rational quadratic with weights 1, sqrt(2)/2, 1); LinuxCNC's rs274
 for the expanded programs (its canonical path and its non-motion calls, see canon_check)."""
 import math
-import os
 import shutil
 import subprocess
 from pathlib import Path
@@ -16,7 +15,7 @@ from click.testing import CliRunner
 from scipy.interpolate import BSpline
 from scipy.spatial import cKDTree
 
-from canon_check import command_problems, path_problems
+from canon_check import canonical_moves, command_problems, path_problems
 from fbspost.cli import main
 from fbspost.errors import InputError
 from fbspost.firmware.linuxcnc_time import linuxcnc_feeds
@@ -232,27 +231,11 @@ def test_expanded_program_follows_linuxcncs_canonical_path(tmp_path):
     assert command_problems(program, expanded, table) == []
 
 
-def machine_positions(program: Path, var_file: Path) -> list[tuple[float, ...]]:
-    """X Y Z where rs274 (LinuxCNC's interpreter, on its own) moves the machine in ``program``, run
-    with the parameter file ``var_file`` (a copy: rs274 rewrites it): each traverse's and feed's end
-    plus the work and G92 offsets in force, in its units as it prints them."""
-    var = var_file.with_name(var_file.stem + "-run.var")
-    var.write_text(var_file.read_text())
-    out, table = program.with_suffix(".canon"), program.with_name("empty.tbl")
-    table.touch()
-    subprocess.run(["rs274", "-t", str(table), "-v", str(var), "-g", str(program), str(out)], check=True,
-                   capture_output=True, stdin=subprocess.DEVNULL, env={**os.environ, "HOME": str(program.parent)})
-    offsets, positions = {"SET_G5X_OFFSET": np.zeros(3), "SET_G92_OFFSET": np.zeros(3)}, []
-    for text in out.read_text().splitlines():
-        name, _, args = text.split(maxsplit=2)[-1].partition("(")
-        if name not in offsets and name not in ("STRAIGHT_TRAVERSE", "STRAIGHT_FEED"):
-            continue
-        values = [float(v) for v in args.rstrip(")").split(",")]
-        if name in offsets:
-            offsets[name] = np.array(values[-6:-3])
-        elif name in ("STRAIGHT_TRAVERSE", "STRAIGHT_FEED"):
-            positions.append(tuple(np.round(np.array(values[:3]) + sum(offsets.values()), 4)))
-    return positions
+def machine_positions(program: Path, parameter_file: Path) -> list[tuple[float, ...]]:
+    """X Y Z where rs274 (LinuxCNC's interpreter, on its own) moves the machine in ``program``, started
+    from the machine's ``parameter_file``: each move's end with the G92 offsets in force added."""
+    moves = canonical_moves(canonical_calls(program, parameter_file=parameter_file), False)[0]
+    return [tuple(np.round(end[:3], 4)) for _, end, _ in moves]
 
 
 @needs_rs274
@@ -265,14 +248,14 @@ def test_expansion_runs_where_the_original_does_with_the_machines_g92_offsets(tm
     var = tmp_path / "machine.var"
     var.write_text("5210 1\n5211 10\n5212 -5\n5213 0\n5220 1\n")
     program, expanded = tmp_path / "part.ngc", tmp_path / "part.expanded.ngc"
-    for text, shifted in (("G0 X1 Y2 Z3\nG1 X[1 + #<r>] F600\nG2 X5 Y2 I1 J0\nG1 X6\n", 3),
+    for text, shifted in (("G0 X1 Y2 Z3\nG1 X[1 + #<r>] F600\nG2 X5 Y2 I1 J0\nG1 X6\n", 4),
                           ("G0 X1 Y2 Z3\nG92 X0\nG1 X[#<r>] F600\nG92.1\nG0 X4 Y4\nG1 X5\n", 2)):
         program.write_text(f"G21 G90\n#<r> = 2\n{text}M2\n")
         expand(program, expanded, "test")
         assert "G92.1" not in expanded.read_text()
         original = machine_positions(program, var)
         assert original[0] == (1 + 254.0, 2 - 127.0, 3.0)  # (rs274 reads the file's lengths as inches)
-        assert sum(p[0] > 200 for p in original) == shifted  # (the second: shifted until its G92.1)
+        assert sum(p[0] > 200 for p in original) == shifted  # (the arc too; the second: shifted until its G92.1)
         assert machine_positions(expanded, var) == original
 
 

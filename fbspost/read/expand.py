@@ -108,11 +108,13 @@ def _canonical_code(code: str) -> str:
 
 
 def canonical_calls(program: str | Path, tool_table: str | Path | None = None, ini: str | Path | None = None,
-                    timeout_s: float | None = None, probe_delta: float = 0.0) -> list[tuple[str, list[str]]]:
+                    timeout_s: float | None = None, probe_delta: float = 0.0,
+                    parameter_file: str | Path | None = None) -> list[tuple[str, list[str]]]:
     """rs274's canonical calls for ``program``: (name, arguments as text), in order, with G5/G5.1
     as SPLINE_FEED and probes' codes (``rs274_probes``; every probe's target moved by
-    ``probe_delta``). InputError when rs274 is missing or reports an error (naming the
-    program's line it shows)."""
+    ``probe_delta``); rs274 starts from a copy of ``parameter_file`` (a LinuxCNC var file: its
+    offsets in force) or from none. InputError when rs274 is missing or reports an error (naming
+    the program's line it shows)."""
     rs274 = shutil.which("rs274")
     if rs274 is None:
         raise InputError(program, None, INSTALL_HINT)
@@ -120,6 +122,8 @@ def canonical_calls(program: str | Path, tool_table: str | Path | None = None, i
         table = Path(tool_table).resolve() if tool_table else Path(work, "empty.tbl")
         table.touch(exist_ok=True)
         out = Path(work, "canon.txt")
+        if parameter_file:
+            shutil.copyfile(parameter_file, Path(work, "rs274ngc.var"))
         folder = Path(work, "program")
         folder.mkdir()
         run = instrumented(program, folder, functools.partial(probe_lines, delta=probe_delta)) or program
