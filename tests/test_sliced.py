@@ -1,6 +1,7 @@
 """Real slicer output on the printer profile (bedslinger-example): every non-motion line and the
 extrusion exact, the output within the axes' limits, the contour error per layer through the
 modes (scipy's exact discretization, tests/reference.py) and the print's time."""
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -8,11 +9,12 @@ import pytest
 
 from fbspost.fbs.fallback import FALLBACK
 from fbspost.job.pipeline import SHAPING_LEFT_OFF, compensate_file
+from fbspost.job.report import Report
 from fbspost.plan.pieces import CLAMPED
 from fbspost.plan.planner import plan_blocks
 from fbspost.profile import load_profile
 from fbspost.read.gcode import read_gcode
-from reference import INSERTED, contour_error, execute, modelled_xy, rms, sample_blocks, unbudgeted
+from reference import INSERTED, Executed, contour_error, execute, modelled_xy, rms, sample_blocks, unbudgeted
 
 DATA = Path(__file__).resolve().parent / "data"
 PRINTER = unbudgeted(load_profile("bedslinger-example"))  # (the line budget's cost: test_output_marlin)
@@ -22,19 +24,28 @@ CORPUS = ["gear-marlin2.gcode", "blob-reprap-relative-e.gcode",
           "tube-marlin2.gcode", "pocket-klipper.gcode", "bracket-reprapfirmware-relative-e.gcode"]
 
 
+@dataclass
+class Sliced:
+    source: Path
+    report: Report
+    original: Executed  # the source as the reference executor runs it
+    compensated: Executed  # the output likewise (a whole print's output: tens of seconds to run)
+
+
 @pytest.fixture(scope="module", params=CORPUS)
 def sliced(request, tmp_path_factory):
     source = DATA / request.param
     target = tmp_path_factory.mktemp("sliced") / request.param
-    return source, target, compensate_file(source, target, PRINTER)
+    report = compensate_file(source, target, PRINTER)
+    return Sliced(source, report, execute(source), execute(target))
 
 
 @pytest.mark.slow
 def test_sliced_nonmotion_lines_and_extrusion_exact(sliced):
-    source, target, report = sliced
-    original, compensated = execute(source), execute(target)
-    inserted = [line for line in compensated.nonmotion if line not in set(original.nonmotion)]
-    kept = [line for line in compensated.nonmotion if line in set(original.nonmotion)]
+    original, compensated = sliced.original, sliced.compensated
+    known = set(original.nonmotion)
+    inserted = [line for line in compensated.nonmotion if line not in known]
+    kept = [line for line in compensated.nonmotion if line in known]
     assert kept == original.nonmotion  # every non-motion line, byte-exact, in order
     for line in inserted:  # what fbspost adds: its header, the firmware's settings, mode lines
         assert line.startswith(INSERTED), line
@@ -42,7 +53,7 @@ def test_sliced_nonmotion_lines_and_extrusion_exact(sliced):
     e_out = [
         e
         for line, e in zip(compensated.nonmotion, compensated.e_at_lines, strict=True)
-        if line in set(original.nonmotion)
+        if line in known
     ]
     assert np.abs(np.array(e_out) - np.array(original.e_at_lines)).max() <= 1e-4
     assert abs(compensated.extruded - original.extruded) <= 1e-4
@@ -55,11 +66,11 @@ def test_sliced_output_within_axis_limits(sliced):
     of the sampled command, as for the butterfly). On RRF, beyond that, the speed change at once
     its M566 allows where pieces meld, which fbspost's plan of it makes as RRF does (X and Y: the
     profile's square corner velocity; the original as RRF runs it makes them too)."""
-    _, target, report = sliced
+    report = sliced.report
     # (Z moves at travel feeds; stretches where compensating would raise the modelled error)
     # (and the profile states no input shaping: the output leaves it off, and says so)
     assert not [w for w in report.warnings if not w.startswith((CLAMPED, FALLBACK, SHAPING_LEFT_OFF))]
-    ends = np.array(execute(target).ends)
+    ends = np.array(sliced.compensated.ends)
     jump_mm_s = PRINTER.planner_square_corner_velocity_mm_s if report.flavor == "reprap" else 0.0
     dt = np.diff(ends[:, 0])
     moving = dt > 0
@@ -74,11 +85,9 @@ def test_sliced_output_within_axis_limits(sliced):
 
 @pytest.mark.slow
 def test_sliced_contour_error_time_and_speed(sliced):
-    source, target, report = sliced
+    original, compensated = sliced.original, sliced.compensated
     period_s = 1.0 / PRINTER.sample_rate_hz
-    original = execute(source)
-    plan = plan_blocks(list(read_gcode(source, report.flavor)), PRINTER)
-    compensated = execute(target)
+    plan = plan_blocks(list(read_gcode(sliced.source, sliced.report.flavor)), PRINTER)
     _, command = sample_blocks(compensated.ends, PRINTER.sample_rate_hz)
     # Print time within 3% of the planned original (compute speed is bench/'s business).
     assert abs(compensated.ends[-1][0] - plan.duration_s) <= 0.03 * plan.duration_s
