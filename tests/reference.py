@@ -109,6 +109,7 @@ def finite_derivative_max(u, order, period_s):
 import re  # noqa: E402
 
 _WORD = re.compile(rb"([A-Za-z])\s*([-+]?(?:\d+\.?\d*|\.\d+))")
+_COMMENT = re.compile(rb"\([^)]*\)")
 _MOTION = {b"G0", b"G1", b"G5"}
 _ARCS = {b"G2", b"G3"}
 _ARC_STEPS = 4096  # chords per G5 curve for its arc length (their sum is within ~1e-8 of it)
@@ -116,14 +117,18 @@ _ARC_STEPS = 4096  # chords per G5 curve for its arc length (their sum is within
 
 def split_code(raw: bytes) -> list[tuple[bytes, float]]:
     code = raw.split(b";", 1)[0]
-    code = re.sub(rb"\([^)]*\)", b"", code)
+    code = _COMMENT.sub(b"", code)
     return [(letter.upper(), float(value)) for letter, value in _WORD.findall(code)]
 
 
 def is_motion_line(raw: bytes) -> bool:
     """A G0/G1/G5 line that names an axis (X Y Z E), or any G2/G3 (a full circle names none):
     what a post-processor may rewrite."""
-    words = split_code(raw)
+    return is_motion(split_code(raw))
+
+
+def is_motion(words: list[tuple[bytes, float]]) -> bool:
+    """``is_motion_line`` of a line's ``split_code`` words."""
     g = {f"G{v:g}".encode() for k, v in words if k == b"G"}
     return bool(g & _ARCS) or (bool(g & _MOTION) and any(k in (b"X", b"Y", b"Z", b"E") for k, _ in words))
 
@@ -201,7 +206,7 @@ def execute(path, sample_rate_hz: float = 10000.0, dwell_p_seconds: bool = False
     for raw in open(path, "rb").read().splitlines(keepends=True):
         words = split_code(raw)
         codes = [(k, v) for k, v in words if k in (b"G", b"M")]
-        if is_motion_line(raw):
+        if is_motion(words):
             target = dict(pos)
             curve = {}
             for k, v in words:
@@ -236,7 +241,7 @@ def execute(path, sample_rate_hz: float = 10000.0, dwell_p_seconds: bool = False
                 t += arc_length(xyz0, xyz1, (curve.get("I", 0.0), curve.get("J", 0.0)), curve.get("R"),
                                 codes[0][1] == 2.0) / feed
             else:
-                d_xyz = np.sqrt(sum((target[a] - pos[a]) ** 2 for a in known)) if known else 0.0
+                d_xyz = math.sqrt(sum((target[a] - pos[a]) ** 2 for a in known)) if known else 0.0
                 d_e = abs(target["E"] - pos["E"])
                 length = d_xyz if d_xyz > 0 else d_e
                 moved = [a for a in "XYZE" if pos[a] is not None and target[a] != pos[a]]
