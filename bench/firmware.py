@@ -59,7 +59,7 @@ from fbspost.firmware.verify import contour_um, modelled, printed_path  # noqa: 
 from fbspost.profile import load_profile  # noqa: E402
 from fbspost.read.blocks import AXES  # noqa: E402
 from fbspost.read.flavors import detect_flavor  # noqa: E402
-from fbspost.read.gcode import read_gcode  # noqa: E402
+from fbspost.read.gcode import read_on_machine  # noqa: E402
 from fbspost.tools.simulate import PathDistance, shaper_settings  # noqa: E402
 from firmware_results import klippy_run, move_ends, shaped_plans  # noqa: E402
 from linuxcnc_itself import as_written, joint_commands, on_grid  # noqa: E402
@@ -91,7 +91,7 @@ def klippy_as_run(path: Path, profile, flavor: str) -> Run:
 def model_run(path: Path, profile, flavor: str, line_rate_hz: float | None, **config_changes) -> Run:
     """``path`` through the model of ``flavor``'s planner, the host sending at ``line_rate_hz``."""
     run_model, config, _ = MODELS[flavor]
-    blocks = list(read_gcode(path, flavor, profile.home_mm, work_offsets_mm=profile.work_offsets_mm))
+    blocks = list(read_on_machine(path, flavor, profile))
     run = run_model(blocks, profile, config.from_profile(profile, line_rate_hz=line_rate_hz, **config_changes))
     rests = np.array(run.starved).reshape(-1, 2)
     taken = np.sort(run.taken_s[np.isfinite(run.taken_s)])
@@ -106,7 +106,7 @@ def model_run(path: Path, profile, flavor: str, line_rate_hz: float | None, **co
 def linuxcnc_run(path: Path, profile) -> Run:
     """``path`` through the model of LinuxCNC's trajectory planner; notes: how far its motion is from
     the blocks run as written."""
-    blocks = list(read_gcode(path, "linuxcnc", profile.home_mm, work_offsets_mm=profile.work_offsets_mm))
+    blocks = list(read_on_machine(path, "linuxcnc", profile))
     run = run_linuxcnc(blocks, profile)
     samples = run.positions_mm(profile.sample_rate_hz)[:, :4]
     written_s, starts, ends = as_written(blocks, profile.sample_rate_hz)
@@ -129,7 +129,7 @@ def linuxcnc_own_run(path: Path, profile) -> Run | None:
     if joints is None:
         return None
     period_s = profile.firmware.linuxcnc.servo_period_s
-    blocks = list(read_gcode(path, "linuxcnc", profile.home_mm, work_offsets_mm=profile.work_offsets_mm))
+    blocks = list(read_on_machine(path, "linuxcnc", profile))
     _, starts, ends = as_written(blocks, profile.sample_rate_hz)
     return Run((len(joints) - 1) * period_s, on_grid(joints, period_s, profile.sample_rate_hz),
                *printed_path(starts, ends), "LinuxCNC's own planner")

@@ -21,7 +21,7 @@ import numpy as np
 
 from fbspost.firmware.linuxcnc_segments import LinuxCNCConfig
 from fbspost.read.blocks import Kind
-from fbspost.read.gcode import read_gcode
+from fbspost.read.gcode import read_on_machine
 
 SIM = Path(__file__).resolve().parents[1] / "bench" / "linuxcnc_sim"
 _LOCK = Path(tempfile.gettempdir()) / "fbspost-linuxcnc.lock"
@@ -58,7 +58,7 @@ def joint_commands(program: Path, profile, timeout_s: float = 900.0) -> np.ndarr
     move from an unknown position being no part of it); None where LinuxCNC is not installed."""
     if not installed():
         return None
-    blocks = list(read_gcode(program, "linuxcnc", profile.home_mm, work_offsets_mm=profile.work_offsets_mm))
+    blocks = list(read_on_machine(program, "linuxcnc", profile))
     start = next(b.position_mm[:3] for b in blocks if not np.isnan(b.position_mm[:2]).any())
     given = np.isfinite(start)
     last = next(b.position_mm[:2] for b in reversed(blocks) if not np.isnan(b.position_mm[:2]).any())

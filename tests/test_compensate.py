@@ -17,7 +17,7 @@ from fbspost.job.report import CompensateOptions
 from fbspost.plan.margins import RunMargins
 from fbspost.plan.planner import plan_blocks
 from fbspost.profile import load_profile
-from fbspost.read.gcode import read_gcode
+from fbspost.read.gcode import read_gcode, read_on_machine
 from linuxcnc_itself import as_written
 from reference import (
     contour_error,
@@ -108,7 +108,7 @@ def strokes_between_plunges(path: Path) -> Path:
 def linuxcnc_result(program: Path, path, profile) -> tuple[float, float, float]:
     """(time s, RMS and largest contour error um) of ``program`` as the model of LinuxCNC's planner
     runs it, through the profile's modes, from ``path`` (verify.printed_path)."""
-    run = run_linuxcnc(list(read_gcode(program, "linuxcnc", profile.home_mm, work_offsets_mm=profile.work_offsets_mm)),
+    run = run_linuxcnc(list(read_on_machine(program, "linuxcnc", profile)),
                        profile)
     samples = run.positions_mm(profile.sample_rate_hz)[:, :4]
     return (run.duration_s, *contour_um(modelled(samples, profile), samples, *path))

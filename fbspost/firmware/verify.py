@@ -44,7 +44,7 @@ from ..fbs.dynamics import AxisDynamics
 from ..plan.planner import plan_blocks
 from ..profile import MachineProfile
 from ..read.blocks import AXES, Block, Kind
-from ..read.gcode import read_gcode
+from ..read.gcode import read_on_machine
 from .linuxcnc_segments import BLEND_MODE
 from .marlin import M205_B
 from .planners import PLANNER_MODELS
@@ -225,7 +225,7 @@ class _PathFile:
     def of(cls, program: Path, profile: MachineProfile, flavor: str, store) -> _PathFile | None:
         """The path of ``program`` written to the open binary file ``store`` (None: no X Y Z motion)."""
         pending, any_extrudes, any_moves = [], False, False
-        blocks = read_gcode(program, flavor, profile.home_mm, work_offsets_mm=profile.work_offsets_mm)
+        blocks = read_on_machine(program, flavor, profile)
         for _, _, pieces in commanded_pieces(blocks):
             pending.extend(pieces)
             if len(pending) >= GROUP_PIECES:
@@ -331,10 +331,10 @@ def program_chunks(program: Path, profile: MachineProfile, flavor: str, chunk_li
     """The chunks of ``program`` (see the module docstring): (its blocks, the index among them of
     the line before its first measured one (None: the program's start), that of its last measured
     one (None: the program's end)). A chunk's last measured line is a MOVE: both chunks plan its end.
-    ``lines``: the program's lines, read instead of its file (``read_gcode``)."""
+    ``lines``: the program's lines, read instead of its file (``read_gcode``'s)."""
     held, held_from, settings = [], 0, {}  # held[i] is line held_from + i
     first = 0  # the chunk's first measured line
-    for block in read_gcode(program, flavor, profile.home_mm, lines=lines, work_offsets_mm=profile.work_offsets_mm):
+    for block in read_on_machine(program, flavor, profile, lines):
         held.append(block)
         if held_from + len(held) < first + chunk_lines + overlap_lines:
             continue

@@ -12,8 +12,8 @@ from pathlib import Path
 
 from ..plan.planner import BATCH_BLOCKS
 from ..profile import MachineProfile
-from ..read.blocks import AXES, Block
-from ..read.gcode import read_gcode
+from ..read.blocks import Block
+from ..read.gcode import read_on_machine
 
 
 def _count_lines(path: str | Path) -> int:
@@ -26,8 +26,7 @@ def read_blocks(read_path, flavor: str, profile: MachineProfile, stages: dict[st
     """The program's blocks (a move beyond the profile's travel refused), read a batch at a time:
     the time taken goes to ``stages["read"]``, and ``progress`` is told the fraction of the lines
     read after each batch. (Timed block by block, a CAM program's reading took a tenth longer.)"""
-    blocks = read_gcode(read_path, flavor, profile.home_mm, profile.travel_mm("".join(AXES)),
-                        work_offsets_mm=profile.work_offsets_mm)
+    blocks = read_on_machine(read_path, flavor, profile, within_travel=True)
     total_lines = _count_lines(read_path) if progress else 1
 
     def batches() -> Iterator[list[Block]]:

@@ -88,7 +88,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..profile import FLAVORS
+from ..profile import FLAVORS, MachineProfile
 from .blocks import AXES, Block
 from .reader import Reader
 
@@ -116,6 +116,14 @@ def read_gcode(path: str | Path, flavor: str, home_mm=(0.0, 0.0, 0.0), travel_mm
     if travel_mm is None or not np.isfinite(travel_mm).any():
         return blocks
     return _within_travel(blocks, path, *np.asarray(travel_mm, dtype=float))
+
+
+def read_on_machine(path: str | Path, flavor: str, profile: MachineProfile, lines: Iterable[bytes] | None = None,
+                    within_travel: bool = False) -> Iterator[Block]:
+    """``read_gcode`` in ``profile``'s frame: its home (G28) and its LinuxCNC work offsets, and
+    with ``within_travel`` its travel (a move beyond it refused)."""
+    travel_mm = profile.travel_mm("".join(AXES)) if within_travel else None
+    return read_gcode(path, flavor, profile.home_mm, travel_mm, lines, profile.work_offsets_mm)
 
 
 def _within_travel(blocks: Iterator[Block], path, lowest_mm: np.ndarray, highest_mm: np.ndarray) -> Iterator[Block]:

@@ -45,7 +45,7 @@ from ..plan.planner import Plan, PlanStream, plan_blocks
 from ..profile import AxisProfile, MachineProfile, ProfileError, with_travel
 from ..read.blocks import AXES, Block, Kind, feed_lengths
 from ..read.flavors import detect_flavor
-from ..read.gcode import read_gcode
+from ..read.gcode import read_on_machine
 
 # --model-error: the machines the commands run on, (frequency scale, damping scale) of every mode
 MODEL_ERRORS = (*((1.0 + 0.025 * i, 1.0) for i in range(-4, 5)), (1.0, 0.8), (1.0, 1.25))
@@ -168,8 +168,7 @@ def simulate_program(program: str | Path, profile: MachineProfile, shapers: tupl
         raise ProfileError(f"{profile.source}: no axis has modes: nothing to simulate")
     flavor = flavor or detect_flavor(program)
     profile = with_travel(profile, flavor)  # (as compensate: the command within the firmware's travel)
-    blocks = list(read_gcode(program, flavor, profile.home_mm, profile.travel_mm("".join(AXES)),
-                             work_offsets_mm=profile.work_offsets_mm))
+    blocks = list(read_on_machine(program, flavor, profile, within_travel=True))
     margins = margins or RunMargins.for_profile(profile, flavor=flavor)
     plan = plan_blocks(blocks, profile, margins=margins, firmware=flavor)
     if not plan.runs:
@@ -179,7 +178,7 @@ def simulate_program(program: str | Path, profile: MachineProfile, shapers: tupl
     period_s = 1.0 / profile.sample_rate_hz
     executed = None
     if compensated:
-        written = read_gcode(compensated, flavor, profile.home_mm, work_offsets_mm=profile.work_offsets_mm)
+        written = read_on_machine(compensated, flavor, profile)
         executed = execute_program(_as_planned(written, profile, flavor))
 
     # The grid: rest before the earliest shaped start, after the latest end, then the settling.
