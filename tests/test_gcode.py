@@ -600,6 +600,25 @@ def test_pass_lines(tmp_path, line):
     close(blocks[-1].position_mm, (1, 2, 3, 0))
 
 
+@pytest.mark.parametrize("line, flavor, kind", [
+    ("G10 S210 P0", "reprap", Kind.PASS),  # a tool's temperatures: RRF goes on moving
+    ("G10 P1 R140 S205", "reprap", Kind.PASS),
+    ("G10", "reprap", Kind.STOP),  # firmware retraction, an E move: X and Y at rest
+    ("G10 P0 X1", "reprap", Kind.STOP),  # a tool offset (RRF locks the movement)
+    ("G10 L2 P1 X0", "reprap", Kind.STOP),  # a coordinate system
+    ("G10 S210 P0", "marlin", Kind.STOP),  # Marlin's G10 is a retraction whatever its words
+])
+def test_reprap_tool_temperatures_pass_while_the_machine_moves(tmp_path, line, flavor, kind):
+    """RepRapFirmware's G10 P S R sets a tool's temperatures without waiting for the motion
+    (GCodes::SetOrReportOffsets locks the movement only for an offset): a PrusaSlicer RRF
+    print's second-layer temperature is no stop there, as the bracket's line 215 is not."""
+    blocks = read(tmp_path, HOME + "M83\nG1 X1 Y2 Z3\n" + line + "\nG1 X4\n", flavor)
+    assert blocks[-2].kind is kind
+    if kind is Kind.PASS:
+        close(blocks[-2].position_mm, (1, 2, 3, 0))
+        assert blocks[-1].kind is Kind.MOVE
+
+
 @pytest.mark.parametrize("line", STOP_KEEP_LINES)
 def test_stop_lines_keep_the_position(tmp_path, line):
     blocks = read(tmp_path, HOME + "M83\nG1 X1 Y2 Z3\n" + line + "\nG1 X4\n")

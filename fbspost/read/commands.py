@@ -150,6 +150,12 @@ class Commands:
                 off[i] = pos[i] - v
         return tuple(values)
 
+    def _reprap_tool_temperatures(self, params) -> bool:
+        """RepRapFirmware's G10 P.. S.. R..: a tool's temperatures, no offset (X Y Z), no
+        coordinate system (L), no retraction (G10 without P, R and S)."""
+        return (self.state.flavor == "reprap" and "P" in params and ("S" in params or "R" in params)
+                and not any(a in params for a in "LXYZ"))
+
     def mcodes(self, n, mcodes, params, junk, scale, fx: Effects) -> None:
         for m in mcodes:
             if self.state.cnc and m in (2.0, 3.0, 4.0, 5.0, 19.0, 30.0):  # the spindle, for G33's speed
@@ -215,6 +221,8 @@ class Commands:
             fx.axis_words_used = True
             self.state.forget(self.state.frame)
             fx.kind = Kind.STOP
+        elif g == 10.0 and self._reprap_tool_temperatures(params):
+            pass  # RRF sets them at once, the motion going on (GCodes::SetOrReportOffsets: no lock, no wait)
         elif g == 10.0 or g == 11.0:
             fx.axis_words_used = True
             fx.kind = Kind.STOP
