@@ -100,9 +100,21 @@ class Verdict:
     @property
     def better(self) -> bool:
         """The output is more accurate on the firmware and not slower than allowed."""
-        return (self.output.rms_um < self.original.rms_um
-                and self.output.max_um <= MAX_PEAK_RATIO * self.original.max_um
-                and self.output.duration_s <= self.time_allowed_s)
+        return not self.shortfalls
+
+    @property
+    def shortfalls(self) -> list[str]:
+        """Why the output is not kept, each in a few words (empty: it is better)."""
+        out, orig, why = self.output, self.original, []
+        if out.rms_um >= orig.rms_um:
+            why.append(f"its RMS contour error no lower ({orig.rms_um:.4g} -> {out.rms_um:.4g} um)")
+        if out.max_um > MAX_PEAK_RATIO * orig.max_um:
+            why.append(f"its largest error over {MAX_PEAK_RATIO:g} times the original's "
+                       f"({orig.max_um:.4g} -> {out.max_um:.4g} um)")
+        if out.duration_s > self.time_allowed_s:
+            why.append(f"it runs {100 * self.time_increase:.2f}% longer than the original, beyond the "
+                       f"{100 * MAX_TIME_INCREASE:g}% (and the margins) allowed")
+        return why
 
     @property
     def time_allowed_s(self) -> float:

@@ -97,8 +97,8 @@ class Verification:
             self.verdict = Verdict(self.flavor, *measured, self.plan.added_s)
         if self.original_kept:
             shutil.copyfile(self.input_path, written)
-            self.warnings.append("the original was written unchanged: the output is no better on the firmware "
-                                 "(the verified line)")
+            self.warnings.append("the original was written unchanged: on the firmware's planner "
+                                 f"{'; '.join(self.verdict.shortfalls)} (the verified line)")
         self.stages["verify"] = time.perf_counter() - started_s
 
     def close(self) -> None:
