@@ -39,6 +39,7 @@ def ini_text(profile, tmp: str) -> str:
     config = LinuxCNCConfig.from_profile(profile)
     limits = {f"{kind}{a}": values[k] for k, a in enumerate("XYZ")
               for kind, values in (("v", config.axis_velocity_mm_s), ("a", config.axis_acceleration_mm_s2))}
+    limits.update(vA=config.other_velocity[0], aA=config.other_acceleration[0])  # (A: the sim's rotary axis)
     lc = profile.firmware.linuxcnc
     # (RS274NGC_STARTUP_CODE = G64 alone left LinuxCNC 2.9 running no motion of the dense butterfly)
     startup = f"RS274NGC_STARTUP_CODE = G64 P{lc.g64_p_mm!r} Q{lc.g64_q_mm!r}" if lc.g64_p_mm or lc.g64_q_mm else ""

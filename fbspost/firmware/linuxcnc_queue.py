@@ -86,8 +86,10 @@ class Queue:
         tc.finalized = True
 
     def _tangent(self, prev: Tc, tc: Tc) -> str:
-        """tpSetupTangent: 'ok' (tangent), 'fail' (no blend) or 'try' (kink too large)."""
-        if prev.term == STOP or self.config.optimization_depth < 2:
+        """tpSetupTangent: 'ok' (tangent), 'fail' (no blend arc) or 'try' (kink too large).
+        With A B C U V W motion on either side, LinuxCNC tries neither a tangent nor a blend arc
+        (tpRotaryMotionCheck): the segments keep their own term (a parabolic blend in G64)."""
+        if prev.term == STOP or self.config.optimization_depth < 2 or prev.rotary or tc.rotary:
             return "fail"
         u1, u2 = prev.end_unit(), tc.start_unit()
         if float(np.sum((u1 + u2) ** 2)) < _SHARP_CORNER:  # pmCartCartAntiParallel

@@ -18,6 +18,8 @@ from ..profile import MachineProfile
 from ..read.blocks import Block
 
 _XYZ = slice(0, 3)
+_OTHER, _OTHER_NAMES = slice(4, None), "ABCUVW"  # (E, column 3, is no LinuxCNC axis)
+_CART_FUZZ = 1e-10  # posemath's CART_FUZZ: below it a line's part has no length (tmag_zero)
 STOP, EXACT, PARABOLIC, TANGENT = "stop", "exact", "parabolic", "tangent"
 ACC_TAN = 0.5  # BLEND_ACC_RATIO_TANGENTIAL
 BLEND_MODE = re.compile(rb"[Gg]\s*0*6\s*(4|1\s*\.\s*1|1)(?![\d.])((?:\s*[PpQq]\s*[-+]?[\d.]+)*)")
@@ -30,6 +32,9 @@ class LinuxCNCConfig:
 
     axis_velocity_mm_s: tuple[float, float, float]  # [AXIS_X/Y/Z] MAX_VELOCITY
     axis_acceleration_mm_s2: tuple[float, float, float]  # [AXIS_X/Y/Z] MAX_ACCELERATION
+    # [AXIS_A/B/C/U/V/W] MAX_VELOCITY and MAX_ACCELERATION (deg or mm; inf: not limited)
+    other_velocity: tuple[float, ...] = (math.inf,) * 6
+    other_acceleration: tuple[float, ...] = (math.inf,) * 6
     max_linear_velocity_mm_s: float = math.inf  # [TRAJ] MAX_LINEAR_VELOCITY
     servo_period_s: float = 0.001  # [EMCMOT] SERVO_PERIOD 1000000 ns
     optimization_depth: int = 50  # [TRAJ] ARC_BLEND_OPTIMIZATION_DEPTH
@@ -44,12 +49,17 @@ class LinuxCNCConfig:
         # An axis the profile leaves out (Z on an XY stage) gets the slowest given axis' limits:
         # the INI has finite ones, and without any a move of that axis alone never ends.
         given = [profile.axes[a] for a in "XYZ" if a in profile.axes] or list(profile.axes.values())
-        limits = [profile.axes.get(a) for a in "XYZ"]
-        velocity = tuple(a.max_velocity_mm_s if a else min(g.max_velocity_mm_s for g in given) for a in limits)
-        acceleration = tuple(a.max_acceleration_mm_s2 if a else min(g.max_acceleration_mm_s2 for g in given)
-                             for a in limits)
+
+        def limits(names: str) -> tuple[tuple[float, ...], tuple[float, ...]]:
+            axes = [profile.axes.get(a) for a in names]
+            return (tuple(a.max_velocity_mm_s if a else min(g.max_velocity_mm_s for g in given) for a in axes),
+                    tuple(a.max_acceleration_mm_s2 if a else min(g.max_acceleration_mm_s2 for g in given)
+                          for a in axes))
+
+        (velocity, acceleration), (other_velocity, other_acceleration) = limits("XYZ"), limits(_OTHER_NAMES)
         ini = profile.firmware.linuxcnc  # (ARC_BLEND_FALLBACK_ENABLE: in the INI the bench runs, not modelled)
         return cls(**{"axis_velocity_mm_s": velocity, "axis_acceleration_mm_s2": acceleration,
+                      "other_velocity": other_velocity, "other_acceleration": other_acceleration,
                       "servo_period_s": ini.servo_period_s, "optimization_depth": ini.arc_blend_optimization_depth,
                       "gap_cycles": float(ini.arc_blend_gap_cycles), "ramp_frequency_hz": ini.arc_blend_ramp_freq_hz,
                       "kink_ratio": ini.arc_blend_kink_ratio, "arc_blends": ini.arc_blend_enable,
@@ -71,6 +81,7 @@ class Tc:
     term: str
     tolerance: float
     rapid: bool = False
+    rotary: bool = False  # A B C or U V W move (tpRotaryMotionCheck): neither tangent nor blend arc
     arc_radius: float = math.inf  # the tightest radius of a G2/G3 or of a blend arc
     nominal: float = 0.0
     target: float = 0.0
@@ -187,19 +198,36 @@ def segment(block: Block, index: int, start: np.ndarray, mode: tuple[str, float]
     pieces = np.diff(path, axis=0)
     lengths = np.linalg.norm(pieces, axis=1)
     rest = float(np.linalg.norm((points[-1] - start)[3:]))
+    rotary = bool(np.any(np.abs((points[-1] - start)[_OTHER]) > _CART_FUZZ))
     if lengths.sum() < 1e-12 and rest < 1e-12:
         return []
-    moving = [unit(p) for p, n in zip(pieces, lengths, strict=True) if n > 1e-12] or [np.ones(3) / math.sqrt(3)]
-    vel = min(along(np.array(config.axis_velocity_mm_s), u) for u in moving)
-    acc = min(along(np.array(config.axis_acceleration_mm_s2), u) for u in moving)
+    vel, acc = _straight_limits(pieces, lengths, (points[-1] - start)[_OTHER], config)
     rapid = math.isinf(block.feed_mm_s)
     tc = Tc(start, points[-1], path, index, vel if rapid else min(block.feed_mm_s, vel), vel, acc,
-            mode[0], mode[1], rapid=rapid, arc_radius=_radius(path) if len(points) > 1 else math.inf)
+            mode[0], mode[1], rapid=rapid, rotary=rotary, arc_radius=_radius(path) if len(points) > 1 else math.inf)
     tc.set_path(path)
     if tc.target < 1e-12:  # only axes besides X Y Z: their length, XYZ still
         tc.lengths, tc.target = np.array([0.0, rest]), rest
         tc.path = path[[0, -1]]
     return [tc]
+
+
+def _straight_limits(pieces: np.ndarray, lengths: np.ndarray, other: np.ndarray,
+                     config: LinuxCNCConfig) -> tuple[float, float]:
+    """emccanon's getStraightVelocity / getStraightAcceleration: the fastest F and acceleration
+    along the move with every moving axis within its limits; the A B C U V W axes' share of the
+    XYZ length where XYZ move, else along their own length (the feed's length then)."""
+    other_mm = float(np.linalg.norm(other))
+    moving = [unit(p) for p, n in zip(pieces, lengths, strict=True) if n > 1e-12]
+    if not moving:  # only the other axes: their own direction
+        share = other / other_mm
+        return along(np.array(config.other_velocity), share), along(np.array(config.other_acceleration), share)
+    share = other / float(lengths.sum())
+    vel = min(min(along(np.array(config.axis_velocity_mm_s), u) for u in moving),
+              along(np.array(config.other_velocity), share))
+    acc = min(min(along(np.array(config.axis_acceleration_mm_s2), u) for u in moving),
+              along(np.array(config.other_acceleration), share))
+    return vel, acc
 
 
 def _radius(path: np.ndarray) -> float:

@@ -10,8 +10,10 @@ Modelled from LinuxCNC/linuxcnc src/emc/tp (tp.c, tc.c, blendmath.c of the 2.8/2
 code index stores them, read November 2026: trapezoidal planner only; the S-curve PLANNER_TYPE
 and its jerk limits came with 2.10) and the INI documentation ([TRAJ] ARC_BLEND_*):
 - segments (``tpAddLine``): reqvel F; maxvel and maxaccel the axes' MAX_VELOCITY /
-  MAX_ACCELERATION along the move (emccanon), vLimit [TRAJ] MAX_LINEAR_VELOCITY; a rapid asks
-  for maxvel. A G2/G3 comes from the reader as chords: one segment here, as LinuxCNC keeps it,
+  MAX_ACCELERATION along the move (emccanon, A B C U V W too: a move of those alone along their
+  own length), vLimit [TRAJ] MAX_LINEAR_VELOCITY; a rapid asks for maxvel. A segment that
+  moves A B C U V W is neither tangent to nor blended by an arc with its neighbours
+  (``tpRotaryMotionCheck``). A G2/G3 comes from the reader as chords: one segment here, as LinuxCNC keeps it,
   with ``tcUpdateArcLimits``' normal acceleration share (radius from its chords).
 - the short-segment cap: maxvel <= length / servo period when added and finalized
   (``tcClampVelocityByLength``) and <= length / (1.02 period) in the optimizer
