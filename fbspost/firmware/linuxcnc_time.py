@@ -112,12 +112,14 @@ def _chunk_feeds(blocks: list[Block], lengths_mm: np.ndarray, runs: np.ndarray, 
     before_s = np.append(0.0, line_time_s[:-1])
     run_of, step_mm, start_s, end_s = runs[line], lengths_mm[line], before_s[line], line_time_s[line]
     plan_start_s, plan_end_s = planned.move_start_s[line], planned.line_time_s[line]
-    # the progress along the path against time: flat at rest, each line's length over its own time
-    s_mm = np.cumsum(step_mm)
-    lengths = np.column_stack([s_mm - step_mm, s_mm]).ravel()
-    times, plan_times = (np.column_stack(pair).ravel() for pair in ((start_s, end_s), (plan_start_s, plan_end_s)))
     new_run = np.diff(run_of, prepend=-1) != 0
     index = np.cumsum(new_run) - 1
+    # the progress along the path against time, each line's length over its own time; each run's
+    # apart (a run's end and the next's start are the same length: read there, the plan's time
+    # jumped the rest between them, and the run's last line ran at its feed times the rest's time)
+    s_mm = np.cumsum(step_mm) + index * (step_mm.sum() + 1.0)
+    lengths = np.column_stack([s_mm - step_mm, s_mm]).ravel()
+    times, plan_times = (np.column_stack(pair).ravel() for pair in ((start_s, end_s), (plan_start_s, plan_end_s)))
     first, last = np.flatnonzero(new_run), np.append(np.flatnonzero(new_run)[1:], len(line)) - 1
     from_s = np.maximum(start_s - WINDOW_S / 2, start_s[first][index])
     to_s = np.minimum(end_s + WINDOW_S / 2, end_s[last][index])
