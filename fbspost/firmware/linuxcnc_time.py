@@ -84,7 +84,7 @@ def linuxcnc_feeds(program: Path, profile: MachineProfile, line_times: Iterator[
 
 def _motion(blocks: list[Block]) -> tuple[np.ndarray, np.ndarray]:
     """Each block's length (mm) if it is a motion line (a MOVE of finite feed), else 0; and the
-    run of motion it is in (a rest or a rapid ends one)."""
+    run of motion it is in (a rest, a rapid or a move without X Y Z ends one)."""
     lengths_mm, runs = np.zeros(len(blocks)), np.zeros(len(blocks), dtype=int)
     position, run = np.full(3, np.nan), 0
     for i, block in enumerate(blocks):
@@ -92,7 +92,7 @@ def _motion(blocks: list[Block]) -> tuple[np.ndarray, np.ndarray]:
         if moves and np.isfinite(block.feed_mm_s):
             path = np.vstack([position, block.points_mm[:, :3]])
             lengths_mm[i] = np.linalg.norm(np.nan_to_num(np.diff(path, axis=0)), axis=1).sum()
-        elif block.kind is Kind.STOP or moves:
+        if block.kind is Kind.STOP or moves and not lengths_mm[i] > 1e-12:  # (a move of A B C alone too)
             run += 1
         runs[i] = run
         where = block.points_mm[-1, :3] if moves else block.position_mm[:3]

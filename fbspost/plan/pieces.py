@@ -257,7 +257,7 @@ class BlockReader:
     it is timed. A MOVE that moves no compensated axis is read as a STOP (``_uncompensated_s``)."""
 
     def __init__(self, blocks: Iterable[Block], profile: MachineProfile, firmware: str | None, batch: int,
-                 settle_s: Callable[[bool], float], piece_limits: Callable, every_axis: bool = False):
+                 settle_s: Callable[[bool], float], piece_limits: Callable, compensated: list[int]):
         self._blocks_in = iter(blocks)
         self._batch = batch
         self._settle_s = settle_s
@@ -266,9 +266,7 @@ class BlockReader:
         self._prints = False  # the last MOVE read ends extruding
         self.printing_from = math.inf  # the key of the first run that prints
         self._piece_limits = piece_limits
-        # the axes a compensated command moves: a move of the others alone is a rest of these
-        self._compensated = [c for c, name in enumerate(AXES)
-                             if every_axis or name in profile.axes and profile.axes[name].modes]
+        self._compensated = compensated  # the axes a compensated command moves (columns of AXES)
         self._limits = LimitState(profile, firmware)
         self._state_row = self._limits.row()
         self.n_blocks = 0

@@ -85,7 +85,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..profile import MachineProfile
-from ..read.blocks import AXES, Block
+from ..read.blocks import AXES, EXTRA_AXES, Block
 from .clock import BlockClock
 from .lookahead import LookAhead
 from .margins import RunMargins
@@ -103,6 +103,19 @@ SAMPLE_CHUNK = 1 << 14  # samples evaluated at once (keeps the temporaries in ca
 
 _NA = len(AXES)
 _E = AXES.index("E")
+
+
+def _compensated_columns(profile: MachineProfile, firmware: str | None, every_axis: bool) -> list[int]:
+    """The axes (columns of AXES) a compensated command moves: a move of the others alone is a rest
+    of these, copied as written. Those with modes; with ``every_axis`` all. For ``RESTS_WITHIN_RUNS``
+    (LinuxCNC) every axis but A B C U V W, so that a move of Z alone is a piece of its run, while a
+    move of A B C U V W alone is copied: LinuxCNC blends no segment that moves them (linuxcnc_tp),
+    so written in the run's dense blocks it ran twice as long."""
+    if every_axis:
+        return list(range(len(AXES)))
+    if firmware in RESTS_WITHIN_RUNS:
+        return [c for c in range(len(AXES)) if c not in EXTRA_AXES]
+    return [c for c, name in enumerate(AXES) if name in profile.axes and profile.axes[name].modes]
 
 
 @dataclass
@@ -252,7 +265,7 @@ class PlanStream:
                                   firmware == "reprap")
         self._reader = BlockReader(blocks, profile, firmware, batch_blocks or BATCH_BLOCKS,
                                    functools.partial(margins.settle_at, fs=self._fs), self._pieces.piece_limits,
-                                   every_axis or firmware in RESTS_WITHIN_RUNS)
+                                   _compensated_columns(profile, firmware, every_axis))
         self._scans = LookAhead(klipper)
         self._timeline = Timeline(self._fs, keep)
         self._clock = BlockClock(self._reader.pending, keep)
