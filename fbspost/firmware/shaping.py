@@ -66,6 +66,24 @@ def stepper_positions(samples_mm: np.ndarray, steps_per_mm: dict[str, float]) ->
     return out
 
 
+def staircase_positions(samples_mm: np.ndarray, steps_per_mm: dict[str, float], points: int = 20) -> np.ndarray:
+    """Rows of X Y Z E ... as ``stepper_positions``, but X Y Z each the mean, over its sample's
+    period (centred on it), of the whole step it is on along the motion linear between samples,
+    ``points`` to a period: the staircase a stepper runs (a step where the motion crosses a half
+    step), as a mode sampled at that period feels it. ``stepper_positions`` holds each sample's own
+    step for the period, which aliases a fast axis' step rate (several a period) into the modes'
+    band: a bias against motion whose speed changes from block to block."""
+    out = np.array(samples_mm, dtype=float)
+    n = len(out)
+    at = (np.arange(n * points) - (points - 1) / 2.0) / points  # (in samples)
+    for axis in ("X", "Y", "Z"):
+        if axis in steps_per_mm:
+            column = AXES.index(axis)
+            fine = whole_steps(np.interp(at, np.arange(n), out[:, column]), steps_per_mm[axis])
+            out[:, column] = fine.reshape(n, points).mean(axis=1)
+    return out
+
+
 def marlin_zv_factors(zeta: float) -> tuple[int, int]:
     """(factor1, factor2) of 128: the share of each step Marlin moves at once and ``delay`` later
     (``set_shaping_damping_ratio``: K / (1 + K) fitted by a cubic, floored)."""
