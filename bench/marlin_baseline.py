@@ -25,6 +25,9 @@ step its Bresenham gives, fbspost/firmware/shaping.py), then the profile's modes
   no whole steps to speak of: 0.125 um), written and run so; fbspost over it is the steps' cost.
 RMS and max contour error over the extruding samples to the original's commanded path
 (fbspost.firmware.verify), print time as the model runs it (a shaper adds its lead and lag).
+Each 1 kHz sample is held on its whole step (``shaping.stepper_positions``), which aliases a fast
+axis' step rate into the modes' band; ``rows(..., staircase=True)`` adds the original, FT_MOTION's
+best and fbspost on the stepper's staircase (``shaping.staircase_positions``), which does not.
 """
 from __future__ import annotations
 
