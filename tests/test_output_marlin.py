@@ -243,9 +243,9 @@ def test_x_and_y_rounded_along_the_path_beat_each_on_its_nearest_step(tmp_path, 
     rounded together, their error along the path (``TANGENT_WEIGHT``), each through the model of
     Marlin's planner (its whole-step ends and merge), its stepper's staircase
     (``shaping.staircase_positions``) and printer-two-mode's modes: rounded along the path leaves
-    less RMS contour error. Measured (the Marlin model, 30 November 2026, a load of 9 to 10): 3.53
-    um each on its nearest step, 3.29 along the path (bench/marlin_baseline.py's measure, each
-    sample held on its step: 4.63 and 4.54)."""
+    less RMS contour error. Measured (the Marlin model, 30 November 2026): 3.53 um each on its
+    nearest step, 3.29 along the path (bench/marlin_baseline.py's measure, each sample held on its
+    step: 4.63 and 4.54); 59 s at a load of 4."""
     from fbspost.firmware import steps
 
     weight = steps.TANGENT_WEIGHT
