@@ -25,6 +25,9 @@ step its Bresenham gives, fbspost/firmware/shaping.py), then the profile's modes
   no whole steps to speak of: 0.125 um), written and run so; fbspost over it is the steps' cost.
 RMS and max contour error over the extruding samples to the original's commanded path
 (fbspost.firmware.verify), print time as the model runs it (a shaper adds its lead and lag).
+Each 1 kHz sample is held on its whole step (``shaping.stepper_positions``), which aliases a fast
+axis' step rate into the modes' band; ``rows(..., staircase=True)`` adds the original, FT_MOTION's
+best and fbspost on the stepper's staircase (``shaping.staircase_positions``), which does not.
 """
 from __future__ import annotations
 
@@ -47,6 +50,7 @@ from fbspost.firmware.shaping import (  # noqa: E402
     marlin_zv,
     marlin_zv_shaper,
     shaped_steps,
+    staircase_positions,
     stepper_positions,
 )
 from fbspost.firmware.verify import contour_um, modelled  # noqa: E402
@@ -78,12 +82,14 @@ def fine_steps(machine: str, folder: Path, times: float = 100.0) -> Path:
 
 
 def rows(original: Path, output: Path, profile, budget: float | None,
-         floor: tuple[Path, object] | None = None, flavor: str = "marlin",
+         floor: tuple[Path, object] | None = None, flavor: str = "marlin", staircase: bool = False,
          **config_changes) -> list[tuple[str, float, tuple]]:
     """(name, seconds, (RMS um, max um)) of every run (see the module docstring); ``floor``: the
     output for fine steps and that profile (None: no floor row); ``flavor``: marlin (Marlin ZV,
-    FT_MOTION's best) or reprap (RRF's best M593 shaper); ``config_changes``: MarlinConfig
-    (ReprapConfig) fields the profile does not set (``classic_jerk=True``), for every run."""
+    FT_MOTION's best) or reprap (RRF's best M593 shaper); ``staircase``: then the original, the
+    best shaper but Marlin's ZV and fbspost again, each on the stepper's staircase
+    (``shaping.staircase_positions``); ``config_changes``: MarlinConfig (ReprapConfig) fields the
+    profile does not set (``classic_jerk=True``), for every run."""
     plain = model_run(original, profile, flavor, budget, **config_changes)
     fbs = model_run(output, profile, flavor, budget, **config_changes)
     spm = profile.firmware.steps_per_mm
@@ -101,7 +107,26 @@ def rows(original: Path, output: Path, profile, budget: float | None,
     if floor is not None:
         fine = model_run(floor[0], floor[1], flavor, budget, **config_changes)
         out.append(("floor", fine.seconds, error(fine.samples, fine.samples)))
+    if staircase:
+        out += _on_staircase(plain, fbs, out, profile, error)
     return out
+
+
+def _on_staircase(plain, fbs, out: list, profile, error) -> list[tuple[str, float, tuple]]:
+    """The original, FT_MOTION's best shaper of ``out`` (Marlin only: Marlin's ZV shapes step
+    counts, RRF's is not done) and fbspost, each on the stepper's staircase
+    (``shaping.staircase_positions``): the shaper's plan on steps too fine to matter, then that."""
+    spm = profile.firmware.steps_per_mm
+    rows = [("original, staircase", plain.seconds, error(staircase_positions(plain.samples, spm), plain.samples))]
+    for name, seconds, _ in out:
+        if name.startswith("FT_MOTION"):
+            settings = shaper_settings(profile)
+            per_axis = {a: ft_motion_shaper(name.split()[1].lower(), *settings[a]) for a in settings}
+            fine = lambda x, period_s, s, axis: shaped_steps(x, period_s, 1e9, s)  # noqa: E731
+            (command, padded, _), = shaped_plans(plain.samples, profile, {"": per_axis}, fine).values()
+            rows.append((f"{name}, staircase", seconds, error(staircase_positions(command, spm), padded)))
+    rows.append(("fbspost, staircase", fbs.seconds, error(staircase_positions(fbs.samples, spm), fbs.samples)))
+    return rows
 
 
 def _best_reprap_shaper(plain, profile, error) -> tuple[str, float, tuple]:

@@ -16,6 +16,8 @@ from fbspost.firmware.shaping import (
     marlin_zv_factors,
     reprap_shaper,
     shaped_steps,
+    staircase_positions,
+    stepper_positions,
     whole_steps,
 )
 
@@ -181,3 +183,30 @@ def test_reprap_ei2_is_its_cumulative_coefficients():
     shaper = reprap_shaper("ei2", 40.0, 0.0)
     np.testing.assert_allclose(np.cumsum(shaper.amplitudes), [0.16054, 0.49965, 0.84054, 1.0], atol=1e-12)
     np.testing.assert_allclose(shaper.times_s * 40.0, [0.0, 0.49890, 0.99748, 1.49920], atol=1e-12)
+
+
+def _staircase_mean(a: float, b: float, t0: float, t1: float) -> float:
+    """The exact mean over [t0, t1] of floor(a + b t + 1/2), b > 0: the levels between crossings."""
+    crossings = [t0, *((k - 0.5 - a) / b for k in range(math.floor(a + b * t0 + 0.5) + 1,
+                                                         math.floor(a + b * t1 + 0.5) + 1)), t1]
+    return sum(math.floor(a + b * (lo + hi) / 2 + 0.5) * (hi - lo)
+               for lo, hi in zip(crossings[:-1], crossings[1:], strict=True)) / (t1 - t0)
+
+
+def test_staircase_is_each_periods_mean_of_the_steps():
+    """An axis at 1.05 steps a sample (the bench's hold of each sample's step aliases that into a
+    20-sample sawtooth of half a step): each sample of the staircase is the mean of the whole steps
+    over its period, centred on it, to within the 20 points' 1/20 step of the exact integral;
+    a jump of 50 mm (a position set) is held, not smeared into the samples beside it."""
+    a, b = 0.3, 1.05  # steps, steps per sample
+    x = (a + b * np.arange(300.0)) / SPM
+    x[200:] += 50.0
+    samples = np.zeros((300, 4))
+    samples[:, 0] = x
+    stair = staircase_positions(samples, {"X": SPM})[:, 0] * SPM
+    exact = np.array([_staircase_mean(a, b, i - 0.5, i + 0.5) for i in range(1, 199)])
+    assert np.abs(stair[1:199] - exact).max() <= 1.0 / 20 + 1e-9
+    held = stepper_positions(samples, {"X": SPM})[:, 0] * SPM
+    assert np.abs(stair[199:201] - held[199:201]).max() <= 1.0  # (smeared: 500 steps off)
+    # the bench's hold: off the mean by up to half a step
+    assert np.abs(held[1:199] - exact).max() > 0.4

@@ -49,6 +49,7 @@ FTM_VTOL = 0.05  # FTM_SHAPING_V_TOL: the EI shapers' vibration tolerance
 FT_MOTION_SHAPERS = ("zv", "zvd", "zvdd", "zvddd", "mzv", "ei", "2hei", "3hei")
 REPRAP_SHAPERS = ("zvd", "zvdd", "zvddd", "mzv", "ei2", "ei3")
 _HALF = 64  # Marlin's shaping counter steps at +-64 of 128
+JUMP_MM = 1.0  # between two samples: no axis moves so far (1 m/s at 1 kHz)
 
 
 def whole_steps(positions_mm: np.ndarray, steps_per_mm: float) -> np.ndarray:
@@ -63,6 +64,27 @@ def stepper_positions(samples_mm: np.ndarray, steps_per_mm: dict[str, float]) ->
     for axis in ("X", "Y", "Z"):
         if axis in steps_per_mm:
             out[:, AXES.index(axis)] = whole_steps(out[:, AXES.index(axis)], steps_per_mm[axis])
+    return out
+
+
+def staircase_positions(samples_mm: np.ndarray, steps_per_mm: dict[str, float], points: int = 20) -> np.ndarray:
+    """Rows of X Y Z E ... as ``stepper_positions``, but X Y Z each the mean, over its sample's
+    period (centred on it), of the whole step it is on along the motion linear between samples,
+    ``points`` to a period: the staircase a stepper runs (a step where the motion crosses a half
+    step), as a mode sampled at that period feels it. ``stepper_positions`` holds each sample's own
+    step for the period, which aliases a fast axis' step rate (several a period) into the modes'
+    band: a bias against motion whose speed changes from block to block. A jump of more than
+    ``JUMP_MM`` between samples is a position set, not motion: held."""
+    out = np.array(samples_mm, dtype=float)
+    u = (np.arange(points) - (points - 1) / 2.0) / points  # (of a period, about the sample)
+    for axis in ("X", "Y", "Z"):
+        if axis in steps_per_mm:
+            x = out[:, AXES.index(axis)]
+            before, after = np.append(x[0], x[:-1]), np.append(x[1:], x[-1])
+            before = np.where(np.abs(x - before) > JUMP_MM, x, before)
+            after = np.where(np.abs(after - x) > JUMP_MM, x, after)
+            fine = x[:, None] + np.where(u < 0.0, u * (x - before)[:, None], u * (after - x)[:, None])
+            out[:, AXES.index(axis)] = whole_steps(fine, steps_per_mm[axis]).mean(axis=1)
     return out
 
 

@@ -42,7 +42,8 @@ def rounded_ends(rounding: list, rounding_state: list, ends: np.ndarray, spu: np
     before them, at ``knot_from``) with X Y Z on whole steps, each axis by its ``rounding``
     (``steps``) from its ``rounding_state``: the axes with modes together on the lattice
     (``steps.Lattice``: the chords between the ends solved through the modes against the
-    wanted rows, ``units`` at ``times_s``, row 0 the start), each block kept by Marlin's merge
+    wanted rows, ``units`` at ``times_s``, row 0 the start; X and Y rounded together, their error
+    along the path: ``steps.lattice_counts``), each block kept by Marlin's merge
     (``min_steps`` on some axis; the other axes' steps as in ``plain``, the merge's ends, row 0
     the start); and the rounding's states before each row and after the last."""
     rounded, states = np.rint(ends).astype(np.int64), [None] * 3
@@ -63,7 +64,9 @@ def rounded_ends(rounding: list, rounding_state: list, ends: np.ndarray, spu: np
         rounded[:, i], states[i] = np.rint(counts / spu[i]), st[before]
     others = np.flatnonzero((spu > 0) & ~on_lattice)
     at_steps = np.rint(plain[np.append(0, kept + 1)][:, others] * spu[others])
-    lattice_counts(lattices, (np.abs(np.diff(at_steps, axis=0)) >= min_steps).any(axis=1), min_steps)
+    axes = np.flatnonzero(on_lattice).tolist()
+    plane = (axes.index(0), axes.index(1), 1.0 / spu[0], 1.0 / spu[1]) if {0, 1} <= set(axes) else None
+    lattice_counts(lattices, (np.abs(np.diff(at_steps, axis=0)) >= min_steps).any(axis=1), min_steps, plane)
     for i, lattice in zip(np.flatnonzero(on_lattice), lattices, strict=True):
         rounded[:, i], states[i] = np.rint(lattice.counts / spu[i]), lattice.states[before]
     if exact_last:
