@@ -73,12 +73,11 @@ def test_butterfly_programs_on_patent_stage(butterfly_runs, name, duration_toler
     _, command = sample_blocks(compensated.ends, PATENT.sample_rate_hz)
     after = contour_error(path, modelled_xy(PATENT, command[:, :2], period_s))
     assert rms(after) * 20 <= rms(before), f"{rms(before) * 1e3:.3f} -> {rms(after) * 1e3:.3f} um"
-    # No longer than LinuxCNC runs the original (the model of its planner): at 1 ms LinuxCNC caps the
+    # As long as LinuxCNC runs the original (the model of its planner): at 1 ms LinuxCNC caps the
     # short blocks below their F, and the run, faster there, pays its margins (linuxcnc_time._paid;
-    # before, the dense butterfly's lasted 1.6% longer); the program starts with its lead's motion,
-    # not a dwell (runs.RunWriter: the dense butterfly's 1.0% shorter as written, 0.58% on the model)
+    # before, the dense butterfly's lasted 1.6% longer)
     reference_s = run_linuxcnc(list(read_gcode(source, "linuxcnc")), PATENT).duration_s
-    assert -0.015 <= compensated.ends[-1][0] / reference_s - 1.0 <= duration_tolerance
+    assert abs(compensated.ends[-1][0] - reference_s) <= duration_tolerance * reference_s
     # Block-to-block velocity and acceleration within the profile's limits.
     ends = np.array(compensated.ends)
     dt = np.diff(ends[:, 0])
@@ -131,31 +130,6 @@ def test_linuxcnc_strokes_between_plunges_settle_while_z_moves(tmp_path):
     after_s, after_rms, after_max = linuxcnc_result(target, path, PATENT)
     assert after_s <= 1.01 * before_s
     assert after_rms * 14 <= before_rms, f"{before_rms:.1f} -> {after_rms:.2f} um"
-    assert after_max < before_max
-
-
-@pytest.mark.slow
-def test_linuxcnc_program_starts_with_its_lead_s_motion_not_a_dwell(tmp_path):
-    """Issue 31's time at SERVO_PERIOD 0.25 ms: the program's first run starts from where the machine
-    rests before the program, so its lead's first blocks that stay within the tolerance of there
-    are not written, nor a dwell for them (a G4 P0.0168 and 12 ms of creep under 0.5 um before).
-    On the model of LinuxCNC's planner (its own time of the original, the stage's modes), the
-    dense butterfly's output lasts at most 1% longer than the original (before: +1.92%) at 11x
-    lower RMS contour error, and a lower largest error."""
-    machine = tmp_path / "stage.toml"
-    machine.write_text(Path(PATENT.source).read_text().replace("[firmware]", "[firmware]\nservo_period = 0.00025"))
-    profile = load_profile(machine)
-    source, target = SAMPLES / "butterfly-dense.gcode", tmp_path / "out.ngc"
-    compensate_file(source, target, profile, CompensateOptions(flavor="linuxcnc", verify=False))
-    lines = target.read_text().splitlines()
-    first_motion = next(i for i, line in enumerate(lines) if line.startswith("G1"))
-    assert not any(line.startswith("G4") for line in lines[:first_motion])
-    _, starts, ends = as_written(list(read_gcode(source, "linuxcnc", profile.home_mm)), profile.sample_rate_hz)
-    path = printed_path(starts, ends)
-    before_s, before_rms, before_max = linuxcnc_result(source, path, profile)
-    after_s, after_rms, after_max = linuxcnc_result(target, path, profile)
-    assert after_s <= 1.01 * before_s, f"{after_s / before_s - 1:+.2%}"
-    assert after_rms * 11 <= before_rms, f"{before_rms:.1f} -> {after_rms:.2f} um"
     assert after_max < before_max
 
 
@@ -216,10 +190,8 @@ def test_butterfly_g5_follows_the_command_in_fewer_blocks(butterfly_g5_runs, nam
     _, g5_samples = sample_blocks(g5.path, PATENT.sample_rate_hz)
     assert len(g5_samples) == len(dense_samples)
     assert np.hypot(*(g5_samples[:, :2] - dense_samples[:, :2]).T).max() <= 2.2e-3
-    # As long as the plan, less the lead's creep at rest not written at the program's start
-    # (runs.RunWriter: the dense butterfly's 1.1% shorter as written)
     reference_s = linuxcnc_s(source, fine_servo(PATENT))
-    assert -0.015 <= g5.ends[-1][0] / reference_s - 1.0 <= duration_tolerance
+    assert abs(g5.ends[-1][0] - reference_s) <= duration_tolerance * reference_s
     assert abs(g5.ends[-1][0] - dense.ends[-1][0]) <= 1e-5
     assert [line for line in g5.nonmotion if line in original.nonmotion] == original.nonmotion
     assert g5.nonmotion[-1] == original.nonmotion[-1]

@@ -17,7 +17,6 @@ from fbspost.read.blocks import AXES
 from fbspost.write.blockends import breakpoints
 from fbspost.write.emitter import Emitter
 from fbspost.write.linetext import line_text
-from fbspost.write.runs import creep_at_rest
 from reference import execute, fine_servo, positions_at, rest_limits, unbudgeted
 
 PRINTER = unbudgeted(load_profile("bedslinger-example"))
@@ -262,25 +261,6 @@ def test_feed_is_written_only_when_it_changes_also_across_calls():
     targets[:, 0] = [6, 7, 9, 11, 13]  # 2 mm in 0.1 s from the third block on: F1200
     second, count = emitter.blocks(targets, np.full(5, 0.1))
     assert second == b"G1 X6\nG1 X7\nG1 X9 F1200\nG1 X11\nG1 X13\n"
-
-
-@pytest.mark.parametrize("creep_um, count", [
-    ((0.03, 0.2, 0.5, 0.8, 1.5, 4.0), 4),  # the block after the creep ends within 2 um: caught up
-    ((0.03, 0.2, 3.0, 6.0), 1),  # a lead that starts fast keeps its creep: only what rounds to none
-    ((0.03, 0.06, 0.5), 2),  # a run that never leaves the tolerance: all but its last block
-])
-def test_a_program_s_creep_within_the_tolerance_is_rest_where_the_next_block_catches_up(creep_um, count):
-    """write.runs.creep_at_rest at a LinuxCNC program's start (within 1 um, 0.1 um written): the
-    first blocks that stay within the tolerance of where the controller is stand for rest, where
-    the block after them ends within twice it; else only those that round to no motion (0.03 um)
-    do; never the run's last block. Not decided before a block end leaves the tolerance."""
-    emitter = Emitter(np.zeros(len(AXES)), b"\n")
-    targets = np.zeros((len(creep_um), len(AXES)))
-    targets[:, 0] = np.array(creep_um) * 1e-3
-    still = emitter.still(targets)
-    assert creep_at_rest(targets, np.zeros(3), still, 1e-3, complete=True) == count
-    inside = np.flatnonzero(np.array(creep_um) <= 1.0)[-1] + 1
-    assert creep_at_rest(targets[:inside], np.zeros(3), still, 1e-3, complete=False) is None
 
 
 def test_retraction_and_z_hop_are_copied_lines_with_xy_still(tmp_path):

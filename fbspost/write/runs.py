@@ -78,25 +78,6 @@ def still_as_dwell(emitter: Emitter, dwell, from_s: float, ends_s: np.ndarray, t
 
 
 
-def creep_at_rest(targets_mm: np.ndarray, at_mm: np.ndarray, still: int, tolerance_mm: float,
-                  complete: bool) -> int | None:
-    """At a LinuxCNC program's start (the machine at rest at ``at_mm``, XYZ), how many of the first
-    run's first blocks (their ends ``targets_mm``, rows X Y Z ..., those found so far) stand for
-    that rest, neither written nor waited for, so that the program starts with its lead's
-    motion: its creep within the tolerance, where the block after it ends within twice it (the
-    machine catches up from rest in one block); else the ``still`` first ones (that round to no
-    motion): a lead that starts fast keeps its creep. Never the run's last block. None: more
-    block ends are needed (``complete``: these are all of the run's)."""
-    off_mm = np.linalg.norm(np.nan_to_num(targets_mm[:, :3] - at_mm), axis=1)
-    away = np.flatnonzero(off_mm > tolerance_mm)
-    if not away.size and not complete:
-        return None
-    creep = int(away[0]) if away.size else len(off_mm) - 1
-    if creep < 0 or off_mm[creep] > 2.0 * tolerance_mm:
-        creep = still
-    return max(min(creep, len(off_mm) - 1), 0)
-
-
 def copied_sample(line_time_s: float, is_stop: bool, fs: float, previous: int) -> int:
     """The sample a copied line runs at. The nearest to its planned time (at most half a sample
     off), so that blocks end on samples of the command: a block ending between two samples
@@ -129,9 +110,6 @@ class RunWriter:
         self.run_from_s = None  # the run's start while none of its blocks is written (then None)
         self.latency_s = _marlin_start_latency_s(options)
         self.idle_s = idle_latency_s(options)
-        # LinuxCNC: the program's first run starts where the machine rests before the program anyway
-        self._rests_before = options.flavor == "linuxcnc"
-        self._rest_until = None  # that run's first sample written from, once known (_written_from)
         self._run_breaks, self._run_g5 = None, None  # the current run's block ends (dense) or blocks and curves (g5)
 
     def runs_from(self, r: int) -> bool:
@@ -162,35 +140,11 @@ class RunWriter:
             start_s = max(self._out.written_until_s, first / fs)
             if soft and (t_end_s >= run_end_s or stop_s - start_s < _FLUSH_S or self._options.output_format == "g5"):
                 return
-            if stop_s > start_s:  # (the copied lines before the run passed: the controller's position known)
-                start_s = max(self._out.written_until_s, self._written_from(first) / fs)
             if stop_s > start_s:
                 self._blocks(first, start_s, stop_s, soft, end_exact_mm if t_end_s == stop_s else None)
             if soft or t_end_s < run_end_s:
                 return
             self._end_run()
-
-    def _written_from(self, first: int) -> int:
-        """The sample the current run (from sample ``first``) is written from: on LinuxCNC, the program's
-        first run's after its creep at rest (``creep_at_rest``), a block end of the dense output's
-        (``Breaks``: from the run's samples alone, not from where a batch of blocks or a chunk of
-        samples ends), where the G5 output's blocks start too."""
-        if self.run_index or not self._rests_before:
-            return first
-        plan = self._plan
-        at_mm = self.emitter.to_machine(self.emitter.written)[:3]
-        breaks = Breaks(None, self._options.tolerance_mm, self._min_samples)
-        while self._rest_until is None:
-            fed = first + breaks.fed
-            plan.wait(lambda fed=fed: plan.runs[0][1] is not None or plan.frontier >= fed + _FEED)
-            last = plan.runs[0][1]
-            breaks.n = None if last is None else last - first + 1
-            breaks.feed(self._samples.rows(fed, fed + _FEED if last is None else min(fed + _FEED, last + 1)))
-            targets = self._samples.rows(first, first + breaks.ends[-1] + 1)[breaks.ends[1:]]
-            count = creep_at_rest(targets, at_mm, self.emitter.still(targets), self._options.tolerance_mm,
-                                  breaks.fed == breaks.n)
-            self._rest_until = None if count is None else first + breaks.ends[count]
-        return self._rest_until
 
     def _blocks(self, first: int, start_s: float, stop_s: float, soft: bool, end_exact_mm: np.ndarray | None) -> None:
         """The blocks of the run from sample ``first`` from ``start_s`` to ``stop_s``; the last
@@ -199,10 +153,7 @@ class RunWriter:
         follows_plan = samples.follows_plan
         # A run's first block starts where the controller is, at most a sample before
         # the run's first sample (planner): it takes up the difference.
-        # (On LinuxCNC the program's first run starts at its first sample: the machine rests before it.)
-        resting = self._rests_before and self.run_index == 0
-        from_s = start_s if out.written_until_s >= first / fs or resting \
-            else min(out.written_until_s + self.dwelt_s, start_s)
+        from_s = start_s if out.written_until_s >= first / fs else min(out.written_until_s + self.dwelt_s, start_s)
         for ends, curves in self._block_ends(first, start_s, stop_s, soft):
             run_start = out.written_until_s <= first / fs
             if self._settings is not None:
@@ -268,7 +219,7 @@ class RunWriter:
         for block, line_time_s, is_stop in plan.lines:
             if block.kind is not Kind.MOVE:
                 ahead.append(copied_sample(line_time_s, is_stop, self._fs, ahead[-1]))
-        copied = np.unique(ahead + [self._written_from(first)])  # (and where the dense output's start)
+        copied = np.unique(ahead)
         splits = copied[np.searchsorted(copied, first, "right"):np.searchsorted(copied, last, "left")] - first
         step_mm = 10.0 ** -self.emitter.digits[0] * self.emitter.unit_mm  # I J P Q as written
         run_ends, curves = g5_blocks(self._samples.rows(first, last + 1), splits, self._options.tolerance_mm,
