@@ -119,8 +119,10 @@ def test_linuxcnc_strokes_between_plunges_settle_while_z_moves(tmp_path):
     """On LinuxCNC a move of Z alone is part of its run (planner.RESTS_WITHIN_RUNS): X and Y lead
     and settle while Z plunges and retracts, instead of margins added around 12 rests. On the model
     of LinuxCNC's planner (its own time of the original, the patent stage's modes): the output no
-    longer than the original +1%, 16.3x lower RMS contour error (before: 9.1x, 0.0% time), a lower
-    largest error."""
+    longer than the original +1.5%, 16.3x lower RMS contour error (before: 9.1x, 0.0% time), a lower
+    largest error. (It was within +1% while the retiming cut each run's last line faster, paying
+    part of the margins: linuxcnc_time, fixed November 30; measured since, +1.23%: 9.378 s for
+    9.264.)"""
     source = strokes_between_plunges(tmp_path / "strokes.ngc")
     target = tmp_path / "out.ngc"
     compensate_file(source, target, PATENT)
@@ -128,7 +130,7 @@ def test_linuxcnc_strokes_between_plunges_settle_while_z_moves(tmp_path):
     path = printed_path(starts, ends)
     before_s, before_rms, before_max = linuxcnc_result(source, path, PATENT)
     after_s, after_rms, after_max = linuxcnc_result(target, path, PATENT)
-    assert after_s <= 1.01 * before_s
+    assert after_s <= 1.015 * before_s
     assert after_rms * 14 <= before_rms, f"{before_rms:.1f} -> {after_rms:.2f} um"
     assert after_max < before_max
 
@@ -139,7 +141,9 @@ def test_linuxcnc_switch_of_work_coordinate_system_is_planned_with_the_parameter
     parameter file: given in the profile, the rapid after each switch is a planned move, so the
     command leads and settles around it. On the model of LinuxCNC's planner, run with those
     offsets: 173 -> 12.6 um RMS (13.8x), -1.5% time; without the file (the switch loses the
-    position, the rapid copied from an unknown place, as before) 146 um, +5.1%."""
+    position, the rapid copied from an unknown place, as before) 146 um, +5.1%. Since the
+    retiming no longer cuts each run's last line faster (linuxcnc_time, November 30): +1.16%
+    (9.473 s for 9.364), within +1.5%."""
     (tmp_path / "mill.var").write_text("5241\t10.0\n5242\t2.0\n")
     machine = tmp_path / "stage.toml"
     machine.write_text(Path(PATENT.source).read_text().replace("[firmware]", '[firmware]\nparameter_file = "mill.var"'))
@@ -155,7 +159,7 @@ def test_linuxcnc_switch_of_work_coordinate_system_is_planned_with_the_parameter
     path = printed_path(*as_written(blocks, profile.sample_rate_hz)[1:])
     before_s, before_rms, before_max = linuxcnc_result(source, path, profile)
     after_s, after_rms, after_max = linuxcnc_result(target, path, profile)
-    assert after_s <= 1.01 * before_s
+    assert after_s <= 1.015 * before_s
     assert after_rms * 10 <= before_rms, f"{before_rms:.1f} -> {after_rms:.2f} um"
     assert after_max < before_max
 
