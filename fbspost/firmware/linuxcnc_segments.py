@@ -15,10 +15,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..profile import MachineProfile
-from ..read.blocks import Block
+from ..read.blocks import EXTRA_AXES, OTHER_AXES, Block
 
 _XYZ = slice(0, 3)
-_OTHER, _OTHER_NAMES = slice(4, None), "ABCUVW"  # (E, column 3, is no LinuxCNC axis)
+_OTHER = list(EXTRA_AXES)  # A B C U V W (E, column 3, is no LinuxCNC axis)
 _CART_FUZZ = 1e-10  # posemath's CART_FUZZ: below it a line's part has no length (tmag_zero)
 STOP, EXACT, PARABOLIC, TANGENT = "stop", "exact", "parabolic", "tangent"
 ACC_TAN = 0.5  # BLEND_ACC_RATIO_TANGENTIAL
@@ -56,7 +56,7 @@ class LinuxCNCConfig:
                     tuple(a.max_acceleration_mm_s2 if a else min(g.max_acceleration_mm_s2 for g in given)
                           for a in axes))
 
-        (velocity, acceleration), (other_velocity, other_acceleration) = limits("XYZ"), limits(_OTHER_NAMES)
+        (velocity, acceleration), (other_velocity, other_acceleration) = limits("XYZ"), limits(OTHER_AXES)
         ini = profile.firmware.linuxcnc  # (ARC_BLEND_FALLBACK_ENABLE: in the INI the bench runs, not modelled)
         return cls(**{"axis_velocity_mm_s": velocity, "axis_acceleration_mm_s2": acceleration,
                       "other_velocity": other_velocity, "other_acceleration": other_acceleration,
