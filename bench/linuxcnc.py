@@ -13,7 +13,7 @@ compensation off, follows rs274's canonical path within the tolerance (1 um, plu
 rounding), and rs274 run on fbspost's output gives the same non-motion commands (G33's pitch
 among them), in order, and the same probe targets.
 
-    python bench/linuxcnc.py [--limit N] [-v]
+    python bench/linuxcnc.py [--limit N] [--only NAME ...] [-v]
 """
 from __future__ import annotations
 
@@ -130,10 +130,11 @@ def outcome(program: Path, profile, work: Path, table: Path, ini: Path | None) -
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--limit", type=int, help="only the first N programs")
+    parser.add_argument("--only", nargs="+", metavar="NAME", help="only the programs of these file names")
     parser.add_argument("-v", "--verbose", action="store_true", help="one line per program")
     args = parser.parse_args()
     profile = load_profile("patent-xy-stage")
-    programs = example_programs()[: args.limit]
+    programs = [p for p in example_programs() if not args.only or p.name in args.only][: args.limit]
     runs, still = {}, []
     for program in programs:
         how, moves = runnable(program)
