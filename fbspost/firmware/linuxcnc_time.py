@@ -85,14 +85,15 @@ def linuxcnc_feeds(program: Path, profile: MachineProfile, line_times: Iterator[
 
 def _motion(blocks: list[Block]) -> tuple[np.ndarray, np.ndarray]:
     """Each block's length (mm) if it is a motion line (a MOVE of finite feed) that fbspost
-    compensates, else 0; and the run of motion it is in (a rest, a rapid or a move of A B C U V W,
-    which the plan copies as written: ``plan.planner``, ends one)."""
+    compensates, else 0; and the run of motion it is in (a rest, a rapid or a straight move of A B C
+    U V W, which the plan copies as written: ``plan.planner``, ends one)."""
     lengths_mm, runs = np.zeros(len(blocks)), np.zeros(len(blocks), dtype=int)
     position, run = np.full(len(AXES), np.nan), 0
     for i, block in enumerate(blocks):
         moves = block.kind is Kind.MOVE and block.points_mm is not None
         other, before = (block.points_mm[-1, _OTHER], position[_OTHER]) if moves else (0.0, 0.0)
-        copied = moves and bool(((other != before) & np.isfinite(other) & np.isfinite(before)).any())
+        copied = moves and len(block.points_mm) == 1 and bool(((other != before) & np.isfinite(other)
+                                                                 & np.isfinite(before)).any())
         if moves and not copied and np.isfinite(block.feed_mm_s):
             path = np.vstack([position[:3], block.points_mm[:, :3]])
             lengths_mm[i] = np.linalg.norm(np.nan_to_num(np.diff(path, axis=0)), axis=1).sum()
