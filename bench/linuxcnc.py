@@ -13,7 +13,7 @@ compensation off, follows rs274's canonical path within the tolerance (1 um, plu
 rounding), and rs274 run on fbspost's output gives the same non-motion commands (G33's pitch
 among them), in order, and the same probe targets.
 
-    python bench/linuxcnc.py [--limit N] [-v]
+    python bench/linuxcnc.py [--limit N] [--only NAME ...] [--travel-mm T] [-v]
 """
 from __future__ import annotations
 
@@ -24,6 +24,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -95,10 +96,10 @@ def needs_expansion(program: Path) -> bool:
     return False
 
 
-def outcome(program: Path, profile, work: Path, table: Path, ini: Path | None) -> str:
+def outcome(program: Path, profile, work: Path, table: Path, ini: Path | None) -> tuple[str, str]:
     """'compensated', 'WRONG: ...' or the refusal's reason (its message without file, line, numbers);
     verified on the model of LinuxCNC's planner as the command line does by default: where the
-    original was kept, or the model failed, the outcome says so."""
+    original was kept, or the model failed, the outcome says so. And the check's verdict, if any."""
     output = work / "out.ngc"
     options = CompensateOptions(flavor="linuxcnc", tool_table=table, ini=ini, verify=None)
     try:
@@ -106,9 +107,9 @@ def outcome(program: Path, profile, work: Path, table: Path, ini: Path | None) -
     except InputError as exc:
         message = str(exc).split(": ", 1)[1] if ": " in str(exc) else str(exc)
         message = re.sub(r"^line \d+ of its expansion: ", "", message)
-        return re.sub(r"-?\d+(?:\.\d+)?", "N", message)
+        return re.sub(r"-?\d+(?:\.\d+)?", "N", message), ""
     except Exception as exc:  # noqa: BLE001 (a crash is an outcome to count, not the end of the bench)
-        return f"CRASH: {type(exc).__name__}: {str(exc)[:80]}"
+        return f"CRASH: {type(exc).__name__}: {str(exc)[:80]}", ""
     expanded = needs_expansion(program)
     read = program
     if expanded:
@@ -119,21 +120,28 @@ def outcome(program: Path, profile, work: Path, table: Path, ini: Path | None) -
                     + command_problems(program, output, table, ini))
     except InputError as exc:
         problems = [f"rs274 or the reader refuses what fbspost wrote: {exc}"]
+    verdict = report.verified.summary() if report.verified else ""
     if problems:
-        return "WRONG: " + "; ".join(problems)
+        return "WRONG: " + "; ".join(problems), verdict
     if report.original_kept:
-        return "the original kept: the output no better on LinuxCNC's planner (model)"
+        return "the original kept: the output no better on LinuxCNC's planner (model)", verdict
     failed = [w for w in report.warnings if "its model failed" in w]
-    return f"compensated, not verified: {re.sub(r'-?[0-9.]+', 'N', failed[0])}" if failed else "compensated"
+    return (f"compensated, not verified: {re.sub(r'-?[0-9.]+', 'N', failed[0])}" if failed else "compensated"), verdict
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--limit", type=int, help="only the first N programs")
+    parser.add_argument("--only", nargs="+", metavar="NAME", help="only the programs of these file names")
+    parser.add_argument("--travel-mm", type=float, help="the stage's X and Y travel +-this (default: the profile's)")
     parser.add_argument("-v", "--verbose", action="store_true", help="one line per program")
     args = parser.parse_args()
     profile = load_profile("patent-xy-stage")
-    programs = example_programs()[: args.limit]
+    if args.travel_mm:
+        profile = replace(profile, axes={name: replace(axis, position_min_mm=-args.travel_mm,
+                                                       position_max_mm=args.travel_mm) if name in "XY" else axis
+                                         for name, axis in profile.axes.items()})
+    programs = [p for p in example_programs() if not args.only or p.name in args.only][: args.limit]
     runs, still = {}, []
     for program in programs:
         how, moves = runnable(program)
@@ -149,10 +157,10 @@ def main() -> None:
     started = time.perf_counter()
     for program, (table, ini) in runs.items():
         with tempfile.TemporaryDirectory() as work:
-            result = outcome(program, profile, Path(work), table, ini)
+            result, verdict = outcome(program, profile, Path(work), table, ini)
         counts[result] += 1
         if args.verbose:
-            print(f"  {program}: {result}", flush=True)
+            print(f"  {program}: {result}" + (f" ({verdict})" if verdict else ""), flush=True)
     total = len(runs)
     print("\n| outcome | programs | share |\n|---|---|---|")
     for result, n in sorted(counts.items(), key=lambda item: (item[0] != "compensated", -item[1], item[0])):

@@ -18,7 +18,6 @@ from scipy.spatial import cKDTree
 from canon_check import canonical_moves, command_problems, path_problems
 from fbspost.cli import main
 from fbspost.errors import InputError
-from fbspost.firmware.linuxcnc_time import linuxcnc_feeds
 from fbspost.plan.margins import RunMargins
 from fbspost.plan.planner import plan_blocks
 from fbspost.profile import load_profile
@@ -354,33 +353,64 @@ def test_rotary_axis_is_planned_with_x(tmp_path):
     assert np.abs(a - 9.0 * trapezoid_mm(t, 10.0, 10.0, 5000.0)).max() < 1e-9
 
 
-def test_written_rotary_axis_moves_with_x(tmp_path):
-    """The compensated program writes A in its blocks: replayed as LinuxCNC times them (each
-    block's F along its XYZ length, along A where X Y Z stay), A is the closed-form trapezoid
-    of the plan (A = 9 X of the original, planned at the feed LinuxCNC's time gives it:
-    linuxcnc_time) at every block's end, to the rounding of its digits and F; X is compensated,
-    A followed."""
+def test_moves_of_a_rotary_axis_are_copied_as_written_between_runs(tmp_path):
+    """LinuxCNC blends no segment that moves A B C (tpRotaryMotionCheck), so written in a run's
+    dense blocks they ran twice as long: a move of X Y with A (or A alone) is copied as written,
+    the compensated X Y at rest on either side of it. The output says A only on the original's
+    lines, the runs around each copy end and start exactly where the original's line does, and
+    its feed, replayed as LinuxCNC times a block (each block's F along its XYZ length, along A
+    where X Y Z stay), is the original's: 10 mm of X at F600 in 1 s."""
     program, out = tmp_path / "a.ngc", tmp_path / "out.ngc"
-    program.write_text("G21 G90\nG0 X0 Y0 Z1 A0\nG1 X10 A90 F600\nM2\n")
+    program.write_text("G21 G90\nG0 X0 Y0 Z1 A0\nG1 X10 F600\nG1 X20 A30\nG1 Y10\nA45\nX0\nM2\n")
     result = CliRunner().invoke(main, ["compensate", str(program), "-m", "patent-xy-stage", "--flavor", "linuxcnc",
-                                       "--no-expand", "--lead-time", "0", "--settle-time", "0", "--no-verify",
-                                       "-o", str(out), "-q"])
+                                       "--no-expand", "--no-verify", "-o", str(out), "-q"])
     assert result.exit_code == 0, result.stderr
-    t, a_end, position, feed, ends = 0.0, [], {"X": 0.0, "Y": 0.0, "Z": 1.0, "A": 0.0}, None, []
+    position, feed, copied = {"X": 0.0, "Y": 0.0, "Z": 1.0, "A": 0.0}, None, {}
     for line in out.read_text().splitlines():
-        words = dict((w[0], float(w[1:])) for w in line.split() if w[0] in "XYZAF" and line.startswith("G1 "))
-        if not words or not any(k in words for k in "XYZA"):
-            continue
+        words = dict((w[0], float(w[1:])) for w in line.split() if w[0] in "XYZAF" and not line.startswith("("))
         feed = words.get("F", feed)
-        new = {k: words.get(k, v) for k, v in position.items()}
-        xyz = math.dist([position[k] for k in "XYZ"], [new[k] for k in "XYZ"])
-        t += 60.0 * (xyz or abs(new["A"] - position["A"])) / feed
-        position = new
-        ends.append(t)
-        a_end.append(new["A"])
-    assert len(ends) > 100 and a_end[-1] == 90.0 and position["X"] == 10.0
-    feed_mm_s = next(f for f in linuxcnc_feeds(program, load_profile("patent-xy-stage")) if f is not None)
-    assert np.abs(np.array(a_end) - 9.0 * trapezoid_mm(np.array(ends), 10.0, feed_mm_s, 5000.0)).max() < 2e-3
+        if "A" in words:
+            copied[line] = (dict(position), feed)
+        position.update((k, v) for k, v in words.items() if k != "F")
+    assert list(copied) == ["G0 X0 Y0 Z1 A0", "G1 X20 A30", "A45"]
+    assert copied["G1 X20 A30"] == ({"X": 10.0, "Y": 0.0, "Z": 1.0, "A": 0.0}, 600.0)
+    assert copied["A45"] == ({"X": 20.0, "Y": 10.0, "Z": 1.0, "A": 30.0}, 600.0)
+    assert position == {"X": 0.0, "Y": 10.0, "Z": 1.0, "A": 45.0}
+
+
+@needs_rs274
+def test_copied_moves_get_the_programs_feed_and_rapid_mode_back(tmp_path):
+    """LinuxCNC's puma_seam_weld.ngc: B moved from an unknown place (a0 b-30, copied as written)
+    and the axis words of a rapid (x0 y0 a0 b0 after g0 z30) after the output's G1 blocks. The
+    output, read by LinuxCNC's rs274, runs every line that moves A or B as the original does: the
+    same canonical call (STRAIGHT_FEED or STRAIGHT_TRAVERSE) to the same end, at the same feed.
+    Before, B's 30 degrees ran at the last written block's F28 (64 s for 3.6) and the rapid as a
+    feed move at F87."""
+    program = Path("/usr/share/doc/linuxcnc/examples/sample-configs/sim/axis/vismach/puma/puma_seam_weld.ngc")
+    if not program.is_file():
+        pytest.skip("linuxcnc-uspace's examples are not installed")
+    out = tmp_path / "out.ngc"
+    result = CliRunner().invoke(main, ["compensate", str(program), "-m", "patent-xy-stage", "--flavor", "linuxcnc",
+                                       "--no-verify", "-o", str(out), "-q"])
+    assert result.exit_code == 0, result.stderr
+
+    def rotary_moves(path):
+        """Each canonical move that changes A B C: (call, its end, the feed in force for a feed move)."""
+        feed, rotary, found = None, (0.0, 0.0, 0.0), []
+        for name, args in canonical_calls(path):
+            if name == "SET_FEED_RATE":
+                feed = float(args[0])
+            elif name in ("STRAIGHT_FEED", "STRAIGHT_TRAVERSE"):
+                end = tuple(float(a) for a in args)
+                if end[3:] != rotary:
+                    found.append((name, end, feed if name == "STRAIGHT_FEED" else None))
+                rotary = end[3:]
+        return found
+
+    original = rotary_moves(program)
+    assert len(original) == 6 and original[1] == ("STRAIGHT_FEED", (-50.0, 50.0, -10.0, 0.0, -30.0, 0.0), 500.0)
+    assert original[-1][0] == "STRAIGHT_TRAVERSE"
+    assert rotary_moves(out) == original
 
 
 @needs_rs274

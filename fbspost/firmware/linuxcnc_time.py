@@ -36,11 +36,12 @@ import numpy as np
 
 from ..plan.planner import Plan, plan_blocks
 from ..profile import MachineProfile
-from ..read.blocks import Block, Kind
+from ..read.blocks import AXES, EXTRA_AXES, Block, Kind
 from . import verify
 from .linuxcnc_queue import MIN_SEGMENT_CYCLES
 from .linuxcnc_tp import run_linuxcnc
 
+_OTHER = list(EXTRA_AXES)
 WINDOW_S = 0.01  # the progress is averaged over the line's time and half this either side
 # a run is sped up to pay for its margins only if this share does it: a shorter run keeps them (the
 # dense butterfly's first 40 lines sped up 5% lost their gain: --verify kept the original)
@@ -83,19 +84,23 @@ def linuxcnc_feeds(program: Path, profile: MachineProfile, line_times: Iterator[
 
 
 def _motion(blocks: list[Block]) -> tuple[np.ndarray, np.ndarray]:
-    """Each block's length (mm) if it is a motion line (a MOVE of finite feed), else 0; and the
-    run of motion it is in (a rest, a rapid or a move without X Y Z ends one)."""
+    """Each block's length (mm) if it is a motion line (a MOVE of finite feed) that fbspost
+    compensates, else 0; and the run of motion it is in (a rest, a rapid or a straight move of A B C
+    U V W, which the plan copies as written: ``plan.planner``, ends one)."""
     lengths_mm, runs = np.zeros(len(blocks)), np.zeros(len(blocks), dtype=int)
-    position, run = np.full(3, np.nan), 0
+    position, run = np.full(len(AXES), np.nan), 0
     for i, block in enumerate(blocks):
         moves = block.kind is Kind.MOVE and block.points_mm is not None
-        if moves and np.isfinite(block.feed_mm_s):
-            path = np.vstack([position, block.points_mm[:, :3]])
+        other, before = (block.points_mm[-1, _OTHER], position[_OTHER]) if moves else (0.0, 0.0)
+        copied = moves and len(block.points_mm) == 1 and bool(((other != before) & np.isfinite(other)
+                                                                 & np.isfinite(before)).any())
+        if moves and not copied and np.isfinite(block.feed_mm_s):
+            path = np.vstack([position[:3], block.points_mm[:, :3]])
             lengths_mm[i] = np.linalg.norm(np.nan_to_num(np.diff(path, axis=0)), axis=1).sum()
-        if block.kind is Kind.STOP or moves and not lengths_mm[i] > 1e-12:  # (a move of A B C alone too)
+        if block.kind is Kind.STOP or moves and not lengths_mm[i] > 1e-12:
             run += 1
         runs[i] = run
-        where = block.points_mm[-1, :3] if moves else block.position_mm[:3]
+        where = block.points_mm[-1] if moves else block.position_mm
         position = np.where(np.isnan(where), position, where)
     lengths_mm[lengths_mm <= 1e-12] = 0.0
     return lengths_mm, runs

@@ -257,7 +257,8 @@ class BlockReader:
     it is timed. A MOVE that moves no compensated axis is read as a STOP (``_uncompensated_s``)."""
 
     def __init__(self, blocks: Iterable[Block], profile: MachineProfile, firmware: str | None, batch: int,
-                 settle_s: Callable[[bool], float], piece_limits: Callable, compensated: list[int]):
+                 settle_s: Callable[[bool], float], piece_limits: Callable, compensated: list[int],
+                 copied_with: tuple[int, ...]):
         self._blocks_in = iter(blocks)
         self._batch = batch
         self._settle_s = settle_s
@@ -267,6 +268,7 @@ class BlockReader:
         self.printing_from = math.inf  # the key of the first run that prints
         self._piece_limits = piece_limits
         self._compensated = compensated  # the axes a compensated command moves (columns of AXES)
+        self._copied_with = copied_with  # a move of one of these (columns of AXES) is copied whatever else it moves
         self._limits = LimitState(profile, firmware)
         self._state_row = self._limits.row()
         self.n_blocks = 0
@@ -324,18 +326,20 @@ class BlockReader:
 
 
     def _uncompensated_s(self, points: np.ndarray, feed: float, state_row: list) -> float | None:
-        """How long a MOVE that moves no compensated axis (a retraction, a Z hop, a layer change)
-        takes, from rest to rest as the controller plans it (None: it moves a compensated axis,
-        or an axis it moves is not known before or after). Such a move is a rest of the
-        compensated axes: copied as it is, like a dwell of that length, so that the compensated
-        motion never mixes a creep of X Y with it, and the controller runs it as written."""
+        """How long a MOVE that moves no compensated axis (a retraction, a Z hop, a layer change), or
+        one of ``copied_with`` whatever else, takes, from rest to rest as the controller plans it
+        (None: it moves a compensated axis, or an axis it moves is not known before or after).
+        Such a move is a rest of the compensated axes: copied as it is, like a dwell of that
+        length, so that the compensated motion never mixes a creep of X Y with it, and the
+        controller runs it as written."""
         if len(points) != 1:
             return None
         # (nearly every move moves a compensated axis: told on floats, a few times faster than on arrays)
         point, read = points[0].tolist(), self._read_mm.tolist()
-        for c in self._compensated:
-            if point[c] != read[c] and (point[c] == point[c] or read[c] == read[c]):  # (not both NaN)
-                return None
+        if not any(point[c] != read[c] and point[c] == point[c] and read[c] == read[c] for c in self._copied_with):
+            for c in self._compensated:
+                if point[c] != read[c] and (point[c] == point[c] or read[c] == read[c]):  # (not both NaN)
+                    return None
         # an axis unknown before and after it did not move (a line of E alone after a macro)
         still = (points == self._read_mm) | np.isnan(points) & np.isnan(self._read_mm)
         delta = np.where(still, 0.0, points - self._read_mm)

@@ -35,18 +35,20 @@ switched off and the profile's per-axis limits, as follows:
   passes over squared junction speeds are vectorized min-plus scans; each piece is then a
   trapezoid peaking at min(cruise^2, (v0^2 + v1^2 + 2 a d) / 2).
 
-STOP blocks are rests: the motion decelerates to 0 at them and a G4 waits dwell_s there. So is
-a MOVE of one piece that moves no compensated axis (an axis with modes) from a known position: a
+STOP blocks are rests: the motion decelerates to 0 at them and a G4 waits dwell_s there. So is a
+MOVE of one piece that moves no compensated axis (an axis with modes) from a known position: a
 retraction, a Z hop, a layer change. It becomes a STOP whose dwell is its own trapezoid from rest
 to rest under the limits in force (as the controller plans it: Klipper's rules included), and the
-output copies it as it is: one line, the compensated axes exactly still, never a creep of X Y
-mixed with a large E change (which Klipper would run at its extrude-only limits). For the flavors
-of ``RESTS_WITHIN_RUNS`` (LinuxCNC) it is a piece of its run instead, from rest to rest, the
-compensated axes' lead and settling overlapping it (``PieceMaker``'s ``rests_apart``). The output
-starts and ends its neighbours at rest; where the original's neighbours let such a move keep
-some speed (a Z move after a travel), the controller runs the original a few ms faster than
-planned here. A STOP
-that moved the machine without pieces (G28, a move from an unknown position) takes no time here:
+output copies it as it is: one line, the compensated axes exactly still, never a creep of X Y mixed
+with a large E change (which Klipper would run at its extrude-only limits). For the flavors of
+``RESTS_WITHIN_RUNS`` (LinuxCNC) it is a piece of its run instead, from rest to rest, the
+compensated axes' lead and settling overlapping it (``PieceMaker``'s ``rests_apart``); there a move
+of A B C U V W, alone or with X Y Z, stays a STOP copied as written (LinuxCNC blends no segment
+that moves them).
+The output starts and ends its neighbours at rest; where the original's neighbours let such a move
+keep some speed (a Z move after a travel), the controller runs the original a few ms faster than
+planned here. A STOP that moved the machine without pieces (G28, a move from an unknown position)
+takes no time here:
 the position jumps to the STOP's position, and the next run starts from there. Every run of
 motion starts at rest at one sample and ends at rest at another (its end rounded up), and runs do
 not share samples: the rest after a run (its STOPs' dwells) is timed from its last sample, where
@@ -105,17 +107,19 @@ _NA = len(AXES)
 _E = AXES.index("E")
 
 
-def _compensated_columns(profile: MachineProfile, firmware: str | None, every_axis: bool) -> list[int]:
+def _compensated_columns(profile: MachineProfile, firmware: str | None,
+                         every_axis: bool) -> tuple[list[int], tuple[int, ...]]:
     """The axes (columns of AXES) a compensated command moves: a move of the others alone is a rest
-    of these, copied as written. Those with modes; with ``every_axis`` all. For ``RESTS_WITHIN_RUNS``
-    (LinuxCNC) every axis but A B C U V W, so that a move of Z alone is a piece of its run, while a
-    move of A B C U V W alone is copied: LinuxCNC blends no segment that moves them (linuxcnc_tp),
-    so written in the run's dense blocks it ran twice as long."""
+    of these, copied as written; and those whose move is copied whatever else it moves. Those with
+    modes; with ``every_axis`` all. For ``RESTS_WITHIN_RUNS`` (LinuxCNC) every axis but A B C U V W,
+    so that a move of Z alone is a piece of its run, while a move of A B C U V W, alone or with X Y
+    Z, is copied: LinuxCNC blends no segment that moves them (linuxcnc_tp), so written in the run's
+    dense blocks it ran twice as long."""
     if every_axis:
-        return list(range(len(AXES)))
+        return list(range(len(AXES))), ()
     if firmware in RESTS_WITHIN_RUNS:
-        return [c for c in range(len(AXES)) if c not in EXTRA_AXES]
-    return [c for c, name in enumerate(AXES) if name in profile.axes and profile.axes[name].modes]
+        return [c for c in range(len(AXES)) if c not in EXTRA_AXES], EXTRA_AXES
+    return [c for c, name in enumerate(AXES) if name in profile.axes and profile.axes[name].modes], ()
 
 
 @dataclass
@@ -265,7 +269,7 @@ class PlanStream:
                                   firmware == "reprap")
         self._reader = BlockReader(blocks, profile, firmware, batch_blocks or BATCH_BLOCKS,
                                    functools.partial(margins.settle_at, fs=self._fs), self._pieces.piece_limits,
-                                   _compensated_columns(profile, firmware, every_axis))
+                                   *_compensated_columns(profile, firmware, every_axis))
         self._scans = LookAhead(klipper)
         self._timeline = Timeline(self._fs, keep)
         self._clock = BlockClock(self._reader.pending, keep)

@@ -93,8 +93,10 @@ class Block:
     position_mm: np.ndarray  # (len(AXES),) machine position after this line; NaN where unknown
     # MOVE: (k, len(AXES)) machine-coordinate end points of its k >= 1 linear pieces
     points_mm: np.ndarray | None = None
-    feed_mm_s: float | None = None  # MOVE: requested feed along the path; math.inf for a rapid (G0)
+    feed_mm_s: float | None = None  # a line that moves: requested feed along the path; math.inf for a rapid (G0)
     dwell_s: float = 0.0  # STOP: time at rest (G4)
     limits: PlannerLimits | None = None  # planner changes made by this line
     # axes (indices into AXES) whose program position this line sets where the machine is (G92)
     sets_position: tuple[int, ...] = ()
+    # a line that moves by the motion mode in force (LinuxCNC: axis words without G0-G5 of its own): that mode
+    inherited_motion: float | None = None

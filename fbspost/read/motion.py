@@ -70,7 +70,7 @@ class Motion:
         feed = math.inf if (motion == 0 and state.cnc) else state.feed
         if feed is None or ((x is not None and start[0] != start[0]) or (y is not None and start[1] != start[1])
                             or (z is not None and start[2] != start[2]) or (e is not None and start[3] != start[3])):
-            return Block(n, raw, Kind.STOP, state.modal, np.array(target))  # from an unknown start
+            return Block(n, raw, Kind.STOP, state.modal, np.array(target), feed_mm_s=feed)  # from an unknown start
         if target == start:  # (unnamed axes hold the very same float objects, NaN included)
             return Block(n, raw, Kind.PASS, state.modal, np.array(target))
         both = np.array((target, target))  # one allocation: row 0 the position, row 1 the piece
@@ -136,7 +136,7 @@ class Motion:
             points = None
         state.pos = target
         if not known or stop or feed is None:
-            return Block(n, raw, Kind.STOP, state.modal, np.array(target))
+            return Block(n, raw, Kind.STOP, state.modal, np.array(target), feed_mm_s=feed)
         if motion <= 1:
             if target == start:  # (unnamed axes hold the very same float objects, NaN included)
                 return Block(n, raw, Kind.PASS, state.modal, np.array(target))

@@ -190,7 +190,8 @@ class Reader:
         or its block without motion; ``commanded``: the line has a G, M or T command."""
         words, state, splines = self.words, self.state, self.splines
         # motion: an explicit G0-G5, or axis words continuing the last motion mode
-        if fx.motion is None and not fx.axis_words_used and (self.cnc or not commanded):
+        inherited = fx.motion is None
+        if inherited and not fx.axis_words_used and (self.cnc or not commanded):
             if ("X" in params or "Y" in params or "Z" in params or "E" in params
                     or (self.cnc and any(a in params for a in OTHER_AXES))):
                 fx.motion = state.motion
@@ -210,7 +211,8 @@ class Reader:
             if fx.kind is Kind.STOP and block.kind is not Kind.STOP:
                 block.kind = Kind.STOP
                 block.points_mm = None
-                block.feed_mm_s = None
+            if inherited and block.kind is not Kind.PASS:
+                block.inherited_motion = fx.motion
             block.dwell_s += fx.dwell
             block.limits = fx.limits
             return block

@@ -107,7 +107,8 @@ class _ProgramWriter:
         reached = np.where(np.isnan(block.position_mm), reached, block.position_mm)
         commanded = samples.at(np.array([t]), fs)[0]
         out.lines(*mode_lines(self._options.flavor, motion.emitter.modal, self._previous_modal))
-        out.lines(*_program_feed(self._options.flavor, block, motion.emitter.feed != -1))
+        out.lines(*_program_modes(self._options.flavor, block, motion.emitter.feed != -1,
+                                  self._options.output_format == "g5"))
         if _is_code(block):
             out.rate.add(t)
         out.copy(block.raw)
@@ -188,15 +189,23 @@ _F_WORD = re.compile(rb"[Ff]\s*[-+.0-9]")
 _COMMENT = re.compile(rb"\([^)]*\)|;.*")
 
 
-def _program_feed(flavor: str, block: Block, feed_written: bool) -> list[str]:
-    """The line that gives a copied move its program's F back, where the move does not say its
-    own and the output has written other feeds since the program's last: the firmware would run
-    it at the last written block's F (a Z hop at a creeping block's 0.3 mm/s)."""
-    feed = block.feed_mm_s
-    if not feed_written or feed is None or not math.isfinite(feed) or _F_WORD.search(_COMMENT.sub(b"", block.raw)):
+def _program_modes(flavor: str, block: Block, blocks_written: bool, curves: bool) -> list[str]:
+    """The lines that give a copied move its program's modes back where the output has written
+    blocks since the program's last line: its F, where the move does not say its own (the firmware
+    would run it at the last written block's F: a Z hop at a creeping block's 0.3 mm/s, LinuxCNC's
+    B axis at 28 degrees/min for F500), and on LinuxCNC its G0 (or G1 after the output's G5
+    blocks, ``curves``), where the line moves by the mode in force (the axis words of a rapid after
+    the output's G1 blocks ran as a feed move). A copied arc that continues G2 or G3 gets no mode
+    back: G2 alone is refused (not seen in a program)."""
+    if not blocks_written:
         return []
+    restored = block.inherited_motion in ((0, 1) if curves else (0,))
+    lines = [f"G{block.inherited_motion:g}"] if flavor == "linuxcnc" and restored else []
+    feed = block.feed_mm_s
+    if feed is None or not math.isfinite(feed) or _F_WORD.search(_COMMENT.sub(b"", block.raw)):
+        return lines
     value = f"{feed * 60.0 / (25.4 if block.modal.inches else 1.0):.4f}".rstrip("0").rstrip(".")
-    return [f"F{value}" if flavor == "linuxcnc" else f"G1 F{value}"]
+    return lines + [f"F{value}" if flavor == "linuxcnc" else f"G1 F{value}"]
 
 
 def _is_code(block: Block) -> bool:
