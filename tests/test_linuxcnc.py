@@ -18,6 +18,7 @@ from scipy.spatial import cKDTree
 from canon_check import canonical_moves, command_problems, path_problems
 from fbspost.cli import main
 from fbspost.errors import InputError
+from fbspost.firmware.linuxcnc_tp import run_linuxcnc
 from fbspost.plan.margins import RunMargins
 from fbspost.plan.planner import plan_blocks
 from fbspost.profile import load_profile
@@ -351,6 +352,23 @@ def test_rotary_axis_is_planned_with_x(tmp_path):
     x, a = samples[:, AXES.index("X")], samples[:, AXES.index("A")]
     assert np.abs(x - trapezoid_mm(t, 10.0, 10.0, 5000.0)).max() < 1e-9
     assert np.abs(a - 9.0 * trapezoid_mm(t, 10.0, 10.0, 5000.0)).max() < 1e-9
+
+
+def test_an_axis_the_profile_leaves_out_is_planned_at_the_slowest_given_axis_limits(tmp_path):
+    """LinuxCNC's INI has finite limits for every axis; fbspost's plan and its model of
+    LinuxCNC's planner give Z, which the stage's profile leaves out, the slowest given axis'
+    (100 mm/s, 8000 mm/s^2): G1 Z10 F12000 takes what G1 X10 F12000 takes in each, the plan's the
+    closed form of the trapezoid from rest to rest at 100 mm/s and the profile's planner
+    acceleration (5000 mm/s^2: linuxcnc_time retimes it to LinuxCNC's). The plan had Z unlimited
+    (200 mm/s, the program's F: 0.09 s)."""
+    stage = load_profile("patent-xy-stage")
+    times = {}
+    for axis in "XZ":
+        blocks = moves(tmp_path / "z.ngc", f"G21 G90\nG0 X0 Y0 Z0\nG1 {axis}10 F12000\nM2\n")
+        plan = plan_blocks(blocks, stage, margins=RunMargins(0.0, 0.0), firmware="linuxcnc")
+        times[axis] = plan.pieces.duration_s.sum(), run_linuxcnc(blocks, stage).duration_s
+    assert times["Z"][0] == pytest.approx(10.0 / 100.0 + 100.0 / 5000.0, abs=1e-9)
+    assert times["Z"] == pytest.approx(times["X"], abs=1e-9)
 
 
 def test_moves_of_a_rotary_axis_are_copied_as_written_between_runs(tmp_path):

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..plan.limits import given_or_slowest
 from ..profile import MachineProfile
 from ..read.blocks import EXTRA_AXES, OTHER_AXES, Block
 
@@ -46,17 +47,8 @@ class LinuxCNCConfig:
 
     @classmethod
     def from_profile(cls, profile: MachineProfile, **changes) -> LinuxCNCConfig:
-        # An axis the profile leaves out (Z on an XY stage) gets the slowest given axis' limits:
-        # the INI has finite ones, and without any a move of that axis alone never ends.
-        given = [profile.axes[a] for a in "XYZ" if a in profile.axes] or list(profile.axes.values())
-
-        def limits(names: str) -> tuple[tuple[float, ...], tuple[float, ...]]:
-            axes = [profile.axes.get(a) for a in names]
-            return (tuple(a.max_velocity_mm_s if a else min(g.max_velocity_mm_s for g in given) for a in axes),
-                    tuple(a.max_acceleration_mm_s2 if a else min(g.max_acceleration_mm_s2 for g in given)
-                          for a in axes))
-
-        (velocity, acceleration), (other_velocity, other_acceleration) = limits("XYZ"), limits(OTHER_AXES)
+        (velocity, acceleration), (other_velocity, other_acceleration) = (given_or_slowest(profile, "XYZ"),
+                                                                          given_or_slowest(profile, OTHER_AXES))
         ini = profile.firmware.linuxcnc  # (ARC_BLEND_FALLBACK_ENABLE: in the INI the bench runs, not modelled)
         return cls(**{"axis_velocity_mm_s": velocity, "axis_acceleration_mm_s2": acceleration,
                       "other_velocity": other_velocity, "other_acceleration": other_acceleration,

@@ -13,7 +13,7 @@ import math
 import numpy as np
 
 from ..profile import MachineProfile
-from ..read.blocks import AXES
+from ..read.blocks import AXES, OTHER_AXES
 
 _NA = len(AXES)
 _E = AXES.index("E")
@@ -23,6 +23,17 @@ _E = AXES.index("E")
 REPRAP_JERK_MM_S = {"Z": 10.0, "E": 5.0}
 REPRAP_AXIS_JERK_MM_S = 15.0
 
+
+
+def given_or_slowest(profile: MachineProfile, names: str) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """The velocity (mm/s) and acceleration (mm/s^2) limits of each axis of ``names``: the
+    profile's, else the slowest given axis' (of X Y Z, else of all). LinuxCNC's INI has finite
+    limits for every axis, and without any a move of an axis the profile leaves out (Z on an XY
+    stage) never ends."""
+    given = [profile.axes[a] for a in "XYZ" if a in profile.axes] or list(profile.axes.values())
+    axes = [profile.axes.get(a) for a in names]
+    return (tuple(a.max_velocity_mm_s if a else min(g.max_velocity_mm_s for g in given) for a in axes),
+            tuple(a.max_acceleration_mm_s2 if a else min(g.max_acceleration_mm_s2 for g in given) for a in axes))
 
 class LimitState:
     """The planner settings as the blocks change them; ``row()`` is one row of the state table:
@@ -51,6 +62,10 @@ class LimitState:
             if name in profile.axes:
                 self.axis_v[i] = profile.axes[name].max_velocity_mm_s
                 self.axis_a[i] = profile.axes[name].max_acceleration_mm_s2
+        if firmware == "linuxcnc":  # as LinuxCNC's INI: finite limits for every axis (given_or_slowest)
+            names = "XYZ" + OTHER_AXES
+            columns = [AXES.index(a) for a in names]
+            (self.axis_v[columns], self.axis_a[columns]) = given_or_slowest(profile, names)
 
     def apply(self, limits, line_no: int) -> None:
         def positive(value, what, zero_ok=False):
