@@ -4,7 +4,8 @@ Takes the profile and the limit changes of the blocks (``blocks.PlannerLimits``)
 the limits in force per block (``LimitState.row``), the cruise limits and accelerations of
 pieces by the per-axis rules (``axis_piece_limits``) and the largest speeds at the junctions
 between them (``junction_limits``, Klipper's Move.calc_junction; ``jerk_junction_limits``,
-RepRapFirmware's DDA::MatchSpeeds).
+RepRapFirmware's DDA::MatchSpeeds); and the limits LinuxCNC gives an axis the profile leaves out
+(``given_or_slowest``).
 """
 from __future__ import annotations
 
@@ -24,7 +25,6 @@ REPRAP_JERK_MM_S = {"Z": 10.0, "E": 5.0}
 REPRAP_AXIS_JERK_MM_S = 15.0
 
 
-
 def given_or_slowest(profile: MachineProfile, names: str) -> tuple[tuple[float, ...], tuple[float, ...]]:
     """The velocity (mm/s) and acceleration (mm/s^2) limits of each axis of ``names``: the
     profile's, else the slowest given axis' (of X Y Z, else of all). LinuxCNC's INI has finite
@@ -34,6 +34,7 @@ def given_or_slowest(profile: MachineProfile, names: str) -> tuple[tuple[float, 
     axes = [profile.axes.get(a) for a in names]
     return (tuple(a.max_velocity_mm_s if a else min(g.max_velocity_mm_s for g in given) for a in axes),
             tuple(a.max_acceleration_mm_s2 if a else min(g.max_acceleration_mm_s2 for g in given) for a in axes))
+
 
 class LimitState:
     """The planner settings as the blocks change them; ``row()`` is one row of the state table:

@@ -44,17 +44,15 @@ with a large E change (which Klipper would run at its extrude-only limits). For 
 ``RESTS_WITHIN_RUNS`` (LinuxCNC) it is a piece of its run instead, from rest to rest, the
 compensated axes' lead and settling overlapping it (``PieceMaker``'s ``rests_apart``); there a move
 of A B C U V W, alone or with X Y Z, stays a STOP copied as written (LinuxCNC blends no segment
-that moves them).
-The output starts and ends its neighbours at rest; where the original's neighbours let such a move
-keep some speed (a Z move after a travel), the controller runs the original a few ms faster than
-planned here. A STOP that moved the machine without pieces (G28, a move from an unknown position)
-takes no time here:
-the position jumps to the STOP's position, and the next run starts from there. Every run of
-motion starts at rest at one sample and ends at rest at another (its end rounded up), and runs do
-not share samples: the rest after a run (its STOPs' dwells) is timed from its last sample, where
-the output runs the line at rest, and the next run starts on the first sample at or after the
-rest's end, the sample after the last at the earliest (less than 2 sample periods of extra
-rest, only at STOPs).
+that moves them). The output starts and ends its neighbours at rest; where the original's
+neighbours let such a move keep some speed (a Z move after a travel), the controller runs the
+original a few ms faster than planned here. A STOP that moved the machine without pieces (G28, a
+move from an unknown position) takes no time here: the position jumps to the STOP's position, and
+the next run starts from there. Every run of motion starts at rest at one sample and ends at rest
+at another (its end rounded up), and runs do not share samples: the rest after a run (its STOPs'
+dwells) is timed from its last sample, where the output runs the line at rest, and the next run
+starts on the first sample at or after the rest's end, the sample after the last at the earliest
+(less than 2 sample periods of extra rest, only at STOPs).
 
 Margins (``RunMargins``): every run of motion is given ``lead_s`` before its first motion and
 ``settle_s`` after its last, where the original rests and the compensated command may prepare the
