@@ -34,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..plan.pieces import changes_known
 from ..plan.planner import Plan, plan_blocks
 from ..profile import MachineProfile
 from ..read.blocks import AXES, EXTRA_AXES, Block, Kind
@@ -41,7 +42,6 @@ from . import verify
 from .linuxcnc_queue import MIN_SEGMENT_CYCLES
 from .linuxcnc_tp import run_linuxcnc
 
-_OTHER = list(EXTRA_AXES)
 WINDOW_S = 0.01  # the progress is averaged over the line's time and half this either side
 # a run is sped up to pay for its margins only if this share does it: a shorter run keeps them (the
 # dense butterfly's first 40 lines sped up 5% lost their gain: --verify kept the original)
@@ -91,9 +91,8 @@ def _motion(blocks: list[Block]) -> tuple[np.ndarray, np.ndarray]:
     position, run = np.full(len(AXES), np.nan), 0
     for i, block in enumerate(blocks):
         moves = block.kind is Kind.MOVE and block.points_mm is not None
-        other, before = (block.points_mm[-1, _OTHER], position[_OTHER]) if moves else (0.0, 0.0)
-        copied = moves and len(block.points_mm) == 1 and bool(((other != before) & np.isfinite(other)
-                                                                 & np.isfinite(before)).any())
+        copied = moves and len(block.points_mm) == 1 and changes_known(block.points_mm[-1].tolist(),
+                                                                       position.tolist(), EXTRA_AXES)
         if moves and not copied and np.isfinite(block.feed_mm_s):
             path = np.vstack([position[:3], block.points_mm[:, :3]])
             lengths_mm[i] = np.linalg.norm(np.nan_to_num(np.diff(path, axis=0)), axis=1).sum()

@@ -36,6 +36,13 @@ PIECE_FIELDS = ("block", "run", "start", "end", "length", "extrude_only", "accel
 
 
 
+def changes_known(point: list[float], before: list[float], columns) -> bool:
+    """Whether a straight move from ``before`` to ``point`` (positions, columns of AXES; NaN:
+    unknown) changes one of ``columns`` known on both sides: on LinuxCNC a move of A B C U V W,
+    copied as written whatever else it moves (``BlockReader``, ``linuxcnc_time``)."""
+    return any(point[c] != before[c] and point[c] == point[c] and before[c] == before[c] for c in columns)
+
+
 def fill_unknown(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Hold NaN entries at the last known value of their axis (before it: the first known value;
     never known: 0). Also returns which axes were never known."""
@@ -336,7 +343,7 @@ class BlockReader:
             return None
         # (nearly every move moves a compensated axis: told on floats, a few times faster than on arrays)
         point, read = points[0].tolist(), self._read_mm.tolist()
-        if not any(point[c] != read[c] and point[c] == point[c] and read[c] == read[c] for c in self._copied_with):
+        if not changes_known(point, read, self._copied_with):
             for c in self._compensated:
                 if point[c] != read[c] and (point[c] == point[c] or read[c] == read[c]):  # (not both NaN)
                     return None
